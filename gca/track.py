@@ -1,0 +1,114 @@
+"""MLflow mirroring of stage runs. The metrics JSON a stage writes is the truth; this only mirrors it.
+
+Tracking never breaks a stage: every MLflow failure is turned into a warning and the stage goes on
+(its metrics JSON is written by the stage regardless, before or after the tracking context).
+
+Defaults: ``MLFLOW_TRACKING_URI`` when set, else ``sqlite:///mlflow.db`` in the working directory.
+Tags: stage, scene, method, table, git commit and ``DVC_EXP_NAME`` (set by ``dvc exp run``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import warnings
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+from gca.config import flatten
+
+DEFAULT_URI = "sqlite:///mlflow.db"
+_MAX_PARAM_LEN = 6000  # MLflow rejects longer param values
+
+
+def git_commit() -> str:
+    """Short SHA of HEAD, or ``"unknown"`` outside a git checkout."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+class Run:
+    """A possibly-disabled MLflow run; every method warns instead of raising."""
+
+    def __init__(self, mlflow_module: Any | None):
+        self._mlflow = mlflow_module
+
+    @property
+    def active(self) -> bool:
+        return self._mlflow is not None
+
+    def _call(self, what: str, fn, *args, **kwargs) -> None:
+        if self._mlflow is None:
+            return
+        try:
+            fn(*args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - tracking must never fail a stage
+            warnings.warn(f"mlflow {what} failed ({type(exc).__name__}: {exc}); metrics JSON is unaffected",
+                          RuntimeWarning, stacklevel=3)
+
+    def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
+        """Log numeric metrics (nested keys are flattened with '.'; non-numbers are skipped)."""
+        flat = {k: float(v) for k, v in flatten(metrics).items()
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and v == v}
+        if flat and self._mlflow is not None:
+            self._call("log_metrics", self._mlflow.log_metrics, flat, step=step)
+
+    def log_artifact(self, path: str | os.PathLike) -> None:
+        if self._mlflow is not None and Path(path).exists():
+            fn = self._mlflow.log_artifacts if Path(path).is_dir() else self._mlflow.log_artifact
+            self._call("log_artifact", fn, str(path))
+
+
+def _flat_params(params: Mapping) -> dict[str, str]:
+    return {k: str(v)[:_MAX_PARAM_LEN] for k, v in flatten(params).items()}
+
+
+@contextlib.contextmanager
+def stage_run(stage: str, params: Mapping | None = None, *, experiment: str | None = None,
+              scene: str | None = None, method: str | None = None, table: str | None = None,
+              run_name: str | None = None, tags: Mapping[str, str] | None = None) -> Iterator[Run]:
+    """Open an MLflow run for one stage execution and yield a :class:`Run`.
+
+    Args:
+        stage: DVC stage name (tag ``stage``).
+        params: resolved params; logged flattened (``sim.dt``).
+        experiment: MLflow experiment name (default ``gca/<stage>``; paper tables use ``table``).
+        scene, method, table: optional tags used to compare runs in ``mlflow ui``.
+        run_name: default ``<stage>/<scene>/<method>`` with the parts that are set.
+    """
+    run = Run(None)
+    try:
+        import mlflow
+
+        if not os.environ.get("MLFLOW_TRACKING_URI"):
+            mlflow.set_tracking_uri(DEFAULT_URI)
+        mlflow.set_experiment(experiment or f"gca/{stage}")
+        all_tags = {"stage": stage, "git_commit": git_commit()}
+        for key, value in (("scene", scene), ("method", method), ("table", table)):
+            if value is not None:
+                all_tags[key] = value
+        if os.environ.get("DVC_EXP_NAME"):
+            all_tags["dvc_exp_name"] = os.environ["DVC_EXP_NAME"]
+        all_tags.update(tags or {})
+        name = run_name or "/".join(p for p in (stage, scene, method) if p)
+        mlflow.start_run(run_name=name, tags=all_tags)
+        run = Run(mlflow)
+        if params:
+            run._call("log_params", mlflow.log_params, _flat_params(params))
+    except Exception as exc:  # noqa: BLE001
+        warnings.warn(f"mlflow tracking disabled for stage {stage!r} ({type(exc).__name__}: {exc})",
+                      RuntimeWarning, stacklevel=3)
+        run = Run(None)
+    try:
+        yield run
+    finally:
+        if run.active:
+            status = "FINISHED"
+            import sys
+            if sys.exc_info()[0] is not None:
+                status = "FAILED"
+            run._call("end_run", run._mlflow.end_run, status=status)
