@@ -95,15 +95,20 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
         stage: DVC stage name (``"particles@ball"``); used to restrict the view under DVC.
         path: params file, read directly when not under DVC.
         via_dvc: force/forbid ``dvc.api.params_show``; default: only when DVC is running the stage
-            (DVC exports ``DVC_ROOT`` to stage commands) and ``path`` is the default file.
+            (DVC exports ``DVC_STAGE`` and ``DVC_ROOT`` to stage commands) and ``path`` is the
+            repository's ``params.yaml``. Under DVC the stage name DVC gives wins.
 
     Returns:
         Nested dict with profile switches resolved and ``profile`` kept at the top.
     """
     path = Path(path)
+    dvc_stage = os.environ.get("DVC_STAGE")  # set by DVC for every stage command it runs
     if via_dvc is None:
-        via_dvc = bool(os.environ.get("DVC_ROOT")) and stage is not None and path.name == "params.yaml"
+        via_dvc = bool(dvc_stage) and path.resolve() == Path(os.environ.get("DVC_ROOT", ".")).resolve() / "params.yaml"
+    stage = dvc_stage or stage
     tree = _params_via_dvc(stage, path) if via_dvc else read_yaml(path)
+    if via_dvc and "profile" not in tree:
+        raise ConfigError(f"dvc.yaml: stage {stage!r} must declare the `profile` param (it selects the scale)")
     profile = _active_profile(tree)
     resolved = resolve(tree, profile)
     resolved["profile"] = profile

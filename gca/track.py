@@ -38,6 +38,14 @@ class Run:
         self._mlflow = mlflow_module
 
     @property
+    def run_id(self) -> str | None:
+        """The MLflow run id (None when tracking is off)."""
+        try:
+            return self._mlflow.active_run().info.run_id if self._mlflow else None
+        except Exception:  # noqa: BLE001
+            return None
+
+    @property
     def active(self) -> bool:
         return self._mlflow is not None
 
@@ -70,7 +78,8 @@ def _flat_params(params: Mapping) -> dict[str, str]:
 @contextlib.contextmanager
 def stage_run(stage: str, params: Mapping | None = None, *, experiment: str | None = None,
               scene: str | None = None, method: str | None = None, table: str | None = None,
-              run_name: str | None = None, tags: Mapping[str, str] | None = None) -> Iterator[Run]:
+              run_name: str | None = None, tags: Mapping[str, str] | None = None,
+              resume_run_id: str | None = None) -> Iterator[Run]:
     """Open an MLflow run for one stage execution and yield a :class:`Run`.
 
     Args:
@@ -79,6 +88,8 @@ def stage_run(stage: str, params: Mapping | None = None, *, experiment: str | No
         experiment: MLflow experiment name (default ``gca/<stage>``; paper tables use ``table``).
         scene, method, table: optional tags used to compare runs in ``mlflow ui``.
         run_name: default ``<stage>/<scene>/<method>`` with the parts that are set.
+        resume_run_id: continue this run (e.g. evaluation adds final metrics to the training run of
+            the same (scene, method, seed)); a new run is started if it cannot be resumed.
     """
     run = Run(None)
     try:
@@ -94,10 +105,15 @@ def stage_run(stage: str, params: Mapping | None = None, *, experiment: str | No
         if os.environ.get("DVC_EXP_NAME"):
             all_tags["dvc_exp_name"] = os.environ["DVC_EXP_NAME"]
         all_tags.update(tags or {})
-        name = run_name or "/".join(p for p in (stage, scene, method) if p)
-        mlflow.start_run(run_name=name, tags=all_tags)
+        name = run_name or "/".join(p for p in (scene, method) if p) or stage
+        try:
+            mlflow.start_run(run_id=resume_run_id, tags=all_tags) if resume_run_id else None
+        except Exception:  # noqa: BLE001 - e.g. another tracking store: start fresh
+            resume_run_id = None
+        if not resume_run_id:
+            mlflow.start_run(run_name=name, tags=all_tags)
         run = Run(mlflow)
-        if params:
+        if params and not resume_run_id:
             run._call("log_params", mlflow.log_params, _flat_params(params))
     except Exception as exc:  # noqa: BLE001
         warnings.warn(f"mlflow tracking disabled for stage {stage!r} ({type(exc).__name__}: {exc})",

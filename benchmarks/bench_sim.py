@@ -1,0 +1,179 @@
+"""Throughput and memory of the gca.sim MPM solver (a script, not a test).
+
+Measures, for each (particles, grid) configuration:
+  - forward particle-steps per second of ``MPMSolver.step`` (tau given, no law cost),
+  - forward + backward particle-steps per second (a chain of steps, then one backward),
+and, unless ``--skip-rollout``, the peak memory of back-propagating a checkpointed rollout
+(corotated law from gca.laws; default 30k particles, 400 steps): ``torch.cuda.max_memory_allocated``
+on CUDA, the process' peak RSS on the CPU (a coarse upper bound that includes the interpreter).
+
+Usage::
+
+    python benchmarks/bench_sim.py --device cuda                      # paper sizes (H100)
+    python benchmarks/bench_sim.py --device cpu --sizes 10000:32 2000:32 --steps 5 \
+        --rollout-particles 3000 --rollout-steps 40                   # CPU smoke sizes
+
+Prints a table and writes JSON (``--json``, default benchmarks/results/sim_<device>.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import time
+from pathlib import Path
+
+import torch
+import warp as wp
+
+from gca.laws.base import Material
+from gca.laws.elastic import CorotatedElasticity
+from gca.laws.plastic import IdentityPlasticity
+from gca.sim import MPMSolver, SimConfig, rollout
+
+RHO = 1000.0  # density [kg/m^3]
+PPC = 8  # particles per occupied cell when placing the block [count]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def block(n: int, cfg: SimConfig, device: torch.device, seed: int = 0):
+    """n particles uniformly at random in a centred cube holding about PPC per cell."""
+    g = torch.Generator().manual_seed(seed)
+    side = min((n / PPC) ** (1 / 3), cfg.n_grid - 2 * cfg.bound - 4) * cfg.dx
+    lo = torch.tensor([0.5 - side / 2, (cfg.bound + 2) * cfg.dx, 0.5 - side / 2], dtype=torch.float64)
+    x = lo + side * torch.rand(n, 3, generator=g, dtype=torch.float64)  # just above the floor wall
+    vol = torch.full((n,), side**3 / n, dtype=torch.float64)
+    to = dict(dtype=cfg.torch_dtype, device=device)
+    return x.to(**to), vol.to(**to), (vol * RHO).to(**to)
+
+
+def _state(n, cfg, device):
+    x, vol, mass = block(n, cfg, device)
+    to = dict(dtype=cfg.torch_dtype, device=device)
+    v = torch.zeros(n, 3, **to)
+    C = torch.zeros(n, 3, 3, **to)
+    F = torch.eye(3, **to).expand(n, 3, 3).contiguous()
+    tau = 1e3 * torch.randn(n, 3, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(**to)
+    return x, v, C, F, tau, vol, mass
+
+
+def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str) -> dict:
+    """Forward and forward+backward particle-steps per second of the bare step."""
+    cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
+    solver = MPMSolver(cfg, device)
+    x, v, C, F, tau, vol, mass = _state(n, cfg, device)
+
+    def chain(grad: bool):
+        ins = [t.clone().requires_grad_(grad) for t in (x, v, C, F, tau)]
+        xs, vs, Cs, Fs = ins[:4]
+        for _ in range(steps):
+            xs, vs, Cs, Fs = solver.step(xs, vs, Cs, Fs, ins[4], vol, mass)
+        if grad:
+            (xs.sum() + vs.sum() + Fs.sum()).backward()
+        _sync(device)
+
+    result = {"particles": n, "n_grid": n_grid, "steps": steps}
+    for name, grad in (("fwd", False), ("fwd_bwd", True)):
+        with torch.set_grad_enabled(grad):
+            chain(grad)  # warm-up: kernel compile/load, allocator
+            t0 = time.perf_counter()
+            chain(grad)
+            seconds = time.perf_counter() - t0
+        result[f"{name}_ms_per_step"] = 1e3 * seconds / steps
+        result[f"{name}_particle_steps_per_s"] = n * steps / seconds
+    return result
+
+
+def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, device, dtype, checkpoint) -> dict:
+    """Peak memory and time of forward + backward through a rollout of a corotated material."""
+    cfg = SimConfig(n_grid=n_grid, dt=2e-4, dtype=dtype)
+    solver = MPMSolver(cfg, device)
+    x, vol, mass = block(n, cfg, device)
+    material = Material(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), RHO).to(device=device,
+                                                                                     dtype=cfg.torch_dtype)
+    v0 = torch.zeros_like(x).requires_grad_()
+    warm = rollout(solver, material, x[:8], v0[:8], vol[:8], mass[:8], steps_per_frame, steps_per_frame,
+                   checkpoint=checkpoint)  # one-off costs: kernel load, torch.utils.checkpoint imports
+    warm.x.sum().backward()
+    material.zero_grad()
+    v0.grad = None
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats(device)
+    t0 = time.perf_counter()
+    out = rollout(solver, material, x, v0, vol, mass, n_steps, steps_per_frame, checkpoint=checkpoint)
+    (out.x[1:] ** 2).sum().backward()
+    _sync(device)
+    seconds = time.perf_counter() - t0
+    peak = (torch.cuda.max_memory_allocated(device) if device.type == "cuda"
+            else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+    return {"particles": n, "n_grid": n_grid, "steps": n_steps, "steps_per_frame": steps_per_frame,
+            "checkpoint": checkpoint, "seconds": seconds, "peak_bytes": int(peak),
+            "peak_kind": "cuda_max_memory_allocated" if device.type == "cuda" else "process_max_rss",
+            "grad_finite": bool(torch.isfinite(v0.grad).all()),
+            "grad_log_E": float(material.elasticity.log_E.grad)}
+
+
+def _parse(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    p.add_argument("--sizes", nargs="+", default=["10000:32", "100000:32", "10000:64", "100000:64"],
+                   help="particles:n_grid pairs")
+    p.add_argument("--steps", type=int, default=50, help="timed steps per configuration")
+    p.add_argument("--rollout-particles", type=int, default=30000)
+    p.add_argument("--rollout-steps", type=int, default=400)
+    p.add_argument("--steps-per-frame", type=int, default=10)
+    p.add_argument("--rollout-grid", type=int, default=32)
+    p.add_argument("--no-checkpoint", action="store_true", help="also measure the rollout without checkpoints")
+    p.add_argument("--skip-rollout", action="store_true")
+    p.add_argument("--json", default=None, help="output path (default benchmarks/results/sim_<device>.json)")
+    return p.parse_args(argv)
+
+
+def _table(results: dict) -> str:
+    lines = ["| particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for r in results["throughput"]:
+        lines.append(f"| {r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
+                     f"{r['fwd_particle_steps_per_s'] / 1e6:.3f} | {r['fwd_bwd_ms_per_step']:.2f} | "
+                     f"{r['fwd_bwd_particle_steps_per_s'] / 1e6:.3f} |")
+    for r in results["rollout"]:
+        lines.append(f"rollout {r['particles']} p x {r['steps']} steps ({r['n_grid']}^3, checkpoint="
+                     f"{r['checkpoint']}): {r['seconds']:.1f} s fwd+bwd, peak {r['peak_bytes'] / 2**30:.2f} GiB "
+                     f"({r['peak_kind']})")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    args = _parse(argv)
+    wp.config.quiet = True
+    device = torch.device(args.device)
+    results = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
+               or "cpu", "warp": wp.__version__, "torch": torch.__version__, "dtype": args.dtype,
+               "throughput": [], "rollout": []}
+    for spec in args.sizes:
+        n, n_grid = (int(s) for s in spec.split(":"))
+        results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype))
+        print(results["throughput"][-1], flush=True)
+    if not args.skip_rollout:
+        for checkpoint in (True, False) if args.no_checkpoint else (True,):
+            results["rollout"].append(rollout_memory(args.rollout_particles, args.rollout_steps, args.steps_per_frame,
+                                                     args.rollout_grid, device, args.dtype, checkpoint))
+            print(results["rollout"][-1], flush=True)
+    print(_table(results))
+    out = Path(args.json or f"benchmarks/results/sim_{device.type}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=2))
+    print(f"wrote {out}")
+    return results
+
+
+if __name__ == "__main__":
+    main()

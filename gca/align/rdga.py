@@ -1,0 +1,391 @@
+"""Rank-based Depth-Geometric Anchors (RDGA, paper Sec. 3.3): silhouette, global and anchor terms.
+
+Inputs for one frame (all torch, one device):
+
+- ``render_out``: the renderer's ``{"rgb" [H,W,3], "alpha" [H,W], "depth" [H,W]}``; ``alpha`` is
+  the soft rendered silhouette ``M_render`` and ``depth`` the rendered camera-space z (only its
+  interior values are used: every anchor patch lies in the stable region, where alpha ~ 1).
+- ``gt_mask`` [H,W]: the ground-truth object mask ``M_gt`` (bool or {0,1}).
+- ``est_depth`` [H,W]: the monocular relative depth ``D_gt`` of the GT frame (increasing with
+  distance; any unknown positive scale/shift/monotone warp, which the rank term ignores).
+- ``p``, ``q`` [M,2]: matched pixel coordinates ``(x, y)`` in the rendered and GT images, in the
+  *array-index* convention of OpenCV keypoints (the centre of pixel column i, row j is (i, j)).
+
+Terms (paper Eqs. for L_mask and L_geo)::
+
+    L_mask = mean_pixels (alpha - M_gt)^2                       (paper: ||.||_2^2, a sum; see below)
+    L_geo  = lambda1 * ||P_render - P_gt||_2  +  lambda2 * sum_{i in A} (-gamma_i)
+    loss   = lambda_mask * L_mask + lambda_geo * L_geo
+
+Choices made where the paper is silent or ambiguous (each a switch in :class:`RDGAConfig`):
+
+- ``mask_reduction="mean"``: the paper writes a squared L2 norm (a sum over pixels); the mean is the
+  same up to the factor H*W and keeps ``lambda_mask`` independent of resolution. ``"sum"`` is literal.
+- Stable region. The paper defines ``M_edge = M o K_rxr`` (opening) and ``M_stable = M \\ M_edge``.
+  Read literally that set difference is the white top-hat: only structures thinner than r survive,
+  i.e. thin protrusions, not the interior, which contradicts the stated intent ("stable interior
+  regions", "mitigate depth estimation errors near object boundaries"). The default
+  ``stable_region="eroded"`` therefore takes ``M_stable = M erode K_rxr``: the mask minus a
+  boundary band of width (r - 1) / 2 px. ``"paper_literal"`` gives ``M - opening(M, K_rxr)``.
+  Both use :mod:`kornia.morphology` (geodesic border: the image border does not erode the mask).
+- ``P_render``/``P_gt`` (global term). The matcher's p_i are constants, so ``||p - q||`` has no
+  gradient. We define ``P_render_i`` as the pixel at which the surface point seen at p_i
+  projects: ``pi(X(p_i))`` where ``X`` is a rendered *position image* (Gaussian/particle positions
+  rendered as colours, premultiplied by alpha, i.e. rendered on a zero background) bilinearly
+  sampled at p_i and divided by the rendered alpha there. It is differentiable w.r.t. the
+  positions of the Gaussians (hence particles) covering p_i. ``P_gt_i = q_i``. Minimising the term
+  moves the material seen at p_i toward where its feature was observed in the GT frame. Only
+  matches with rendered alpha(p_i) >= ``alpha_threshold`` and ``M_gt(q_i)`` set are used.
+  ``global_reduction="norm"`` is the paper's ``||.||_2`` of the whole [M,2] difference (Frobenius,
+  grows like sqrt(M)); ``"mean"`` is the mean per-match distance [px].
+- Anchor term: ``anchor_reduction="sum"`` is literal; ``"mean"`` divides by |A|.
+  ``depth_term="l1"`` (ablation "Replace Rank w/ L1") keeps the anchor selection (stable region +
+  exact-rank consensus filter) and replaces ``-gamma_i`` by the mean absolute difference of the two
+  raw depth patches (no scale alignment, as in the ablation).
+- ``enabled=False`` (ablation "w/o RDGA") drops L_geo; L_mask stays (it is a term of the overall
+  objective; set ``lambda_mask=0`` to drop it too).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+import kornia.morphology as morph
+import numpy as np
+import torch
+import torch.nn.functional as F_nn
+
+from gca.align.softrank import spearman_exact, spearman_soft
+
+_WHERE = "gca/align/rdga.py"
+STABLE_MODES = ("eroded", "paper_literal")
+STABLE_ON = ("render", "gt", "both")
+DEPTH_TERMS = ("rank", "l1")
+
+
+@dataclasses.dataclass(frozen=True)
+class RDGAConfig:
+    """RDGA knobs (paper Sec. 3.3). The paper gives no values for r, k, tau or the lambdas.
+
+    Attributes:
+        enabled: compute L_geo at all (False = ablation "w/o RDGA"; L_mask stays).
+        use_global: the global alignment term (False = ablation "w/o global").
+        use_anchor: the anchor-level term (False = ablation "w/o Anchor Superv.").
+        depth_term: "rank" (paper: -gamma_i) or "l1" (ablation: L1 of raw depth patches).
+        r: side of the square structuring element K_rxr [px, odd]; removes a (r-1)/2 px band.
+        k: side of the depth patches N_p, N_q [px, odd, >= 3]; keep k <= r so patches at
+            stable points stay inside the object.
+        tau: consensus threshold on the exact Spearman gamma (anchor iff gamma > tau) [-].
+        lambda1: weight of the global term [1/px].
+        lambda2: weight of the anchor term [-].
+        lambda_mask: weight lambda_m of L_mask in the returned loss [-].
+        lambda_geo: weight lambda_g of L_geo in the returned loss [-].
+        temperature: soft-rank temperature, in units of the patch's depth std [-].
+        stable_region: "eroded" (default, the stated intent) or "paper_literal" (top-hat).
+        stable_on: which mask defines M_stable and which point must lie in it: "render"
+            (p_i in the rendered mask's stable region, literal), "gt" (q_i in M_gt's) or "both".
+        alpha_threshold: rendered alpha above which a pixel is in the rendered mask [-].
+        mask_reduction: "mean" or "sum" over pixels for L_mask.
+        global_reduction: "norm" (paper, Frobenius of [M,2]) or "mean" (per-match distance).
+        anchor_reduction: "sum" (paper) or "mean" over anchors.
+    """
+
+    enabled: bool = True
+    use_global: bool = True
+    use_anchor: bool = True
+    depth_term: str = "rank"
+    r: int = 9
+    k: int = 7
+    tau: float = 0.5
+    lambda1: float = 0.01
+    lambda2: float = 0.01
+    lambda_mask: float = 1.0
+    lambda_geo: float = 1.0
+    temperature: float = 0.1
+    stable_region: str = "eroded"
+    stable_on: str = "render"
+    alpha_threshold: float = 0.5
+    mask_reduction: str = "mean"
+    global_reduction: str = "norm"
+    anchor_reduction: str = "sum"
+
+    def __post_init__(self) -> None:
+        choices = {"depth_term": DEPTH_TERMS, "stable_region": STABLE_MODES, "stable_on": STABLE_ON,
+                   "mask_reduction": ("mean", "sum"), "global_reduction": ("norm", "mean"),
+                   "anchor_reduction": ("sum", "mean")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{_WHERE}: RDGAConfig.{name}={getattr(self, name)!r} not in {allowed}")
+        if self.r < 1 or self.r % 2 == 0:
+            raise ValueError(f"{_WHERE}: RDGAConfig.r must be an odd integer >= 1, got {self.r}")
+        if self.k < 3 or self.k % 2 == 0:
+            raise ValueError(f"{_WHERE}: RDGAConfig.k must be an odd integer >= 3, got {self.k}")
+        if not -1.0 <= self.tau < 1.0:
+            raise ValueError(f"{_WHERE}: RDGAConfig.tau must lie in [-1, 1), got {self.tau}")
+        if not self.temperature > 0:
+            raise ValueError(f"{_WHERE}: RDGAConfig.temperature must be > 0, got {self.temperature}")
+
+
+def mask_loss(alpha: torch.Tensor, gt_mask: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
+    """Silhouette loss ``(M_render - M_gt)^2`` over pixels.
+
+    Args:
+        alpha: rendered soft silhouette M_render [H, W] in [0, 1].
+        gt_mask: GT mask M_gt [H, W] (bool or {0, 1}).
+        reduction: "mean" (default; resolution independent) or "sum" (the paper's ||.||_2^2).
+
+    Returns:
+        scalar loss, differentiable w.r.t. ``alpha``.
+    """
+    if alpha.ndim != 2 or alpha.shape != gt_mask.shape:
+        raise ValueError(f"{_WHERE}: mask_loss needs alpha and gt_mask of equal shape [H, W], got "
+                         f"{tuple(alpha.shape)} and {tuple(gt_mask.shape)}")
+    sq = (alpha - gt_mask.to(alpha.dtype)) ** 2
+    return sq.mean() if reduction == "mean" else sq.sum()
+
+
+def stable_region(mask: torch.Tensor, r: int, mode: str = "eroded") -> torch.Tensor:
+    """The stable interior region M_stable of a binary mask (see the module docstring).
+
+    Args:
+        mask: object mask M [H, W] (bool or {0, 1}).
+        r: side of the square structuring element K_rxr [px].
+        mode: "eroded" (M erode K: the mask minus a (r-1)/2 px boundary band) or
+            "paper_literal" (M minus opening(M, K): the white top-hat, thin protrusions only).
+
+    Returns:
+        M_stable [H, W] bool.
+    """
+    if mask.ndim != 2:
+        raise ValueError(f"{_WHERE}: stable_region needs a [H, W] mask, got shape {tuple(mask.shape)}")
+    if mode not in STABLE_MODES:
+        raise ValueError(f"{_WHERE}: stable_region mode={mode!r} not in {STABLE_MODES}")
+    m = (mask > 0.5).to(torch.float32)[None, None]
+    kernel = torch.ones(r, r, dtype=m.dtype, device=m.device)
+    if mode == "eroded":
+        out = morph.erosion(m, kernel)
+    else:
+        out = m - morph.opening(m, kernel)
+    return out[0, 0] > 0.5
+
+
+def _pixel_indices(points: torch.Tensor, H: int, W: int, half: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest pixel (col, row) of each point and whether its (2 half + 1)^2 patch is in bounds."""
+    cols = torch.round(points[:, 0].detach()).long()
+    rows = torch.round(points[:, 1].detach()).long()
+    inside = (cols >= half) & (cols < W - half) & (rows >= half) & (rows < H - half)
+    return torch.stack([cols, rows], -1), inside
+
+
+def gather_patches(image: torch.Tensor, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The k x k patches of ``image`` centred at the nearest pixel of each point.
+
+    Args:
+        image: [H, W] (gradients flow to it).
+        points: [M, 2] pixel coordinates (x, y), array-index convention.
+        k: odd patch side [px].
+
+    Returns:
+        patches [M, k*k] (row-major; zeros for out-of-bounds points) and inside [M] bool.
+    """
+    H, W = image.shape
+    half = k // 2
+    pix, inside = _pixel_indices(points, H, W, half)
+    offsets = torch.arange(-half, half + 1, device=image.device)
+    cols = (pix[:, 0].clamp(half, W - 1 - half)[:, None, None] + offsets[None, None, :])
+    rows = (pix[:, 1].clamp(half, H - 1 - half)[:, None, None] + offsets[None, :, None])
+    patches = image[rows.expand(-1, k, k), cols.expand(-1, k, k)].reshape(len(points), k * k)
+    return patches, inside
+
+
+def _lookup(mask: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Value of a bool mask [H, W] at the nearest pixel of each point [M, 2]; False outside."""
+    H, W = mask.shape
+    pix, inside = _pixel_indices(points, H, W, 0)
+    vals = mask[pix[:, 1].clamp(0, H - 1), pix[:, 0].clamp(0, W - 1)]
+    return vals & inside
+
+
+def bilinear_sample(image: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of a [H, W, C] image at points [M, 2] (x, y), array-index convention."""
+    H, W, C = image.shape
+    gx = 2.0 * points[:, 0] / max(W - 1, 1) - 1.0
+    gy = 2.0 * points[:, 1] / max(H - 1, 1) - 1.0
+    grid = torch.stack([gx, gy], -1).to(image.dtype)[None, None]  # [1, 1, M, 2]
+    out = F_nn.grid_sample(image.permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=True)
+    return out[0, :, 0, :].T  # [M, C]
+
+
+def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
+                  K: torch.Tensor | None = None) -> torch.Tensor:
+    """P_render: where the surface seen at p projects, from a premultiplied position image.
+
+    Args:
+        pos_image: alpha-premultiplied rendered positions (zero background) [H, W, C]: C = 2 holds
+            the projected Gaussian centres (u, v) in the renderer's image convention (pixel
+            centres at i + 0.5); C = 3 holds camera-frame 3D centres (x, y, z) and needs ``K``.
+        alpha: rendered alpha [H, W].
+        p: [M, 2] matched points in the rendered image (array-index convention).
+        K: intrinsics [3, 3] [px], required when C = 3.
+
+    Returns:
+        P_render [M, 2] in the array-index convention, differentiable w.r.t. ``pos_image``/``alpha``.
+    """
+    C = pos_image.shape[-1]
+    if pos_image.ndim != 3 or pos_image.shape[:2] != alpha.shape or C not in (2, 3):
+        raise ValueError(f"{_WHERE}: pos_image must be [H, W, 2|3] matching alpha {tuple(alpha.shape)}, "
+                         f"got {tuple(pos_image.shape)}")
+    sampled = bilinear_sample(torch.cat([pos_image, alpha[..., None]], -1), p)
+    X = sampled[:, :C] / sampled[:, C:].clamp_min(1e-6)  # un-premultiply
+    if C == 3:
+        if K is None:
+            raise ValueError(f"{_WHERE}: a 3-channel (camera-frame xyz) pos_image needs the intrinsics K")
+        K = K.to(X)
+        uv = (X @ K.T)
+        X = uv[:, :2] / uv[:, 2:].clamp_min(1e-9)
+    return X - 0.5  # renderer convention (centre i + 0.5) -> array-index convention (centre i)
+
+
+def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "norm") -> torch.Tensor:
+    """Global alignment ``||P_render - P_gt||_2`` [px] of matched point sets [M, 2].
+
+    ``reduction="norm"`` is the paper's norm of the whole [M, 2] difference; ``"mean"`` the mean
+    per-match Euclidean distance. Zero (with grad) when M = 0.
+    """
+    diff = P_render - P_gt.to(P_render)
+    if len(diff) == 0:
+        return P_render.sum() * 0.0
+    if reduction == "norm":
+        return torch.sqrt((diff ** 2).sum() + 1e-12)
+    return torch.sqrt((diff ** 2).sum(-1) + 1e-12).mean()
+
+
+def _check_inputs(depth, alpha, gt_mask, est_depth, p, q) -> None:
+    shapes = {"render depth": depth.shape, "render alpha": alpha.shape,
+              "gt_mask": gt_mask.shape, "est_depth": est_depth.shape}
+    if depth.ndim != 2 or len(set(shapes.values())) != 1:
+        raise ValueError(f"{_WHERE}: all maps must be [H, W] of one size, got "
+                         + ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items()))
+    if p.ndim != 2 or p.shape[-1] != 2 or p.shape != q.shape:
+        raise ValueError(f"{_WHERE}: p and q must both be [M, 2], got {tuple(p.shape)} and {tuple(q.shape)}")
+
+
+def stable_matches(alpha: torch.Tensor, gt_mask: torch.Tensor, p: torch.Tensor, q: torch.Tensor,
+                   cfg: RDGAConfig) -> torch.Tensor:
+    """Which matches lie in M_stable (per ``cfg.stable_on``) with both k x k patches in bounds.
+
+    Returns:
+        stable [M] bool.
+    """
+    H, W = alpha.shape
+    keep = torch.ones(len(p), dtype=torch.bool, device=p.device)
+    if cfg.stable_on in ("render", "both"):
+        keep &= _lookup(stable_region(alpha.detach() > cfg.alpha_threshold, cfg.r, cfg.stable_region), p)
+    if cfg.stable_on in ("gt", "both"):
+        keep &= _lookup(stable_region(gt_mask > 0.5, cfg.r, cfg.stable_region), q)
+    half = cfg.k // 2
+    keep &= _pixel_indices(p, H, W, half)[1] & _pixel_indices(q, H, W, half)[1]
+    return keep
+
+
+def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q: torch.Tensor,
+                stable: torch.Tensor, cfg: RDGAConfig) -> tuple[torch.Tensor, dict[str, float]]:
+    """Anchor-level supervision ``sum_{i in A} (-gamma_i)`` (or its L1 ablation).
+
+    Args:
+        depth: rendered depth D_render [H, W] (gradients flow to it).
+        est_depth: estimated relative depth D_gt [H, W] (a fixed target).
+        p: [M, 2] points in the render; q: [M, 2] points in the GT frame.
+        stable: [M] bool, from :func:`stable_matches`.
+        cfg: the RDGA config.
+
+    Returns:
+        (term, stats) with stats n_stable, n_anchors, mean_gamma (exact, over stable matches with
+        non-constant patches) and mean_gamma_anchor.
+    """
+    N_p, _ = gather_patches(depth, p[stable], cfg.k)
+    N_q, _ = gather_patches(est_depth, q[stable], cfg.k)
+    if not torch.isfinite(N_p).all():
+        bad = int((~torch.isfinite(N_p)).any(-1).sum())
+        raise FloatingPointError(f"{_WHERE}: rendered depth is non-finite in {bad} of {len(N_p)} anchor patches")
+    if not torch.isfinite(N_q).all():
+        raise ValueError(f"{_WHERE}: est_depth is non-finite in {int((~torch.isfinite(N_q)).any(-1).sum())} patches")
+    varied = (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)  # gamma is undefined on constant patches
+    N_p, N_q = N_p[varied], N_q[varied]
+    gamma = spearman_exact(N_p, N_q) if len(N_p) else N_p.new_zeros(0)
+    anchors = gamma > cfg.tau
+    stats = {"n_stable": int(stable.sum()), "n_anchors": int(anchors.sum()),
+             "mean_gamma": float(gamma.mean()) if len(gamma) else 0.0,
+             "mean_gamma_anchor": float(gamma[anchors].mean()) if anchors.any() else 0.0}
+    if not anchors.any():
+        return depth.sum() * 0.0, stats
+    if cfg.depth_term == "rank":
+        per_anchor = -spearman_soft(N_p[anchors], N_q[anchors], cfg.temperature)
+    else:
+        per_anchor = (N_p[anchors] - N_q[anchors]).abs().mean(-1)
+    term = per_anchor.sum() if cfg.anchor_reduction == "sum" else per_anchor.mean()
+    return term, stats
+
+
+def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Tensor, int]:
+    """Global term over matches on the object in both frames: (term, number of matches used)."""
+    if pos_image is None:
+        raise ValueError(f"{_WHERE}: use_global=True needs pos_image (rendered positions, see render_points)")
+    on_object = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)
+    P_render = render_points(pos_image, alpha, p[on_object], K)
+    return global_term(P_render, q[on_object], cfg.global_reduction), int(on_object.sum())
+
+
+def _as_tensor(x: Any, like: torch.Tensor) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(np.ascontiguousarray(x))
+    return x.to(device=like.device, dtype=like.dtype if x.dtype.is_floating_point else x.dtype)
+
+
+def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est_depth: torch.Tensor,
+              p: torch.Tensor, q: torch.Tensor, cfg: RDGAConfig, pos_image: torch.Tensor | None = None,
+              K: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """RDGA loss of one frame: ``lambda_mask * L_mask + lambda_geo * L_geo`` (module docstring).
+
+    Args:
+        render_out: renderer output with "alpha" [H, W] and "depth" [H, W].
+        gt_mask: M_gt [H, W] (bool or {0, 1}); numpy accepted.
+        est_depth: estimated relative depth of the GT frame [H, W]; numpy accepted.
+        p: matched points in the render [M, 2] (x, y), array-index convention; numpy accepted.
+        q: their matches in the GT frame [M, 2].
+        cfg: RDGA config (ablation switches included).
+        pos_image: premultiplied position image [H, W, 2|3] (see :func:`render_points`); needed
+            when the global term is on.
+        K: intrinsics [3, 3] [px] for a 3-channel ``pos_image``.
+
+    Returns:
+        (loss scalar, stats) with stats n_matches, n_global, n_stable, n_anchors, mean_gamma,
+        mean_gamma_anchor, l_mask, l_global, l_anchor (floats, for logging).
+    """
+    alpha, depth = render_out["alpha"], render_out["depth"]
+    gt_mask, est_depth = _as_tensor(gt_mask, alpha) > 0.5, _as_tensor(est_depth, depth)
+    p, q = _as_tensor(p, depth).reshape(-1, 2), _as_tensor(q, depth).reshape(-1, 2)
+    _check_inputs(depth, alpha, gt_mask, est_depth, p, q)
+    l_mask = mask_loss(alpha, gt_mask, cfg.mask_reduction)
+    stats: dict[str, Any] = {"n_matches": len(p), "n_global": 0, "n_stable": 0, "n_anchors": 0,
+                             "mean_gamma": 0.0, "mean_gamma_anchor": 0.0, "l_global": 0.0, "l_anchor": 0.0}
+    l_geo = depth.sum() * 0.0
+    if cfg.enabled and cfg.use_global:
+        l_global, n_global = _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K)
+        stats.update(n_global=n_global, l_global=float(l_global.detach()))
+        l_geo = l_geo + cfg.lambda1 * l_global
+    if cfg.enabled and cfg.use_anchor:
+        stable = stable_matches(alpha, gt_mask, p, q, cfg)
+        l_anchor, anchor_stats = anchor_term(depth, est_depth, p, q, stable, cfg)
+        stats.update(anchor_stats, l_anchor=float(l_anchor.detach()))
+        l_geo = l_geo + cfg.lambda2 * l_anchor
+    loss = cfg.lambda_mask * l_mask + cfg.lambda_geo * l_geo
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"{_WHERE}: non-finite RDGA loss (L_mask={float(l_mask)}, stats={stats})")
+    stats["l_mask"] = float(l_mask.detach())
+    return loss, stats
+
+
+__all__ = ["RDGAConfig", "mask_loss", "stable_region", "gather_patches", "bilinear_sample", "render_points",
+           "global_term", "stable_matches", "anchor_term", "rdga_loss"]

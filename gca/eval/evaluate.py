@@ -1,0 +1,121 @@
+"""Evaluate one trained method on its scene: the metrics JSON the report stage reads.
+
+Rolls the learned law out from the method's initial velocity over the whole video (no gradients),
+and compares with the ground truth the method never saw: Chamfer distance between predicted and
+ground-truth particles at every video frame, PSNR/SSIM on the training view and on the held-out
+views, LPIPS when its weights exist locally, the law-level response error against the analytic
+ground truth (for scenes that ask for it), and efficiency (training time, peak memory, rollout time).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Mapping
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from gca.eval.geometry import CHAMFER_DEFINITION, chamfer_over_time
+from gca.eval.image import lpips_or_reason, psnr, ssim
+from gca.eval.law_response import law_response_curve, law_response_error
+from gca.laws.presets import material_from_preset
+from gca.render.rasterize import render
+from gca.scenes import load_trajectory, load_views, read_meta
+from gca.scenes.world import Body, gaussians_at, initial_velocity
+from gca.sim.rollout import Rollout, SimulationDiverged, rollout
+from gca.sim.solver import MPMSolver
+
+
+def device_name(device: torch.device) -> str:
+    """Human-readable device for metrics headers (the GPU model, or the CPU architecture)."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    import platform
+    return f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
+
+
+def predict(solver: MPMSolver, material, body: Body, v0: list[float], video_frames: list[int],
+            substeps: int) -> tuple[Rollout, float]:
+    """Full rollout of the learned law (no grad); returns the rollout and its wall time [s]."""
+    v = initial_velocity(body.x0, torch.tensor(v0, dtype=body.x0.dtype))
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        traj = rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=video_frames[-1] * substeps,
+                       steps_per_frame=substeps, checkpoint=False)
+    return traj, time.perf_counter() - t0
+
+
+def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], video_frames: list[int],
+                  background) -> tuple[dict, dict]:
+    """PSNR/SSIM per view (mean over frames) and the rendered frames of each view [T, H, W, 3]."""
+    data = load_views(scene_dir, views)
+    bg = torch.tensor(background, dtype=body.x0.dtype)
+    metrics, frames = {}, {}
+    for name, view in data.items():
+        renders = []
+        for f in video_frames:
+            means, covs = gaussians_at(body, traj.x[f], traj.F[f])
+            renders.append(render(means, covs, body.colors, body.opacities, view.camera, bg)["rgb"].clamp(0, 1))
+        pred = torch.stack(renders).permute(0, 3, 1, 2)
+        ref = torch.as_tensor(view.rgb).permute(0, 3, 1, 2)
+        metrics[name] = {"psnr": float(psnr(pred, ref).mean()), "ssim": float(ssim(pred, ref).mean())}
+        lp, reason = lpips_or_reason(pred, ref)
+        metrics[name]["lpips"] = None if lp is None else float(lp.mean())
+        metrics["lpips_reason"] = reason
+        frames[name] = pred.permute(0, 2, 3, 1).numpy()
+    return metrics, frames
+
+
+def law_metrics(material, reference_preset: Mapping, dt: float) -> dict:
+    """Law-level response error [%] (uniaxial, shear) of the learned elasticity vs the analytic one."""
+    reference = material_from_preset(reference_preset, dt=dt)
+    out, curves = {}, {}
+    for kind in ("uniaxial", "shear"):
+        with torch.no_grad():
+            out[f"law_error_{kind}_pct"] = law_response_error(material.elasticity, reference.elasticity, kind)
+            ours = law_response_curve(material.elasticity, kind)
+            ref = law_response_curve(reference.elasticity, kind)
+        curves[kind] = {"strain": ours["strain"].tolist(), "ours": ours["component"].tolist(),
+                        "reference": ref["component"].tolist()}
+    out["law_curves"] = curves
+    return out
+
+
+def write_strip(path: Path, frames: np.ndarray, gt: np.ndarray, n: int = 4) -> None:
+    """A qualitative strip: top row ground truth, bottom row prediction, ``n`` frames."""
+    idx = np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int)
+    top = np.concatenate([gt[i] for i in idx], axis=1)
+    bottom = np.concatenate([frames[i] for i in idx], axis=1)
+    iio.imwrite(path, (np.concatenate([top, bottom], axis=0) * 255 + 0.5).astype(np.uint8))
+
+
+def evaluate_run(solver: MPMSolver, material, body: Body, v0: list[float], scene_dir: Path, background,
+                 out_dir: Path) -> dict:
+    """All trajectory and image metrics of one trained law; writes strip.png and rollout.gif to ``out_dir``."""
+    meta = read_meta(scene_dir)
+    frames_idx = list(meta["video_frames"])
+    metrics: dict = {"chamfer_definition": CHAMFER_DEFINITION}
+    try:
+        traj, seconds = predict(solver, material, body, v0, frames_idx, int(meta["substeps"]))
+    except SimulationDiverged as exc:
+        return {**metrics, "status": "diverged", "message": str(exc)}
+    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype)
+    pred = traj.x[[0] + frames_idx]
+    cd = chamfer_over_time(pred, gt)
+    metrics.update(status="ok", rollout_seconds=seconds, chamfer_per_frame=cd.tolist(), chamfer_mean=float(cd[1:].mean()))
+    views = ["train0"] + list(meta["views"]["eval"])
+    img, rendered = image_metrics(body, traj, scene_dir, views, frames_idx, background)
+    metrics.update(psnr_train=img["train0"]["psnr"], ssim_train=img["train0"]["ssim"],
+                   lpips_train=img["train0"]["lpips"], lpips_reason=img["lpips_reason"])
+    held = [img[v] for v in meta["views"]["eval"]]
+    if held:
+        metrics.update(psnr_heldout=float(np.mean([h["psnr"] for h in held])),
+                       ssim_heldout=float(np.mean([h["ssim"] for h in held])))
+    gt_rgb = load_views(scene_dir, ["train0"])["train0"].rgb
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_strip(out_dir / "strip.png", rendered["train0"], gt_rgb)
+    iio.imwrite(out_dir / "rollout.gif", (rendered["train0"] * 255 + 0.5).astype(np.uint8), duration=80, loop=0)
+    metrics["strip_png"] = str(out_dir / "strip.png")
+    return metrics

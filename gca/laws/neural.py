@@ -1,0 +1,172 @@
+"""NCLaw-style neural constitutive laws (``InvariantFullMeta``): objective, zero at rest by construction.
+
+Both networks read the same 13 rest-shifted features of the deformation gradient F = U diag(sigma) V^T,
+
+    z = [sigma - 1 (3), vec(F^T F - I) (9), det F - 1 (1)],
+
+pass them through a bias-free MLP (13 -> widths -> 9), symmetrise the output into S (3x3) and act
+through the polar rotation R = U V^T:
+
+    elasticity   P = stress_scale * R S,   tau = P F^T          (Kirchhoff stress, Pa)
+    plasticity   F_e = F_trial + alpha * R S                    (residual return map)
+
+Zero at rest: F = I gives z = 0 exactly, and a bias-free MLP with act(0) = 0 maps 0 to 0, so
+tau(I) = 0 and F_e(I) = I exactly, for any weights (also after training and with LoRA, whose layers
+have no bias either). Objectivity: z is invariant to F -> Q F (Q a rotation) and R -> Q R, so
+tau(Q F) = Q tau(F) Q^T and F_e(Q F) = Q F_e(F).
+
+Output scaling (departure from NCLaw). NCLaw's networks emit Pa directly (weights of std 5-10, lr 1.0;
+reference notes 4.3). Here the MLP emits O(1) numbers and ``stress_scale`` (Pa) multiplies them, so
+standard learning rates and Xavier init work for materials with E ~ 1e5-1e6 Pa (strains of a few
+percent give tau ~ 1e3-1e4 Pa). The scale is a fixed constant, so zero-at-rest stays exact.
+
+Reference: Ma et al. 2023 (NCLaw) ``nclaw/material/meta.py``; notes in shared/reference/nclaw-neuma.md §1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+from torch import nn
+
+from gca.laws.base import Elasticity, Plasticity
+from gca.laws.svd import check_F, det3, svd
+
+# Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
+ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
+N_FEATURES = 13  # [sigma - 1 (3), vec(F^T F - I) (9), det F - 1 (1)]
+
+
+@dataclasses.dataclass(frozen=True)
+class NeuralLawConfig:
+    """Architecture and output scaling of the neural elasticity and plasticity (params ``laws.neural``).
+
+    Architecture fields (``widths``, ``activation``) are checked when a checkpoint is loaded.
+    """
+
+    widths: tuple[int, ...] = (64, 64)  # hidden layer widths of both MLPs (NCLaw: 64, 64) [count]
+    activation: str = "gelu"  # hidden activation, one of ACTIVATIONS (NCLaw: gelu)
+    stress_scale: float = 1.0e4  # Pa per unit network output of the elasticity (NCLaw: 1, i.e. raw Pa)
+    alpha: float = 1.0e-3  # plastic correction step: F_e = F + alpha R S (NCLaw: 1e-3) [dimensionless]
+
+    def __post_init__(self):
+        object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
+        if not self.widths or min(self.widths) < 1:
+            raise ValueError(f"gca/laws/neural.py: NeuralLawConfig.widths must be positive ints, got {self.widths}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"gca/laws/neural.py: NeuralLawConfig.activation={self.activation!r} is not one of "
+                             f"{sorted(ACTIVATIONS)} (must satisfy act(0) = 0)")
+        if not self.stress_scale > 0 or not self.alpha > 0:
+            raise ValueError(f"gca/laws/neural.py: stress_scale and alpha must be > 0, got "
+                             f"{self.stress_scale}, {self.alpha}")
+
+    def architecture(self) -> dict:
+        """The fields a checkpoint must match to be loadable into this network."""
+        return {"widths": list(self.widths), "activation": self.activation}
+
+
+def invariant_features(F: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """Rest-shifted, left-rotation-invariant features of F.
+
+    Args:
+        F: deformation gradients [N, 3, 3].
+        sigma: singular values of F [N, 3] (as returned by ``gca.laws.svd.svd``).
+
+    Returns:
+        z [N, 13] = [sigma - 1, vec(F^T F - I), det F - 1]; exactly 0 at F = I.
+    """
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    C = F.transpose(1, 2) @ F
+    return torch.cat([sigma - 1.0, (C - eye).reshape(-1, 9), (det3(F) - 1.0)[:, None]], dim=1)
+
+
+def make_mlp(cfg: NeuralLawConfig) -> nn.Sequential:
+    """Bias-free MLP 13 -> widths -> 9 with Xavier-uniform weights (NCLaw ``init_weight``)."""
+    sizes = (N_FEATURES, *cfg.widths, 9)
+    layers: list[nn.Module] = []
+    for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+        linear = nn.Linear(n_in, n_out, bias=False)
+        nn.init.xavier_uniform_(linear.weight)
+        layers.append(linear)
+        if i < len(sizes) - 2:
+            layers.append(ACTIVATIONS[cfg.activation]())
+    return nn.Sequential(*layers)
+
+
+class _InvariantNetwork(nn.Module):
+    """Shared trunk: F -> (R, S) with R the polar rotation and S = sym(MLP(z(F)))."""
+
+    def __init__(self, cfg: NeuralLawConfig | None = None):
+        super().__init__()
+        self.cfg = cfg if cfg is not None else NeuralLawConfig()
+        self.mlp = make_mlp(self.cfg)
+
+    def rotation_and_stretch(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """F [N,3,3] -> (R [N,3,3] polar rotation, S [N,3,3] symmetric network output)."""
+        weight = self.mlp[0].weight
+        if F.dtype != weight.dtype:
+            raise TypeError(f"gca/laws/neural.py: {type(self).__name__}: F is {F.dtype} but the network is "
+                            f"{weight.dtype}; call .to({F.dtype}) on the law")
+        U, sigma, Vh = svd(F)
+        R = U @ Vh
+        X = self.mlp(invariant_features(F, sigma)).reshape(-1, 3, 3)
+        return R, 0.5 * (X + X.transpose(1, 2))
+
+
+class NeuralElasticity(_InvariantNetwork, Elasticity):
+    """Neural elasticity: F_e [N,3,3] -> Kirchhoff stress tau = stress_scale * R S F^T [N,3,3] (Pa)."""
+
+    def forward(self, F: torch.Tensor) -> torch.Tensor:
+        """Kirchhoff stress of elastic deformation gradients.
+
+        Args:
+            F: elastic deformation gradients [N, 3, 3].
+
+        Returns:
+            tau [N, 3, 3] in Pa; exactly 0 where F = I.
+        """
+        check_F(F, "NeuralElasticity.forward")
+        R, S = self.rotation_and_stretch(F)
+        P = self.cfg.stress_scale * (R @ S)
+        return P @ F.transpose(1, 2)
+
+    def wave_speed(self, rho, strain: float = 1e-2) -> float:
+        """Estimated largest wave speed sqrt(M / rho) [m/s] for the CFL check.
+
+        M (Pa) is the largest |tau| entry per unit strain over six uniaxial (+-strain along x, y, z)
+        and six simple-shear probes; for an isotropic linear law it is the P-wave modulus lam + 2 mu.
+
+        Args:
+            rho: density [kg/m^3], scalar or [N] (the smallest is used).
+            strain: probe strain magnitude [1].
+        """
+        weight = self.mlp[0].weight
+        eye = torch.eye(3, dtype=weight.dtype, device=weight.device)
+        probes = [eye + sign * strain * torch.outer(eye[a], eye[b])
+                  for sign in (1.0, -1.0) for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (2, 0))]
+        with torch.no_grad():
+            M = float(self(torch.stack(probes)).abs().max()) / strain
+        rho_min = float(torch.as_tensor(rho).min())
+        if not (rho_min > 0 and math.isfinite(M)):
+            raise ValueError(f"gca/laws/neural.py: wave_speed: need rho > 0 and a finite stress, got "
+                             f"rho_min={rho_min}, modulus={M}")
+        return math.sqrt(M / rho_min)
+
+
+class NeuralPlasticity(_InvariantNetwork, Plasticity):
+    """Neural plasticity (residual return map): F_trial [N,3,3] -> F_e = F_trial + alpha R S [N,3,3]."""
+
+    def forward(self, F: torch.Tensor) -> torch.Tensor:
+        """Project trial deformation gradients.
+
+        Args:
+            F: trial deformation gradients [N, 3, 3].
+
+        Returns:
+            F_e [N, 3, 3]; exactly I where F = I.
+        """
+        check_F(F, "NeuralPlasticity.forward")
+        R, S = self.rotation_and_stretch(F)
+        return F + self.cfg.alpha * (R @ S)

@@ -1,0 +1,343 @@
+"""Differentiable Gaussian splatting: tiled pure-torch rasterizer, dense reference, gsplat backend.
+
+Image formation (3DGS, "classic" mode). Gaussians are EWA-projected (:mod:`gca.render.project`),
+sorted front to back by the camera z of their means, and alpha-composited per pixel:
+
+    alpha_i = min(alpha_max, o_i exp(-power_i)),  power_i = 0.5 d^T Sigma_2d^-1 d,  d = pixel - mean_2d
+    alpha_i := 0 if alpha_i < alpha_min (1/255) or power_i > sigma_cutoff^2 / 2 (outside 3 sigma)
+    T_i = prod_{j<i} (1 - alpha_j);  w_i = alpha_i T_i
+    compositing stops before the Gaussian that would bring T below T_min (1e-4), as in 3DGS.
+
+Outputs per pixel: ``rgb = sum_i w_i c_i + (1 - alpha) bg``, ``alpha = sum_i w_i``,
+``depth = sum_i w_i z_i`` (accumulated z, gsplat's "D") and
+``depth_expected = depth / max(alpha, 1e-10)`` (alpha-normalised z, gsplat's "ED").
+
+The fast path (:func:`render`, backend ``"torch"``) bins Gaussians into ``tile_size``^2 pixel tiles
+by their 3-sigma extents, sorts each tile's list by depth (capped at ``max_per_tile``, the
+front-most are kept), and composites a padded batch of tiles in depth slabs of ``slab`` Gaussians,
+dropping tiles whose pixels are all saturated (T < T_min) or exhausted. Everything is plain torch
+autograd, so it runs on CPU and CUDA alike. :func:`render_ref` is the slow per-pixel reference.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import torch
+
+from gca.render.camera import Camera
+from gca.render.project import Projected, project_gaussians
+
+_WHERE = "gca/render/rasterize.py"
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterConfig:
+    """Rasterizer knobs (params.yaml section ``render.raster``)."""
+
+    tile_size: int = 16            # tile side [pixels]
+    near: float = 0.01             # near clipping plane on camera z [world units]
+    far: float = 1.0e10            # far clipping plane on camera z [world units]
+    eps2d: float = 0.3             # low-pass dilation of 2D covariances [pixels^2]
+    sigma_cutoff: float = 3.0      # Gaussian extent [standard deviations]
+    alpha_min: float = 1.0 / 255.0 # alphas below this are skipped [-]
+    alpha_max: float = 0.99        # alpha clamp [-]
+    T_min: float = 1.0e-4          # stop compositing a pixel below this transmittance [-]
+    max_per_tile: int = 65536      # cap on Gaussians per tile (front-most kept; warns when hit)
+    slab: int = 64                 # Gaussians per tile composited per step (early-stop granularity)
+    max_elems: int = 4_000_000     # pixel x Gaussian pairs per batched step (memory bound)
+
+
+class RenderError(ValueError):
+    """Bad renderer input (names the file and the problem)."""
+
+
+def _check_inputs(means, covs, colors, opacities, bg) -> None:
+    N = means.shape[0]
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise RenderError(f"{_WHERE}: means must be [N, 3], got {tuple(means.shape)}")
+    if covs.shape != (N, 3, 3):
+        raise RenderError(f"{_WHERE}: covs must be [{N}, 3, 3], got {tuple(covs.shape)}")
+    if colors.ndim != 2 or colors.shape[0] != N:
+        raise RenderError(f"{_WHERE}: colors must be [{N}, C], got {tuple(colors.shape)}")
+    if opacities.shape != (N,):
+        raise RenderError(f"{_WHERE}: opacities must be [{N}], got {tuple(opacities.shape)}")
+    if bg.shape != (colors.shape[1],):
+        raise RenderError(f"{_WHERE}: bg must be [{colors.shape[1]}], got {tuple(bg.shape)}")
+    for name, x in (("means", means), ("covs", covs), ("colors", colors), ("opacities", opacities)):
+        bad = (~torch.isfinite(x.detach())).sum().item()
+        if bad:
+            raise RenderError(f"{_WHERE}: {name} has {bad} non-finite entries (diverged upstream?)")
+    o = opacities.detach()
+    if N and (o.min() < 0 or o.max() > 1):
+        raise RenderError(f"{_WHERE}: opacities must lie in [0, 1], got [{o.min():.3g}, {o.max():.3g}]")
+
+
+def _project(means, covs, camera: Camera, cfg: RasterConfig) -> Projected:
+    K, w2c = camera.tensors(means.dtype, means.device)
+    return project_gaussians(means, covs, K, w2c, camera.width, camera.height, near=cfg.near,
+                             far=cfg.far, eps2d=cfg.eps2d, sigma_cutoff=cfg.sigma_cutoff)
+
+
+def _alphas(d_x, d_y, conics, opacities, cfg: RasterConfig) -> torch.Tensor:
+    """Per pixel-Gaussian alpha (3DGS rule), broadcasting ``d_x, d_y`` against ``conics[..., k]``."""
+    A, B, C = conics.unbind(-1)
+    power = 0.5 * (A * d_x * d_x + C * d_y * d_y) + B * d_x * d_y
+    alpha = (opacities * torch.exp(-power)).clamp_max(cfg.alpha_max)
+    keep = (alpha >= cfg.alpha_min) & (power <= 0.5 * cfg.sigma_cutoff**2)
+    return torch.where(keep, alpha, torch.zeros_like(alpha))
+
+
+def _finish(features: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor) -> dict:
+    """Split accumulated ``[..., C + 1]`` features (colours, z) into the output dict."""
+    rgb = features[..., :-1] + (1.0 - alpha)[..., None] * bg
+    depth = features[..., -1]
+    return {"rgb": rgb, "alpha": alpha, "depth": depth,
+            "depth_expected": depth / alpha.clamp_min(1e-10)}
+
+
+# ----------------------------------------------------------------------------------------------
+# tiled fast path
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _Bins:
+    """Per-tile depth-sorted Gaussian lists: ``ids [T, Kmax]`` (padded with N), ``counts [T]``."""
+
+    ids: torch.Tensor
+    counts: torch.Tensor
+    n_tiles_x: int
+    n_tiles_y: int
+
+
+def _tile_ranges(proj: Projected, width: int, height: int, ts: int):
+    """Inclusive tile index ranges [N] of each Gaussian's 3-sigma box; empty for culled ones."""
+    mx, my = proj.means2d.detach().unbind(-1)
+    r = proj.radii
+    ntx, nty = math.ceil(width / ts), math.ceil(height / ts)
+    # pixel i (centre i + 0.5) is covered iff |i + 0.5 - m| <= r
+    x0, x1 = torch.ceil(mx - r - 0.5).clamp_min(0), torch.floor(mx + r - 0.5).clamp_max(width - 1)
+    y0, y1 = torch.ceil(my - r - 0.5).clamp_min(0), torch.floor(my + r - 0.5).clamp_max(height - 1)
+    on = proj.valid & (x1 >= x0) & (y1 >= y0)
+    tx0, tx1 = (x0 // ts).long(), (x1 // ts).long()
+    ty0, ty1 = (y0 // ts).long(), (y1 // ts).long()
+    return on, tx0, tx1, ty0, ty1, ntx, nty
+
+
+def _bin_tiles(proj: Projected, width: int, height: int, cfg: RasterConfig) -> _Bins:
+    """Intersect Gaussians with tiles and sort each tile's list front to back (no gradients)."""
+    N, device = proj.depths.shape[0], proj.depths.device
+    on, tx0, tx1, ty0, ty1, ntx, nty = _tile_ranges(proj, width, height, cfg.tile_size)
+    gids = torch.nonzero(on).squeeze(1)
+    nx, ny = (tx1 - tx0 + 1)[gids], (ty1 - ty0 + 1)[gids]
+    n_pairs = nx * ny
+    pair_g = torch.repeat_interleave(gids, n_pairs)
+    start = torch.cumsum(n_pairs, 0) - n_pairs
+    local = torch.arange(pair_g.shape[0], device=device) - torch.repeat_interleave(start, n_pairs)
+    nx_p = torch.repeat_interleave(nx, n_pairs)
+    pair_t = (ty0[pair_g] + local // nx_p) * ntx + tx0[pair_g] + local % nx_p
+    depth_rank = torch.empty(N, dtype=torch.long, device=device)
+    depth_rank[torch.argsort(proj.depths.detach(), stable=True)] = torch.arange(N, device=device)
+    order = torch.argsort(pair_t * (N + 1) + depth_rank[pair_g])
+    pair_t, pair_g = pair_t[order], pair_g[order]
+    counts = torch.bincount(pair_t, minlength=ntx * nty)
+    return _pad_lists(pair_t, pair_g, counts, N, ntx, nty, cfg)
+
+
+def _pad_lists(pair_t, pair_g, counts, N: int, ntx: int, nty: int, cfg: RasterConfig) -> _Bins:
+    """Scatter sorted (tile, Gaussian) pairs into a padded ``[T, Kmax]`` table, capping per tile."""
+    device = pair_t.device
+    if counts.numel() and int(counts.max()) > cfg.max_per_tile:
+        warnings.warn(f"{_WHERE}: {int((counts > cfg.max_per_tile).sum())} tiles exceed max_per_tile="
+                      f"{cfg.max_per_tile} (max {int(counts.max())}); the farthest Gaussians are dropped")
+    start = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(pair_t.shape[0], device=device) - start[pair_t]
+    keep = slot < cfg.max_per_tile
+    counts = counts.clamp_max(cfg.max_per_tile)
+    k_max = max(int(counts.max()) if counts.numel() else 0, 1)
+    ids = torch.full((ntx * nty, k_max), N, dtype=torch.long, device=device)
+    ids[pair_t[keep], slot[keep]] = pair_g[keep]
+    return _Bins(ids=ids, counts=counts, n_tiles_x=ntx, n_tiles_y=nty)
+
+
+def _tile_pixels(tiles: torch.Tensor, bins: _Bins, ts: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel-centre coordinates ``(px, py)`` [B, ts*ts] of the given tiles."""
+    local = torch.arange(ts, device=tiles.device, dtype=dtype) + 0.5
+    ly, lx = torch.meshgrid(local, local, indexing="ij")
+    ox = (tiles % bins.n_tiles_x).to(dtype) * ts
+    oy = (tiles // bins.n_tiles_x).to(dtype) * ts
+    return ox[:, None] + lx.reshape(1, -1), oy[:, None] + ly.reshape(1, -1)
+
+
+def _composite_slab(px, py, ids, packed, log_T, cfg: RasterConfig):
+    """Composite one depth slab for a batch of tiles.
+
+    Args:
+        px, py: pixel centres [B, P]; ids: Gaussian ids [B, S] (N = padding).
+        packed: per-Gaussian table [N + 1, 2 + 3 + 1 + C + 1] = (mean2d, conic, opacity, colour, z).
+        log_T: log transmittance entering the slab [B, P] (detached stop test uses it too).
+
+    Returns:
+        ``(features [B, P, C + 1], alpha [B, P], log_T_out [B, P])``.
+    """
+    g = packed[ids]                                             # [B, S, D]
+    d_x = px[:, :, None] - g[:, None, :, 0]                     # [B, P, S]
+    d_y = py[:, :, None] - g[:, None, :, 1]
+    alpha = _alphas(d_x, d_y, g[:, None, :, 2:5], g[:, None, :, 5], cfg)
+    log_1m = torch.log1p(-alpha)
+    log_T_incl = log_T[:, :, None] + torch.cumsum(log_1m, dim=-1)
+    live = (log_T_incl >= math.log(cfg.T_min)).detach()
+    w = torch.where(live, alpha * torch.exp(log_T_incl - log_1m), torch.zeros_like(alpha))
+    features = torch.bmm(w, g[:, :, 6:])                        # [B, P, C + 1]
+    # a pixel that stopped inside this slab stays stopped: its log T becomes -inf
+    log_T_out = torch.where(live[..., -1], log_T_incl[..., -1], torch.full_like(log_T, -torch.inf))
+    return features, w.sum(-1), log_T_out
+
+
+def _composite_tiles(tiles, bins: _Bins, packed, cfg: RasterConfig):
+    """Front-to-back slab loop over a batch of tiles; returns ``(features [B, P, C+1], alpha [B, P])``."""
+    ts = cfg.tile_size
+    px, py = _tile_pixels(tiles, bins, ts, packed.dtype)
+    B, P = px.shape
+    features = packed.new_zeros(B, P, packed.shape[1] - 6)
+    alpha = packed.new_zeros(B, P)
+    log_T = packed.new_zeros(B, P)
+    active = torch.arange(B, device=tiles.device)
+    counts = bins.counts[tiles]
+    for s0 in range(0, int(counts.max()), cfg.slab):
+        active = active[counts[active] > s0]
+        if active.numel() == 0:
+            break
+        ids = bins.ids[tiles[active], s0:s0 + cfg.slab]
+        f, a, log_T_a = _composite_slab(px[active], py[active], ids, packed, log_T[active], cfg)
+        features = features.index_add(0, active, f)
+        alpha = alpha.index_add(0, active, a)
+        log_T = log_T.index_copy(0, active, log_T_a)
+        active = active[(log_T_a >= math.log(cfg.T_min)).any(-1).detach()]
+    return features, alpha
+
+
+def _pack(proj: Projected, colors, opacities) -> torch.Tensor:
+    """Per-Gaussian table [N + 1, 6 + C + 1] with a zero-opacity padding row at index N."""
+    packed = torch.cat([proj.means2d, proj.conics, opacities[:, None], colors, proj.depths[:, None]], dim=-1)
+    return torch.cat([packed, packed.new_zeros(1, packed.shape[1])], dim=0)
+
+
+def _tile_batches(tiles: torch.Tensor, cfg: RasterConfig):
+    """Split non-empty tiles into batches of at most ``max_elems`` pixel x slab pairs."""
+    per_batch = max(1, cfg.max_elems // (cfg.tile_size**2 * cfg.slab))
+    return tiles.split(per_batch)
+
+
+def _render_torch(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterConfig) -> dict:
+    proj = _project(means, covs, camera, cfg)
+    bins = _bin_tiles(proj, camera.width, camera.height, cfg)
+    packed = _pack(proj, colors, opacities)
+    ts, C = cfg.tile_size, colors.shape[1]
+    n_tiles = bins.n_tiles_x * bins.n_tiles_y
+    out = means.new_zeros(n_tiles, ts * ts, C + 2)
+    busy = torch.nonzero(bins.counts > 0).squeeze(1)
+    for tiles in _tile_batches(busy, cfg):
+        features, alpha = _composite_tiles(tiles, bins, packed, cfg)
+        out = out.index_copy(0, tiles, torch.cat([features, alpha[..., None]], dim=-1))
+    image = out.reshape(bins.n_tiles_y, bins.n_tiles_x, ts, ts, C + 2).permute(0, 2, 1, 3, 4)
+    image = image.reshape(bins.n_tiles_y * ts, bins.n_tiles_x * ts, C + 2)[:camera.height, :camera.width]
+    return _finish(image[..., :-1], image[..., -1], bg)
+
+
+# ----------------------------------------------------------------------------------------------
+# dense reference
+# ----------------------------------------------------------------------------------------------
+
+
+def render_ref(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterConfig = RasterConfig()) -> dict:
+    """Slow reference: every pixel against every Gaussian, one Gaussian at a time in depth order.
+
+    Same contract as :func:`render` (no tiles, no cap, no slabs); for tests on tiny scenes.
+    """
+    _check_inputs(means, covs, colors, opacities, bg)
+    proj = _project(means, covs, camera, cfg)
+    H, W = camera.height, camera.width
+    py, px = torch.meshgrid(torch.arange(H, dtype=means.dtype) + 0.5,
+                            torch.arange(W, dtype=means.dtype) + 0.5, indexing="ij")
+    px, py = px.reshape(-1).to(means.device), py.reshape(-1).to(means.device)
+    T = means.new_ones(H * W)
+    done = torch.zeros(H * W, dtype=torch.bool, device=means.device)
+    features = means.new_zeros(H * W, colors.shape[1] + 1)
+    feats = torch.cat([colors, proj.depths[:, None]], dim=-1)
+    for i in torch.argsort(proj.depths.detach(), stable=True).tolist():
+        if not bool(proj.valid[i]):
+            continue
+        d_x, d_y = px - proj.means2d[i, 0], py - proj.means2d[i, 1]
+        alpha = _alphas(d_x, d_y, proj.conics[i], opacities[i], cfg)
+        T_next = T * (1.0 - alpha)
+        done = done | (T_next < cfg.T_min).detach()
+        w = torch.where(done, torch.zeros_like(alpha), alpha * T)
+        features = features + w[:, None] * feats[i]
+        T = torch.where(done, T, T_next)
+    return _finish(features.reshape(H, W, -1), (1.0 - T).reshape(H, W), bg)
+
+
+# ----------------------------------------------------------------------------------------------
+# gsplat backend (CUDA only)
+# ----------------------------------------------------------------------------------------------
+
+
+def _render_gsplat(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterConfig) -> dict:
+    """Map our inputs onto ``gsplat.rasterization`` (full covariances, OpenCV viewmat, K)."""
+    if not means.is_cuda:
+        raise RenderError(f"{_WHERE}: backend='gsplat' needs CUDA tensors (got device {means.device}); "
+                          "use backend='torch' on CPU")
+    try:
+        from gsplat import rasterization
+    except ImportError as exc:
+        raise RenderError(f"{_WHERE}: backend='gsplat' needs the optional package gsplat "
+                          "(pip install 'gca[gpu]')") from exc
+    K, w2c = camera.tensors(means.dtype, means.device)
+    colors_out, alphas, _ = rasterization(
+        means=means, quats=None, scales=None, opacities=opacities, colors=colors,
+        viewmats=w2c[None], Ks=K[None], width=camera.width, height=camera.height,
+        near_plane=cfg.near, far_plane=cfg.far, eps2d=cfg.eps2d, sh_degree=None, packed=False,
+        tile_size=cfg.tile_size, backgrounds=bg[None], render_mode="RGB+D",
+        rasterize_mode="classic", covars=0.5 * (covs + covs.transpose(-1, -2)))
+    alpha = alphas[0, ..., 0]
+    depth = colors_out[0, ..., -1]
+    return {"rgb": colors_out[0, ..., :-1], "alpha": alpha, "depth": depth,
+            "depth_expected": depth / alpha.clamp_min(1e-10)}
+
+
+# ----------------------------------------------------------------------------------------------
+# public entry point
+# ----------------------------------------------------------------------------------------------
+
+_BACKENDS = {"torch": _render_torch, "gsplat": _render_gsplat}
+
+
+def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+           camera: Camera, bg: torch.Tensor, backend: str = "torch",
+           cfg: RasterConfig = RasterConfig()) -> dict:
+    """Render Gaussians; differentiable w.r.t. means, covs, colors and opacities.
+
+    Args:
+        means: Gaussian centres [N, 3] (the camera's world frame, e.g. sim frame).
+        covs: full covariances [N, 3, 3] (world units^2; e.g. F Sigma0 F^T from MPM).
+        colors: per-Gaussian colours or features [N, C] (post-activation).
+        opacities: [N] in [0, 1].
+        camera: :class:`~gca.render.camera.Camera`.
+        bg: background colour [C].
+        backend: ``"torch"`` (tiled, CPU or CUDA) or ``"gsplat"`` (CUDA only; its alpha clamp 0.999
+            and 3.33-sigma extents differ slightly from ours).
+        cfg: :class:`RasterConfig`.
+
+    Returns:
+        dict with ``rgb [H, W, C]``, ``alpha [H, W]``, ``depth [H, W]`` (accumulated
+        ``sum_i w_i z_i``, zero where empty) and ``depth_expected [H, W]`` (``depth / alpha``,
+        the alpha-normalised camera z; meaningless where alpha ~ 0).
+    """
+    if backend not in _BACKENDS:
+        raise RenderError(f"{_WHERE}: unknown backend {backend!r}; expected one of {sorted(_BACKENDS)}")
+    _check_inputs(means, covs, colors, opacities, bg)
+    return _BACKENDS[backend](means, covs, colors, opacities, camera, bg, cfg)

@@ -1,0 +1,200 @@
+"""Warp kernels of one MLS-MPM step (APIC transfer, quadratic B-splines) on the unit cube.
+
+Scheme (Hu et al. 2018, "A moving least squares material point method", eqs. 16-19 in the
+Kirchhoff-stress form used by NCLaw; see ``docs/architecture.md``), per step of size ``dt``:
+
+    P2G   affine_p = -dt * vol_p * 4 * inv_dx^2 * tau_p + m_p * C_p
+          m_i  += w_ip * m_p
+          mv_i += w_ip * (m_p * v_p + affine_p @ (x_i - x_p))
+    grid  v_i = mv_i / (m_i + eps) + dt * g   (m_i > 0; else 0), then the wall condition
+    G2P   v_p' = sum_i w_ip v_i
+          C_p' = 4 * inv_dx^2 * sum_i w_ip v_i (x_i - x_p)^T
+          F_trial = (I + dt C_p') F_p
+          x_p' = clamp(x_p + dt v_p', lo, hi)
+
+Grid layout. The domain [0, 1]^3 has ``n_grid`` cells of size ``dx = 1 / n_grid``; node ``I`` (an
+integer in [-PAD, n_grid + PAD]) sits at ``I * dx`` and is stored at index ``I + PAD`` of arrays of
+shape ``[n_grid + 1 + 2 PAD]^3``. The stencil base is ``floor(x / dx - 0.5)`` (floor, not
+truncation), so the three nodes ``base .. base + 2`` of a particle at ``x`` in [0, 1] lie in
+[-1, n_grid + 1]: with ``PAD = 1`` no stencil reads or writes outside the arrays for any position
+in the closed unit cube. G2P clamps positions to [lo, hi] with ``0 <= lo < hi <= 1`` (the solver
+uses ``lo = clip * dx``, ``hi = 1 - clip * dx``) and the base index is additionally clamped as an
+integer, so even a non-finite position cannot index out of bounds (it produces non-finite state,
+which the rollout driver detects instead).
+
+Walls. Nodes with ``I < bound`` or ``I > n_grid - bound`` on an axis are in that axis' wall
+region; ``bound`` is in cells. The floor is the bottom wall y = 0.
+
+Float type. :func:`make_kernels` builds the kernels for ``wp.float32`` or ``wp.float64`` (one
+module each), so gradients can be checked against finite differences in float64. The same
+source runs on "cpu" and "cuda" devices.
+"""
+
+
+
+import types
+
+import warp as wp
+
+PAD = 1  # padding nodes on each side of the grid [nodes]
+
+STICKY = 0  # wall nodes get zero velocity
+SLIP = 1  # wall nodes lose the velocity component pointing out of the domain
+FRICTION = 2  # SLIP, then Coulomb friction with coefficient mu_b on the tangential part
+BOUNDARY_KINDS = {"sticky": STICKY, "slip": SLIP, "friction": FRICTION}
+
+
+def grid_size(n_grid: int) -> int:
+    """Number of stored nodes per axis of the padded grid for ``n_grid`` cells."""
+    return n_grid + 1 + 2 * PAD
+
+
+def make_kernels(T: type) -> types.SimpleNamespace:
+    """Build the P2G, grid-update and G2P kernels for one float type.
+
+    Args:
+        T: ``wp.float32`` or ``wp.float64``.
+
+    Returns:
+        Namespace with ``p2g``, ``grid_update``, ``g2p`` kernels and the ``vec3``/``mat33`` types.
+    """
+    if T not in (wp.float32, wp.float64):
+        raise TypeError(f"gca/sim/kernels.py: float type must be wp.float32 or wp.float64, got {T}")
+    vec3 = wp.types.vector(3, T)
+    mat33 = wp.types.matrix((3, 3), T)
+    module = f"gca_sim_mpm_{T.__name__}"
+
+    @wp.func
+    def stencil(x: vec3, inv_dx: T, n_grid: int):
+        """Floor-based base node [node] and quadratic B-spline weights W[k, axis] of node base+k."""
+        X = x * inv_dx
+        top = n_grid + PAD - 2
+        base = wp.vec3i(
+            wp.clamp(int(wp.floor(X[0] - T(0.5))), -PAD, top),
+            wp.clamp(int(wp.floor(X[1] - T(0.5))), -PAD, top),
+            wp.clamp(int(wp.floor(X[2] - T(0.5))), -PAD, top),
+        )
+        fx = X - vec3(T(int(base[0])), T(int(base[1])), T(int(base[2])))
+        w0 = T(0.5) * wp.cw_mul(vec3(T(1.5)) - fx, vec3(T(1.5)) - fx)
+        w1 = vec3(T(0.75)) - wp.cw_mul(fx - vec3(T(1.0)), fx - vec3(T(1.0)))
+        w2 = T(0.5) * wp.cw_mul(fx - vec3(T(0.5)), fx - vec3(T(0.5)))
+        return base, fx, wp.matrix_from_rows(w0, w1, w2)
+
+    @wp.kernel(module=module)
+    def p2g(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        tau: wp.array(dtype=mat33),
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+    ):
+        p = wp.tid()
+        base, fx, W = stencil(x[p], inv_dx, n_grid)
+        m_p = mass[p]
+        affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau[p] + m_p * C[p]
+        mv_p = m_p * v[p]
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    I = base[0] + i + PAD
+                    J = base[1] + j + PAD
+                    K = base[2] + k + PAD
+                    wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
+                    wp.atomic_add(grid_m, I, J, K, w * m_p)
+
+    @wp.func
+    def wall(v: vec3, n_out: vec3, inside: int, kind: int, mu_b: T):
+        """Velocity of a node after the wall whose outward unit normal is ``n_out``."""
+        if inside == 0:
+            return v
+        if kind == STICKY:
+            return vec3(T(0.0))
+        vn = wp.dot(v, n_out)
+        if vn <= T(0.0):
+            return v
+        vt = v - vn * n_out
+        if kind == SLIP:
+            return vt
+        # compare squares first: sqrt(0) would put 0 * inf = NaN into the adjoint
+        vt2 = wp.dot(vt, vt)
+        if vt2 <= (mu_b * vn) * (mu_b * vn):
+            return vec3(T(0.0))
+        return vt * (T(1.0) - mu_b * vn / wp.sqrt(vt2))
+
+    @wp.kernel(module=module)
+    def grid_update(
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+        gravity: vec3,
+        dt: T,
+        eps: T,
+        n_grid: int,
+        bound: int,
+        kind: int,
+        mu_b: T,
+        grid_v: wp.array3d(dtype=vec3),
+    ):
+        s0, s1, s2 = wp.tid()
+        m = grid_m[s0, s1, s2]
+        if m <= T(0.0):  # empty node (no particle reads it with a nonzero weight)
+            grid_v[s0, s1, s2] = vec3(T(0.0))
+            return
+        v = grid_mv[s0, s1, s2] / (m + eps) + dt * gravity
+        I = s0 - PAD
+        J = s1 - PAD
+        K = s2 - PAD
+        hi = n_grid - bound
+        v = wall(v, vec3(T(-1.0), T(0.0), T(0.0)), int(I < bound), kind, mu_b)
+        v = wall(v, vec3(T(1.0), T(0.0), T(0.0)), int(I > hi), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(-1.0), T(0.0)), int(J < bound), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(1.0), T(0.0)), int(J > hi), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(0.0), T(-1.0)), int(K < bound), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(0.0), T(1.0)), int(K > hi), kind, mu_b)
+        grid_v[s0, s1, s2] = v
+
+    @wp.kernel(module=module)
+    def g2p(
+        x: wp.array(dtype=vec3),
+        F: wp.array(dtype=mat33),
+        grid_v: wp.array3d(dtype=vec3),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        lo: T,
+        hi: T,
+        x_out: wp.array(dtype=vec3),
+        v_out: wp.array(dtype=vec3),
+        C_out: wp.array(dtype=mat33),
+        F_out: wp.array(dtype=mat33),
+    ):
+        p = wp.tid()
+        base, fx, W = stencil(x[p], inv_dx, n_grid)
+        v_new = vec3(T(0.0))
+        B = mat33(T(0.0))
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    v_i = grid_v[base[0] + i + PAD, base[1] + j + PAD, base[2] + k + PAD]
+                    v_new += w * v_i
+                    B += w * wp.outer(v_i, dpos)
+        C_new = (T(4.0) * inv_dx * inv_dx) * B
+        x_new = x[p] + dt * v_new
+        v_out[p] = v_new
+        C_out[p] = C_new
+        F_out[p] = (wp.identity(3, dtype=T) + dt * C_new) @ F[p]
+        x_out[p] = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
+
+    return types.SimpleNamespace(p2g=p2g, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T)
+
+
+KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

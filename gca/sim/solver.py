@@ -1,0 +1,243 @@
+"""MLS-MPM solver: configuration and the torch <-> warp autograd bridge of one step.
+
+The constitutive law lives in torch (``tau = law(F)``); warp does the transfers. One call of
+:meth:`MPMSolver.step` is one ``torch.autograd.Function``:
+
+- forward: P2G, grid update and G2P with no tape, into freshly allocated output tensors (nothing
+  that needs gradients is overwritten; the grid buffers are reused scratch space);
+- backward: the step is recomputed under a local ``wp.Tape`` from the saved inputs (the grid is
+  never stored per step), then the tape's adjoints give the gradients with respect to
+  ``x, v, C, F, tau``. Gradients are returned as computed: never zeroed or NaN-filtered.
+
+``vol`` and ``mass`` are constants of the simulation (no gradient).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import Sequence
+
+import torch
+import warp as wp
+from torch.autograd.function import once_differentiable
+
+from gca.sim.kernels import BOUNDARY_KINDS, KERNELS, PAD, grid_size
+
+_WHERE = "gca/sim/solver.py"
+_TORCH_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Knobs of the MPM simulator (params.yaml section ``sim``).
+
+    Defaults are paper scale (NeuMA synthetic setting: 32^3 grid, dt = 1e-3 s).
+    """
+
+    n_grid: int = 32  # grid cells per axis on the unit cube; dx = 1 / n_grid [m]
+    dt: float = 1e-3  # time step [s]
+    gravity: Sequence[float] = (0.0, -9.8, 0.0)  # body acceleration [m/s^2]
+    bound: int = 3  # wall thickness: nodes within this many cells of a face obey the wall [cells]
+    boundary: str = "sticky"  # wall condition: sticky | slip | friction
+    friction: float = 0.0  # Coulomb coefficient mu_b of the "friction" walls [-]
+    clip: float = 0.5  # positions are clamped to [clip*dx, 1 - clip*dx] [cells]
+    eps_mass: float = 0.0  # added to node mass in v = mv / (m + eps) [kg]
+    cfl: float = 0.5  # refuse dt > cfl * dx / (c + |v|max) [-]
+    max_clamped_fraction: float = 0.1  # rollout raises if more particles sit on the clamp [-]
+    dtype: str = "float32"  # float32 | float64 (float64 for gradient checks)
+
+    def __post_init__(self):
+        object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
+        problems = []
+        if int(self.n_grid) != self.n_grid or self.n_grid < 4:
+            problems.append(f"n_grid={self.n_grid} must be an integer >= 4")
+        if not self.dt > 0:
+            problems.append(f"dt={self.dt} must be > 0")
+        if len(self.gravity) != 3:
+            problems.append(f"gravity={self.gravity} must have 3 components")
+        if int(self.bound) != self.bound or not 0 <= self.bound < self.n_grid // 2:
+            problems.append(f"bound={self.bound} must be an integer in [0, n_grid/2)")
+        if self.boundary not in BOUNDARY_KINDS:
+            problems.append(f"boundary={self.boundary!r} must be one of {sorted(BOUNDARY_KINDS)}")
+        if self.friction < 0:
+            problems.append(f"friction={self.friction} must be >= 0")
+        if not 0 <= self.clip < self.n_grid / 2:
+            problems.append(f"clip={self.clip} must be in [0, n_grid/2) cells")
+        if self.eps_mass < 0 or not 0 < self.cfl <= 1 or not 0 < self.max_clamped_fraction <= 1:
+            problems.append("need eps_mass >= 0, 0 < cfl <= 1, 0 < max_clamped_fraction <= 1")
+        if self.dtype not in _TORCH_DTYPES:
+            problems.append(f"dtype={self.dtype!r} must be one of {sorted(_TORCH_DTYPES)}")
+        if problems:
+            raise ValueError(f"{_WHERE}: bad SimConfig: " + "; ".join(problems))
+
+    @property
+    def dx(self) -> float:
+        """Cell size [m]."""
+        return 1.0 / self.n_grid
+
+    @property
+    def clamp_range(self) -> tuple[float, float]:
+        """Positions are clamped to this range on every axis [m]."""
+        return self.clip * self.dx, 1.0 - self.clip * self.dx
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        return _TORCH_DTYPES[self.dtype]
+
+
+def _stream(device: torch.device):
+    """Run warp on torch's current stream (CUDA); nothing to do on the CPU."""
+    if device.type == "cuda":
+        return wp.ScopedStream(wp.stream_from_torch(device))
+    return contextlib.nullcontext()
+
+
+class MPMSolver:
+    """One MLS-MPM step on the unit cube, differentiable through torch autograd.
+
+    Args:
+        cfg: simulator configuration.
+        device: torch device of the state tensors ("cpu" or "cuda[:k]").
+    """
+
+    def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
+        self.cfg = cfg
+        self.device = torch.device(device)
+        wp.init()
+        self.wp_device = wp.device_from_torch(self.device)
+        self.k = KERNELS[cfg.dtype]
+        self.dtype = cfg.torch_dtype
+        self._grids: dict[bool, tuple] = {}
+
+    def step(self, x, v, C, F, tau, vol, mass):
+        """Advance the particles by one step of ``cfg.dt``.
+
+        Args:
+            x: positions [N, 3] (m, sim frame, in [0, 1]^3).
+            v: velocities [N, 3] (m/s).
+            C: APIC affine velocity fields [N, 3, 3] (1/s).
+            F: elastic deformation gradients [N, 3, 3].
+            tau: Kirchhoff stresses of F [N, 3, 3] (Pa).
+            vol: initial particle volumes [N] (m^3).
+            mass: particle masses [N] (kg).
+
+        Returns:
+            ``(x', v', C', F_trial)`` with the shapes of ``x, v, C, F``; ``F_trial = (I + dt C') F``
+            still has to go through the plasticity projection.
+        """
+        self._check(x, v, C, F, tau, vol, mass)
+        return _MPMStep.apply(self, x, v, C, F, tau, vol, mass)
+
+    def grid(self, x, v, C, tau, vol, mass):
+        """P2G only (diagnostics and tests): node masses and momenta of the padded grid.
+
+        Returns:
+            ``(m [G, G, G] kg, mv [G, G, G, 3] kg m/s)`` with ``G = n_grid + 3``; node ``I`` (in
+            [-1, n_grid + 1], position ``I * dx``) is stored at index ``I + 1``.
+        """
+        eye = torch.eye(3, dtype=self.dtype, device=self.device).expand(x.shape[0], 3, 3)
+        self._check(x, v, C, eye, tau, vol, mass)
+        with torch.no_grad(), _stream(self.device):
+            args = self._wrap(x, v, C, eye.contiguous(), tau, vol, mass)
+            mv, m, _ = self._scratch(requires_grad=False)
+            wp.launch(self.k.p2g, dim=x.shape[0], inputs=self._p2g_args(args, mv, m), device=self.wp_device)
+            return wp.to_torch(m).clone(), wp.to_torch(mv).clone()
+
+    # -- internals -------------------------------------------------------------------------------
+
+    def _check(self, x, v, C, F, tau, vol, mass):
+        n = x.shape[0] if x.dim() == 2 else -1
+        expected = {"x": (x, (n, 3)), "v": (v, (n, 3)), "C": (C, (n, 3, 3)), "F": (F, (n, 3, 3)),
+                    "tau": (tau, (n, 3, 3)), "vol": (vol, (n,)), "mass": (mass, (n,))}
+        for name, (t, shape) in expected.items():
+            if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
+                got = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+                raise ValueError(f"{_WHERE}: {name} must have shape {shape} (N from x), got {got}")
+            if t.dtype != self.dtype or t.device.type != self.device.type:
+                raise ValueError(f"{_WHERE}: {name} is {t.dtype} on {t.device}; the solver runs "
+                                 f"{self.dtype} on {self.device} (SimConfig.dtype, MPMSolver device)")
+
+    def _wrap(self, x, v, C, F, tau, vol, mass, grads=None):
+        """Alias torch tensors as warp arrays; ``grads`` (same order, or None) become their ``.grad``."""
+        types = (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33, self.k.mat33, self.k.T, self.k.T)
+        tensors = (x, v, C, F, tau, vol, mass)
+        grads = grads or (None,) * len(tensors)
+        return [wp.from_torch(t.contiguous(), dtype=ty, grad=g, requires_grad=g is not None)
+                for t, ty, g in zip(tensors, types, grads)]
+
+    def _scratch(self, requires_grad: bool):
+        """Zeroed grid buffers (mv, m, v) reused across steps; never needed after a step."""
+        if requires_grad not in self._grids:
+            G = grid_size(self.cfg.n_grid)
+            shape = (G, G, G)
+            self._grids[requires_grad] = tuple(
+                wp.zeros(shape, dtype=ty, device=self.wp_device, requires_grad=requires_grad)
+                for ty in (self.k.vec3, self.k.T, self.k.vec3))
+        for a in self._grids[requires_grad]:
+            a.zero_()
+            if requires_grad:
+                a.grad.zero_()
+        return self._grids[requires_grad]
+
+    def _p2g_args(self, args, mv, m):
+        x, v, C, _, tau, vol, mass = args
+        return [x, v, C, tau, vol, mass, self.cfg.dt, 1.0 / self.cfg.dx, self.cfg.n_grid, mv, m]
+
+    def _launch(self, args, outs, requires_grad: bool):
+        """P2G, grid update, G2P from the wrapped inputs ``args`` into the wrapped ``outs``."""
+        cfg, k, dev = self.cfg, self.k, self.wp_device
+        mv, m, gv = self._scratch(requires_grad)
+        n = args[0].shape[0]
+        lo, hi = cfg.clamp_range
+        wp.launch(k.p2g, dim=n, inputs=self._p2g_args(args, mv, m), device=dev)
+        wp.launch(k.grid_update, dim=mv.shape, device=dev,
+                  inputs=[mv, m, k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.n_grid, cfg.bound,
+                          BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv])
+        wp.launch(k.g2p, dim=n, device=dev,
+                  inputs=[args[0], args[3], gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])
+
+    def _forward(self, x, v, C, F, tau, vol, mass):
+        outs = [torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F)]
+        with _stream(self.device):
+            args = self._wrap(x, v, C, F, tau, vol, mass)
+            wouts = [wp.from_torch(o, dtype=ty, requires_grad=False)
+                     for o, ty in zip(outs, (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33))]
+            self._launch(args, wouts, requires_grad=False)
+        return tuple(outs)
+
+    def _backward(self, inputs, v_outs):
+        """Recompute the step under a tape; return the gradients for (x, v, C, F, tau)."""
+        x, v, C, F, tau, vol, mass = inputs
+        v_ins = [torch.zeros(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F, tau)]
+        with _stream(self.device):
+            args = self._wrap(x, v, C, F, tau, vol, mass, grads=(*v_ins, None, None))
+            types = (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33)
+            outs = [wp.from_torch(torch.empty(t.shape, dtype=t.dtype, device=t.device), dtype=ty,
+                                  grad=g.contiguous().clone())
+                    for t, ty, g in zip((x, v, C, F), types, v_outs)]
+            tape = wp.Tape()
+            with tape:
+                self._launch(args, outs, requires_grad=True)
+            tape.backward()
+        return tuple(v_ins)
+
+
+class _MPMStep(torch.autograd.Function):
+    """torch.autograd bridge of :meth:`MPMSolver.step` (backward recomputes the step)."""
+
+    @staticmethod
+    def forward(ctx, solver, x, v, C, F, tau, vol, mass):
+        ctx.solver = solver
+        inputs = tuple(t.contiguous() for t in (x, v, C, F, tau, vol, mass))
+        ctx.save_for_backward(*inputs)
+        return solver._forward(*inputs)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_x, v_v, v_C, v_F):
+        v_ins = ctx.solver._backward(ctx.saved_tensors, (v_x, v_v, v_C, v_F))
+        return (None, *v_ins, None, None)
+
+
+__all__ = ["SimConfig", "MPMSolver", "PAD"]

@@ -1,0 +1,60 @@
+"""Training knobs (params.yaml sections ``train`` and ``velocity``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation of the constitutive law from video (NeuMA recipe + GCA losses).
+
+    Attributes:
+        iterations: optimiser steps (one full rollout + backward each).
+        lr_elasticity, lr_plasticity: Adam learning rates of the two networks' trainable weights.
+        lr_explicit: learning rate of explicit-law parameters (log E, nu, ...) for the PAC-NeRF rows.
+        cosine_floor: final learning rate as a fraction of the initial one (cosine decay).
+        grad_clip: max global gradient norm (NeuMA: 1.0 synthetic).
+        curriculum_start: fraction of the video's frames supervised at the first iteration.
+        curriculum_until: fraction of the iterations after which every frame is supervised.
+        lambda_color: weight of the pixel colour L2 loss.
+        lambda_depth_l1: weight of the L1 monocular-depth loss (PAC-NeRF + depth row).
+        cpr_every: apply CPR on every n-th supervised frame.
+        checkpoint_every: save a resumable checkpoint every n iterations.
+        max_chamfer: a rollout whose mean distance to the observed silhouette exceeds this [m] is
+            treated as diverged (particles flying away).
+        seed: base seed of the run (matches, CPR subset).
+    """
+
+    iterations: int = 200
+    lr_elasticity: float = 8e-3
+    lr_plasticity: float = 8e-4
+    lr_explicit: float = 2e-2
+    cosine_floor: float = 0.025
+    grad_clip: float = 1.0
+    curriculum_start: float = 0.3
+    curriculum_until: float = 0.33
+    lambda_color: float = 1.0
+    lambda_depth_l1: float = 1.0
+    cpr_every: int = 2
+    checkpoint_every: int = 10
+    max_chamfer: float = 0.5
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class VelocityConfig:
+    """Initial velocity estimation from the first video frames with the prior law (NeuMA stage A).
+
+    Attributes:
+        iterations: optimiser steps.
+        n_video_frames: how many of the first video frames supervise it.
+        lr: Adam learning rate [m/s per step].
+        lambda_mask, lambda_color: weights of the silhouette and colour losses.
+    """
+
+    iterations: int = 100
+    n_video_frames: int = 3
+    lr: float = 0.2
+    lambda_mask: float = 1.0
+    lambda_color: float = 0.0

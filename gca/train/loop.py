@@ -1,0 +1,235 @@
+"""Optimising a method's law from video: rollout -> render -> losses -> backward, with a frame curriculum.
+
+One iteration (NeuMA stage B, with GCA's losses where the method asks for them):
+
+1. roll the law out from the estimated initial velocity for the current curriculum horizon, with
+   per-frame checkpointing (memory does not grow with every step's activations);
+2. at each supervised video frame, move the Gaussians with the particles and render every training
+   view; add the method's losses: colour L2 (NeuMA), silhouette + RDGA geometry (GCA), L1 monocular
+   depth (PAC-NeRF + depth), and CPR residuals on the frame's deformation gradients;
+3. backward once, clip the gradient norm, step Adam with cosine decay.
+
+A run that diverges (non-finite loss or state, particles leaving the domain, a rollout drifting
+away from the observed silhouette) stops cleanly and is reported as diverged with its last finite
+losses. Checkpoints are written every ``checkpoint_every`` iterations and resumed from.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gca.align.cpr import CPR, CPRConfig
+from gca.align.rdga import RDGAConfig, rdga_loss
+from gca.render.camera import Camera
+from gca.render.rasterize import render
+from gca.scenes.store import ViewData
+from gca.scenes.world import Body, gaussians_at
+from gca.sim.rollout import Rollout, SimulationDiverged, rollout
+from gca.sim.solver import MPMSolver
+from gca.train.config import TrainConfig
+from gca.train.law import LearnedLaw
+from gca.train.methods import Method
+from gca.vision.matching import MatchConfig, match_cached
+
+DIVERGENCE_ERRORS = (SimulationDiverged, FloatingPointError)
+
+
+@dataclasses.dataclass
+class TrainData:
+    """Everything a method may observe (never the ground-truth trajectory).
+
+    Attributes:
+        body: particles + Gaussians (sim frame).
+        views: training views (``train0`` first), frames at ``video_frames``.
+        video_frames: simulated-frame index of each video frame [T].
+        substeps: MPM steps per simulated frame.
+        est_depth: estimated relative depth of ``train0`` [T, H, W].
+        keypoints: cached SIFT (keypoints [K,2], descriptors [K,128]) of ``train0`` per frame.
+        v_init: estimated initial velocity field [P, 3] (m/s).
+        background: render background RGB.
+    """
+
+    body: Body
+    views: dict[str, ViewData]
+    video_frames: list[int]
+    substeps: int
+    est_depth: np.ndarray
+    keypoints: list[tuple[np.ndarray, np.ndarray]]
+    v_init: torch.Tensor
+    background: tuple[float, float, float]
+
+
+@dataclasses.dataclass
+class TrainResult:
+    status: str  # "ok" | "diverged"
+    iterations: int
+    history: list[dict]
+    message: str = ""
+    seconds: float = 0.0
+
+
+def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
+    """Number of video frames supervised at iteration ``it`` (linear growth, then all)."""
+    ramp = max(1.0, cfg.curriculum_until * cfg.iterations)
+    frac = cfg.curriculum_start + (1.0 - cfg.curriculum_start) * min(1.0, it / ramp)
+    return max(1, min(n_video, math.ceil(frac * n_video)))
+
+
+def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) -> Rollout:
+    """Differentiable rollout up to the ``n_video``-th video frame."""
+    n_frames = data.video_frames[n_video - 1]
+    b = data.body
+    return rollout(solver, law.material, b.x0, data.v_init, b.vol, b.mass,
+                   n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
+
+
+def position_image(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, camera: Camera,
+                   bg: torch.Tensor) -> torch.Tensor:
+    """Premultiplied rendered 3D positions [H, W, 3] (for RDGA's global term)."""
+    return render(means, covs, means, opacities, camera, torch.zeros(3, dtype=means.dtype))["rgb"]
+
+
+def to_uint8(rgb: torch.Tensor) -> np.ndarray:
+    return (rgb.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+class Objective:
+    """The method's loss at one video frame (all views), plus CPR on the frame's deformation gradients."""
+
+    def __init__(self, method: Method, data: TrainData, cfg: TrainConfig, rdga: RDGAConfig,
+                 cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
+        self.method, self.data, self.cfg, self.match = method, data, cfg, match
+        self.rdga = dataclasses.replace(rdga, **dict(method.rdga))
+        self.cpr = None
+        if method.cpr:
+            if method.cpr_remove_target:
+                cpr_cfg = dataclasses.replace(
+                    cpr_cfg, elastic=tuple(h for h in cpr_cfg.elastic if h != cpr_target[0]),
+                    plastic=tuple(h for h in cpr_cfg.plastic if h != cpr_target[1]))
+            self.cpr = CPR(cpr_cfg, data.body.n_particles, seed=cfg.seed)
+        self.bg = torch.tensor(data.background, dtype=data.body.x0.dtype)
+
+    def frame(self, traj: Rollout, j: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
+        """Loss at video frame ``j`` (0-based)."""
+        f = self.data.video_frames[j]
+        means, covs = gaussians_at(self.data.body, traj.x[f], traj.F[f])
+        loss, stats = means.sum() * 0.0, {}
+        for name, view in self.data.views.items():
+            out = render(means, covs, self.data.body.colors, self.data.body.opacities, view.camera, self.bg)
+            if self.method.color:
+                l_color = (out["rgb"] - torch.as_tensor(view.rgb[j])).square().mean()
+                loss = loss + self.cfg.lambda_color * l_color
+                stats[f"color/{name}"] = float(l_color)
+            if name == "train0":
+                loss, stats = self._mono_terms(out, means, covs, view, j, loss, stats)
+        if self.cpr is not None and j % self.cfg.cpr_every == 0:
+            R_e, R_p, _ = self.cpr.residuals(law.material.elasticity, law.material.plasticity,
+                                             traj.F[f - 1] if f > 0 else traj.F[f], traj.F[f])
+            loss = loss + R_e + R_p
+            stats.update(R_e=float(R_e), R_p=float(R_p))
+        return loss, stats
+
+    def _mono_terms(self, out: dict, means, covs, view: ViewData, j: int, loss, stats):
+        m = self.method
+        if m.depth_l1:
+            mask = torch.as_tensor(view.mask[j])
+            est = torch.as_tensor(self.data.est_depth[j], dtype=out["depth"].dtype)
+            l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
+            loss = loss + self.cfg.lambda_depth_l1 * l_depth
+            stats["depth_l1"] = float(l_depth)
+        if m.mask or m.geo:
+            rdga = self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
+            p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
+            pos = position_image(means, covs, self.data.body.opacities, view.camera, self.bg) \
+                if rdga.enabled and rdga.use_global else None
+            l_rdga, s = rdga_loss(out, view.mask[j], self.data.est_depth[j], p, q, rdga, pos_image=pos,
+                                  K=torch.as_tensor(view.camera.K, dtype=out["depth"].dtype))
+            loss = loss + l_rdga
+            stats.update({f"rdga/{k}": v for k, v in s.items()})
+        return loss, stats
+
+
+def _optimizer(law: LearnedLaw, cfg: TrainConfig):
+    opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in law.groups])
+    floor = cfg.cosine_floor
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda it: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it, cfg.iterations) / cfg.iterations)))
+    return opt, sched
+
+
+def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list) -> None:
+    from gca.io import atomic_path
+    with atomic_path(path) as tmp:
+        torch.save({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                    "iteration": it, "history": history}, tmp)
+
+
+def _resume(path: Path | None, law: LearnedLaw, opt, sched) -> tuple[int, list]:
+    if path is None or not path.is_file():
+        return 0, []
+    ckpt = torch.load(path, weights_only=False)
+    law.load_state(ckpt["law"])
+    opt.load_state_dict(ckpt["opt"])
+    sched.load_state_dict(ckpt["sched"])
+    return int(ckpt["iteration"]), list(ckpt["history"])
+
+
+def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
+          checkpoint_path: Path | None = None, on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
+    """Run the optimisation; returns the status and the per-iteration history."""
+    start = time.perf_counter()
+    if not law.trainable():
+        return TrainResult("ok", 0, [], "nothing to train", 0.0)
+    opt, sched = _optimizer(law, cfg)
+    it0, history = _resume(checkpoint_path, law, opt, sched)
+    n_video = len(data.video_frames)
+    for it in tqdm(range(it0, cfg.iterations), desc="train", unit="it", initial=it0, total=cfg.iterations):
+        try:
+            record = _step(solver, law, data, objective, cfg, opt, horizon(cfg, it, n_video))
+        except DIVERGENCE_ERRORS as exc:
+            return TrainResult("diverged", it, history, f"{type(exc).__name__}: {exc}", time.perf_counter() - start)
+        sched.step()
+        record["iteration"] = it
+        history.append(record)
+        if on_iteration:
+            on_iteration(it, record)
+        if checkpoint_path is not None and ((it + 1) % cfg.checkpoint_every == 0 or it + 1 == cfg.iterations):
+            _save_checkpoint(checkpoint_path, law, opt, sched, it + 1, history)
+    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start)
+
+
+def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
+    opt.zero_grad(set_to_none=True)
+    traj = simulate(solver, law, data, n_video)
+    loss, stats = 0.0, {}
+    for j in range(n_video):
+        l_j, s_j = objective.frame(traj, j, law)
+        loss = loss + l_j
+        for k, v in s_j.items():
+            stats[k] = stats.get(k, 0.0) + v / n_video
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
+    _check_drift(traj, data, n_video, cfg)
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip, error_if_nonfinite=True)
+    opt.step()
+    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, **stats}
+
+
+def _check_drift(traj: Rollout, data: TrainData, n_video: int, cfg: TrainConfig) -> None:
+    """Particles drifting far from where they started in a way no object moves: treated as divergence."""
+    with torch.no_grad():
+        last = traj.x[data.video_frames[n_video - 1]]
+        spread = (last - last.mean(0)).norm(dim=1).max()
+        spread0 = (data.body.x0 - data.body.x0.mean(0)).norm(dim=1).max()
+    if float(spread) > spread0 + cfg.max_chamfer:
+        raise FloatingPointError(f"rollout blew up: particle spread {float(spread):.3g} m vs {float(spread0):.3g} m "
+                                 f"at rest (limit +{cfg.max_chamfer} m)")

@@ -1,0 +1,165 @@
+"""Assemble a scene's training data from the pipeline's files and train one method on it.
+
+    runs/<scene>/velocity.json           the shared initial velocity estimate (prior law, first frames)
+    runs/<scene>/<method>/law.pt         what training changed (adapter / full weights / explicit params)
+    runs/<scene>/<method>/checkpoint.pt  resumable optimiser state (removed when the run completes)
+    runs/<scene>/<method>/train.json     status, seconds, peak memory, MLflow run id, last losses
+    runs/<scene>/<method>/history.json   per-iteration losses
+    runs/<scene>/<method>/loss.png       loss curve
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from gca import config
+from gca.align.cpr import CPRConfig
+from gca.align.rdga import RDGAConfig
+from gca.eval.efficiency import measure
+from gca.io import atomic_path, read_json, write_json
+from gca.laws.checkpoint import load_prior
+from gca.laws.lora import LoRAConfig
+from gca.scenes import SceneConfig, read_meta, load_views, scene_config, video_config
+from gca.scenes.prep import load_prep
+from gca.scenes.world import Body, initial_velocity, load_body
+from gca.sim.solver import MPMSolver, SimConfig
+from gca.train.config import TrainConfig, VelocityConfig
+from gca.train.law import LearnedLaw, build_law
+from gca.train.loop import Objective, TrainData, TrainResult, train
+from gca.train.methods import Method
+from gca.train.velocity import estimate_velocity
+from gca.vision import MatchConfig
+
+MULTI_VIEWS = ("train0", "train1", "train2")
+
+
+@dataclasses.dataclass
+class SceneInputs:
+    """Paths of one scene's pipeline inputs."""
+
+    scene_dir: Path
+    prep_dir: Path
+    particles: Path
+    gaussians: Path
+    prior: Path
+
+
+def solver_for(params: Mapping, scene: SceneConfig, device="cpu") -> MPMSolver:
+    sim = config.build(SimConfig, config.section(params, "sim"), "sim")
+    return MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
+
+
+def load_train_data(inputs: SceneInputs, method: Method, v_init: torch.Tensor, background, device="cpu") -> TrainData:
+    """Everything the method may observe: training views, preprocessed depth/masks/keypoints."""
+    meta = read_meta(inputs.scene_dir)
+    names = MULTI_VIEWS if method.views == "multi" else MULTI_VIEWS[:1]
+    views = load_views(inputs.scene_dir, [n for n in names if n in meta["views"]["train"]])
+    depth, masks, keypoints = load_prep(inputs.prep_dir, len(meta["video_frames"]))
+    views["train0"].mask = masks  # a monocular method sees its own masks, not the renderer's alpha
+    body = load_body(inputs.particles, inputs.gaussians, device)
+    return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=int(meta["substeps"]),
+                     est_depth=depth, keypoints=keypoints, v_init=initial_velocity(body.x0, v_init),
+                     background=tuple(background))
+
+
+def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInputs, out: Path) -> dict:
+    """Fit the launch velocity with the prior law; write ``velocity.json``."""
+    scene = scene_config(params, scene_name)
+    video = video_config(params)
+    vcfg = config.build(VelocityConfig, config.section(params, "velocity"), "velocity")
+    meta = read_meta(inputs.scene_dir)
+    view = load_views(inputs.scene_dir, ["train0"])["train0"]
+    view.mask = load_prep(inputs.prep_dir, len(meta["video_frames"]))[1]
+    body = load_body(inputs.particles, inputs.gaussians)
+    prior = load_prior(inputs.prior, family=scene.prior)
+    from gca.laws.base import Material
+    material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum()))
+    v0, history = estimate_velocity(solver_for(params, scene), material, body, view, meta["video_frames"],
+                                    int(meta["substeps"]), vcfg, video.background)
+    result = {"v0": v0.tolist(), "loss_first": history[0] if history else None,
+              "loss_last": history[-1] if history else None, "iterations": len(history)}
+    write_json(out, result)
+    return result
+
+
+def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float) -> LearnedLaw:
+    tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    lora = config.build(LoRAConfig, config.section(params, "laws.lora"), "laws.lora")
+    return build_law(method, inputs.prior, scene.prior, rho, lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
+                     tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt)
+
+
+def objective_for(params: Mapping, method: Method, data: TrainData, scene_params: Mapping) -> Objective:
+    tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    rdga = config.build(RDGAConfig, config.section(params, "align.rdga"), "align.rdga")
+    cpr = config.build(CPRConfig, config.section(params, "align.cpr"), "align.cpr")
+    match = config.build(MatchConfig, config.section(params, "vision.matching"), "vision.matching")
+    target = tuple(scene_params.get("cpr_target", ("", "")))
+    return Objective(method, data, tcfg, rdga, cpr, match, cpr_target=target)
+
+
+def train_method(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, v0: list[float],
+                 out_dir: Path, run=None) -> dict:
+    """Train ``method`` on a scene; write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
+    scene = scene_config(params, scene_name)
+    video = video_config(params)
+    tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    data = load_train_data(inputs, method, torch.tensor(v0, dtype=torch.float32), video.background)
+    law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()))
+    objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
+    with measure() as cost:
+        result: TrainResult = train(solver_for(params, scene), law, data, objective, tcfg,
+                                    checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
+    with atomic_path(out_dir / "law.pt") as tmp:
+        torch.save({"method": method.name, "kind": law.kind, "state": law.state()}, tmp)
+    write_json(out_dir / "history.json", {"history": result.history})
+    (out_dir / "checkpoint.pt").unlink(missing_ok=True)
+    summary = {"scene": scene_name, "method": method.name, "status": result.status, "message": result.message,
+               "iterations": result.iterations, "train_seconds": cost.wall_s, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
+               "memory_source": cost.source, "mlflow_run_id": run.run_id if run else None,
+               "last": result.history[-1] if result.history else {}}
+    write_json(out_dir / "train.json", summary)
+    _plot_history(result.history, out_dir / "loss.png", f"{scene_name} / {method.name}")
+    return summary
+
+
+def _plot_history(history: list[dict], path: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=100)
+    if history:
+        ax.plot([h["iteration"] for h in history], [h["loss"] for h in history], marker="o", ms=3)
+    ax.set(xlabel="iteration", ylabel="loss", title=title)
+    ax.set_yscale("symlog", linthresh=1e-3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", metadata={"Software": None})
+    plt.close(fig)
+
+
+def load_learned_law(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, run_dir: Path,
+                     rho: float) -> LearnedLaw:
+    """Rebuild a trained method's law from ``law.pt`` (the prior + what training changed)."""
+    law = law_for(params, method, scene_config(params, scene_name), inputs, rho)
+    path = run_dir / "law.pt"
+    if path.is_file():
+        law.load_state(torch.load(path, weights_only=False)["state"])
+    elif method.trains:
+        raise FileNotFoundError(f"{path}: missing trained law of {method.name} (run the train stage)")
+    return law
+
+
+def read_velocity(path: Path) -> list[float]:
+    v = read_json(path)["v0"]
+    if len(v) != 3 or not all(np.isfinite(v)):
+        raise ValueError(f"{path}: v0 must be 3 finite numbers, got {v}")
+    return v

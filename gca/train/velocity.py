@@ -1,0 +1,61 @@
+"""Initial velocity estimation from the first video frames, with the prior law (NeuMA's stage A).
+
+A single launch velocity v0 [3] (m/s), broadcast to every particle, is optimised so that the prior's
+rollout over the first few video frames matches the observed silhouettes (and optionally colours).
+The result is shared by every visual method of a scene, so they differ only in the law they learn.
+"""
+
+from __future__ import annotations
+
+import torch
+from tqdm import tqdm
+
+from gca.laws.base import Material
+from gca.render.rasterize import render
+from gca.scenes.store import ViewData
+from gca.scenes.world import Body, gaussians_at, initial_velocity
+from gca.sim.rollout import rollout
+from gca.sim.solver import MPMSolver
+from gca.train.config import VelocityConfig
+
+
+def silhouette_loss(body: Body, x: torch.Tensor, F: torch.Tensor, view: ViewData, j: int, bg: torch.Tensor,
+                    cfg: VelocityConfig) -> torch.Tensor:
+    """Mask (and optional colour) L2 at video frame ``j`` of ``view``."""
+    means, covs = gaussians_at(body, x, F)
+    out = render(means, covs, body.colors, body.opacities, view.camera, bg)
+    loss = cfg.lambda_mask * (out["alpha"] - torch.as_tensor(view.mask[j], dtype=x.dtype)).square().mean()
+    if cfg.lambda_color:
+        loss = loss + cfg.lambda_color * (out["rgb"] - torch.as_tensor(view.rgb[j])).square().mean()
+    return loss
+
+
+def estimate_velocity(solver: MPMSolver, material: Material, body: Body, view: ViewData, video_frames: list[int],
+                      substeps: int, cfg: VelocityConfig, background=(1.0, 1.0, 1.0),
+                      v_start: torch.Tensor | None = None) -> tuple[torch.Tensor, list[float]]:
+    """Fit v0 [3] (m/s) on the first ``cfg.n_video_frames`` video frames of ``view``.
+
+    Returns:
+        (v0 [3], loss history).
+    """
+    n = min(cfg.n_video_frames, len(video_frames))
+    dtype = body.x0.dtype
+    v0 = torch.zeros(3, dtype=dtype) if v_start is None else v_start.detach().clone()
+    v0.requires_grad_(True)
+    opt = torch.optim.Adam([v0], lr=cfg.lr)
+    bg = torch.tensor(background, dtype=dtype)
+    for p in material.parameters():
+        p.requires_grad_(False)
+    history = []
+    for _ in tqdm(range(cfg.iterations), desc="velocity", unit="it"):
+        opt.zero_grad(set_to_none=True)
+        traj = rollout(solver, material, body.x0, initial_velocity(body.x0, v0), body.vol, body.mass,
+                       n_steps=video_frames[n - 1] * substeps, steps_per_frame=substeps, checkpoint=True)
+        loss = sum(silhouette_loss(body, traj.x[f], traj.F[f], view, j, bg, cfg)
+                   for j, f in enumerate(video_frames[:n]))
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"velocity estimation: non-finite loss at v0={v0.tolist()}")
+        loss.backward()
+        opt.step()
+        history.append(float(loss))
+    return v0.detach(), history

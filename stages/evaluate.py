@@ -1,0 +1,73 @@
+"""DVC stage ``evaluate``: metrics of every trained method of a scene, one JSON per method.
+
+    python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --runs runs/duck \
+        --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
+        --prior-dir models/prior --out metrics/duck
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from gca import config
+from gca.eval.evaluate import device_name, evaluate_run, law_metrics
+from gca.io import read_json, write_json
+from gca.scenes import scene_config, video_config
+from gca.scenes.world import load_body
+from gca.track import stage_run
+from gca.train.methods import get_method
+from gca.train.run import SceneInputs, load_learned_law, read_velocity, solver_for
+
+
+def parse_args(argv):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for name in ("scene-dir", "runs", "particles", "gaussians", "prior-dir", "out"):
+        ap.add_argument(f"--{name}", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
+    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    return ap.parse_args(argv)
+
+
+def evaluate_method(params, args, scene, method, inputs, body) -> dict:
+    run_dir = args.runs / method.name
+    train = read_json(run_dir / "train.json")
+    law = load_learned_law(params, args.scene, method, inputs, run_dir, float(body.mass.sum() / body.vol.sum()))
+    metrics = evaluate_run(solver_for(params, scene), law.material, body, read_velocity(args.runs / "velocity.json"),
+                           args.scene_dir, video_config(params).background, args.out / method.name)
+    if train["status"] != "ok":
+        metrics["status"] = train["status"]
+    if config.section(params, f"scenes.{args.scene}").get("law_level", False):
+        metrics.update(law_metrics(law.material, config.section(params, f"materials.{scene.material}"), scene.dt))
+    return {**metrics, "scene": args.scene, "method": method.name, "object": scene.object, "material": scene.material,
+            "seed": int(params["seed"]), "profile": params["profile"], "device": device_name(body.x0.device),
+            "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    params = config.load(f"evaluate@{args.scene}", args.params)
+    scene = scene_config(params, args.scene)
+    methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
+    inputs = SceneInputs(args.scene_dir, None, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
+    body = load_body(args.particles, args.gaussians)
+    out = {}
+    for method in methods:
+        run_id = read_json(args.runs / method.name / "train.json").get("mlflow_run_id")
+        with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
+                       experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables)},
+                       resume_run_id=run_id) as run:
+            out[method.name] = evaluate_method(params, args, scene, method, inputs, body)
+            write_json(args.out / f"{method.name}.json", out[method.name])
+            run.log_metrics({k: v for k, v in out[method.name].items() if k != "chamfer_per_frame"})
+            for name in ("strip.png", "rollout.gif"):
+                run.log_artifact(args.out / method.name / name)
+        print(f"evaluate {args.scene}/{method.name}: {out[method.name]['status']} "
+              f"CD={out[method.name].get('chamfer_mean', float('nan')):.4g}")
+    return out
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

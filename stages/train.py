@@ -1,0 +1,57 @@
+"""DVC stage ``train``: estimate the launch velocity, then train every method of a scene.
+
+    python stages/train.py --scene duck --scene-dir data/scenes/duck --prep data/prep/duck \
+        --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
+        --prior-dir models/prior --out runs/duck [--methods gca neuma]
+
+One MLflow run per (scene, method, seed), in the experiment of the method's first paper table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from gca import config
+from gca.scenes import scene_config
+from gca.track import stage_run
+from gca.train.methods import get_method
+from gca.train.run import SceneInputs, estimate_scene_velocity, read_velocity, train_method
+
+
+def parse_args(argv):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for name in ("scene-dir", "prep", "particles", "gaussians", "prior-dir", "out"):
+        ap.add_argument(f"--{name}", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
+    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    return ap.parse_args(argv)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    params = config.load(f"train@{args.scene}", args.params)
+    scene = scene_config(params, args.scene)
+    methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
+    inputs = SceneInputs(args.scene_dir, args.prep, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
+    args.out.mkdir(parents=True, exist_ok=True)
+    with stage_run("train", params, scene=args.scene, method="velocity") as run:
+        velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json")
+        run.log_metrics({k: v for k, v in velocity.items() if k != "v0"})
+    v0 = read_velocity(args.out / "velocity.json")
+    results = {}
+    for method in methods:
+        with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],
+                       experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables),
+                                                                    "material": scene.material}) as run:
+            results[method.name] = train_method(params, args.scene, method, inputs, v0, args.out / method.name, run)
+            run.log_artifact(args.out / method.name / "loss.png")
+        print(f"train {args.scene}/{method.name}: {results[method.name]['status']} "
+              f"in {results[method.name]['train_seconds']:.1f} s")
+    return results
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,129 @@
+"""gca.assets.particles: volumes, world <-> sim map, binding invariants, file round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from gca.assets import objects, particles as pa
+from gca.assets.ply import normalized_quats, quats_to_rotmats, scales
+
+R_WORLD = 0.15  # sphere radius [m]
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=R_WORLD)
+    _, colour_fn = objects.make_object("ball", seed=0, size=2 * R_WORLD)
+    cloud = objects.gaussians_from_mesh(mesh, colour_fn, n_surface=6000, n_interior=600, seed=0)
+    return mesh, cloud
+
+
+def sphere_volume_sim(p: pa.Particles) -> float:
+    return 4 / 3 * np.pi * (R_WORLD * p.sim_from_world[0, 0]) ** 3
+
+
+def test_mesh_path_volume(sphere):
+    mesh, cloud = sphere
+    cfg = pa.ParticleConfig(spacing=0.025, margin=0.25)
+    p = pa.convert(cloud, cfg, density=1000.0, mesh=mesh)
+    V = sphere_volume_sim(p)
+    assert abs(p.vol.sum() / V - 1) < 0.02
+    assert abs(p.n * cfg.spacing**3 / V - 1) < 0.05  # the lattice itself samples the ball's volume
+    np.testing.assert_allclose(p.mass, 1000.0 * p.vol, rtol=1e-6)
+    centre = pa.apply_affine(p.sim_from_world, np.zeros((1, 3)))[0]
+    assert np.linalg.norm(p.x - centre, axis=1).max() <= R_WORLD * p.sim_from_world[0, 0]
+
+
+def test_gaussians_only_path_volume(sphere):
+    """No mesh: the hole-filled opacity field; stated bound 8 % on the total volume."""
+    _, cloud = sphere
+    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.025), density=1000.0)
+    assert abs(p.vol.sum() / sphere_volume_sim(p) - 1) < 0.08
+
+
+def test_gaussians_only_detects_unsealed_surface():
+    """A sparse pure-surface scan on a fine lattice does not enclose a volume: a clear error."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=R_WORLD)
+    cloud = objects.gaussians_from_mesh(mesh, lambda x: np.full((len(x), 3), 0.5), 300, 0, seed=0)
+    with pytest.raises(ValueError, match="did not enclose a volume"):
+        pa.convert(cloud, pa.ParticleConfig(spacing=0.01, density_threshold=0.9), density=1000.0)
+
+
+@pytest.mark.parametrize("placement", ["floor", "centre"])
+def test_sim_from_world_round_trip_and_placement(placement):
+    cfg = pa.ParticleConfig(margin=0.2, placement=placement, floor_gap=0.03)
+    lo, hi = np.array([-1.0, 2.0, 0.5]), np.array([3.0, 4.0, 1.5])
+    T = pa.fit_sim_from_world(lo, hi, cfg)
+    corners = pa.apply_affine(T, np.stack([lo, hi]))
+    np.testing.assert_allclose((corners[1] - corners[0]).max(), 0.6)  # 1 - 2 * margin
+    np.testing.assert_allclose(corners[:, [0, 2]].mean(axis=0), 0.5)
+    np.testing.assert_allclose(corners[0, 1], 0.03 if placement == "floor" else 0.5 - 0.15)
+    x = np.random.default_rng(0).normal(size=(10, 3))
+    np.testing.assert_allclose(pa.apply_affine(pa.world_from_sim(T), pa.apply_affine(T, x)), x, atol=1e-12)
+
+
+@pytest.mark.parametrize("unbound", ["nearest", "extra"])
+def test_binding_rows_sum_to_one_and_every_gaussian_bound(sphere, unbound):
+    mesh, cloud = sphere
+    cfg = pa.ParticleConfig(spacing=0.03, unbound=unbound, max_bound=6, n_candidates=16)
+    p = pa.convert(cloud, cfg, density=500.0, mesh=mesh)
+    W = p.binding_matrix()
+    np.testing.assert_allclose(np.asarray(W.sum(axis=1)).ravel(), 1.0, rtol=1e-6)
+    assert np.all(np.diff(W.indptr) >= 1) and np.diff(W.indptr).max() <= 6
+    assert W.shape == (cloud.n, p.n)  # all opaque: every Gaussian kept
+    if unbound == "extra":
+        np.testing.assert_allclose(p.vol.sum(), sphere_volume_sim(p), rtol=0.02)
+
+
+def test_binding_matches_bruteforce_reference():
+    """Vectorised KD-tree binding vs a loop over Gaussians with all particles as candidates."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 1, size=(300, 3))
+    means = rng.uniform(0.1, 0.9, size=(40, 3))
+    q = rng.normal(size=(40, 4))
+    R = quats_to_rotmats(q / np.linalg.norm(q, axis=1, keepdims=True))
+    sigmas = rng.uniform(0.02, 0.12, size=(40, 3))
+    cfg = pa.ParticleConfig(max_bound=5, n_candidates=300)
+    rows, cols, weights, unbound = pa.bind_gaussians(means, R, sigmas, x, cfg)
+    for g in range(40):
+        m = np.einsum("pi,ij,pj->p", x - means[g], R[g] @ np.diag(sigmas[g] ** -2) @ R[g].T, x - means[g])
+        ref = np.argsort(m)[:5]
+        ref = ref[m[ref] <= pa.CHI2_3_95]
+        if len(ref) == 0:
+            assert unbound[g]
+            ref = [np.argmin(np.linalg.norm(x - means[g], axis=1))]
+        np.testing.assert_array_equal(np.sort(cols[rows == g]), np.sort(ref))
+        np.testing.assert_allclose(weights[rows == g], 1 / len(ref))
+    assert 0 < unbound.sum() < 40  # both branches exercised
+
+
+def test_opacity_filter_and_file_round_trip(sphere, tmp_path):
+    mesh, cloud = sphere
+    transparent = np.arange(cloud.n) % 3 == 0
+    logits = np.where(transparent, -6.0, cloud.opacity_logit).astype(np.float32)
+    cloud = type(cloud)(**{**cloud.__dict__, "opacity_logit": logits})
+    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.04), density=1000.0, mesh=mesh)
+    np.testing.assert_array_equal(p.gaussian_index, np.nonzero(~transparent)[0])
+    assert p.n_gaussians == cloud.n
+    back = pa.load_particles(pa.save_particles(tmp_path / "p.npz", p))
+    for name in ("x", "vol", "mass", "binding_rows", "binding_cols", "binding_weights", "sim_from_world",
+                 "gaussian_index"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(p, name), err_msg=name)
+    assert (back.n_gaussians, back.spacing) == (p.n_gaussians, p.spacing)
+
+
+def test_all_transparent_is_an_error(sphere):
+    mesh, cloud = sphere
+    cloud = type(cloud)(**{**cloud.__dict__, "opacity_logit": np.full(cloud.n, -9.0, np.float32)})
+    with pytest.raises(ValueError, match="no Gaussian has opacity"):
+        pa.convert(cloud, pa.ParticleConfig(), density=1000.0, mesh=mesh)
+
+
+def test_sim_frame_gaussians_in_unit_cube(sphere):
+    mesh, cloud = sphere
+    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.04, margin=0.1), density=1.0, mesh=mesh)
+    assert p.x.min() > 0.0 and p.x.max() < 1.0
+    assert scales(cloud).max() * p.sim_from_world[0, 0] < 0.1  # scales are mapped by s too
+    _ = normalized_quats(cloud)

@@ -1,0 +1,244 @@
+"""gca.align.cpr: parameter recovery, credibility weights, target removal, gradients, divergence."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from gca.align.cpr import (CPR, ELASTIC_PARAMS, CPRConfig, elastic_tau, relative_variance,
+                           solve_linear_groups)
+from gca.config import ConfigError, build
+from gca.laws.base import lame
+from gca.laws.elastic import corotated_tau, sigma_tau, stvk_tau, volume_tau
+from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
+from gca.laws.plastic import drucker_prager_plastic, identity_plastic, von_mises_plastic
+
+N = 320
+MU, LAM = lame(1e5, 0.2)  # NCLaw jelly: mu = 4.167e4 Pa, lam = 2.778e4 Pa
+ELASTIC_ONLY = CPRConfig(plastic=())
+LAWS = {"corotated": corotated_tau, "stvk": stvk_tau, "sigma": sigma_tau}
+
+
+class FixedLaw(torch.nn.Module):
+    """A 'neural' law that is an analytic law with fixed parameters (forward(F) -> law(F, *args))."""
+
+    def __init__(self, law, *args, scale=None):
+        super().__init__()
+        self.law, self.args = law, args
+        self.scale = None if scale is None else torch.nn.Parameter(torch.tensor(scale, dtype=torch.float64))
+
+    def forward(self, F):
+        out = self.law(F, *self.args)
+        return out if self.scale is None else self.scale * out
+
+
+def _deformations(seed=0, n=N, amplitude=0.06, dtype=torch.float32):
+    """Random general deformation gradients near I (stretch, shear and rotation, det > 0)."""
+    g = torch.Generator().manual_seed(seed)
+    return (torch.eye(3, dtype=torch.float64) + amplitude * torch.randn(n, 3, 3, generator=g,
+                                                                        dtype=torch.float64)).to(dtype)
+
+
+# ---------------------------------------------------------------- config and subset
+def test_config_validation_and_build():
+    cfg = build(CPRConfig, {"subset_size": 64, "elastic": ["corotated", "sigma"], "plastic": []}, "align.cpr")
+    assert cfg.elastic == ("corotated", "sigma") and cfg.plastic == ()
+    with pytest.raises(ValueError, match="unknown hypotheses"):
+        CPRConfig(elastic=("neo_hookean",))
+    with pytest.raises(ConfigError, match="unknown keys"):
+        build(CPRConfig, {"subset": 3})
+
+
+def test_subset_is_fixed_seeded_and_split_into_groups():
+    a, b, c = CPR(CPRConfig(), 1000, seed=1), CPR(CPRConfig(), 1000, seed=1), CPR(CPRConfig(), 1000, seed=2)
+    assert torch.equal(a.subset, b.subset) and not torch.equal(a.subset, c.subset)
+    assert len(a.subset) == 256 and len(set(a.subset.tolist())) == 256 and int(a.subset.max()) < 1000
+    assert torch.bincount(a.group_ids).tolist() == [32] * 8
+    assert len(CPR(CPRConfig(), 100, seed=0).subset) == 100  # N < |S|: all particles
+
+
+# ---------------------------------------------------------------- solvers
+def test_hypotheses_are_linear_in_their_parameters():
+    """CPR's closed-form fit assumes H(F; mu, lam) = mu H(F; 1, 0) + lam H(F; 0, 1)."""
+    F = _deformations(dtype=torch.float64)[:32]
+    for name, params in ELASTIC_PARAMS.items():
+        theta = [MU, LAM][-len(params):]
+        units = torch.eye(len(params), dtype=torch.float64)
+        combo = sum(t * elastic_tau(name, F, u.tolist()) for t, u in zip(theta, units))
+        torch.testing.assert_close(elastic_tau(name, F, theta), combo, rtol=1e-10, atol=1e-6)
+
+
+def test_linear_solver_and_relative_variance_hand_values():
+    basis = torch.randn(2, 8, 3, 3, dtype=torch.float64)
+    target = 3.0 * basis[0] - 2.0 * basis[1]
+    theta = solve_linear_groups(basis, target, torch.arange(8) % 2, 2)
+    torch.testing.assert_close(theta, torch.tensor([[3.0, -2.0], [3.0, -2.0]], dtype=torch.float64))
+    # groups (1, 0) and (3, 0): var = 1, mean^2 = 4 -> 0.25
+    assert relative_variance(torch.tensor([[1.0, 0.0], [3.0, 0.0]])) == pytest.approx(0.25)
+    assert relative_variance(torch.zeros(4, 0)) == 0.0
+
+
+# ---------------------------------------------------------------- elastic recovery and weights
+@pytest.mark.parametrize("name", ["corotated", "stvk", "sigma"])
+def test_recovers_lame_and_gives_true_law_the_largest_weight(name):
+    cpr = CPR(ELASTIC_ONLY, N, seed=0)
+    F = _deformations()
+    R_e, R_p, info = cpr.residuals(FixedLaw(LAWS[name], MU, LAM), identity_plastic, F, F)
+    mu, lam = info["elastic"][name].theta.tolist()
+    assert mu == pytest.approx(MU, rel=1e-2) and lam == pytest.approx(LAM, rel=1e-2)
+    weights = {k: f.weight for k, f in info["elastic"].items()}
+    assert CPR.best(info["elastic"]) == name, weights
+    assert weights[name] > 3 * max(w for k, w in weights.items() if k != name), weights
+    assert weights[name] == pytest.approx(1 / ELASTIC_ONLY.eps, rel=1e-3)  # exact fit: Var = 0
+    assert torch.isfinite(R_e) and float(R_p) == 0.0
+
+
+def test_volume_law_weight_is_maximal():
+    """A pure-pressure law is also exactly corotated/sigma with mu = 0: those tie, nothing beats it."""
+    cpr = CPR(ELASTIC_ONLY, N, seed=0)
+    F = _deformations()
+    _, _, info = cpr.residuals(FixedLaw(volume_tau, LAM), identity_plastic, F, F)
+    assert info["elastic"]["volume"].theta.item() == pytest.approx(LAM, rel=1e-2)
+    assert info["elastic"]["volume"].weight == pytest.approx(max(f.weight for f in info["elastic"].values()))
+    assert info["elastic"]["stvk"].weight < 0.5 / ELASTIC_ONLY.eps
+
+
+def test_log_dict_reports_E_nu_and_weights():
+    cpr = CPR(ELASTIC_ONLY, N, seed=0)
+    F = _deformations()
+    _, _, info = cpr.residuals(FixedLaw(corotated_tau, MU, LAM), identity_plastic, F, F)
+    logged = CPR.log_dict(info)
+    assert logged["cpr/e/corotated/E"] == pytest.approx(1e5, rel=1e-2)
+    assert logged["cpr/e/corotated/nu"] == pytest.approx(0.2, rel=1e-2)
+    assert {"cpr/e/volume/lam", "cpr/e/sigma/weight", "cpr/R_e", "cpr/R_p"} <= set(logged)
+    assert all(isinstance(v, float) for v in logged.values())
+
+
+def test_target_removed_changes_the_most_credible_law():
+    F = _deformations()
+    law = FixedLaw(corotated_tau, MU, LAM)
+    _, _, full = CPR(ELASTIC_ONLY, N, seed=0).residuals(law, identity_plastic, F, F)
+    removed_cfg = dataclasses.replace(ELASTIC_ONLY, elastic=("stvk", "volume", "sigma"))
+    R_e, _, removed = CPR(removed_cfg, N, seed=0).residuals(law, identity_plastic, F, F)
+    assert CPR.best(full["elastic"]) == "corotated"
+    assert "corotated" not in removed["elastic"] and CPR.best(removed["elastic"]) in ("stvk", "sigma")
+    assert max(f.weight for f in removed["elastic"].values()) < 0.5 / ELASTIC_ONLY.eps  # no exact fit left
+    assert float(R_e) > 0.1
+
+
+def test_residual_is_scale_free():
+    """Stresses x1000 (kPa -> MPa range) leave R_e and the weights unchanged (normalised residuals)."""
+    F = _deformations()
+    _, _, a = CPR(ELASTIC_ONLY, N, 0).residuals(FixedLaw(sigma_tau, MU, LAM), identity_plastic, F, F)
+    _, _, b = CPR(ELASTIC_ONLY, N, 0).residuals(FixedLaw(sigma_tau, 1e3 * MU, 1e3 * LAM), identity_plastic, F, F)
+    assert a["R_e"] == pytest.approx(b["R_e"], rel=1e-4)
+    for k in a["elastic"]:
+        assert a["elastic"][k].weight == pytest.approx(b["elastic"][k].weight, rel=1e-4)
+
+
+# ---------------------------------------------------------------- plastic recovery
+def test_von_mises_yield_strain_recovered():
+    mu_p, sigma_y = lame(3e5, 0.25)[0], 5e3  # NCLaw plasticine: sigma_y / (2 mu) = 0.0208
+    F_e = _deformations(seed=1)
+    F_trial = _deformations(seed=2, amplitude=0.08)
+    cpr = CPR(CPRConfig(plastic=("identity", "sigma", "von_mises")), N, seed=0)
+    _, R_p, info = cpr.residuals(FixedLaw(sigma_tau, MU, LAM), FixedLaw(von_mises_plastic, mu_p, sigma_y),
+                                 F_e, F_trial)
+    k = info["plastic"]["von_mises"].theta.item()
+    assert k == pytest.approx(sigma_y / (2 * mu_p), rel=3e-2)
+    assert CPR.best(info["plastic"]) == "von_mises"
+    assert info["plastic"]["identity"].weight < 0.2 * info["plastic"]["von_mises"].weight
+    assert torch.isfinite(R_p)
+
+
+def test_drucker_prager_friction_angle_recovered():
+    mu, lam = lame(1e6, 0.2)  # NCLaw sand
+    F_trial = _deformations(seed=3, amplitude=0.08)
+    cpr = CPR(CPRConfig(plastic=("identity", "von_mises", "drucker_prager")), N, seed=0)
+    _, _, info = cpr.residuals(FixedLaw(sigma_tau, mu, lam), FixedLaw(drucker_prager_plastic, mu, lam, 25.0),
+                               F_trial, F_trial)
+    assert info["lam_over_mu"] == pytest.approx(lam / mu, rel=1e-2)  # from the elastic fit
+    assert info["plastic"]["drucker_prager"].theta.item() == pytest.approx(25.0, abs=1.0)
+    assert CPR.best(info["plastic"]) == "drucker_prager"
+
+
+# ---------------------------------------------------------------- gradients
+def test_gradient_reaches_every_neural_parameter():
+    torch.manual_seed(0)
+    ncfg = NeuralLawConfig(widths=(16, 16))
+    elasticity, plasticity = NeuralElasticity(ncfg), NeuralPlasticity(ncfg)
+    F_e, F_trial = _deformations(seed=4), _deformations(seed=5)
+    R_e, R_p, _ = CPR(CPRConfig(grid_size=6, refine_rounds=1), N, 0).residuals(elasticity, plasticity, F_e, F_trial)
+    (R_e + R_p).backward()
+    for module in (elasticity, plasticity):
+        for name, p in module.named_parameters():
+            assert p.grad is not None and torch.isfinite(p.grad).all(), name
+            assert p.grad.abs().max() > 0, name
+
+
+def _frozen_residual(info, F, s, law):
+    """R_e recomputed from the solved targets (theta, omega, scale held fixed), float64."""
+    tau = s * law(F)
+    return sum(f.weight * (tau - elastic_tau(k, F, f.theta.tolist())).square().sum((-2, -1)).mean()
+               for k, f in info["elastic"].items()) / info["scale_e"]
+
+
+def test_gradient_is_the_frozen_target_gradient_fd_check():
+    """dR_e/ds (autograd, targets detached) equals a float64 central difference of the frozen residual;
+    negative control: the same tolerance rejects a 1 % wrong gradient."""
+    F = _deformations(seed=6, dtype=torch.float64)
+    base = lambda F: corotated_tau(F, MU, LAM) + sigma_tau(F, 0.3 * MU, 0.0)  # no hypothesis is exact
+    law = FixedLaw(base, scale=1.3)
+    R_e, _, info = CPR(ELASTIC_ONLY, N, 0).residuals(law, identity_plastic, F, F)
+    (grad,) = torch.autograd.grad(R_e, law.scale)
+    h = 1e-6
+    fd = (_frozen_residual(info, F, 1.3 + h, base) - _frozen_residual(info, F, 1.3 - h, base)) / (2 * h)
+    assert float(grad) != 0.0
+    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0.0)
+    with pytest.raises(AssertionError):
+        torch.testing.assert_close(1.01 * grad, fd, rtol=1e-6, atol=0.0)
+
+
+def test_refit_every_reuses_targets():
+    F = _deformations()
+    cpr = CPR(dataclasses.replace(ELASTIC_ONLY, refit_every=2), N, 0)
+    _, _, first = cpr.residuals(FixedLaw(sigma_tau, MU, LAM), identity_plastic, F, F)
+    weights = {k: f.weight for k, f in first["elastic"].items()}
+    _, _, second = cpr.residuals(FixedLaw(sigma_tau, 2 * MU, LAM), identity_plastic, F, F)
+    assert first["refit"] and not second["refit"]
+    assert {k: f.weight for k, f in second["elastic"].items()} == weights
+    _, _, third = cpr.residuals(FixedLaw(sigma_tau, 2 * MU, LAM), identity_plastic, F, F)
+    assert third["refit"] and third["elastic"]["sigma"].theta[0].item() == pytest.approx(2 * MU, rel=1e-3)
+
+
+# ---------------------------------------------------------------- divergence and bad input
+def test_divergence_and_bad_input_raise():
+    cpr = CPR(ELASTIC_ONLY, N, 0)
+    F = _deformations()
+    law = FixedLaw(corotated_tau, MU, LAM)
+    F_bad = F.clone()
+    F_bad[7, 1, 1] = float("nan")
+    with pytest.raises(FloatingPointError, match="F_e has 1 of"):
+        cpr.residuals(law, identity_plastic, F_bad, F)
+    with pytest.raises(FloatingPointError, match="neural stress"):
+        cpr.residuals(lambda F: law(F) * float("inf"), identity_plastic, F, F)
+    with pytest.raises(ValueError, match="built for"):
+        cpr.residuals(law, identity_plastic, F[:10], F[:10])
+    with pytest.raises(ValueError, match=r"\[N, 3, 3\]"):
+        cpr.residuals(law, identity_plastic, F[:, :2], F)
+
+
+def test_weights_and_residual_follow_the_documented_formula():
+    """On S (residual_on='subset'): omega = 1/(V_param + misfit + eps) and R_e = sum omega * misfit;
+    without the misfit term parameter-free hypotheses get the maximal weight 1/eps (the literal reading)."""
+    F = _deformations()
+    law = FixedLaw(lambda F: corotated_tau(F, MU, LAM) + sigma_tau(F, 0.3 * MU, 0.0))
+    cfg = dataclasses.replace(ELASTIC_ONLY, residual_on="subset")
+    R_e, _, info = CPR(cfg, N, 0).residuals(law, identity_plastic, F, F)
+    fits = info["elastic"].values()
+    for f in fits:
+        assert f.weight == pytest.approx(1.0 / (f.var_param + f.fit_residual + cfg.eps), rel=1e-12)
+    assert float(R_e) == pytest.approx(sum(f.weight * f.fit_residual for f in fits), rel=1e-5)
+    literal = CPRConfig(include_fit_residual=False, plastic=("identity", "sigma"), elastic=())
+    _, _, info = CPR(literal, N, 0).residuals(law, FixedLaw(von_mises_plastic, MU, 1e3), F, _deformations(7))
+    assert all(f.weight == pytest.approx(1 / literal.eps) for f in info["plastic"].values())

@@ -1,0 +1,130 @@
+"""gca.laws.svd: rotation-valued SVD, clamped backward, exact spectral-map gradients at repeated values."""
+
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from gca.laws.svd import det3, polar_rotation, svd, svd_map
+
+f64 = torch.float64
+
+
+def random_F(n, seed, spread=0.3, dtype=f64):
+    g = torch.Generator().manual_seed(seed)
+    return torch.eye(3, dtype=dtype) + spread * torch.randn(n, 3, 3, generator=g, dtype=dtype)
+
+
+def random_rotations(n, seed, dtype=f64):
+    g = torch.Generator().manual_seed(seed)
+    Q, R = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=dtype))
+    Q = Q * torch.sign(torch.diagonal(R, dim1=1, dim2=2))[:, None, :]
+    Q[torch.det(Q) < 0, :, 0] *= -1
+    return Q
+
+
+def eye(n, dtype=f64):
+    return torch.eye(3, dtype=dtype).repeat(n, 1, 1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+def test_reconstruction_and_proper_rotations(dtype):
+    F = random_F(64, 0, spread=0.8, dtype=dtype)
+    F[:8, :, 0] *= -1  # flips det for some: both signs occur
+    U, sigma, Vh = svd(F)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(U @ torch.diag_embed(sigma) @ Vh, F, atol=tol, rtol=tol)
+    torch.testing.assert_close(det3(U), torch.ones(64, dtype=dtype), atol=tol, rtol=0)
+    torch.testing.assert_close(det3(Vh), torch.ones(64, dtype=dtype), atol=tol, rtol=0)
+    inverted = det3(F) < 0
+    assert 0 < int(inverted.sum()) < 64 and bool((sigma[inverted, 2] < 0).all()) and bool((sigma[~inverted] > 0).all())
+    assert bool((sigma[:, 0] >= sigma[:, 1]).all()) and bool((sigma[:, 1] >= sigma[:, 2].abs()).all())
+
+
+def test_hand_values_diagonal():
+    F = torch.diag(torch.tensor([0.5, 2.0, -1.5], dtype=f64))[None]
+    _, sigma, _ = svd(F)
+    torch.testing.assert_close(sigma[0], torch.tensor([2.0, 1.5, -0.5], dtype=f64))  # det F = -1.5 < 0
+
+
+@pytest.mark.grad
+def test_gradcheck_generic_F():
+    F = random_F(3, 1).requires_grad_(True)
+    assert gradcheck(lambda F: svd(F), (F,))
+
+
+@pytest.mark.grad
+def test_gradient_matches_torch_on_generic_F():
+    """Fast path vs torch.linalg.svd autograd (reference) for a gauge-invariant loss."""
+    F = random_F(16, 2).requires_grad_(True)
+    W = torch.randn(16, 3, 3, generator=torch.Generator().manual_seed(3), dtype=f64)
+    U, sigma, Vh = svd(F)
+    (v_F,) = torch.autograd.grad(((U @ Vh) * W).sum() + (sigma ** 3).sum(), F)
+    U_ref, s_ref, Vh_ref = torch.linalg.svd(F)
+    (v_F_ref,) = torch.autograd.grad(((U_ref @ Vh_ref) * W).sum() + (s_ref ** 3).sum(), F)
+    torch.testing.assert_close(v_F, v_F_ref, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("F", [eye(2), torch.diag(torch.tensor([1.2, 1.0, 1.0], dtype=f64))[None]])
+def test_finite_gradients_at_repeated_values(F):
+    F = F.clone().requires_grad_(True)
+    U, sigma, Vh = svd(F)
+    W = torch.randn(3, 3, 3, generator=torch.Generator().manual_seed(4), dtype=f64)
+    loss = (U * W[0]).sum() + (Vh * W[1]).sum() + (sigma * W[2, 0]).sum()
+    (v_F,) = torch.autograd.grad(loss, F)
+    assert torch.isfinite(v_F).all()
+
+
+@pytest.mark.grad
+@pytest.mark.parametrize("F", [eye(2), torch.diag(torch.tensor([1.2, 1.0, 1.0], dtype=f64))[None],
+                               torch.diag(torch.tensor([1.1, 1.1, -0.9], dtype=f64))[None]])
+def test_polar_rotation_exact_gradient_at_repeated_values(F):
+    F = F.clone().requires_grad_(True)
+    assert gradcheck(polar_rotation, (F,))
+    if torch.det(F[0]) > 0:
+        torch.testing.assert_close(polar_rotation(F.detach()) @ polar_rotation(F.detach()).transpose(1, 2),
+                                   eye(F.shape[0]), atol=1e-12, rtol=0)
+
+
+def _cube_plus_trace(sigma, k):
+    return sigma ** 3 + k * sigma.sum(-1, keepdim=True)
+
+
+@pytest.mark.grad
+@pytest.mark.parametrize("left", [False, True])
+@pytest.mark.parametrize("which", ["generic", "identity", "uniaxial"])
+def test_svd_map_gradcheck_including_repeated_values(left, which):
+    F = {"generic": random_F(3, 5), "identity": eye(2),
+         "uniaxial": torch.diag(torch.tensor([0.7, 1.3, 1.3], dtype=f64))[None]}[which]
+    F = F.clone().requires_grad_(True)
+    k = torch.tensor(0.4, dtype=f64, requires_grad=True)
+    assert gradcheck(lambda F, k: svd_map(F, _cube_plus_trace, k, left=left)[0], (F, k))
+
+
+@pytest.mark.grad
+def test_negative_control_generic_svd_loses_shear_at_identity():
+    """U diag(sigma^3) Vh through the generic SVD backward is wrong at F = I (the divided difference
+    (y_i - y_j)/(s_i - s_j) is 0/0 there); gradcheck must catch it, while svd_map is exact."""
+    F = eye(1).requires_grad_(True)
+
+    def through_generic_svd(F):
+        U, sigma, Vh = svd(F)
+        return U @ torch.diag_embed(sigma ** 3) @ Vh
+
+    with pytest.raises(Exception, match="Jacobian mismatch"):
+        gradcheck(through_generic_svd, (F,))
+    assert gradcheck(lambda F: svd_map(F, lambda s: s ** 3)[0], (F,))
+
+
+def test_bad_input_raises_clear_error():
+    with pytest.raises(ValueError, match=r"svd: F must be a \[N, 3, 3\]"):
+        svd(torch.eye(3))
+    with pytest.raises(TypeError, match="floating point"):
+        svd(torch.eye(3, dtype=torch.int64)[None])
+
+
+@pytest.mark.gpu
+def test_cuda_matches_cpu():
+    F = random_F(32, 6, dtype=torch.float32)
+    R_cpu = polar_rotation(F)
+    R_gpu = polar_rotation(F.cuda()).cpu()
+    torch.testing.assert_close(R_gpu, R_cpu, atol=1e-5, rtol=1e-5)

@@ -1,0 +1,116 @@
+"""LoRA on the neural laws: identity at init, parameter counts, gradient routing, merge, scale."""
+
+import copy
+
+import pytest
+import torch
+from torch import nn
+
+from gca.laws.lora import (LoRALinear, apply_lora, count_trainable, full_finetune, lora_layers,
+                           lora_parameters, lora_state_dict, merge_lora, set_lora_scale)
+from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
+
+from test_neural_laws import random_F
+
+
+def lora_count(widths, rank):
+    """Hand formula: sum over the layers 13 -> widths -> 9 of r * (in + out)."""
+    sizes = (13, *widths, 9)
+    return sum(rank * (a + b) for a, b in zip(sizes[:-1], sizes[1:]))
+
+
+def full_count(widths):
+    """Hand formula: sum over the layers of in * out (no biases)."""
+    sizes = (13, *widths, 9)
+    return sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
+
+
+def perturb_B(module, seed, std=0.1):
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for layer in lora_layers(module):
+            layer.lora_B.copy_(std * torch.randn(layer.lora_B.shape, generator=g, dtype=layer.lora_B.dtype))
+
+
+@pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
+def test_adapted_equals_prior_at_init_bit_for_bit(law_cls):
+    torch.manual_seed(0)
+    law = law_cls()
+    F = random_F(50, 1, torch.float32)
+    before = law(F).detach()
+    apply_lora(law, rank=16, alpha=16.0, generator=torch.Generator().manual_seed(2))
+    assert len(lora_layers(law)) == 3
+    assert torch.equal(law(F), before)
+    assert all(layer.lora_A.abs().max() > 0 for layer in lora_layers(law))  # A initialised, B = 0
+
+
+@pytest.mark.parametrize("widths,rank", [((64, 64), 16), ((32, 16, 8), 3)])
+@pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
+def test_trainable_counts(law_cls, widths, rank):
+    law = law_cls(NeuralLawConfig(widths=widths))
+    assert count_trainable(law) == full_count(widths)
+    apply_lora(law, rank=rank, alpha=rank)
+    assert count_trainable(law) == lora_count(widths, rank)
+    assert sum(p.numel() for p in lora_parameters(law)) == lora_count(widths, rank)
+    fresh = full_finetune(law_cls(NeuralLawConfig(widths=widths)).requires_grad_(False))
+    assert count_trainable(fresh) == full_count(widths)
+
+
+def test_paper_scale_counts_by_hand():
+    # reference notes 4.1: 4,448 LoRA parameters vs 5,504 base parameters per network (r = 16)
+    assert count_trainable(apply_lora(NeuralElasticity(), 16, 16.0)) == 4448
+    assert count_trainable(NeuralPlasticity()) == 5504
+
+
+def test_only_adapter_parameters_get_gradients():
+    law = apply_lora(NeuralElasticity().double(), rank=4, alpha=8.0)
+    F = random_F(20, 3)
+    law(F).square().mean().backward()
+    for name, p in law.named_parameters():
+        is_lora = name.rsplit(".", 1)[-1] in ("lora_A", "lora_B")
+        assert p.requires_grad == is_lora, name
+        assert (p.grad is not None) == is_lora, name
+    # at init B = 0, so dL/dA = 0 exactly but dL/dB != 0; after a step on B both are non-zero
+    assert all(layer.lora_B.grad.abs().max() > 0 for layer in lora_layers(law))
+    torch.optim.SGD(lora_parameters(law), lr=1e-3).step()
+    law.zero_grad()
+    law(F).square().mean().backward()
+    assert all(layer.lora_A.grad.abs().max() > 0 for layer in lora_layers(law))
+
+
+@pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
+def test_merge_equals_unmerged_and_scale(law_cls):
+    torch.manual_seed(4)
+    prior = law_cls().double()
+    law = apply_lora(law_cls().double(), rank=4, alpha=2.0)
+    law.load_state_dict({**law.state_dict(), **prior.state_dict()})
+    perturb_B(law, 5)
+    F = random_F(30, 6)
+    adapted = law(F).detach()
+    assert (adapted - prior(F)).abs().max() > 1e-6  # the adapter changes the law
+    set_lora_scale(law, 0.0)
+    assert torch.equal(law(F), prior(F))  # scale 0 is the prior, bit for bit
+    set_lora_scale(law, 2.5)
+    merged_25 = merge_lora(copy.deepcopy(law))(F)
+    torch.testing.assert_close(merged_25, law(F), rtol=1e-12, atol=1e-9)
+    set_lora_scale(law, 1.0)
+    merged = merge_lora(copy.deepcopy(law))
+    assert not lora_layers(merged) and all(type(m) is nn.Linear for m in merged.mlp if m._parameters)
+    torch.testing.assert_close(merged(F), adapted, rtol=1e-12, atol=1e-9)
+    assert set(merged.state_dict()) == set(prior.state_dict())  # deployable as a prior
+
+
+def test_lora_state_dict_and_errors():
+    law = apply_lora(NeuralPlasticity(), rank=2, alpha=2.0)
+    keys = set(lora_state_dict(law))
+    assert keys == {f"mlp.{i}.{ab}" for i in (0, 2, 4) for ab in ("lora_A", "lora_B")}
+    with pytest.raises(ValueError, match="already has LoRA"):
+        apply_lora(law, 2, 2.0)
+    with pytest.raises(ValueError, match="merge_lora"):
+        full_finetune(law)
+    with pytest.raises(ValueError, match="no LoRA layers"):
+        set_lora_scale(NeuralPlasticity(), 0.5)
+    with pytest.raises(ValueError, match="no nn.Linear"):
+        apply_lora(nn.GELU(), 2, 2.0)
+    with pytest.raises(ValueError, match="rank"):
+        LoRALinear(nn.Linear(3, 3, bias=False), rank=0, alpha=1.0)

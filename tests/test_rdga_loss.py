@@ -1,0 +1,173 @@
+"""RDGA terms and switches (gca/align/rdga.py) on small synthetic frames."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from gca.align.rdga import RDGAConfig, mask_loss, rdga_loss, render_points, stable_region
+
+H = W = 48
+
+
+def _disk(radius, size=H, centre=None):
+    c = (size - 1) / 2 if centre is None else centre
+    rows, cols = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    return ((rows - c) ** 2 + (cols - c) ** 2).sqrt() <= radius
+
+
+def _scene(dtype=torch.float64):
+    """A disk object with a bumpy rendered depth, matches p = q on a grid, and a premult uv image."""
+    alpha = _disk(18).to(dtype)
+    rows, cols = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype), indexing="ij")
+    depth = (2.0 + 0.3 * torch.sin(cols / 3.0) * torch.cos(rows / 4.0) + 0.01 * (cols - 20) ** 2 / 20) * alpha
+    pts = torch.stack(torch.meshgrid(torch.arange(6, 42, 4.0), torch.arange(6, 42, 4.0), indexing="xy"), -1)
+    p = pts.reshape(-1, 2).to(dtype)
+    uv = torch.stack([cols + 0.5, rows + 0.5], -1)  # renderer convention: pixel centre at i + 0.5
+    return alpha, depth, p, uv
+
+
+def test_mask_loss_hand_computed():
+    alpha = torch.tensor([[1.0, 0.5], [0.0, 0.0]])
+    gt = torch.tensor([[True, False], [True, False]])
+    assert float(mask_loss(alpha, gt)) == pytest.approx((0 + 0.25 + 1 + 0) / 4)
+    assert float(mask_loss(alpha, gt, "sum")) == pytest.approx(1.25)
+
+
+def test_eroded_stable_region_removes_band_of_half_r_on_disk():
+    R, r = 18, 9
+    h = (r - 1) // 2
+    disk = _disk(R, size=64, centre=32)
+    stable = stable_region(disk, r)
+    assert bool((stable & ~disk).any()) is False
+    # through the centre, pixel (32, 32 - e) survives iff its kernel's corner (e + h, h) is in the
+    # disk: e_max = floor(sqrt(R^2 - h^2)) - h (= 13 here, i.e. a band of 5 px ~ r / 2 removed)
+    e_max = int(np.floor(np.sqrt(R**2 - h**2))) - h
+    cols = torch.nonzero(stable[32])[:, 0]
+    assert int(cols.min()) == 32 - e_max and int(cols.max()) == 32 + e_max
+    dist = ((torch.arange(64)[:, None] - 32.0) ** 2 + (torch.arange(64)[None] - 32.0) ** 2).sqrt()
+    assert bool(stable[dist <= R - h * np.sqrt(2) - 1].all())  # deep interior kept
+    assert not bool(stable[dist > R - h].any())  # a band of width >= h removed everywhere
+
+
+def test_paper_literal_stable_region_is_the_top_hat_protrusion():
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[8:24, 8:20] = True  # a 16 x 12 block survives the opening
+    mask[15, 20:30] = True  # a 1-px-wide protrusion does not
+    literal = stable_region(mask, 5, "paper_literal")
+    expected = torch.zeros_like(mask)
+    expected[15, 20:30] = True
+    assert torch.equal(literal, expected)
+    assert not bool((stable_region(mask, 5, "eroded") & expected).any())
+
+
+def test_anchor_term_rank_is_scale_invariant_and_gives_depth_gradient():
+    alpha, depth, p, uv = _scene()
+    depth.requires_grad_(True)
+    cfg = RDGAConfig(use_global=False, r=7, k=5, tau=0.5, lambda2=1.0, lambda_mask=0.0, temperature=0.01)
+    est = 3.0 * depth.detach() ** 2 + 1.0  # a positive monotone warp of the true depth
+    loss, stats = rdga_loss({"alpha": alpha, "depth": depth}, alpha > 0.5, est, p, p, cfg)
+    assert stats["n_matches"] == len(p) and 0 < stats["n_anchors"] == stats["n_stable"] < len(p)
+    assert stats["mean_gamma"] == pytest.approx(1.0)
+    assert float(loss.detach()) == pytest.approx(-stats["n_anchors"], rel=1e-3)  # sum of -gamma, gamma ~ 1
+    loss.backward()
+    assert torch.isfinite(depth.grad).all() and depth.grad.abs().sum() > 0
+    for warped in (0.01 * est + 7.0, est ** 0.3):
+        loss_w, _ = rdga_loss({"alpha": alpha, "depth": depth}, alpha > 0.5, warped, p, p, cfg)
+        assert float(loss_w.detach()) == pytest.approx(float(loss.detach()), abs=1e-9)
+
+
+def test_l1_ablation_is_not_scale_invariant():
+    alpha, depth, p, _ = _scene()
+    cfg = RDGAConfig(use_global=False, depth_term="l1", r=7, k=5, lambda_mask=0.0, lambda2=1.0)
+    out = {"alpha": alpha, "depth": depth}
+    same, _ = rdga_loss(out, alpha > 0.5, depth, p, p, cfg)
+    scaled, _ = rdga_loss(out, alpha > 0.5, 3.0 * depth + 1.0, p, p, cfg)
+    assert float(same) == pytest.approx(0.0) and float(scaled) > 1.0
+
+
+def test_consensus_filter_rejects_reversed_depth():
+    alpha, depth, p, _ = _scene()
+    cfg = RDGAConfig(use_global=False, r=7, k=5, tau=0.5)
+    _, stats = rdga_loss({"alpha": alpha, "depth": depth}, alpha > 0.5, -depth, p, p, cfg)
+    assert stats["n_stable"] > 0 and stats["n_anchors"] == 0 and stats["mean_gamma"] == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("channels", [2, 3])
+def test_global_term_zero_when_aligned_and_pulls_toward_q(channels):
+    alpha, depth, p, uv = _scene()
+    K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]], dtype=torch.float64)
+    delta = torch.zeros(2, dtype=torch.float64, requires_grad=True)  # a 2D shift of the "Gaussians"
+
+    def pos_image():
+        shifted = uv + delta
+        if channels == 2:
+            return shifted * alpha[..., None]
+        z = torch.full_like(alpha, 2.0)[..., None]
+        xy = (shifted - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]]) * z
+        return torch.cat([xy, z], -1) * alpha[..., None]
+
+    cfg = RDGAConfig(use_anchor=False, lambda_mask=0.0, lambda1=1.0, global_reduction="mean")
+    out = {"alpha": alpha, "depth": depth}
+    Kc = K if channels == 3 else None
+    aligned, stats = rdga_loss(out, alpha > 0.5, depth, p, p, cfg, pos_image(), Kc)
+    assert stats["n_global"] > 0 and float(aligned.detach()) < 1e-5
+    shift = torch.tensor([2.0, 1.0], dtype=torch.float64)
+    loss, _ = rdga_loss(out, alpha > 0.5, depth, p, p + shift, cfg, pos_image(), Kc)
+    assert float(loss.detach()) == pytest.approx(float(shift.norm()), rel=1e-6)
+    loss.backward()
+    torch.testing.assert_close(-delta.grad, shift / shift.norm())  # descent moves toward q
+
+
+def test_render_points_matches_the_pixel_centre_convention():
+    alpha, _, p, uv = _scene()
+    torch.testing.assert_close(render_points(uv * alpha[..., None], alpha, p[20:25]), p[20:25])
+
+
+def test_switches():
+    alpha, depth, p, uv = _scene()
+    gt = _disk(16) > 0.5
+    out = {"alpha": alpha, "depth": depth.requires_grad_(True)}
+    base = RDGAConfig(r=7, k=5, lambda_mask=2.0)
+    off, stats = rdga_loss(out, gt, depth.detach(), p, p, dataclasses.replace(base, enabled=False))
+    assert float(off) == pytest.approx(2.0 * float(mask_loss(alpha, gt)))
+    assert stats["n_anchors"] == 0
+    no_anchor, _ = rdga_loss(out, gt, depth.detach(), p, p, dataclasses.replace(base, use_anchor=False),
+                             uv * alpha[..., None])
+    no_anchor.backward()
+    assert depth.grad is None or float(depth.grad.abs().sum()) == 0.0
+    with pytest.raises(ValueError, match="pos_image"):
+        rdga_loss(out, gt, depth.detach(), p, p, base)
+
+
+def test_bad_inputs_raise_with_diagnostics():
+    alpha, depth, p, _ = _scene()
+    cfg = RDGAConfig(use_global=False, r=7, k=5)
+    with pytest.raises(ValueError, match="rdga.py.*est_depth"):
+        rdga_loss({"alpha": alpha, "depth": depth}, alpha > 0.5, depth[:-1], p, p, cfg)
+    with pytest.raises(ValueError, match="p and q"):
+        rdga_loss({"alpha": alpha, "depth": depth}, alpha > 0.5, depth, p, p[:3], cfg)
+    with pytest.raises(ValueError, match="RDGAConfig.k"):
+        RDGAConfig(k=4)
+    bad = depth.clone()
+    bad[24, 24] = float("nan")
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        rdga_loss({"alpha": alpha, "depth": bad}, alpha > 0.5, depth, p, p, cfg)
+
+
+def test_anchors_survive_the_simulated_estimator_and_l1_does_not():
+    """Rendered depth = GT depth; D_gt from the estimator model (warp, bleed, noise, scale/shift)."""
+    from gca.vision.depth import SimulatedDepth, SimulatedDepthConfig
+
+    alpha, depth, p, _ = _scene()
+    est = SimulatedDepth(SimulatedDepthConfig(), seed=0).estimate(
+        np.zeros((1, H, W, 3), np.uint8), depth.numpy()[None], (alpha > 0.5).numpy()[None])[0]
+    out = {"alpha": alpha, "depth": depth}
+    cfg = RDGAConfig(use_global=False, r=7, k=5, lambda_mask=0.0, lambda2=1.0, anchor_reduction="mean")
+    rank, stats = rdga_loss(out, alpha > 0.5, est, p, p, cfg)
+    assert stats["n_anchors"] >= 0.8 * stats["n_stable"] > 0 and stats["mean_gamma_anchor"] > 0.8, stats
+    l1, _ = rdga_loss(out, alpha > 0.5, est, p, p, dataclasses.replace(cfg, depth_term="l1"))
+    l1_true, _ = rdga_loss(out, alpha > 0.5, depth, p, p, dataclasses.replace(cfg, depth_term="l1"))
+    assert float(l1_true) == 0.0 and float(l1) > 0.1  # the L1 term penalises the correct geometry
+    assert float(rank) < -0.8  # the rank term nearly reaches its optimum at the correct geometry
