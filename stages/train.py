@@ -39,14 +39,14 @@ def main(argv=None) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     with stage_run("train", params, scene=args.scene, method="velocity") as run:
         velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json")
-        run.log_metrics({k: v for k, v in velocity.items() if k != "v0"})
-    v0 = read_velocity(args.out / "velocity.json")
+        run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
+    velocity = read_velocity(args.out / "velocity.json")
     results = {}
     for method in methods:
         with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables),
                                                                     "material": scene.material}) as run:
-            results[method.name] = train_method(params, args.scene, method, inputs, v0, args.out / method.name, run)
+            results[method.name] = train_method(params, args.scene, method, inputs, velocity, args.out / method.name, run)
             run.log_artifact(args.out / method.name / "loss.png")
         print(f"train {args.scene}/{method.name}: {results[method.name]['status']} "
               f"in {results[method.name]['train_seconds']:.1f} s")

@@ -97,9 +97,8 @@ def test_stress_scale_is_linear_and_alpha_residual():
     torch.testing.assert_close(P_b(F) - F, 0.5 * (P_a(F) - F), rtol=1e-12, atol=1e-15)
 
 
-def test_kirchhoff_is_symmetric_for_symmetric_F():
-    # F = F^T with det > 0 gives R = I, so tau = s S F^T = s S F; symmetric iff S, F commute -- not in
-    # general. Instead check the defining identity tau = P F^T with P = tau F^{-T}: R^T P must be symmetric.
+def test_first_piola_has_polar_form():
+    # tau = P F^T with P = s R S: R^T tau F^{-T} / s must be symmetric (the symmetrised network output).
     E = scramble(NeuralElasticity().double(), 8)
     F = random_F(16, 9)
     U, _, Vh = svd(F)

@@ -98,14 +98,15 @@ def test_divergence_raises_with_step_count_and_law():
         rollout(solver, _NaNMaterial(torch.tensor(1.0, dtype=F64)), x0, v0, vol, mass, n_steps=6, steps_per_frame=3)
 
 
-def test_particles_leaving_the_domain_are_detected():
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_particles_leaving_the_domain_are_detected(dtype):
     # Walls off (bound = 0) and a fast sideways throw: the blob piles up on the clamp at x = 1 - clip dx.
-    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=0, gravity=(0, 0, 0), dtype="float64"))
-    x0, _, vol, mass = _blob(20, seed=4)
+    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=0, gravity=(0, 0, 0), dtype=str(dtype)[6:]))
+    x0, _, vol, mass = _blob(20, seed=4, dtype=dtype)
     v0 = torch.zeros_like(x0)
     v0[:, 0] = 20.0
     with pytest.raises(SimulationDiverged, match="of 20 particles sit on the domain clamp"):
-        rollout(solver, _Corotated(torch.tensor(0.01, dtype=F64)), x0, v0, vol, mass, n_steps=40,
+        rollout(solver, _Corotated(torch.tensor(0.01, dtype=dtype)), x0, v0, vol, mass, n_steps=40,
                 steps_per_frame=4)
 
 

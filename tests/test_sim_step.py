@@ -158,3 +158,27 @@ def test_bad_inputs_raise_clear_errors():
         SimConfig(boundary="ice")
     with pytest.raises(ValueError, match="bound=9"):
         SimConfig(n_grid=16, bound=9)
+
+
+@pytest.mark.parametrize("boundary,vy,expected", [
+    ("sticky", -1.0, (0.0, 0.0, 0.0)), ("slip", -1.0, (1.0, 0.0, 0.0)), ("friction", -1.0, (0.5, 0.0, 0.0)),
+    ("sticky", 1.0, (0.0, 0.0, 0.0)), ("slip", 1.0, (1.0, 1.0, 0.0)), ("friction", 1.0, (1.0, 1.0, 0.0)),
+])
+def test_floor_conditions_hand_computed(boundary, vy, expected):
+    # A slab in the floor layer y in [0.5 dx, 1.5 dx): all its stencil nodes (J = 0..2) lie in the
+    # 3-cell floor wall, and the grid velocity is the uniform particle velocity (1, vy, 0).
+    # Moving into the floor: sticky -> 0; slip drops v_y; friction mu_b = 0.5 also removes
+    # mu_b * |v_n| = 0.5 from |v_t| = 1. Moving away: only sticky acts.
+    cfg = SimConfig(n_grid=16, dt=1e-3, gravity=(0, 0, 0), bound=3, boundary=boundary, friction=0.5,
+                    dtype="float64")
+    g = torch.Generator().manual_seed(6)
+    n = 50
+    x = torch.rand(n, 3, generator=g, dtype=F64) * torch.tensor([0.3, 1.0, 0.3], dtype=F64)
+    x = x * torch.tensor([1.0, cfg.dx, 1.0], dtype=F64) + torch.tensor([0.35, 0.5 * cfg.dx, 0.35], dtype=F64)
+    v = torch.tensor([1.0, vy, 0.0], dtype=F64).expand(n, 3).contiguous()
+    zeros = torch.zeros(n, 3, 3, dtype=F64)
+    F = torch.eye(3, dtype=F64).expand(n, 3, 3).contiguous()
+    vol, mass = torch.full((n,), 1e-5, dtype=F64), torch.full((n,), 1e-2, dtype=F64)
+    _, v1, C1, _ = MPMSolver(cfg).step(x, v, zeros, F, zeros, vol, mass)
+    torch.testing.assert_close(v1, torch.tensor(expected, dtype=F64).expand(n, 3), rtol=0, atol=1e-12)
+    torch.testing.assert_close(C1, zeros, rtol=0, atol=1e-9)

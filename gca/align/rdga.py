@@ -311,7 +311,7 @@ def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q
         raise FloatingPointError(f"{_WHERE}: rendered depth is non-finite in {bad} of {len(N_p)} anchor patches")
     if not torch.isfinite(N_q).all():
         raise ValueError(f"{_WHERE}: est_depth is non-finite in {int((~torch.isfinite(N_q)).any(-1).sum())} patches")
-    varied = (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)  # gamma is undefined on constant patches
+    varied = ((N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)) if len(N_p) else stable[stable]  # gamma undefined on constant patches
     N_p, N_q = N_p[varied], N_q[varied]
     gamma = spearman_exact(N_p, N_q) if len(N_p) else N_p.new_zeros(0)
     anchors = gamma > cfg.tau

@@ -71,7 +71,7 @@ def soft_rank(x: torch.Tensor, temperature: float) -> torch.Tensor:
     std = torch.sqrt(x.var(-1, keepdim=True) + _VAR_EPS)
     z = (x - x.mean(-1, keepdim=True)) / std
     diff = (z[:, :, None] - z[:, None, :]) / temperature  # [M, n, n]
-    return torch.sigmoid(diff).sum(-1)
+    return 0.5 + torch.sigmoid(diff).sum(-1)
 
 
 def spearman_from_ranks(r: torch.Tensor, s: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,7 @@ watertight, y up, centred on the origin, scaled so their largest bounding-box si
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import numpy as np
@@ -262,3 +263,25 @@ def gaussians_from_mesh(mesh: trimesh.Trimesh, colour_fn: ColourFn, n_surface: i
         means=f32(means), normals=f32(np.concatenate([normals, np.zeros((n_interior, 3))])),
         sh_dc=f32(rgb_to_sh0(colour_fn(means))), sh_rest=np.zeros((G, SH_REST_COUNTS[sh_degree], 3), np.float32),
         opacity_logit=np.full(G, _logit(opacity), np.float32), log_scales=f32(log_scales), quats_wxyz=f32(quats))
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectConfig:
+    """One entry of the ``objects`` section of params.yaml."""
+
+    size: float = 0.3  # largest side of the bounding box [m]
+    seed: int = 0  # shape details, texture and Gaussian sampling
+    n_gaussians: int = 100_000  # Gaussians of the static scan [count]; paper ~1e5, CI ~3e3
+    interior_fraction: float = 0.1  # share of them inside the volume [1]
+    sh_degree: int = 3  # SH degree of the stored scan (bands > 0 are zero) [0..3]
+    opacity: float = 0.95  # activated opacity of every Gaussian [1]
+    density: float = 1000.0  # material density [kg/m^3], gives particle masses
+
+
+def scan_object(name: str, cfg: ObjectConfig) -> tuple[trimesh.Trimesh, ColourFn, GaussianCloud]:
+    """``make_object`` then ``gaussians_from_mesh`` with the counts and settings of ``cfg``."""
+    mesh, colour_fn = make_object(name, cfg.seed, cfg.size)
+    n_interior = int(round(cfg.interior_fraction * cfg.n_gaussians))
+    cloud = gaussians_from_mesh(mesh, colour_fn, cfg.n_gaussians - n_interior, n_interior, seed=cfg.seed,
+                                sh_degree=cfg.sh_degree, opacity=cfg.opacity)
+    return mesh, colour_fn, cloud

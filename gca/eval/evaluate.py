@@ -36,10 +36,10 @@ def device_name(device: torch.device) -> str:
     return f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
 
 
-def predict(solver: MPMSolver, material, body: Body, v0: list[float], video_frames: list[int],
+def predict(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], video_frames: list[int],
             substeps: int) -> tuple[Rollout, float]:
-    """Full rollout of the learned law (no grad); returns the rollout and its wall time [s]."""
-    v = initial_velocity(body.x0, torch.tensor(v0, dtype=body.x0.dtype))
+    """Full rollout of the learned law (no grad) from (v0, w0); returns the rollout and its wall time [s]."""
+    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype) for u in velocity))
     t0 = time.perf_counter()
     with torch.no_grad():
         traj = rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=video_frames[-1] * substeps,
@@ -91,14 +91,14 @@ def write_strip(path: Path, frames: np.ndarray, gt: np.ndarray, n: int = 4) -> N
     iio.imwrite(path, (np.concatenate([top, bottom], axis=0) * 255 + 0.5).astype(np.uint8))
 
 
-def evaluate_run(solver: MPMSolver, material, body: Body, v0: list[float], scene_dir: Path, background,
+def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], scene_dir: Path, background,
                  out_dir: Path) -> dict:
     """All trajectory and image metrics of one trained law; writes strip.png and rollout.gif to ``out_dir``."""
     meta = read_meta(scene_dir)
     frames_idx = list(meta["video_frames"])
     metrics: dict = {"chamfer_definition": CHAMFER_DEFINITION}
     try:
-        traj, seconds = predict(solver, material, body, v0, frames_idx, int(meta["substeps"]))
+        traj, seconds = predict(solver, material, body, velocity, frames_idx, int(meta["substeps"]))
     except SimulationDiverged as exc:
         return {**metrics, "status": "diverged", "message": str(exc)}
     gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype)

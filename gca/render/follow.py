@@ -69,8 +69,9 @@ class Binding:
 
     def to_sparse(self) -> torch.Tensor:
         """The binding as a torch sparse COO matrix ``[G, P]``."""
-        return torch.sparse_coo_tensor(torch.stack([self.rows, self.cols]), self.weights,
-                                       (self.n_gaussians, self.n_particles)).coalesce()
+        indices = torch.stack([self.rows, self.cols])
+        shape = (self.n_gaussians, self.n_particles)
+        return torch.sparse_coo_tensor(indices, self.weights, shape, check_invariants=True).coalesce()
 
     def apply(self, values: torch.Tensor) -> torch.Tensor:
         """``W @ values`` for per-particle values ``[P, ...]`` -> ``[G, ...]`` (differentiable)."""

@@ -37,7 +37,7 @@ _WHERE = "gca/render/rasterize.py"
 class RasterConfig:
     """Rasterizer knobs (params.yaml section ``render.raster``)."""
 
-    tile_size: int = 16            # tile side [pixels]
+    tile_size: int = 8             # tile side [pixels] (torch backend; 8 beats 16 ~2x on CPU)
     near: float = 0.01             # near clipping plane on camera z [world units]
     far: float = 1.0e10            # far clipping plane on camera z [world units]
     eps2d: float = 0.3             # low-pass dilation of 2D covariances [pixels^2]
@@ -46,7 +46,7 @@ class RasterConfig:
     alpha_max: float = 0.99        # alpha clamp [-]
     T_min: float = 1.0e-4          # stop compositing a pixel below this transmittance [-]
     max_per_tile: int = 65536      # cap on Gaussians per tile (front-most kept; warns when hit)
-    slab: int = 64                 # Gaussians per tile composited per step (early-stop granularity)
+    slab: int = 32                 # Gaussians per tile composited per step (early-stop granularity)
     max_elems: int = 4_000_000     # pixel x Gaussian pairs per batched step (memory bound)
 
 
@@ -66,13 +66,15 @@ def _check_inputs(means, covs, colors, opacities, bg) -> None:
         raise RenderError(f"{_WHERE}: opacities must be [{N}], got {tuple(opacities.shape)}")
     if bg.shape != (colors.shape[1],):
         raise RenderError(f"{_WHERE}: bg must be [{colors.shape[1]}], got {tuple(bg.shape)}")
-    for name, x in (("means", means), ("covs", covs), ("colors", colors), ("opacities", opacities)):
-        bad = (~torch.isfinite(x.detach())).sum().item()
-        if bad:
-            raise RenderError(f"{_WHERE}: {name} has {bad} non-finite entries (diverged upstream?)")
+    names = ("means", "covs", "colors", "opacities")
     o = opacities.detach()
-    if N and (o.min() < 0 or o.max() > 1):
-        raise RenderError(f"{_WHERE}: opacities must lie in [0, 1], got [{o.min():.3g}, {o.max():.3g}]")
+    stats = torch.stack([(~torch.isfinite(x.detach())).sum().to(o.dtype) for x in (means, covs, colors, o)]
+                        + [o.min() if N else o.new_zeros(()), o.max() if N else o.new_zeros(())]).tolist()
+    for name, bad in zip(names, stats[:4]):
+        if bad:
+            raise RenderError(f"{_WHERE}: {name} has {int(bad)} non-finite entries (diverged upstream?)")
+    if stats[4] < 0 or stats[5] > 1:
+        raise RenderError(f"{_WHERE}: opacities must lie in [0, 1], got [{stats[4]:.3g}, {stats[5]:.3g}]")
 
 
 def _project(means, covs, camera: Camera, cfg: RasterConfig) -> Projected:
@@ -229,7 +231,7 @@ def _pack(proj: Projected, colors, opacities) -> torch.Tensor:
 def _tile_batches(tiles: torch.Tensor, cfg: RasterConfig):
     """Split non-empty tiles into batches of at most ``max_elems`` pixel x slab pairs."""
     per_batch = max(1, cfg.max_elems // (cfg.tile_size**2 * cfg.slab))
-    return tiles.split(per_batch)
+    return tiles.split(per_batch) if tiles.numel() else ()
 
 
 def _render_torch(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterConfig) -> dict:
@@ -301,7 +303,7 @@ def _render_gsplat(means, covs, colors, opacities, camera: Camera, bg, cfg: Rast
         means=means, quats=None, scales=None, opacities=opacities, colors=colors,
         viewmats=w2c[None], Ks=K[None], width=camera.width, height=camera.height,
         near_plane=cfg.near, far_plane=cfg.far, eps2d=cfg.eps2d, sh_degree=None, packed=False,
-        tile_size=cfg.tile_size, backgrounds=bg[None], render_mode="RGB+D",
+        tile_size=16, backgrounds=bg[None], render_mode="RGB+D",
         rasterize_mode="classic", covars=0.5 * (covs + covs.transpose(-1, -2)))
     alpha = alphas[0, ..., 0]
     depth = colors_out[0, ..., -1]

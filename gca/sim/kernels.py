@@ -23,14 +23,16 @@ integer, so even a non-finite position cannot index out of bounds (it produces n
 which the rollout driver detects instead).
 
 Walls. Nodes with ``I < bound`` or ``I > n_grid - bound`` on an axis are in that axis' wall
-region; ``bound`` is in cells. The floor is the bottom wall y = 0.
+region; ``bound`` is in cells. The floor is the bottom wall y = 0. ``sticky`` zeroes the whole
+node velocity in a wall region (whatever its direction); ``slip`` removes the normal component
+v_n = v . n_out when it points out of the domain (v_n > 0); ``friction`` does the same and then
+shrinks the tangential part by Coulomb friction, |v_t| -> max(0, |v_t| - mu_b v_n).
 
 Float type. :func:`make_kernels` builds the kernels for ``wp.float32`` or ``wp.float64`` (one
 module each), so gradients can be checked against finite differences in float64. The same
-source runs on "cpu" and "cuda" devices.
+source runs on "cpu" and "cuda" devices. (No ``from __future__ import annotations`` here: warp
+resolves the kernels' annotations, which name the closure's float types, as real objects.)
 """
-
-
 
 import types
 

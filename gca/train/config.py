@@ -51,6 +51,7 @@ class VelocityConfig:
         n_video_frames: how many of the first video frames supervise it.
         lr: Adam learning rate [m/s per step].
         lambda_mask, lambda_color: weights of the silhouette and colour losses.
+        angular: also fit an angular velocity about the centre of mass (NeuMA fits v0 only).
     """
 
     iterations: int = 100
@@ -58,3 +59,4 @@ class VelocityConfig:
     lr: float = 0.2
     lambda_mask: float = 1.0
     lambda_color: float = 0.0
+    angular: bool = True

@@ -91,10 +91,11 @@ def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) 
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
 
 
-def position_image(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, camera: Camera,
-                   bg: torch.Tensor) -> torch.Tensor:
-    """Premultiplied rendered 3D positions [H, W, 3] (for RDGA's global term)."""
-    return render(means, covs, means, opacities, camera, torch.zeros(3, dtype=means.dtype))["rgb"]
+def position_image(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Premultiplied rendered camera-frame positions [H, W, 3] (RDGA's global term projects them with K)."""
+    w2c = torch.tensor(np.array(camera.w2c), dtype=means.dtype)
+    xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+    return render(means, covs, xyz_cam, opacities, camera, torch.zeros(3, dtype=means.dtype))["rgb"]
 
 
 def to_uint8(rgb: torch.Tensor) -> np.ndarray:
@@ -148,7 +149,7 @@ class Objective:
         if m.mask or m.geo:
             rdga = self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
             p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
-            pos = position_image(means, covs, self.data.body.opacities, view.camera, self.bg) \
+            pos = position_image(means, covs, self.data.body.opacities, view.camera) \
                 if rdga.enabled and rdga.use_global else None
             l_rdga, s = rdga_loss(out, view.mask[j], self.data.est_depth[j], p, q, rdga, pos_image=pos,
                                   K=torch.as_tensor(view.camera.K, dtype=out["depth"].dtype))

@@ -54,7 +54,8 @@ def solver_for(params: Mapping, scene: SceneConfig, device="cpu") -> MPMSolver:
     return MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
 
 
-def load_train_data(inputs: SceneInputs, method: Method, v_init: torch.Tensor, background, device="cpu") -> TrainData:
+def load_train_data(inputs: SceneInputs, method: Method, velocity: tuple[list, list], background,
+                    device="cpu") -> TrainData:
     """Everything the method may observe: training views, preprocessed depth/masks/keypoints."""
     meta = read_meta(inputs.scene_dir)
     names = MULTI_VIEWS if method.views == "multi" else MULTI_VIEWS[:1]
@@ -63,7 +64,7 @@ def load_train_data(inputs: SceneInputs, method: Method, v_init: torch.Tensor, b
     views["train0"].mask = masks  # a monocular method sees its own masks, not the renderer's alpha
     body = load_body(inputs.particles, inputs.gaussians, device)
     return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=int(meta["substeps"]),
-                     est_depth=depth, keypoints=keypoints, v_init=initial_velocity(body.x0, v_init),
+                     est_depth=depth, keypoints=keypoints, v_init=velocity_field(body, velocity),
                      background=tuple(background))
 
 
@@ -79,9 +80,9 @@ def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInput
     prior = load_prior(inputs.prior, family=scene.prior)
     from gca.laws.base import Material
     material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum()))
-    v0, history = estimate_velocity(solver_for(params, scene), material, body, view, meta["video_frames"],
-                                    int(meta["substeps"]), vcfg, video.background)
-    result = {"v0": v0.tolist(), "loss_first": history[0] if history else None,
+    v0, w0, history = estimate_velocity(solver_for(params, scene), material, body, view, meta["video_frames"],
+                                        int(meta["substeps"]), vcfg, video.background)
+    result = {"v0": v0.tolist(), "w0": w0.tolist(), "loss_first": history[0] if history else None,
               "loss_last": history[-1] if history else None, "iterations": len(history)}
     write_json(out, result)
     return result
@@ -103,13 +104,19 @@ def objective_for(params: Mapping, method: Method, data: TrainData, scene_params
     return Objective(method, data, tcfg, rdga, cpr, match, cpr_target=target)
 
 
-def train_method(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, v0: list[float],
+def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
+    """Per-particle initial velocity [P, 3] from the estimated (v0, w0)."""
+    v0, w0 = (torch.tensor(v, dtype=body.x0.dtype, device=body.x0.device) for v in velocity)
+    return initial_velocity(body.x0, v0, w0)
+
+
+def train_method(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
                  out_dir: Path, run=None) -> dict:
     """Train ``method`` on a scene; write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
     scene = scene_config(params, scene_name)
     video = video_config(params)
     tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
-    data = load_train_data(inputs, method, torch.tensor(v0, dtype=torch.float32), video.background)
+    data = load_train_data(inputs, method, velocity, video.background)
     law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()))
     objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"))
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -158,8 +165,11 @@ def load_learned_law(params: Mapping, scene_name: str, method: Method, inputs: S
     return law
 
 
-def read_velocity(path: Path) -> list[float]:
-    v = read_json(path)["v0"]
-    if len(v) != 3 or not all(np.isfinite(v)):
-        raise ValueError(f"{path}: v0 must be 3 finite numbers, got {v}")
-    return v
+def read_velocity(path: Path) -> tuple[list[float], list[float]]:
+    """(v0 [3] m/s, w0 [3] rad/s) from ``velocity.json``, validated."""
+    raw = read_json(path)
+    for key in ("v0", "w0"):
+        v = raw.get(key)
+        if v is None or len(v) != 3 or not all(np.isfinite(v)):
+            raise ValueError(f"{path}: {key} must be 3 finite numbers, got {v}")
+    return raw["v0"], raw["w0"]

@@ -1,7 +1,8 @@
 """Initial velocity estimation from the first video frames, with the prior law (NeuMA's stage A).
 
-A single launch velocity v0 [3] (m/s), broadcast to every particle, is optimised so that the prior's
-rollout over the first few video frames matches the observed silhouettes (and optionally colours).
+A single launch velocity v0 [3] (m/s), broadcast to every particle (NeuMA), and optionally an angular
+velocity w0 [3] (rad/s) about the centre of mass, are optimised so that the prior's rollout over the
+first few video frames matches the observed silhouettes (and optionally colours).
 The result is shared by every visual method of a scene, so they differ only in the law they learn.
 """
 
@@ -32,30 +33,30 @@ def silhouette_loss(body: Body, x: torch.Tensor, F: torch.Tensor, view: ViewData
 
 def estimate_velocity(solver: MPMSolver, material: Material, body: Body, view: ViewData, video_frames: list[int],
                       substeps: int, cfg: VelocityConfig, background=(1.0, 1.0, 1.0),
-                      v_start: torch.Tensor | None = None) -> tuple[torch.Tensor, list[float]]:
-    """Fit v0 [3] (m/s) on the first ``cfg.n_video_frames`` video frames of ``view``.
+                      ) -> tuple[torch.Tensor, torch.Tensor, list[float]]:
+    """Fit v0 [3] (m/s) and, if ``cfg.angular``, w0 [3] (rad/s) on the first video frames of ``view``.
 
     Returns:
-        (v0 [3], loss history).
+        (v0 [3], w0 [3] (zeros unless fitted), loss history).
     """
     n = min(cfg.n_video_frames, len(video_frames))
     dtype = body.x0.dtype
-    v0 = torch.zeros(3, dtype=dtype) if v_start is None else v_start.detach().clone()
-    v0.requires_grad_(True)
-    opt = torch.optim.Adam([v0], lr=cfg.lr)
+    v0 = torch.zeros(3, dtype=dtype, requires_grad=True)
+    w0 = torch.zeros(3, dtype=dtype, requires_grad=cfg.angular)
+    opt = torch.optim.Adam([v0, w0] if cfg.angular else [v0], lr=cfg.lr)
     bg = torch.tensor(background, dtype=dtype)
     for p in material.parameters():
         p.requires_grad_(False)
     history = []
     for _ in tqdm(range(cfg.iterations), desc="velocity", unit="it"):
         opt.zero_grad(set_to_none=True)
-        traj = rollout(solver, material, body.x0, initial_velocity(body.x0, v0), body.vol, body.mass,
+        traj = rollout(solver, material, body.x0, initial_velocity(body.x0, v0, w0), body.vol, body.mass,
                        n_steps=video_frames[n - 1] * substeps, steps_per_frame=substeps, checkpoint=True)
         loss = sum(silhouette_loss(body, traj.x[f], traj.F[f], view, j, bg, cfg)
                    for j, f in enumerate(video_frames[:n]))
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"velocity estimation: non-finite loss at v0={v0.tolist()}")
+            raise FloatingPointError(f"velocity estimation: non-finite loss at v0={v0.tolist()}, w0={w0.tolist()}")
         loss.backward()
         opt.step()
-        history.append(float(loss))
-    return v0.detach(), history
+        history.append(float(loss.detach()))
+    return v0.detach(), w0.detach(), history

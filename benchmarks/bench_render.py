@@ -1,0 +1,103 @@
+"""Renderer throughput: frames/s forward and forward+backward (not a test).
+
+Scene: N Gaussians filling a ball of radius 0.3 m at the centre of the sim cube (3DGS-like random
+anisotropic covariances, spacing-sized), opacities in [0.5, 1], seen by a 40 deg camera 1.5 m away.
+
+    python benchmarks/bench_render.py                                   # CPU, torch, full grid
+    python benchmarks/bench_render.py --n 10000 --res 128 --repeats 5
+    python benchmarks/bench_render.py --device cuda --backend torch gsplat   # side by side + max |diff|
+
+Prints a Markdown table (median and best of ``--repeats`` timed runs after one warm-up).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from gca.render import RasterConfig, covariance_from_scale_rot, look_at, render  # noqa: E402
+
+
+def ball_scene(n: int, device: str, seed: int = 0, radius: float = 0.3):
+    """Gaussians filling a ball: ``(means [n, 3], covs [n, 3, 3], colors [n, 3], opacities [n])``."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    means = 0.5 + radius * d / d.norm(dim=1, keepdim=True) * torch.rand(n, 1, generator=g) ** (1 / 3)
+    spacing = (4 / 3 * math.pi * radius**3 / n) ** (1 / 3)
+    log_scales = math.log(0.6 * spacing) + 0.3 * torch.randn(n, 3, generator=g)
+    covs = covariance_from_scale_rot(log_scales, torch.randn(n, 4, generator=g))
+    colors = torch.rand(n, 3, generator=g)
+    opacities = 0.5 + 0.5 * torch.rand(n, generator=g)
+    return tuple(t.to(device) for t in (means, covs, colors, opacities))
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_render(inputs, camera, bg, backend: str, device: str, backward: bool, repeats: int, cfg) -> list[float]:
+    """Wall-clock seconds of ``repeats`` renders (after one warm-up)."""
+    times = []
+    for i in range(repeats + 1):
+        leaves = [t.detach().requires_grad_(backward) for t in inputs]
+        _sync(device)
+        t0 = time.perf_counter()
+        out = render(*leaves, camera, bg, backend=backend, cfg=cfg)
+        if backward:
+            (out["rgb"].sum() + out["alpha"].sum() + out["depth"].sum()).backward()
+        _sync(device)
+        if i:
+            times.append(time.perf_counter() - t0)
+    return times
+
+
+def compare(inputs, camera, bg, cfg) -> dict:
+    """Max |torch - gsplat| per output (CUDA only)."""
+    a = render(*inputs, camera, bg, backend="torch", cfg=cfg)
+    b = render(*inputs, camera, bg, backend="gsplat", cfg=cfg)
+    return {k: (a[k] - b[k]).abs().max().item() for k in ("rgb", "alpha", "depth")}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n", type=int, nargs="+", default=[10_000, 100_000], help="Gaussian counts")
+    parser.add_argument("--res", type=int, nargs="+", default=[128, 256, 512], help="square image sides")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--backend", nargs="+", default=["torch"], choices=["torch", "gsplat"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: leave as is)")
+    parser.add_argument("--no-backward", action="store_true")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = RasterConfig()
+    print(f"device={args.device} torch={torch.__version__} threads={torch.get_num_threads()} repeats={args.repeats}")
+    print("| N | res | backend | fwd s (med / best) | fwd FPS | fwd+bwd s (med / best) | fwd+bwd FPS | max abs diff vs gsplat |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    bg = torch.zeros(3, device=args.device)
+    for n in args.n:
+        inputs = ball_scene(n, args.device)
+        for res in args.res:
+            camera = look_at([0.5, 0.5, -1.0], [0.5, 0.5, 0.5], [0, 1, 0], 40.0, res, res)
+            diff = compare(inputs, camera, bg, cfg) if len(args.backend) == 2 else None
+            for backend in args.backend:
+                fwd = time_render(inputs, camera, bg, backend, args.device, False, args.repeats, cfg)
+                both = [math.nan] if args.no_backward else \
+                    time_render(inputs, camera, bg, backend, args.device, True, args.repeats, cfg)
+                d = "" if diff is None else " ".join(f"{k}={v:.2e}" for k, v in diff.items())
+                print(f"| {n} | {res} | {backend} | {statistics.median(fwd):.3f} / {min(fwd):.3f} | "
+                      f"{1 / statistics.median(fwd):.1f} | {statistics.median(both):.3f} / {min(both):.3f} | "
+                      f"{1 / statistics.median(both):.1f} | {d} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

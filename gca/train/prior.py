@@ -1,0 +1,364 @@
+"""Pretraining of the neural prior M_0 = {E_0, P_0} of one material family (the ``prior`` stage).
+
+Recipe (NCLaw, reference notes §5.2, on many trajectories instead of one):
+
+1. **Data** (:mod:`gca.train.prior_data`): thrown bodies of the family's analytic material, full
+   state (x, v, C, F) stored at every step; a disjoint set of held-out trajectories.
+2. **Warm start** (optional, not in NCLaw): law-level regression of the networks onto the family's
+   analytic elasticity and return map (:mod:`gca.laws.pretrain`).
+3. **Teacher forcing**: each Adam step restarts ``batch`` windows from ground-truth states at random
+   steps, simulates ``window`` steps with the neural laws and penalises the positions,
+
+       loss = mean_windows mean_{j=1..k} mean_p ||x_p(s+j) - x_p^gt(s+j)||^2 / dx^2   [cells^2],
+
+   with the elasticity and plasticity in separate parameter groups, cosine-decayed learning rates and
+   global grad-norm clipping. A non-finite loss or a diverging window raises with a diagnostic.
+4. **Evaluation**: full rollouts of the held-out trajectories from their launch states, position
+   error of the untrained, warm-started and trained networks (mean over steps and particles of the
+   squared distance, m^2); law-level response error [%] of the elasticity against the family's
+   analytic law on uniaxial and simple-shear sweeps (:func:`gca.laws.pretrain.sweep_response_error`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from typing import Callable, Mapping, Sequence
+
+import torch
+
+from gca.config import ConfigError, build, section
+from gca.io import atomic_path
+from gca.laws.base import Material
+from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
+from gca.laws.pretrain import PretrainConfig, fit_elasticity, fit_plasticity, sweep_deformations, sweep_response_error
+from gca.laws.presets import material_from_preset
+from gca.sim import MPMSolver, SimConfig, SimulationDiverged
+from gca.sim.rollout import check_state, simulate_frame
+from gca.train.prior_data import PriorDataConfig, Trajectory, make_trajectories, trajectory_seed
+
+_WHERE = "gca/train/prior.py"
+NETWORKS = ("elasticity", "plasticity")
+
+
+@dataclasses.dataclass(frozen=True)
+class PriorTrainConfig:
+    """Knobs of the prior stage (params ``prior.train``); paper-scale defaults."""
+
+    sim: SimConfig = SimConfig(n_grid=32, dt=5e-4, bound=2, boundary="friction", friction=0.4)  # simulator
+    data: PriorDataConfig = PriorDataConfig()  # how trajectories are drawn
+    n_train: int = 16  # training trajectories {paper: 16, ci: 4} [count]
+    n_heldout: int = 4  # held-out trajectories (other seeds) {paper: 4, ci: 2} [count]
+    window: int = 16  # teacher-forced steps k per window (NCLaw: 25 -> 200) {paper: 16, ci: 8} [count]
+    batch: int = 4  # windows per Adam step [count]
+    iterations: int = 2000  # Adam steps {paper: 2000, ci: 40} [count]
+    lr_elasticity: float = 1e-3  # initial Adam learning rate of the elasticity network
+    lr_plasticity: float = 1e-4  # initial Adam learning rate of the plasticity network
+    cosine_floor: float = 0.05  # final learning rate as a fraction of the initial one [1]
+    grad_clip: float = 1.0  # global gradient-norm clip [loss units]
+    warm_start: tuple[str, ...] = NETWORKS  # networks regressed onto the analytic law first ([] = none)
+    fit: PretrainConfig = PretrainConfig()  # the warm-start regression
+    response_max_strain: float = 0.1  # sweeps of the law-level response error span +-this strain [1]
+    log_every: int = 10  # iterations between logged training losses [count]
+
+    def __post_init__(self):
+        object.__setattr__(self, "warm_start", tuple(self.warm_start))
+        problems = []
+        if set(self.warm_start) - set(NETWORKS):
+            problems.append(f"warm_start={self.warm_start} must be a subset of {NETWORKS}")
+        if min(self.n_train, self.n_heldout, self.window, self.batch, self.log_every) < 1 or self.iterations < 0:
+            problems.append("n_train, n_heldout, window, batch, log_every must be >= 1 and iterations >= 0")
+        if self.window > self.data.n_steps:
+            problems.append(f"window={self.window} exceeds the trajectory length data.n_steps={self.data.n_steps}")
+        if not (self.lr_elasticity >= 0 and self.lr_plasticity >= 0 and 0 < self.cosine_floor <= 1
+                and self.grad_clip > 0 and self.response_max_strain > 0):
+            problems.append("need lr >= 0, 0 < cosine_floor <= 1, grad_clip > 0, response_max_strain > 0")
+        if problems:
+            raise ValueError(f"{_WHERE}: bad PriorTrainConfig: " + "; ".join(problems))
+
+
+@dataclasses.dataclass
+class PriorResult:
+    """What :func:`pretrain_prior` produced: the trained networks, metrics and curves for plots."""
+
+    elasticity: NeuralElasticity
+    plasticity: NeuralPlasticity
+    metrics: dict
+    history: list  # [(iteration, loss [cells^2])]
+    curves: dict  # sweep name -> {"strain": [n], "reference"/"untrained"/"trained": [n]} (Pa)
+
+
+def make_networks(law_cfg: NeuralLawConfig, seed: int, dtype: torch.dtype = torch.float32,
+                  device: str | torch.device = "cpu") -> tuple[NeuralElasticity, NeuralPlasticity]:
+    """Freshly initialised (Xavier) neural elasticity and plasticity, reproducible from ``seed``."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        elasticity, plasticity = NeuralElasticity(law_cfg), NeuralPlasticity(law_cfg)
+    return elasticity.to(dtype=dtype, device=device), plasticity.to(dtype=dtype, device=device)
+
+
+def window_loss(solver: MPMSolver, material: Material, trajectory: Trajectory, start: int, k: int) -> torch.Tensor:
+    """Teacher-forced position loss of one window [cells^2] (scalar tensor with grad).
+
+    Args:
+        solver: MPM solver.
+        material: the neural material being trained.
+        trajectory: ground truth; the window starts from its full state at ``start``.
+        start: first step, ``0 <= start <= T - k``.
+        k: steps simulated.
+
+    Raises:
+        SimulationDiverged: the neural law blew the window up (names step, start and law).
+    """
+    if not 0 <= start <= trajectory.n_steps - k:
+        raise ValueError(f"{_WHERE}: window [{start}, {start + k}] leaves the trajectory of {trajectory.n_steps} steps")
+    x, v, C, F = trajectory.state(start)
+    loss = x.new_zeros(())
+    for j in range(1, k + 1):
+        x, v, C, F = simulate_frame(solver, material, 1, x, v, C, F, trajectory.vol, trajectory.mass)
+        loss = loss + (x - trajectory.x[start + j]).square().sum(dim=1).mean()
+    check_state(solver, x.detach(), v.detach(), F.detach(), start + k, f"neural prior (window from step {start})")
+    return loss / (k * solver.cfg.dx ** 2)
+
+
+def _cosine(iteration: int, cfg: PriorTrainConfig) -> float:
+    """Learning-rate factor: 1 -> cosine_floor over ``cfg.iterations``."""
+    t = iteration / max(cfg.iterations - 1, 1)
+    return cfg.cosine_floor + (1 - cfg.cosine_floor) * 0.5 * (1 + math.cos(math.pi * t))
+
+
+def _optimizer(material: Material, cfg: PriorTrainConfig) -> torch.optim.Adam:
+    groups = [{"params": list(material.elasticity.parameters()), "lr": cfg.lr_elasticity, "base_lr": cfg.lr_elasticity},
+              {"params": list(material.plasticity.parameters()), "lr": cfg.lr_plasticity, "base_lr": cfg.lr_plasticity}]
+    return torch.optim.Adam(groups)
+
+
+def sample_windows(trajectories: Sequence[Trajectory], k: int, n: int, generator: torch.Generator) -> list[tuple[int, int]]:
+    """``n`` random (trajectory index, start step) pairs with room for ``k`` steps."""
+    windows = []
+    for _ in range(n):
+        i = int(torch.randint(len(trajectories), (1,), generator=generator))
+        start = int(torch.randint(trajectories[i].n_steps - k + 1, (1,), generator=generator))
+        windows.append((i, start))
+    return windows
+
+
+def train_teacher_forced(material: Material, solver: MPMSolver, trajectories: Sequence[Trajectory],
+                         cfg: PriorTrainConfig, seed: int,
+                         on_step: Callable[[int, float], None] | None = None) -> list[tuple[int, float]]:
+    """Adam on :func:`window_loss` over random windows (in place on ``material``'s networks).
+
+    Returns:
+        The loss history [(iteration, mean window loss [cells^2])], every iteration.
+
+    Raises:
+        RuntimeError: non-finite loss or gradient (names the iteration, the windows and the last loss).
+    """
+    opt = _optimizer(material, cfg)
+    g = torch.Generator().manual_seed(int(seed) + 17)
+    history: list[tuple[int, float]] = []
+    params = [p for group in opt.param_groups for p in group["params"]]
+    for it in range(cfg.iterations):
+        windows = sample_windows(trajectories, cfg.window, cfg.batch, g)
+        loss = sum(window_loss(solver, material, trajectories[i], s, cfg.window) for i, s in windows) / cfg.batch
+        opt.zero_grad()
+        loss.backward()
+        last = history[-1][1] if history else None
+        if not torch.isfinite(loss):
+            raise RuntimeError(f"{_WHERE}: teacher forcing diverged at iteration {it}: loss={loss.item()}, "
+                               f"windows (trajectory, start)={windows}, last finite loss={last}")
+        try:
+            torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip, error_if_nonfinite=True)
+        except RuntimeError as exc:
+            raise RuntimeError(f"{_WHERE}: non-finite gradient at iteration {it} (loss={loss.item():.4g}, "
+                               f"windows={windows}): {exc}") from exc
+        for group in opt.param_groups:
+            group["lr"] = group["base_lr"] * _cosine(it, cfg)
+        opt.step()
+        history.append((it, loss.item()))
+        if on_step is not None:
+            on_step(it, loss.item())
+    return history
+
+
+@torch.no_grad()
+def rollout_sq_error(solver: MPMSolver, material: Material, trajectory: Trajectory) -> float:
+    """Full rollout from the launch state: mean over steps and particles of ||x - x_gt||^2 [m^2].
+
+    A rollout that diverges returns ``inf`` (the law is useless there; callers report it as such).
+    """
+    x, v, C, F = trajectory.state(0)
+    total = 0.0
+    for step in range(1, trajectory.n_steps + 1):
+        x, v, C, F = simulate_frame(solver, material, 1, x, v, C, F, trajectory.vol, trajectory.mass)
+        try:
+            check_state(solver, x, v, F, step, "neural prior (held-out rollout)")
+        except SimulationDiverged:
+            return math.inf
+        total += float((x - trajectory.x[step]).square().sum(dim=1).mean())
+    return total / trajectory.n_steps
+
+
+def heldout_rmse(solver: MPMSolver, material: Material, trajectories: Sequence[Trajectory]) -> float:
+    """Root of the mean :func:`rollout_sq_error` over the held-out trajectories: position RMSE [m]."""
+    return math.sqrt(sum(rollout_sq_error(solver, material, t) for t in trajectories) / len(trajectories))
+
+
+def warm_start(material: Material, reference: Material, cfg: PriorTrainConfig) -> dict[str, float]:
+    """Regress the networks named in ``cfg.warm_start`` onto the analytic law; returns final fit losses."""
+    reference = reference.to(dtype=next(material.parameters()).dtype, device=next(material.parameters()).device)
+    losses = {}
+    if "elasticity" in cfg.warm_start:
+        losses["elasticity"] = fit_elasticity(material.elasticity, reference.elasticity, cfg.fit)[-1]
+    if "plasticity" in cfg.warm_start:
+        losses["plasticity"] = fit_plasticity(material.plasticity, reference.plasticity, cfg.fit)[-1]
+    return losses
+
+
+def response_error_pct(elasticity, reference, max_strain: float) -> dict[str, float]:
+    """Law-level response error [%] of an elasticity against the reference (uniaxial, shear, mean)."""
+    law, ref = copy.deepcopy(elasticity).cpu().float(), copy.deepcopy(reference).cpu().float()
+    return {k: 100.0 * v for k, v in sweep_response_error(law, ref, max_strain, 10, torch.float32).items()}
+
+
+@torch.no_grad()
+def response_curves(laws: Mapping[str, torch.nn.Module], max_strain: float, n: int = 21) -> dict:
+    """tau_xx over the uniaxial and tau_xy over the shear sweep (Pa) for each named elasticity."""
+    curves = {}
+    for name, Fs in sweep_deformations(max_strain, n, torch.float32).items():
+        component = (0, 0) if name == "uniaxial" else (0, 1)
+        curves[name] = {"strain": (Fs[:, 0, 0] - 1 if name == "uniaxial" else Fs[:, 0, 1]).tolist()}
+        for label, law in laws.items():
+            tau = copy.deepcopy(law).cpu().float()(Fs)
+            curves[name][label] = tau[:, component[0], component[1]].tolist()
+    return curves
+
+
+def _progress(total: int, callback) -> Callable[[], None]:
+    """A no-argument tick for data generation that reports ``(phase, done, total)`` to ``callback``."""
+    done = [0]
+
+    def tick():
+        done[0] += 1
+        if callback is not None:
+            callback("data", done[0], total)
+    return tick
+
+
+def make_dataset(material: Material, solver: MPMSolver, cfg: PriorTrainConfig, seed: int, callback=None):
+    """Training and held-out trajectories of ``material`` (disjoint seed streams)."""
+    tick = _progress(cfg.n_train + cfg.n_heldout, callback)
+    seeds = {split: [trajectory_seed(seed, split, i) for i in range(n)]
+             for split, n in (("train", cfg.n_train), ("heldout", cfg.n_heldout))}
+    return {split: make_trajectories(solver, material, cfg.data, s, tick) for split, s in seeds.items()}
+
+
+def pretrain_prior(preset: Mapping, law_cfg: NeuralLawConfig, cfg: PriorTrainConfig, seed: int = 0,
+                   device: str | torch.device = "cpu", callback=None) -> PriorResult:
+    """The whole prior stage for one family: data, warm start, teacher forcing, evaluation.
+
+    The held-out RMSE and the response error are measured after each phase: ``untrained`` (the
+    initialisation), ``warm`` (after the warm start, if any) and ``trained``.
+
+    Args:
+        preset: the family's analytic material (a ``material_from_preset`` mapping).
+        law_cfg: architecture and scaling of the networks (params ``laws.neural``).
+        cfg: stage knobs.
+        seed: seeds the data, the network initialisation and the window sampling.
+        device: torch device of the simulation.
+        callback: optional ``callback(phase, i, n, **values)`` for progress bars and logging.
+
+    Returns:
+        :class:`PriorResult` (networks on the CPU in float32).
+    """
+    clock = {"start": time.perf_counter()}
+    say = callback or (lambda *a, **k: None)
+    solver = MPMSolver(cfg.sim, device)
+    reference = material_from_preset(preset, dt=cfg.sim.dt)
+    data = make_dataset(reference, solver, cfg, seed, callback)
+    e, p = make_networks(law_cfg, seed, solver.dtype, solver.device)
+    material = Material(e, p, float(reference.rho)).to(dtype=solver.dtype, device=solver.device)
+    evaluation, untrained = {}, copy.deepcopy(material.elasticity)
+
+    def evaluate(phase):
+        clock[phase] = time.perf_counter()
+        evaluation[phase] = {"rmse": heldout_rmse(solver, material, data["heldout"]),
+                             "response": response_error_pct(material.elasticity, reference.elasticity,
+                                                            cfg.response_max_strain)}
+    evaluate("untrained")
+    fit = warm_start(material, reference, cfg) if cfg.warm_start else {}
+    if cfg.warm_start:
+        evaluate("warm")
+    history = train_teacher_forced(material, solver, data["train"], cfg, seed,
+                                   lambda it, loss: say("train", it + 1, cfg.iterations, loss=loss))
+    evaluate("trained")
+    metrics = _metrics(evaluation, fit, history, data, cfg)
+    metrics["seconds"] = _durations(clock, bool(cfg.warm_start))
+    curves = response_curves({"reference": reference.elasticity, "untrained": untrained,
+                              "trained": material.elasticity}, cfg.response_max_strain)
+    e_out, p_out = (copy.deepcopy(m).cpu().float() for m in (material.elasticity, material.plasticity))
+    return PriorResult(e_out, p_out, metrics, history, curves)
+
+
+def _durations(clock: dict, warm: bool) -> dict:
+    """Wall-clock seconds per phase from the time stamps taken before each evaluation."""
+    now = time.perf_counter()
+    out = {"data": clock["untrained"] - clock["start"], "total": now - clock["start"]}
+    out["warm_start"] = clock["warm"] - clock["untrained"] if warm else 0.0
+    out["train"] = clock["trained"] - clock["warm" if warm else "untrained"]
+    return out
+
+
+def _metrics(evaluation: dict, fit: dict, history: list, data: dict, cfg: PriorTrainConfig) -> dict:
+    """Metrics JSON of the stage (RMSE in m and cells, response errors in %)."""
+    rmse = {phase: ev["rmse"] for phase, ev in evaluation.items()}
+    ratio = rmse["untrained"] / rmse["trained"] if rmse["trained"] > 0 else math.inf
+    tail = [loss for _, loss in history[-max(1, len(history) // 10):]]
+    trajectories = data["train"] + data["heldout"]
+    return {
+        "heldout_rmse_m": rmse,
+        "heldout_rmse_cells": {k: v / cfg.sim.dx for k, v in rmse.items()},
+        "heldout_ratio": ratio,  # untrained / trained position RMSE
+        "response_error_pct": {phase: ev["response"] for phase, ev in evaluation.items()},
+        "warm_start_fit_loss": fit,
+        "train_loss_cells2": {"first": history[0][1] if history else None,
+                              "last_10pct": sum(tail) / len(tail) if history else None},
+        "data": {"n_train": len(data["train"]), "n_heldout": len(data["heldout"]),
+                 "n_particles": [t.x.shape[1] for t in trajectories],
+                 "shapes": [t.info["shape"] for t in trajectories]},
+    }
+
+
+def prior_configs(params: Mapping, family: str) -> tuple[dict, NeuralLawConfig, PriorTrainConfig]:
+    """(family preset, network config, stage config) from resolved params (``prior.*``, ``laws.neural``)."""
+    families = section(params, "prior.families")
+    if family not in families:
+        raise ConfigError(f"params: prior.families has no family {family!r}; have {sorted(families)}")
+    law_cfg = build(NeuralLawConfig, section(params, "laws.neural"), "laws.neural")
+    return dict(families[family]), law_cfg, build(PriorTrainConfig, section(params, "prior.train"), "prior.train")
+
+
+def plot_prior(result: PriorResult, path, family: str = "") -> None:
+    """Training curve and elastic response curves side by side, written atomically as PNG."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13, 3.8))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 3, 1)
+    if result.history:
+        its, losses = zip(*result.history)
+        ax.semilogy([i + 1 for i in its], losses, lw=0.8)
+    ax.set(xlabel="iteration", ylabel="window position loss [cells$^2$]", title=f"prior {family}: teacher forcing")
+    for k, (name, label) in enumerate((("uniaxial", r"$\tau_{xx}$"), ("shear", r"$\tau_{xy}$"))):
+        ax = fig.add_subplot(1, 3, k + 2)
+        curve = result.curves[name]
+        for law, style in (("reference", "k-"), ("untrained", "C1:"), ("trained", "C0--")):
+            ax.plot(curve["strain"], curve[law], style, label=law)
+        ax.set(xlabel=f"{name} strain [1]", ylabel=f"{label} [Pa]", title=f"{name} response")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")

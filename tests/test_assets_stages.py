@@ -1,0 +1,51 @@
+"""Smoke: the assets and particles stage mains end to end at a tiny size, into tmp_path."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from stages import assets as assets_stage  # noqa: E402
+from stages import particles as particles_stage  # noqa: E402
+
+from gca.assets import particles as pa  # noqa: E402
+from gca.assets.ply import read_ply  # noqa: E402
+
+PARAMS = {
+    "profile": "ci",
+    "objects": {"duck": {"size": 0.3, "seed": 1, "n_gaussians": {"paper": 100000, "ci": 1500},
+                         "interior_fraction": 0.1, "sh_degree": 1, "opacity": 0.95, "density": 800.0}},
+    "particles": {"opacity_threshold": 0.02, "spacing": {"paper": 0.008, "ci": 0.05}, "margin": 0.25,
+                  "placement": "floor", "floor_gap": 0.05, "density_threshold": 0.1, "mahalanobis_chi2": 7.815,
+                  "max_bound": 10, "unbound": "nearest", "n_candidates": 32},
+}
+
+
+def test_assets_then_particles(tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    monkeypatch.delenv("DVC_ROOT", raising=False)
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump(PARAMS))
+    out = tmp_path / "data/assets/duck"
+    m = assets_stage.main(["--object", "duck", "--out", str(out), "--metrics", str(tmp_path / "assets.json"),
+                           "--params", str(params)])
+    assert {p.name for p in out.iterdir()} == {"gaussians.ply", "mesh.ply", "preview.png"}
+    assert json.loads((tmp_path / "assets.json").read_text()) == m
+    assert m["n_gaussians"] == 1500 and m["watertight"]
+    assert read_ply(out / "gaussians.ply").sh_degree == 1
+    npz, metrics = tmp_path / "data/particles/duck.npz", tmp_path / "metrics/particles/duck.json"
+    particles_stage.main(["--object", "duck", "--assets", str(out), "--out", str(npz), "--metrics", str(metrics),
+                          "--params", str(params)])
+    p = pa.load_particles(npz)
+    written = json.loads(metrics.read_text())
+    assert written["n_particles"] == p.n > 50 and written["used_mesh"]
+    np.testing.assert_allclose(written["mass_kg"], 800.0 * p.vol.sum(), rtol=1e-5)
+    np.testing.assert_allclose(p.x[:, 1].min(), 0.05, atol=0.05 + 1e-6)  # resting near the floor gap
+    assert p.x.min() > 0 and p.x.max() < 1
