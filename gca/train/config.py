@@ -52,6 +52,7 @@ class VelocityConfig:
         lr: Adam learning rate [m/s per step].
         lambda_mask, lambda_color: weights of the silhouette and colour losses.
         angular: also fit an angular velocity about the centre of mass (NeuMA fits v0 only).
+        reg_view_axis: weight of the L2 prior on v0's component along the camera axis [(m/s)^-2].
     """
 
     iterations: int = 100
@@ -60,3 +61,4 @@ class VelocityConfig:
     lambda_mask: float = 1.0
     lambda_color: float = 0.0
     angular: bool = True
+    reg_view_axis: float = 1e-2

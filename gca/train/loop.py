@@ -128,14 +128,14 @@ class Objective:
             if self.method.color:
                 l_color = (out["rgb"] - torch.as_tensor(view.rgb[j])).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
-                stats[f"color/{name}"] = float(l_color)
+                stats[f"color/{name}"] = float(l_color.detach())
             if name == "train0":
                 loss, stats = self._mono_terms(out, means, covs, view, j, loss, stats)
         if self.cpr is not None and j % self.cfg.cpr_every == 0:
             R_e, R_p, _ = self.cpr.residuals(law.material.elasticity, law.material.plasticity,
                                              traj.F[f - 1] if f > 0 else traj.F[f], traj.F[f])
             loss = loss + R_e + R_p
-            stats.update(R_e=float(R_e), R_p=float(R_p))
+            stats.update(R_e=float(R_e.detach()), R_p=float(R_p.detach()))
         return loss, stats
 
     def _mono_terms(self, out: dict, means, covs, view: ViewData, j: int, loss, stats):
@@ -145,14 +145,14 @@ class Objective:
             est = torch.as_tensor(self.data.est_depth[j], dtype=out["depth"].dtype)
             l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
             loss = loss + self.cfg.lambda_depth_l1 * l_depth
-            stats["depth_l1"] = float(l_depth)
+            stats["depth_l1"] = float(l_depth.detach())
         if m.mask or m.geo:
             rdga = self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
             p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
             pos = position_image(means, covs, self.data.body.opacities, view.camera) \
                 if rdga.enabled and rdga.use_global else None
             l_rdga, s = rdga_loss(out, view.mask[j], self.data.est_depth[j], p, q, rdga, pos_image=pos,
-                                  K=torch.as_tensor(view.camera.K, dtype=out["depth"].dtype))
+                                  K=torch.tensor(np.array(view.camera.K), dtype=out["depth"].dtype))
             loss = loss + l_rdga
             stats.update({f"rdga/{k}": v for k, v in s.items()})
         return loss, stats
@@ -222,7 +222,7 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
     loss.backward()
     grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip, error_if_nonfinite=True)
     opt.step()
-    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, **stats}
+    return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, **stats}
 
 
 def _check_drift(traj: Rollout, data: TrainData, n_video: int, cfg: TrainConfig) -> None:

@@ -21,6 +21,7 @@ Recipe (NCLaw, reference notes §5.2, on many trajectories instead of one):
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -62,6 +63,7 @@ class PriorTrainConfig:
     fit: PretrainConfig = PretrainConfig()  # the warm-start regression
     response_max_strain: float = 0.1  # sweeps of the law-level response error span +-this strain [1]
     log_every: int = 10  # iterations between logged training losses [count]
+    cpu_threads: int = 1  # torch intra-op threads on a CPU device (0 = torch default; >1 is ~10x slower on a busy box)
 
     def __post_init__(self):
         object.__setattr__(self, "warm_start", tuple(self.warm_start))
@@ -70,6 +72,8 @@ class PriorTrainConfig:
             problems.append(f"warm_start={self.warm_start} must be a subset of {NETWORKS}")
         if min(self.n_train, self.n_heldout, self.window, self.batch, self.log_every) < 1 or self.iterations < 0:
             problems.append("n_train, n_heldout, window, batch, log_every must be >= 1 and iterations >= 0")
+        if self.cpu_threads < 0:
+            problems.append(f"cpu_threads={self.cpu_threads} must be >= 0")
         if self.window > self.data.n_steps:
             problems.append(f"window={self.window} exceeds the trajectory length data.n_steps={self.data.n_steps}")
         if not (self.lr_elasticity >= 0 and self.lr_plasticity >= 0 and 0 < self.cosine_floor <= 1
@@ -255,6 +259,28 @@ def make_dataset(material: Material, solver: MPMSolver, cfg: PriorTrainConfig, s
     return {split: make_trajectories(solver, material, cfg.data, s, tick) for split, s in seeds.items()}
 
 
+@contextlib.contextmanager
+def _timed(seconds: dict, phase: str):
+    """Add the wall-clock seconds of the block to ``seconds[phase]``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds[phase] = seconds.get(phase, 0.0) + time.perf_counter() - t0
+
+
+@contextlib.contextmanager
+def _cpu_threads(device: torch.device, n: int):
+    """Limit torch's intra-op threads while simulating on the CPU (restored afterwards)."""
+    before = torch.get_num_threads()
+    if device.type == "cpu" and n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def pretrain_prior(preset: Mapping, law_cfg: NeuralLawConfig, cfg: PriorTrainConfig, seed: int = 0,
                    device: str | torch.device = "cpu", callback=None) -> PriorResult:
     """The whole prior stage for one family: data, warm start, teacher forcing, evaluation.
@@ -273,42 +299,41 @@ def pretrain_prior(preset: Mapping, law_cfg: NeuralLawConfig, cfg: PriorTrainCon
     Returns:
         :class:`PriorResult` (networks on the CPU in float32).
     """
-    clock = {"start": time.perf_counter()}
+    with _cpu_threads(torch.device(device), cfg.cpu_threads):
+        return _pretrain(preset, law_cfg, cfg, seed, device, callback)
+
+
+def _pretrain(preset, law_cfg, cfg, seed, device, callback) -> PriorResult:
+    seconds: dict[str, float] = {}
     say = callback or (lambda *a, **k: None)
     solver = MPMSolver(cfg.sim, device)
     reference = material_from_preset(preset, dt=cfg.sim.dt)
-    data = make_dataset(reference, solver, cfg, seed, callback)
+    with _timed(seconds, "data"):
+        data = make_dataset(reference, solver, cfg, seed, callback)
     e, p = make_networks(law_cfg, seed, solver.dtype, solver.device)
     material = Material(e, p, float(reference.rho)).to(dtype=solver.dtype, device=solver.device)
     evaluation, untrained = {}, copy.deepcopy(material.elasticity)
 
     def evaluate(phase):
-        clock[phase] = time.perf_counter()
-        evaluation[phase] = {"rmse": heldout_rmse(solver, material, data["heldout"]),
-                             "response": response_error_pct(material.elasticity, reference.elasticity,
-                                                            cfg.response_max_strain)}
+        with _timed(seconds, "evaluate"):
+            evaluation[phase] = {"rmse": heldout_rmse(solver, material, data["heldout"]),
+                                 "response": response_error_pct(material.elasticity, reference.elasticity,
+                                                                cfg.response_max_strain)}
     evaluate("untrained")
-    fit = warm_start(material, reference, cfg) if cfg.warm_start else {}
+    with _timed(seconds, "warm_start"):
+        fit = warm_start(material, reference, cfg) if cfg.warm_start else {}
     if cfg.warm_start:
         evaluate("warm")
-    history = train_teacher_forced(material, solver, data["train"], cfg, seed,
-                                   lambda it, loss: say("train", it + 1, cfg.iterations, loss=loss))
+    with _timed(seconds, "train"):
+        history = train_teacher_forced(material, solver, data["train"], cfg, seed,
+                                       lambda it, loss: say("train", it + 1, cfg.iterations, loss=loss))
     evaluate("trained")
-    metrics = _metrics(evaluation, fit, history, data, cfg)
-    metrics["seconds"] = _durations(clock, bool(cfg.warm_start))
+    metrics = {**_metrics(evaluation, fit, history, data, cfg), "seconds": seconds}
+    seconds["total"] = sum(seconds.values())
     curves = response_curves({"reference": reference.elasticity, "untrained": untrained,
                               "trained": material.elasticity}, cfg.response_max_strain)
     e_out, p_out = (copy.deepcopy(m).cpu().float() for m in (material.elasticity, material.plasticity))
     return PriorResult(e_out, p_out, metrics, history, curves)
-
-
-def _durations(clock: dict, warm: bool) -> dict:
-    """Wall-clock seconds per phase from the time stamps taken before each evaluation."""
-    now = time.perf_counter()
-    out = {"data": clock["untrained"] - clock["start"], "total": now - clock["start"]}
-    out["warm_start"] = clock["warm"] - clock["untrained"] if warm else 0.0
-    out["train"] = clock["trained"] - clock["warm" if warm else "untrained"]
-    return out
 
 
 def _metrics(evaluation: dict, fit: dict, history: list, data: dict, cfg: PriorTrainConfig) -> dict:

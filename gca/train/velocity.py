@@ -4,10 +4,15 @@ A single launch velocity v0 [3] (m/s), broadcast to every particle (NeuMA), and 
 velocity w0 [3] (rad/s) about the centre of mass, are optimised so that the prior's rollout over the
 first few video frames matches the observed silhouettes (and optionally colours).
 The result is shared by every visual method of a scene, so they differ only in the law they learn.
+
+Motion along the camera's viewing axis only changes the silhouette's size slightly, so it is weakly
+observable from one view; a small L2 prior on that component (``reg_view_axis``, in the spirit of
+NeuMA's vertical-drop prior on v_x, v_z) keeps it from drifting.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -47,6 +52,7 @@ def estimate_velocity(solver: MPMSolver, material: Material, body: Body, view: V
     bg = torch.tensor(background, dtype=dtype)
     for p in material.parameters():
         p.requires_grad_(False)
+    axis = torch.tensor(np.array(view.camera.w2c)[2, :3], dtype=dtype)  # viewing direction (world)
     history = []
     for _ in tqdm(range(cfg.iterations), desc="velocity", unit="it"):
         opt.zero_grad(set_to_none=True)
@@ -54,6 +60,7 @@ def estimate_velocity(solver: MPMSolver, material: Material, body: Body, view: V
                        n_steps=video_frames[n - 1] * substeps, steps_per_frame=substeps, checkpoint=True)
         loss = sum(silhouette_loss(body, traj.x[f], traj.F[f], view, j, bg, cfg)
                    for j, f in enumerate(video_frames[:n]))
+        loss = loss + cfg.reg_view_axis * (v0 @ axis).square()
         if not torch.isfinite(loss):
             raise FloatingPointError(f"velocity estimation: non-finite loss at v0={v0.tolist()}, w0={w0.tolist()}")
         loss.backward()
