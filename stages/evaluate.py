@@ -18,7 +18,7 @@ from gca.scenes import scene_config, video_config
 from gca.scenes.world import load_body
 from gca.track import stage_run
 from gca.train.methods import get_method
-from gca.train.run import SceneInputs, load_learned_law, read_velocity, solver_for
+from gca.train.run import default_device, SceneInputs, load_learned_law, read_velocity, solver_for
 
 
 def parse_args(argv):
@@ -28,14 +28,16 @@ def parse_args(argv):
     ap.add_argument("--scene", required=True)
     ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
     return ap.parse_args(argv)
 
 
 def evaluate_method(params, args, scene, method, inputs, body) -> dict:
     run_dir = args.runs / method.name
     train = read_json(run_dir / "train.json")
-    law = load_learned_law(params, args.scene, method, inputs, run_dir, float(body.mass.sum() / body.vol.sum()))
-    metrics = evaluate_run(solver_for(params, scene), law.material, body, read_velocity(args.runs / "velocity.json"),
+    law = load_learned_law(params, args.scene, method, inputs, run_dir, float(body.mass.sum() / body.vol.sum()),
+                           args.device)
+    metrics = evaluate_run(solver_for(params, scene, args.device), law.material, body, read_velocity(args.runs / "velocity.json"),
                            args.scene_dir, video_config(params).background, args.out / method.name)
     if train["status"] != "ok":
         metrics["status"] = train["status"]
@@ -52,7 +54,7 @@ def main(argv=None) -> dict:
     scene = scene_config(params, args.scene)
     methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
     inputs = SceneInputs(args.scene_dir, None, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
-    body = load_body(args.particles, args.gaussians)
+    body = load_body(args.particles, args.gaussians, args.device)
     out = {}
     for method in methods:
         run_id = read_json(args.runs / method.name / "train.json").get("mlflow_run_id")

@@ -10,6 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import torch
+
 from gca import config
 from gca.io import atomic_path, write_json
 from gca.render.shading import LightingConfig
@@ -28,7 +30,7 @@ def parse_args(argv):
     ap.add_argument("--out", type=Path, required=True, help="scene directory (replaced atomically)")
     ap.add_argument("--metrics", type=Path, required=True)
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     return ap.parse_args(argv)
 
 

@@ -17,7 +17,7 @@ from gca import config
 from gca.scenes import scene_config
 from gca.track import stage_run
 from gca.train.methods import get_method
-from gca.train.run import SceneInputs, estimate_scene_velocity, read_velocity, train_method
+from gca.train.run import default_device, SceneInputs, estimate_scene_velocity, read_velocity, train_method
 
 
 def parse_args(argv):
@@ -27,6 +27,7 @@ def parse_args(argv):
     ap.add_argument("--scene", required=True)
     ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
     return ap.parse_args(argv)
 
 
@@ -38,7 +39,7 @@ def main(argv=None) -> dict:
     inputs = SceneInputs(args.scene_dir, args.prep, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
     args.out.mkdir(parents=True, exist_ok=True)
     with stage_run("train", params, scene=args.scene, method="velocity") as run:
-        velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json")
+        velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json", args.device)
         run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
     velocity = read_velocity(args.out / "velocity.json")
     results = {}
@@ -46,7 +47,8 @@ def main(argv=None) -> dict:
         with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables),
                                                                     "material": scene.material}) as run:
-            results[method.name] = train_method(params, args.scene, method, inputs, velocity, args.out / method.name, run)
+            results[method.name] = train_method(params, args.scene, method, inputs, velocity, args.out / method.name, run,
+                                                   args.device)
             run.log_artifact(args.out / method.name / "loss.png")
         print(f"train {args.scene}/{method.name}: {results[method.name]['status']} "
               f"in {results[method.name]['train_seconds']:.1f} s")

@@ -94,10 +94,10 @@ class InteractionConfig:
 
     a: LawRef = LawRef("duck", "gca")  # first object (particles 0 .. P_a - 1); left / bottom
     b: LawRef = LawRef("cat", "gca")  # second object (particles P_a ..); right / top
-    v0_a: tuple[float, float, float] = (1.5, -0.5, 0.0)  # launch velocity of a [m/s]
-    v0_b: tuple[float, float, float] = (-1.5, -0.5, 0.0)  # launch velocity of b [m/s]
+    v0_a: tuple[float, float, float] = (2.0, 0.5, 0.0)  # launch velocity of a [m/s]
+    v0_b: tuple[float, float, float] = (-2.0, 0.5, 0.0)  # launch velocity of b [m/s]
     layout: str = "side_by_side"  # side_by_side (a at -x, b at +x) | stacked (b above a)
-    gap: float = 0.05  # free space between the two particle boxes along the layout axis [m, sim]
+    gap: float = 0.05  # free space between the two objects' boxes along the layout axis [m, sim]
 
     def __post_init__(self):
         object.__setattr__(self, "v0_a", _vec3(self.v0_a, "interaction.v0_a"))
@@ -116,12 +116,14 @@ class DemoConfig:
     n_frames: int = 200  # simulated frames (each steps_per_frame MPM steps); CI ~12 [count]
     steps_per_frame: int = 4  # MPM steps per frame; dt is the smallest dt of the scenes involved [count]
     resolution: int = 256  # square image side [px]; CI ~64
-    camera: OrbitCamera = OrbitCamera(azimuth_deg=0.0, elevation_deg=20.0, distance=1.7)  # sim frame
+    render_every: int = 1  # the GIF shows every k-th simulated frame (and always the last) [count]
+    camera: OrbitCamera = OrbitCamera(azimuth_deg=0.0, elevation_deg=20.0, distance=1.3,
+                                      target=(0.5, 0.25, 0.5))  # orbit camera, sim frame
     sweep_deg: float = 60.0  # camera azimuth sweep over the animation (0 = fixed camera) [deg]
     strip_frames: int = 6  # frames in the strip PNG, evenly spaced [count]
     frame_ms: float = 40.0  # GIF frame duration [ms]
-    margin: float = 0.1  # interaction: min distance of the pair's particles to the side and top walls [m, sim]
-    floor_gap: float = 0.08  # interaction: lowest particle's height above the floor at launch [m, sim]
+    margin: float = 0.1  # interaction: min distance of the pair to the side walls and the ceiling [m, sim]
+    floor_gap: float = 0.15  # interaction: the pair's lowest point above the floor at launch [m, sim]
     missing_law: str = "prior"  # no law.pt: "prior" (warn, use the scene's prior) | "error" (raise)
 
     def __post_init__(self):
@@ -130,8 +132,8 @@ class DemoConfig:
             problems.append(f"n_frames={self.n_frames} must be an integer >= 1")
         if int(self.steps_per_frame) != self.steps_per_frame or self.steps_per_frame < 1:
             problems.append(f"steps_per_frame={self.steps_per_frame} must be an integer >= 1")
-        if self.resolution < 8 or self.strip_frames < 1 or not self.frame_ms > 0:
-            problems.append("need resolution >= 8 px, strip_frames >= 1, frame_ms > 0")
+        if self.resolution < 8 or self.strip_frames < 1 or self.render_every < 1 or not self.frame_ms > 0:
+            problems.append("need resolution >= 8 px, strip_frames >= 1, render_every >= 1, frame_ms > 0")
         if not 0 <= self.margin < 0.5 or not 0 <= self.floor_gap < 0.5:
             problems.append(f"margin={self.margin} and floor_gap={self.floor_gap} must lie in [0, 0.5) m")
         if self.missing_law not in MISSING_LAW:
@@ -148,9 +150,13 @@ def demo_config(params: Mapping) -> DemoConfig:
 # ------------------------------------------------------------------------------------ combining
 
 
-def particle_bounds(body: Body) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box of the particles: ``(lo [3], hi [3])`` [m, sim]."""
-    x = body.x0.detach().cpu().double()
+def body_bounds(body: Body) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box of the particles and the Gaussian centres: ``(lo [3], hi [3])`` [m, sim].
+
+    The Gaussians sit on the surface, up to a lattice spacing outside the particles, so the visible
+    object fills this box.
+    """
+    x = torch.cat([body.x0, body.means0]).detach().cpu().double()
     return x.min(0).values.numpy(), x.max(0).values.numpy()
 
 
@@ -179,7 +185,7 @@ def fit_scale(extent_a: np.ndarray, extent_b: np.ndarray, layout: str, gap: floa
     """Largest common scale s <= 1 at which the pair fits the unit cube.
 
     Args:
-        extent_a, extent_b: particle box sizes [3] [m, sim].
+        extent_a, extent_b: object box sizes [3] (:func:`body_bounds`) [m, sim].
         layout: ``side_by_side`` (along x) or ``stacked`` (along y).
         gap: free space between the boxes along the layout axis [m].
         margin: distance kept to the side walls and the ceiling [m].
@@ -208,7 +214,7 @@ def arrange_pair(a: Body, b: Body, layout: str, gap: float, margin: float, floor
     """
     if layout not in LAYOUTS:
         raise ValueError(f"{_WHERE}: unknown layout {layout!r}; valid: {LAYOUTS}")
-    (lo_a, hi_a), (lo_b, hi_b) = particle_bounds(a), particle_bounds(b)
+    (lo_a, hi_a), (lo_b, hi_b) = body_bounds(a), body_bounds(b)
     ext_a, ext_b = hi_a - lo_a, hi_b - lo_b
     s = fit_scale(ext_a, ext_b, layout, gap, margin, floor_gap)
     start_a = np.array([0.5 - s * ext_a[0] / 2, floor_gap, 0.5 - s * ext_a[2] / 2])
@@ -335,12 +341,17 @@ def frame_camera(spec: OrbitCamera, resolution: int, frame: int, n_frames: int, 
     return make_camera(dataclasses.replace(spec, azimuth_deg=azimuth), resolution)
 
 
+def shown_frames(n_frames: int, every: int) -> list[int]:
+    """Frame indices the animation shows: 0, every, 2 every, ... and always the last one ``n_frames``."""
+    return sorted(set(range(0, n_frames + 1, every)) | {n_frames})
+
+
 def render_frames(body: Body, traj: Rollout, cfg: DemoConfig, background) -> np.ndarray:
-    """Render every frame of a rollout: uint8 RGB ``[T + 1, H, W, 3]``."""
+    """Render the shown frames of a rollout (:func:`shown_frames`): uint8 RGB ``[K, H, W, 3]``."""
     frames = []
     n = traj.x.shape[0] - 1
     with torch.no_grad():
-        for f in range(n + 1):
+        for f in shown_frames(n, cfg.render_every):
             camera = frame_camera(cfg.camera, cfg.resolution, f, n, cfg.sweep_deg)
             rgb = render_body(body, traj.x[f], traj.F[f], camera, background)["rgb"]
             frames.append((rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8))
@@ -389,8 +400,8 @@ def _run(solver: MPMSolver, material, body: Body, v: torch.Tensor, cfg: DemoConf
             metrics[name] = part
         else:  # a single object: its metrics at the top level
             metrics.update(part)
-    metrics.update(write_animation(out_dir, render_frames(body, traj, cfg, background), cfg.strip_frames,
-                                   cfg.frame_ms))
+    frames = render_frames(body, traj, cfg, background)
+    metrics.update(write_animation(out_dir, frames, cfg.strip_frames, cfg.frame_ms), gif_frames=len(frames))
     return metrics, traj
 
 

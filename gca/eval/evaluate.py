@@ -39,7 +39,7 @@ def device_name(device: torch.device) -> str:
 def predict(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], video_frames: list[int],
             substeps: int) -> tuple[Rollout, float]:
     """Full rollout of the learned law (no grad) from (v0, w0); returns the rollout and its wall time [s]."""
-    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype) for u in velocity))
+    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype, device=body.x0.device) for u in velocity))
     t0 = time.perf_counter()
     with torch.no_grad():
         traj = rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=video_frames[-1] * substeps,
@@ -51,7 +51,7 @@ def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], 
                   background) -> tuple[dict, dict]:
     """PSNR/SSIM per view (mean over frames) and the rendered frames of each view [T, H, W, 3]."""
     data = load_views(scene_dir, views)
-    bg = torch.tensor(background, dtype=body.x0.dtype)
+    bg = torch.tensor(background, dtype=body.x0.dtype, device=body.x0.device)
     metrics, frames = {}, {}
     for name, view in data.items():
         renders = []
@@ -59,18 +59,18 @@ def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], 
             means, covs = gaussians_at(body, traj.x[f], traj.F[f])
             renders.append(render(means, covs, body.colors, body.opacities, view.camera, bg)["rgb"].clamp(0, 1))
         pred = torch.stack(renders).permute(0, 3, 1, 2)
-        ref = torch.as_tensor(view.rgb).permute(0, 3, 1, 2)
+        ref = torch.as_tensor(view.rgb, device=pred.device).permute(0, 3, 1, 2)
         metrics[name] = {"psnr": float(psnr(pred, ref).mean()), "ssim": float(ssim(pred, ref).mean())}
         lp, reason = lpips_or_reason(pred, ref)
         metrics[name]["lpips"] = None if lp is None else float(lp.mean())
         metrics["lpips_reason"] = reason
-        frames[name] = pred.permute(0, 2, 3, 1).numpy()
+        frames[name] = pred.permute(0, 2, 3, 1).cpu().numpy()
     return metrics, frames
 
 
 def law_metrics(material, reference_preset: Mapping, dt: float) -> dict:
     """Law-level response error [%] (uniaxial, shear) of the learned elasticity vs the analytic one."""
-    reference = material_from_preset(reference_preset, dt=dt)
+    reference = material_from_preset(reference_preset, dt=dt).to(next(iter(material.parameters())).device)
     out, curves = {}, {}
     for kind in ("uniaxial", "shear"):
         with torch.no_grad():
@@ -101,7 +101,7 @@ def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, 
         traj, seconds = predict(solver, material, body, velocity, frames_idx, int(meta["substeps"]))
     except SimulationDiverged as exc:
         return {**metrics, "status": "diverged", "message": str(exc)}
-    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype)
+    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype, device=body.x0.device)
     pred = traj.x[[0] + frames_idx]
     cd = chamfer_over_time(pred, gt)
     metrics.update(status="ok", rollout_seconds=seconds, chamfer_per_frame=cd.tolist(), chamfer_mean=float(cd[1:].mean()))

@@ -93,9 +93,9 @@ def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) 
 
 def position_image(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> torch.Tensor:
     """Premultiplied rendered camera-frame positions [H, W, 3] (RDGA's global term projects them with K)."""
-    w2c = torch.tensor(np.array(camera.w2c), dtype=means.dtype)
+    _, w2c = camera.tensors(means.dtype, means.device)
     xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-    return render(means, covs, xyz_cam, opacities, camera, torch.zeros(3, dtype=means.dtype))["rgb"]
+    return render(means, covs, xyz_cam, opacities, camera, means.new_zeros(3))["rgb"]
 
 
 def to_uint8(rgb: torch.Tensor) -> np.ndarray:
@@ -116,7 +116,12 @@ class Objective:
                     cpr_cfg, elastic=tuple(h for h in cpr_cfg.elastic if h != cpr_target[0]),
                     plastic=tuple(h for h in cpr_cfg.plastic if h != cpr_target[1]))
             self.cpr = CPR(cpr_cfg, data.body.n_particles, seed=cfg.seed)
-        self.bg = torch.tensor(data.background, dtype=data.body.x0.dtype)
+        x0 = data.body.x0
+        self.bg = torch.tensor(data.background, dtype=x0.dtype, device=x0.device)
+        self.rgb = {n: torch.as_tensor(v.rgb, device=x0.device) for n, v in data.views.items()}
+        self.mask = torch.as_tensor(data.views["train0"].mask, device=x0.device)
+        self.est_depth = torch.as_tensor(data.est_depth, dtype=x0.dtype, device=x0.device)
+        self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
     def frame(self, traj: Rollout, j: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
         """Loss at video frame ``j`` (0-based)."""
@@ -126,7 +131,7 @@ class Objective:
         for name, view in self.data.views.items():
             out = render(means, covs, self.data.body.colors, self.data.body.opacities, view.camera, self.bg)
             if self.method.color:
-                l_color = (out["rgb"] - torch.as_tensor(view.rgb[j])).square().mean()
+                l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
                 stats[f"color/{name}"] = float(l_color.detach())
             if name == "train0":
@@ -141,8 +146,7 @@ class Objective:
     def _mono_terms(self, out: dict, means, covs, view: ViewData, j: int, loss, stats):
         m = self.method
         if m.depth_l1:
-            mask = torch.as_tensor(view.mask[j])
-            est = torch.as_tensor(self.data.est_depth[j], dtype=out["depth"].dtype)
+            mask, est = self.mask[j], self.est_depth[j]
             l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
             loss = loss + self.cfg.lambda_depth_l1 * l_depth
             stats["depth_l1"] = float(l_depth.detach())
@@ -151,8 +155,7 @@ class Objective:
             p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
             pos = position_image(means, covs, self.data.body.opacities, view.camera) \
                 if rdga.enabled and rdga.use_global else None
-            l_rdga, s = rdga_loss(out, view.mask[j], self.data.est_depth[j], p, q, rdga, pos_image=pos,
-                                  K=torch.tensor(np.array(view.camera.K), dtype=out["depth"].dtype))
+            l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=pos, K=self.K["train0"])
             loss = loss + l_rdga
             stats.update({f"rdga/{k}": v for k, v in s.items()})
         return loss, stats
@@ -207,9 +210,32 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
     return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start)
 
 
+class PhaseTimer:
+    """Wall time per phase [s], synchronising CUDA so asynchronous kernels are charged to their phase."""
+
+    def __init__(self, device: torch.device):
+        self.device, self.seconds, self._t = device, {}, None
+
+    def _now(self) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        return time.perf_counter()
+
+    def start(self) -> None:
+        self._t = self._now()
+
+    def lap(self, phase: str) -> None:
+        t = self._now()
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + t - self._t
+        self._t = t
+
+
 def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
+    timer = PhaseTimer(data.body.x0.device)
+    timer.start()
     opt.zero_grad(set_to_none=True)
     traj = simulate(solver, law, data, n_video)
+    timer.lap("simulate")
     loss, stats = 0.0, {}
     for j in range(n_video):
         l_j, s_j = objective.frame(traj, j, law)
@@ -219,10 +245,14 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
     if not torch.isfinite(loss):
         raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
     _check_drift(traj, data, n_video, cfg)
+    timer.lap("render_losses")
     loss.backward()
+    timer.lap("backward")
     grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip, error_if_nonfinite=True)
     opt.step()
-    return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, **stats}
+    timer.lap("optimizer")
+    return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, **stats,
+            **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
 def _check_drift(traj: Rollout, data: TrainData, n_video: int, cfg: TrainConfig) -> None:

@@ -34,7 +34,7 @@ from gca.config import ConfigError, build, section
 from gca.io import atomic_path
 from gca.laws.base import Material
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
-from gca.laws.pretrain import PretrainConfig, fit_elasticity, fit_plasticity, sweep_deformations, sweep_response_error
+from gca.laws.pretrain import DeformationSampling, PretrainConfig, fit_elasticity, fit_plasticity, sweep_deformations, sweep_response_error
 from gca.laws.presets import material_from_preset
 from gca.sim import MPMSolver, SimConfig, SimulationDiverged
 from gca.sim.rollout import check_state, simulate_frame
@@ -60,7 +60,9 @@ class PriorTrainConfig:
     cosine_floor: float = 0.05  # final learning rate as a fraction of the initial one [1]
     grad_clip: float = 1.0  # global gradient-norm clip [loss units]
     warm_start: tuple[str, ...] = NETWORKS  # networks regressed onto the analytic law first ([] = none)
-    fit: PretrainConfig = PretrainConfig()  # the warm-start regression
+    fit_elasticity: PretrainConfig = PretrainConfig()  # warm-start regression of the elasticity (stress)
+    fit_plasticity: PretrainConfig = PretrainConfig(  # ... of the return map, near the yield surface
+        sampling=DeformationSampling(stretch=0.05, compression=0.05))
     response_max_strain: float = 0.1  # sweeps of the law-level response error span +-this strain [1]
     log_every: int = 10  # iterations between logged training losses [count]
     cpu_threads: int = 1  # torch intra-op threads on a CPU device (0 = torch default; >1 is ~10x slower on a busy box)
@@ -166,10 +168,14 @@ def train_teacher_forced(material: Material, solver: MPMSolver, trajectories: Se
     params = [p for group in opt.param_groups for p in group["params"]]
     for it in range(cfg.iterations):
         windows = sample_windows(trajectories, cfg.window, cfg.batch, g)
-        loss = sum(window_loss(solver, material, trajectories[i], s, cfg.window) for i, s in windows) / cfg.batch
+        last = history[-1][1] if history else None
+        try:
+            loss = sum(window_loss(solver, material, trajectories[i], s, cfg.window) for i, s in windows) / cfg.batch
+        except (SimulationDiverged, torch.linalg.LinAlgError) as exc:
+            raise SimulationDiverged(f"{_WHERE}: teacher forcing diverged at iteration {it} (windows (trajectory, "
+                                     f"start)={windows}, last loss={last}): {exc}") from exc
         opt.zero_grad()
         loss.backward()
-        last = history[-1][1] if history else None
         if not torch.isfinite(loss):
             raise RuntimeError(f"{_WHERE}: teacher forcing diverged at iteration {it}: loss={loss.item()}, "
                                f"windows (trajectory, start)={windows}, last finite loss={last}")
@@ -196,10 +202,10 @@ def rollout_sq_error(solver: MPMSolver, material: Material, trajectory: Trajecto
     x, v, C, F = trajectory.state(0)
     total = 0.0
     for step in range(1, trajectory.n_steps + 1):
-        x, v, C, F = simulate_frame(solver, material, 1, x, v, C, F, trajectory.vol, trajectory.mass)
-        try:
+        try:  # a non-finite F_trial makes the law's SVD fail before check_state sees it
+            x, v, C, F = simulate_frame(solver, material, 1, x, v, C, F, trajectory.vol, trajectory.mass)
             check_state(solver, x, v, F, step, "neural prior (held-out rollout)")
-        except SimulationDiverged:
+        except (SimulationDiverged, torch.linalg.LinAlgError):
             return math.inf
         total += float((x - trajectory.x[step]).square().sum(dim=1).mean())
     return total / trajectory.n_steps
@@ -215,9 +221,9 @@ def warm_start(material: Material, reference: Material, cfg: PriorTrainConfig) -
     reference = reference.to(dtype=next(material.parameters()).dtype, device=next(material.parameters()).device)
     losses = {}
     if "elasticity" in cfg.warm_start:
-        losses["elasticity"] = fit_elasticity(material.elasticity, reference.elasticity, cfg.fit)[-1]
+        losses["elasticity"] = fit_elasticity(material.elasticity, reference.elasticity, cfg.fit_elasticity)[-1]
     if "plasticity" in cfg.warm_start:
-        losses["plasticity"] = fit_plasticity(material.plasticity, reference.plasticity, cfg.fit)[-1]
+        losses["plasticity"] = fit_plasticity(material.plasticity, reference.plasticity, cfg.fit_plasticity)[-1]
     return losses
 
 

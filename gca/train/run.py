@@ -22,6 +22,7 @@ from gca.align.cpr import CPRConfig
 from gca.align.rdga import RDGAConfig
 from gca.eval.efficiency import measure
 from gca.io import atomic_path, read_json, write_json
+from gca.laws.base import Material
 from gca.laws.checkpoint import load_prior
 from gca.laws.lora import LoRAConfig
 from gca.scenes import SceneConfig, read_meta, load_views, scene_config, video_config
@@ -49,6 +50,11 @@ class SceneInputs:
     prior: Path
 
 
+def default_device() -> str:
+    """``cuda`` when a GPU is visible, else ``cpu``."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def solver_for(params: Mapping, scene: SceneConfig, device="cpu") -> MPMSolver:
     sim = config.build(SimConfig, config.section(params, "sim"), "sim")
     return MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
@@ -68,7 +74,7 @@ def load_train_data(inputs: SceneInputs, method: Method, velocity: tuple[list, l
                      background=tuple(background))
 
 
-def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInputs, out: Path) -> dict:
+def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInputs, out: Path, device="cpu") -> dict:
     """Fit the launch velocity with the prior law; write ``velocity.json``."""
     scene = scene_config(params, scene_name)
     video = video_config(params)
@@ -76,11 +82,10 @@ def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInput
     meta = read_meta(inputs.scene_dir)
     view = load_views(inputs.scene_dir, ["train0"])["train0"]
     view.mask = load_prep(inputs.prep_dir, len(meta["video_frames"]))[1]
-    body = load_body(inputs.particles, inputs.gaussians)
+    body = load_body(inputs.particles, inputs.gaussians, device)
     prior = load_prior(inputs.prior, family=scene.prior)
-    from gca.laws.base import Material
-    material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum()))
-    v0, w0, history = estimate_velocity(solver_for(params, scene), material, body, view, meta["video_frames"],
+    material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum())).to(device)
+    v0, w0, history = estimate_velocity(solver_for(params, scene, device), material, body, view, meta["video_frames"],
                                         int(meta["substeps"]), vcfg, video.background)
     result = {"v0": v0.tolist(), "w0": w0.tolist(), "loss_first": history[0] if history else None,
               "loss_last": history[-1] if history else None, "iterations": len(history)}
@@ -88,11 +93,14 @@ def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInput
     return result
 
 
-def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float) -> LearnedLaw:
+def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
+            device="cpu") -> LearnedLaw:
     tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
     lora = config.build(LoRAConfig, config.section(params, "laws.lora"), "laws.lora")
-    return build_law(method, inputs.prior, scene.prior, rho, lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
-                     tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt)
+    law = build_law(method, inputs.prior, scene.prior, rho, lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
+                    tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt)
+    law.material.to(device)
+    return law
 
 
 def objective_for(params: Mapping, method: Method, data: TrainData, scene_params: Mapping) -> Objective:
@@ -111,18 +119,18 @@ def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
 
 
 def train_method(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
-                 out_dir: Path, run=None) -> dict:
+                 out_dir: Path, run=None, device="cpu") -> dict:
     """Train ``method`` on a scene; write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
     scene = scene_config(params, scene_name)
     video = video_config(params)
     tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
-    data = load_train_data(inputs, method, velocity, video.background)
-    law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()))
+    data = load_train_data(inputs, method, velocity, video.background, device)
+    law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
     objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"))
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
-    with measure() as cost:
-        result: TrainResult = train(solver_for(params, scene), law, data, objective, tcfg,
+    with measure(device) as cost:
+        result: TrainResult = train(solver_for(params, scene, device), law, data, objective, tcfg,
                                     checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
     with atomic_path(out_dir / "law.pt") as tmp:
         torch.save({"method": method.name, "kind": law.kind, "state": law.state()}, tmp)
@@ -154,12 +162,12 @@ def _plot_history(history: list[dict], path: Path, title: str) -> None:
 
 
 def load_learned_law(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, run_dir: Path,
-                     rho: float) -> LearnedLaw:
+                     rho: float, device="cpu") -> LearnedLaw:
     """Rebuild a trained method's law from ``law.pt`` (the prior + what training changed)."""
-    law = law_for(params, method, scene_config(params, scene_name), inputs, rho)
+    law = law_for(params, method, scene_config(params, scene_name), inputs, rho, device)
     path = run_dir / "law.pt"
     if path.is_file():
-        law.load_state(torch.load(path, weights_only=False)["state"])
+        law.load_state(torch.load(path, weights_only=False, map_location=device)["state"])
     elif method.trains:
         raise FileNotFoundError(f"{path}: missing trained law of {method.name} (run the train stage)")
     return law

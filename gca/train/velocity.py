@@ -25,14 +25,14 @@ from gca.sim.solver import MPMSolver
 from gca.train.config import VelocityConfig
 
 
-def silhouette_loss(body: Body, x: torch.Tensor, F: torch.Tensor, view: ViewData, j: int, bg: torch.Tensor,
-                    cfg: VelocityConfig) -> torch.Tensor:
-    """Mask (and optional colour) L2 at video frame ``j`` of ``view``."""
+def silhouette_loss(body: Body, x: torch.Tensor, F: torch.Tensor, camera, mask: torch.Tensor, rgb: torch.Tensor,
+                    bg: torch.Tensor, cfg: VelocityConfig) -> torch.Tensor:
+    """Mask [H, W] (and optional colour [H, W, 3]) L2 of the body at state (x, F) seen from ``camera``."""
     means, covs = gaussians_at(body, x, F)
-    out = render(means, covs, body.colors, body.opacities, view.camera, bg)
-    loss = cfg.lambda_mask * (out["alpha"] - torch.as_tensor(view.mask[j], dtype=x.dtype)).square().mean()
+    out = render(means, covs, body.colors, body.opacities, camera, bg)
+    loss = cfg.lambda_mask * (out["alpha"] - mask).square().mean()
     if cfg.lambda_color:
-        loss = loss + cfg.lambda_color * (out["rgb"] - torch.as_tensor(view.rgb[j])).square().mean()
+        loss = loss + cfg.lambda_color * (out["rgb"] - rgb).square().mean()
     return loss
 
 
@@ -46,19 +46,22 @@ def estimate_velocity(solver: MPMSolver, material: Material, body: Body, view: V
     """
     n = min(cfg.n_video_frames, len(video_frames))
     dtype = body.x0.dtype
-    v0 = torch.zeros(3, dtype=dtype, requires_grad=True)
-    w0 = torch.zeros(3, dtype=dtype, requires_grad=cfg.angular)
+    device = body.x0.device
+    v0 = torch.zeros(3, dtype=dtype, device=device, requires_grad=True)
+    w0 = torch.zeros(3, dtype=dtype, device=device, requires_grad=cfg.angular)
     opt = torch.optim.Adam([v0, w0] if cfg.angular else [v0], lr=cfg.lr)
-    bg = torch.tensor(background, dtype=dtype)
+    bg = torch.tensor(background, dtype=dtype, device=device)
+    masks = torch.as_tensor(view.mask, dtype=dtype, device=device)
+    rgbs = torch.as_tensor(view.rgb, dtype=dtype, device=device)
     for p in material.parameters():
         p.requires_grad_(False)
-    axis = torch.tensor(np.array(view.camera.w2c)[2, :3], dtype=dtype)  # viewing direction (world)
+    axis = torch.tensor(np.array(view.camera.w2c)[2, :3], dtype=dtype, device=device)  # viewing direction (world)
     history = []
     for _ in tqdm(range(cfg.iterations), desc="velocity", unit="it"):
         opt.zero_grad(set_to_none=True)
         traj = rollout(solver, material, body.x0, initial_velocity(body.x0, v0, w0), body.vol, body.mass,
                        n_steps=video_frames[n - 1] * substeps, steps_per_frame=substeps, checkpoint=True)
-        loss = sum(silhouette_loss(body, traj.x[f], traj.F[f], view, j, bg, cfg)
+        loss = sum(silhouette_loss(body, traj.x[f], traj.F[f], view.camera, masks[j], rgbs[j], bg, cfg)
                    for j, f in enumerate(video_frames[:n]))
         loss = loss + cfg.reg_view_axis * (v0 @ axis).square()
         if not torch.isfinite(loss):
