@@ -16,7 +16,7 @@ from gca.assets.objects import gaussians_from_mesh, make_object
 from gca.assets.particles import ParticleConfig, convert, save_particles
 from gca.assets.ply import write_ply
 from gca.eval.demos import (DemoConfig, InteractionConfig, NewShapeConfig, arrange_pair, concat_bodies, density,
-                            max_strain, motion_metrics, particle_bounds, run_interaction, run_new_shape,
+                            max_strain, motion_metrics, shown_frames, body_bounds, run_interaction, run_new_shape,
                             simulate, transform_body)
 from gca.laws.base import Elasticity, Material
 from gca.laws.plastic import IdentityPlasticity
@@ -68,14 +68,14 @@ def test_transform_body_scales_volume_and_covariance_and_keeps_density(bodies):
 @pytest.mark.parametrize("layout,axis", [("side_by_side", 0), ("stacked", 1)])
 def test_arrange_pair_fits_the_cube_without_overlap(bodies, layout, axis):
     a, b, s = arrange_pair(bodies["ball"], bodies["pawn"], layout, gap=0.05, margin=0.1, floor_gap=0.08)
-    (lo_a, hi_a), (lo_b, hi_b) = particle_bounds(a), particle_bounds(b)
+    (lo_a, hi_a), (lo_b, hi_b) = body_bounds(a), body_bounds(b)
     assert 0 < s <= 1
     assert lo_b[axis] - hi_a[axis] == pytest.approx(0.05, abs=1e-5), "gap along the layout axis"
     for lo, hi in ((lo_a, hi_a), (lo_b, hi_b)):
         assert lo.min() >= 0.08 - 1e-5 and hi[[0, 2]].max() <= 0.9 + 1e-5 and hi[1] <= 0.9 + 1e-5
     assert min(lo_a[1], lo_b[1]) == pytest.approx(0.08, abs=1e-5), "the pair rests floor_gap above the floor"
     # hand check of the scale: room along the axis minus the gap, and across it (side walls 0.1 m, top 0.1 m)
-    ext = [np.subtract(*particle_bounds(bodies[n])[::-1]) for n in ("ball", "pawn")]
+    ext = [np.subtract(*body_bounds(bodies[n])[::-1]) for n in ("ball", "pawn")]
     room = np.array([0.8, 1 - 0.1 - 0.08, 0.8])
     expected = min([1.0, (room[axis] - 0.05) / (ext[0][axis] + ext[1][axis])]
                    + [room[k] / max(ext[0][k], ext[1][k]) for k in range(3) if k != axis])
@@ -106,6 +106,7 @@ def test_max_strain_and_motion_metrics_hand_values():
     m = motion_metrics(x, torch.eye(3).expand(3, 2, 3, 3), torch.tensor([1.0, 3.0]))
     assert m["frames"] == 2 and m["finite"] and m["max_strain"] == pytest.approx(0.0, abs=1e-6)
     assert m["com_drop_m"] == pytest.approx(0.35 - 0.2, abs=1e-6)
+    assert shown_frames(12, 5) == [0, 5, 10, 12] and shown_frames(4, 1) == [0, 1, 2, 3, 4]
 
 
 def test_composite_assigns_each_law_to_its_range(bodies, solver):
@@ -154,6 +155,7 @@ def test_new_shape_demo_falls_and_reports(bodies, solver, tmp_path):
     assert 0.3 * free_fall < m["com_drop_m"] <= free_fall + 1e-4, "launched downwards; the floor slows it"
     assert 0 < m["max_strain"] < 1
     assert (tmp_path / "ns" / "demo.gif").is_file() and (tmp_path / "ns" / "strip.png").is_file()
+    assert m["gif_frames"] == cfg.n_frames + 1
 
 
 class _NaNElasticity(Elasticity):

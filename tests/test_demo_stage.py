@@ -30,12 +30,27 @@ wp.config.quiet = True
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "stages"))
 
-DEMO = {"new_shape": {"law_scene": "duck", "method": "gca", "object": "ball", "v0": [0.5, -1.5, 0.0]},
-        "interaction": {"a": {"scene": "duck", "method": "gca"}, "b": {"scene": "cat", "method": "gca"},
-                        "v0_a": [1.5, -0.5, 0.0], "v0_b": [-1.5, -0.5, 0.0], "layout": "side_by_side", "gap": 0.05},
-        "n_frames": {"paper": 200, "ci": 6}, "steps_per_frame": 4, "resolution": {"paper": 256, "ci": 32},
-        "camera": {"azimuth_deg": 0.0, "elevation_deg": 20.0, "distance": 1.7}, "sweep_deg": 60.0,
-        "strip_frames": 4, "frame_ms": 40.0, "margin": 0.1, "floor_gap": 0.08, "missing_law": "prior"}
+DEMO = yaml.safe_load("""
+new_shape: {law_scene: duck, method: gca, object: ball, v0: [0.5, -2.0, 0.0], w0: [0.0, 0.0, 2.0]}
+interaction:
+  a: {scene: duck, method: gca}
+  b: {scene: cat, method: gca}
+  v0_a: [2.0, 0.5, 0.0]
+  v0_b: [-2.0, 0.5, 0.0]
+  layout: side_by_side
+  gap: 0.05
+n_frames: {paper: 200, ci: 6}        # the proposed params.yaml section, with CI sizes shrunk further
+steps_per_frame: {paper: 4, ci: 8}
+resolution: {paper: 256, ci: 32}
+render_every: {paper: 1, ci: 2}
+camera: {azimuth_deg: 0.0, elevation_deg: 20.0, distance: 1.3, fov_deg: 40.0, target: [0.5, 0.25, 0.5]}
+sweep_deg: 60.0
+strip_frames: 3
+frame_ms: 40.0
+margin: 0.1
+floor_gap: 0.15
+missing_law: prior
+""")
 
 
 def _write_object(data: Path, name: str) -> None:
@@ -116,6 +131,19 @@ def test_demo_stage_writes_animations_and_metrics(layout):
     assert it["n_particles"] == it["n_particles_a"] + it["n_particles_b"]
     for demo_metrics in (ns, it):
         frames = iio.imread(demo_metrics["gif"], index=None)
-        assert frames.shape[:3] == (7, 32, 32)
+        assert frames.shape[:3] == (4, 32, 32) and demo_metrics["gif_frames"] == 4  # frames 0, 2, 4, 6
         assert Path(demo_metrics["strip_png"]).is_file()
         assert Path(demo_metrics["gif"]).parent.parent == layout / "reports/demos"
+
+
+def test_proposed_section_builds_in_both_profiles():
+    from gca.config import resolve
+    from gca.eval.demos import demo_config
+
+    paper = demo_config({"demo": resolve(DEMO, "paper")})
+    ci = demo_config({"demo": resolve(DEMO, "ci")})
+    assert (paper.n_frames, paper.resolution, paper.render_every) == (200, 256, 1)
+    assert (ci.n_frames, ci.resolution, ci.render_every) == (6, 32, 2)
+    assert paper.interaction.b.scene == "cat" and paper.interaction.v0_b == (-2.0, 0.5, 0.0)
+    with pytest.raises(Exception, match="unknown keys"):
+        demo_config({"demo": {**resolve(DEMO, "ci"), "fps": 25}})

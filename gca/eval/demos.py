@@ -472,11 +472,12 @@ class DemoInputs:
     runs: Path  # runs/<scene>/<method>/law.pt
     data: Path  # data/particles/<object>.npz, data/assets/<object>/gaussians.ply
     prior_dir: Path  # models/prior/<family>.pt
+    device: str = "cpu"  # torch device of bodies, laws and the solver
 
     def body(self, obj: str) -> Body:
-        """The object's body (particles + Gaussians, sim frame)."""
+        """The object's body (particles + Gaussians, sim frame) on ``device``."""
         return load_body(Path(self.data) / "particles" / f"{obj}.npz",
-                         Path(self.data) / "assets" / obj / "gaussians.ply")
+                         Path(self.data) / "assets" / obj / "gaussians.ply", self.device)
 
 
 def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, rho: float,
@@ -512,7 +513,7 @@ def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, 
         warnings.warn(f"{message}; falling back to the scene's {family!r} prior {scene_inputs.prior}",
                       RuntimeWarning, stacklevel=2)
         chosen, source = get_method("nclaw"), f"prior {scene_inputs.prior} (fallback: no {method} law.pt)"
-    return load_learned_law(params, scene, chosen, scene_inputs, run_dir, rho).material, source
+    return load_learned_law(params, scene, chosen, scene_inputs, run_dir, rho, inputs.device).material, source
 
 
 def new_shape_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
@@ -521,7 +522,8 @@ def new_shape_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_dir
     ns = cfg.new_shape
     body = inputs.body(ns.object)
     material, source = load_demo_law(params, ns.law_scene, ns.method, inputs, density(body), cfg.missing_law)
-    metrics = run_new_shape(demo_solver(params, [ns.law_scene]), material, body, cfg, out_dir, background)
+    solver = demo_solver(params, [ns.law_scene], inputs.device)
+    metrics = run_new_shape(solver, material, body, cfg, out_dir, background)
     return {**metrics, "law_scene": ns.law_scene, "method": ns.method, "object": ns.object, "law_source": source,
             "v0": list(ns.v0), "w0": list(ns.w0)}
 
@@ -533,8 +535,8 @@ def interaction_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_d
     objects = [r.object or scene_config(params, r.scene).object for r in refs]
     bodies = [inputs.body(o) for o in objects]
     laws = [load_demo_law(params, r.scene, r.method, inputs, density(b), cfg.missing_law) for r, b in zip(refs, bodies)]
-    metrics = run_interaction(demo_solver(params, [r.scene for r in refs]), [m for m, _ in laws], bodies, cfg,
-                              out_dir, background)
+    solver = demo_solver(params, [r.scene for r in refs], inputs.device)
+    metrics = run_interaction(solver, [m for m, _ in laws], bodies, cfg, out_dir, background)
     for key, ref, obj, (_, source) in zip(("a", "b"), refs, objects, laws):
         metrics.setdefault(key, {}).update(scene=ref.scene, method=ref.method, object=obj, law_source=source)
     metrics.update(v0_a=list(cfg.interaction.v0_a), v0_b=list(cfg.interaction.v0_b))

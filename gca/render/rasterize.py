@@ -67,6 +67,10 @@ def _check_inputs(means, covs, colors, opacities, bg) -> None:
     if bg.shape != (colors.shape[1],):
         raise RenderError(f"{_WHERE}: bg must be [{colors.shape[1]}], got {tuple(bg.shape)}")
     names = ("means", "covs", "colors", "opacities")
+    kinds = {(x.dtype, x.device) for x in (means, covs, colors, opacities, bg)}
+    if len(kinds) != 1 or not means.is_floating_point():
+        raise RenderError(f"{_WHERE}: means, covs, colors, opacities and bg must share one floating dtype and "
+                          f"device, got {sorted(map(str, kinds))}")
     o = opacities.detach()
     stats = torch.stack([(~torch.isfinite(x.detach())).sum().to(o.dtype) for x in (means, covs, colors, o)]
                         + [o.min() if N else o.new_zeros(()), o.max() if N else o.new_zeros(())]).tolist()
@@ -107,12 +111,26 @@ def _finish(features: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor) -> di
 
 @dataclasses.dataclass(frozen=True)
 class _Bins:
-    """Per-tile depth-sorted Gaussian lists: ``ids [T, Kmax]`` (padded with N), ``counts [T]``."""
+    """Per-tile depth-sorted Gaussian lists, flat: tile t owns ``ids[start[t] : start[t] + counts[t]]``.
+
+    ``counts`` are capped at ``max_per_tile`` (the front-most are kept); ``n_gaussians`` = N is the
+    padding id.
+    """
 
     ids: torch.Tensor
+    start: torch.Tensor
     counts: torch.Tensor
+    n_gaussians: int
     n_tiles_x: int
     n_tiles_y: int
+
+    def slab(self, tiles: torch.Tensor, s0: int, size: int) -> torch.Tensor:
+        """Gaussian ids [B, size] at depth ranks ``s0 .. s0 + size`` of ``tiles`` (N where exhausted)."""
+        rank = s0 + torch.arange(size, device=tiles.device)
+        inside = rank[None, :] < self.counts[tiles][:, None]
+        flat = (self.start[tiles][:, None] + rank[None, :]).clamp_max(max(self.ids.shape[0] - 1, 0))
+        padding = torch.full_like(flat, self.n_gaussians)
+        return torch.where(inside, self.ids[flat], padding) if self.ids.numel() else padding
 
 
 def _tile_ranges(proj: Projected, width: int, height: int, ts: int):
@@ -144,25 +162,18 @@ def _bin_tiles(proj: Projected, width: int, height: int, cfg: RasterConfig) -> _
     depth_rank = torch.empty(N, dtype=torch.long, device=device)
     depth_rank[torch.argsort(proj.depths.detach(), stable=True)] = torch.arange(N, device=device)
     order = torch.argsort(pair_t * (N + 1) + depth_rank[pair_g])
-    pair_t, pair_g = pair_t[order], pair_g[order]
     counts = torch.bincount(pair_t, minlength=ntx * nty)
-    return _pad_lists(pair_t, pair_g, counts, N, ntx, nty, cfg)
+    return _cap_lists(pair_g[order], counts, N, ntx, nty, cfg)
 
 
-def _pad_lists(pair_t, pair_g, counts, N: int, ntx: int, nty: int, cfg: RasterConfig) -> _Bins:
-    """Scatter sorted (tile, Gaussian) pairs into a padded ``[T, Kmax]`` table, capping per tile."""
-    device = pair_t.device
+def _cap_lists(pair_g, counts, N: int, ntx: int, nty: int, cfg: RasterConfig) -> _Bins:
+    """Wrap tile-sorted pairs as :class:`_Bins`, capping each tile's list at ``max_per_tile``."""
     if counts.numel() and int(counts.max()) > cfg.max_per_tile:
         warnings.warn(f"{_WHERE}: {int((counts > cfg.max_per_tile).sum())} tiles exceed max_per_tile="
                       f"{cfg.max_per_tile} (max {int(counts.max())}); the farthest Gaussians are dropped")
     start = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(pair_t.shape[0], device=device) - start[pair_t]
-    keep = slot < cfg.max_per_tile
-    counts = counts.clamp_max(cfg.max_per_tile)
-    k_max = max(int(counts.max()) if counts.numel() else 0, 1)
-    ids = torch.full((ntx * nty, k_max), N, dtype=torch.long, device=device)
-    ids[pair_t[keep], slot[keep]] = pair_g[keep]
-    return _Bins(ids=ids, counts=counts, n_tiles_x=ntx, n_tiles_y=nty)
+    return _Bins(ids=pair_g, start=start, counts=counts.clamp_max(cfg.max_per_tile), n_gaussians=N,
+                 n_tiles_x=ntx, n_tiles_y=nty)
 
 
 def _tile_pixels(tiles: torch.Tensor, bins: _Bins, ts: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -213,7 +224,7 @@ def _composite_tiles(tiles, bins: _Bins, packed, cfg: RasterConfig):
         active = active[counts[active] > s0]
         if active.numel() == 0:
             break
-        ids = bins.ids[tiles[active], s0:s0 + cfg.slab]
+        ids = bins.slab(tiles[active], s0, cfg.slab)
         f, a, log_T_a = _composite_slab(px[active], py[active], ids, packed, log_T[active], cfg)
         features = features.index_add(0, active, f)
         alpha = alpha.index_add(0, active, a)

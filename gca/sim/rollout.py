@@ -39,6 +39,9 @@ class Rollout:
         v: velocities [n_frames + 1, N, 3] (m/s).
         C: APIC affine fields at the last frame [N, 3, 3] (1/s).
         clamped: particles on the position clamp at each frame [n_frames + 1] (count).
+        F_trial: trial deformation gradients of each frame's last step, before the plastic
+            projection [n_frames + 1, N, 3, 3] (frame 0: the initial F). CPR fits the plastic
+            hypotheses on (F_trial, F) pairs.
     """
 
     x: torch.Tensor
@@ -46,6 +49,7 @@ class Rollout:
     v: torch.Tensor
     C: torch.Tensor
     clamped: list
+    F_trial: torch.Tensor | None = None
 
 
 def law_name(material) -> str:
@@ -60,11 +64,17 @@ def simulate_frame(solver: MPMSolver, material, n_steps: int, x, v, C, F, vol, m
     Returns:
         The new ``(x, v, C, F)`` with F the projected elastic deformation gradient.
     """
+    return simulate_frame_trial(solver, material, n_steps, x, v, C, F, vol, mass)[:4]
+
+
+def simulate_frame_trial(solver: MPMSolver, material, n_steps: int, x, v, C, F, vol, mass):
+    """:func:`simulate_frame` that also returns the last step's trial F [N,3,3] (before plasticity)."""
+    F_trial = F
     for _ in range(n_steps):
         tau = material.stress(F)
         x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
         F = material.project(F_trial)
-    return x, v, C, F
+    return x, v, C, F, F_trial
 
 
 def check_state(solver: MPMSolver, x, v, F, step: int, law: str) -> int:
@@ -144,15 +154,17 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
     C = torch.zeros(x0.shape[0], 3, 3, dtype=x0.dtype, device=x0.device) if C0 is None else C0
     F = eye.expand(x0.shape[0], 3, 3).contiguous() if F0 is None else F0
     x, v, law = x0, v0, law_name(material)
-    xs, vs, Fs, clamped = [x], [v], [F], [check_state(solver, x, v, F, 0, law)]
+    xs, vs, Fs, Ftrs, clamped = [x], [v], [F], [F], [check_state(solver, x, v, F, 0, law)]
     for frame in range(n_steps // steps_per_frame):
         args = (solver, material, steps_per_frame, x, v, C, F, vol, mass)
         if checkpoint and torch.is_grad_enabled():
-            x, v, C, F = torch_checkpoint(simulate_frame, *args, use_reentrant=False)
+            x, v, C, F, F_trial = torch_checkpoint(simulate_frame_trial, *args, use_reentrant=False)
         else:
-            x, v, C, F = simulate_frame(*args)
+            x, v, C, F, F_trial = simulate_frame_trial(*args)
         clamped.append(check_state(solver, x, v, F, (frame + 1) * steps_per_frame, law))
         xs.append(x)
         vs.append(v)
         Fs.append(F)
-    return Rollout(x=torch.stack(xs), F=torch.stack(Fs), v=torch.stack(vs), C=C, clamped=clamped)
+        Ftrs.append(F_trial)
+    return Rollout(x=torch.stack(xs), F=torch.stack(Fs), v=torch.stack(vs), C=C, clamped=clamped,
+                   F_trial=torch.stack(Ftrs))

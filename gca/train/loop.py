@@ -137,8 +137,9 @@ class Objective:
             if name == "train0":
                 loss, stats = self._mono_terms(out, means, covs, view, j, loss, stats)
         if self.cpr is not None and j % self.cfg.cpr_every == 0:
-            R_e, R_p, _ = self.cpr.residuals(law.material.elasticity, law.material.plasticity,
-                                             traj.F[f - 1] if f > 0 else traj.F[f], traj.F[f])
+            # Algorithm 2 on the frame's state: elastic F_e^t and the trial F of the frame's last Euler step
+            R_e, R_p, _ = self.cpr.residuals(law.material.elasticity, law.material.plasticity, traj.F[f],
+                                             traj.F_trial[f])
             loss = loss + R_e + R_p
             stats.update(R_e=float(R_e.detach()), R_p=float(R_p.detach()))
         return loss, stats

@@ -1,0 +1,101 @@
+"""The prior stage end to end at CI scale (jelly): checkpoint, metrics, plots, MLflow, and its quality."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from gca.config import ConfigError
+from gca.laws.checkpoint import load_prior
+from gca.laws.elastic import CorotatedElasticity
+from gca.laws.neural import NeuralLawConfig
+from gca.laws.pretrain import sweep_response_error
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# The CI profile of the params section the stage needs (the same values proposed for params.yaml).
+PARAMS = """
+profile: ci
+seed: 0
+laws:
+  neural: {widths: [64, 64], activation: gelu, stress_scale: 1.0e+4, alpha: 1.0e-3}
+prior:
+  families:
+    jelly: {elasticity: corotated, plasticity: identity, E: 1.0e+5, nu: 0.2, rho: 1000}
+  train:
+    sim: {n_grid: {paper: 32, ci: 16}, dt: {paper: 4.0e-4, ci: 6.0e-4}, bound: 2, boundary: friction, friction: 0.4}
+    data:
+      particles_per_axis: {paper: 16, ci: 6}
+      n_steps: {paper: 500, ci: 120}
+      speed: {paper: [0.5, 3.0], ci: [1.5, 3.0]}
+      max_tilt_deg: {paper: 60.0, ci: 45.0}
+      floor_gap: {paper: [0.0, 0.1], ci: [0.0, 0.03]}
+    n_train: {paper: 16, ci: 4}
+    n_heldout: {paper: 4, ci: 2}
+    window: {paper: 16, ci: 8}
+    batch: {paper: 4, ci: 2}
+    iterations: {paper: 2000, ci: 30}
+    lr_elasticity: 1.0e-3
+    lr_plasticity: 1.0e-4
+    warm_start: [elasticity, plasticity]
+    fit_elasticity: {sampling: {stretch: 0.2, compression: 0.2}, n_samples: {paper: 65536, ci: 2048},
+                     batch_size: {paper: 1024, ci: 256}, steps: {paper: 5000, ci: 400}}
+    fit_plasticity: {sampling: {stretch: 0.05, compression: 0.05}, n_samples: {paper: 65536, ci: 2048},
+                     batch_size: {paper: 1024, ci: 256}, steps: {paper: 5000, ci: 400}}
+"""
+
+
+def _stage():
+    spec = importlib.util.spec_from_file_location("stage_prior", ROOT / "stages" / "prior.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("prior")
+    (tmp / "params.yaml").write_text(PARAMS)
+    with pytest.MonkeyPatch.context() as mp:  # module scope: the per-test MLflow fixture is not active yet
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
+        returned = _stage().main(["--family", "jelly", "--out", str(tmp / "models" / "jelly.pt"),
+                                  "--metrics", str(tmp / "metrics" / "jelly.json"),
+                                  "--plots", str(tmp / "metrics" / "jelly.png"), "--params", str(tmp / "params.yaml")])
+    return tmp, returned
+
+
+def test_stage_writes_a_loadable_checkpoint_metrics_and_plots(run):
+    tmp, returned = run
+    metrics = json.loads((tmp / "metrics" / "jelly.json").read_text())
+    assert metrics["family"] == "jelly" and metrics["heldout_ratio"] == pytest.approx(returned["heldout_ratio"])
+    assert (tmp / "metrics" / "jelly.png").stat().st_size > 10_000
+    assert (tmp / "mlflow.db").is_file()
+    prior = load_prior(tmp / "models" / "jelly.pt", family="jelly", config=NeuralLawConfig(stress_scale=1e4))
+    assert prior.metadata["preset"]["elasticity"] == "corotated"
+    # the stored weights are the trained ones: the checkpoint reproduces the reported response error
+    errors = sweep_response_error(prior.elasticity, CorotatedElasticity(1e5, 0.2), 0.1, 10)
+    assert 100 * errors["mean"] == pytest.approx(metrics["response_error_pct"]["trained"]["mean"], rel=1e-4)
+
+
+def test_prior_beats_the_untrained_network_on_heldout_trajectories(run):
+    # Measured at CI scale: held-out RMSE 0.6 -> ~0.006 cells; the brief asks for at least x5.
+    metrics = run[1]
+    rmse = metrics["heldout_rmse_m"]
+    assert rmse["untrained"] / rmse["trained"] >= 5.0, rmse
+    assert rmse["trained"] <= rmse["warm"], rmse  # teacher forcing improves on the law-level warm start
+
+
+def test_prior_elastic_response_tracks_the_analytic_law(run):
+    # Uniaxial and simple-shear sweeps to +-10 % strain; measured ~7 % (untrained ~99 %).
+    response = run[1]["response_error_pct"]
+    assert response["trained"]["mean"] < 25.0, response
+    assert response["untrained"]["mean"] > 90.0, response
+
+
+def test_unknown_family_is_refused(tmp_path):
+    (tmp_path / "params.yaml").write_text(PARAMS)
+    with pytest.raises(ConfigError, match="prior.families has no family 'granite'"):
+        _stage().main(["--family", "granite", "--out", str(tmp_path / "g.pt"), "--metrics", str(tmp_path / "g.json"),
+                       "--plots", str(tmp_path / "g.png"), "--params", str(tmp_path / "params.yaml")])
