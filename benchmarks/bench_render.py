@@ -13,6 +13,7 @@ Prints a Markdown table (median and best of ``--repeats`` timed runs after one w
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import statistics
 import sys
@@ -44,20 +45,24 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def time_render(inputs, camera, bg, backend: str, device: str, backward: bool, repeats: int, cfg) -> list[float]:
-    """Wall-clock seconds of ``repeats`` renders (after one warm-up)."""
-    times = []
+def time_render(inputs, camera, bg, backend: str, device: str, backward: bool, repeats: int, cfg):
+    """Wall-clock and process-CPU seconds of ``repeats`` renders (after one warm-up).
+
+    On a shared CPU machine the process-CPU time with ``--threads 1`` is the contention-free figure.
+    """
+    times, cpu_times = [], []
     for i in range(repeats + 1):
         leaves = [t.detach().requires_grad_(backward) for t in inputs]
         _sync(device)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = render(*leaves, camera, bg, backend=backend, cfg=cfg)
         if backward:
             (out["rgb"].sum() + out["alpha"].sum() + out["depth"].sum()).backward()
         _sync(device)
         if i:
             times.append(time.perf_counter() - t0)
-    return times
+            cpu_times.append(time.process_time() - c0)
+    return times, cpu_times
 
 
 def max_diff(a: dict, b: dict) -> str:
@@ -103,6 +108,8 @@ def main(argv=None) -> None:
     parser.add_argument("--backend", nargs="+", default=["torch"], choices=["torch", "gsplat"])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: leave as is)")
+    parser.add_argument("--tile-size", type=int, default=RasterConfig.tile_size, help="torch backend tile side")
+    parser.add_argument("--slab", type=int, default=RasterConfig.slab, help="torch backend depth slab")
     parser.add_argument("--no-backward", action="store_true")
     parser.add_argument("--check-cpu", action="store_true", help="also report max |device - CPU| (torch backend)")
     parser.add_argument("--gsplat-like", action="store_true",
@@ -111,11 +118,14 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfg = RasterConfig(alpha_max=0.999, sigma_cutoff=3.5) if args.gsplat_like else RasterConfig()
+    cfg = RasterConfig(tile_size=args.tile_size, slab=args.slab)
+    if args.gsplat_like:
+        cfg = dataclasses.replace(cfg, alpha_max=0.999, sigma_cutoff=3.5)
     print(f"device={args.device} torch={torch.__version__} threads={torch.get_num_threads()} repeats={args.repeats} "
           f"cfg={cfg}")
-    print("| N | res | backend | fwd s (med / best) | fwd FPS | fwd+bwd s (med / best) | fwd+bwd FPS | abs diff max/mean |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| N | res | backend | fwd s (med / best) | fwd FPS | fwd+bwd s (med / best) | fwd+bwd FPS "
+          "| fwd / fwd+bwd process-CPU s (med) | abs diff max/mean |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     bg = torch.zeros(3, device=args.device)
     for n in args.n:
         inputs = ball_scene(n, args.device)
@@ -123,12 +133,13 @@ def main(argv=None) -> None:
             camera = look_at([0.5, 0.5, -1.0], [0.5, 0.5, 0.5], [0, 1, 0], 40.0, res, res)
             diff = compare(inputs, camera, bg, cfg, args.backend, args.check_cpu)
             for backend in args.backend:
-                fwd = time_render(inputs, camera, bg, backend, args.device, False, args.repeats, cfg)
-                both = [math.nan] if args.no_backward else \
+                fwd, fwd_cpu = time_render(inputs, camera, bg, backend, args.device, False, args.repeats, cfg)
+                both, both_cpu = ([math.nan], [math.nan]) if args.no_backward else \
                     time_render(inputs, camera, bg, backend, args.device, True, args.repeats, cfg)
                 print(f"| {n} | {res} | {backend} | {statistics.median(fwd):.4f} / {min(fwd):.4f} | "
                       f"{1 / statistics.median(fwd):.1f} | {statistics.median(both):.4f} / {min(both):.4f} | "
-                      f"{1 / statistics.median(both):.1f} | {diff} |", flush=True)
+                      f"{1 / statistics.median(both):.1f} | {statistics.median(fwd_cpu):.3f} / "
+                      f"{statistics.median(both_cpu):.3f} | {diff} |", flush=True)
 
 
 if __name__ == "__main__":

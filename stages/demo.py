@@ -19,6 +19,7 @@ from gca.eval.demos import DemoInputs, demo_config, interaction_demo, new_shape_
 from gca.io import atomic_path, write_json
 from gca.scenes import video_config
 from gca.track import stage_run
+from gca.train.run import default_device
 
 
 def parse_args(argv):
@@ -26,6 +27,7 @@ def parse_args(argv):
     for name in ("runs", "data", "prior-dir", "out", "metrics"):
         ap.add_argument(f"--{name}", type=Path, required=True)
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
     return ap.parse_args(argv)
 
 
@@ -33,7 +35,7 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     params = config.load("demo", args.params)
     cfg = demo_config(params)
-    inputs = DemoInputs(args.runs, args.data, args.prior_dir)
+    inputs = DemoInputs(args.runs, args.data, args.prior_dir, args.device)
     background = video_config(params).background
     with stage_run("demo", params) as run:
         with atomic_path(args.out, is_dir=True) as tmp:

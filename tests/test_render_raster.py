@@ -260,3 +260,18 @@ def test_gsplat_backend_matches_torch_under_gsplat_rules():
     v_theirs = torch.autograd.grad(sum(theirs[k].sum() for k in KEYS), inputs)
     for a, b in zip(v_ours, v_theirs):
         assert ((a - b).abs().max() / b.abs().max()).item() < 2e-3
+
+
+def test_ewa_projection_on_axis_hand_computed():
+    """Isotropic sigma on the optical axis at depth z: Sigma_2d = (f sigma / z)^2 I + 0.3 I."""
+    from gca.render import project_gaussians
+    camera = _camera(32, 32, fov=60.0)
+    K, w2c = camera.tensors(F64)
+    sigma, z = 0.05, 1.5
+    proj = project_gaussians(torch.tensor([[0.5, 0.5, 0.5]], dtype=F64), (sigma**2 * torch.eye(3, dtype=F64))[None],
+                             K, w2c, 32, 32)
+    var = (camera.K[0, 0] * sigma / z) ** 2 + 0.3
+    torch.testing.assert_close(proj.conics[0], torch.tensor([1 / var, 0.0, 1 / var], dtype=F64))
+    torch.testing.assert_close(proj.means2d[0], torch.tensor([16.0, 16.0], dtype=F64))
+    assert proj.radii[0].item() == pytest.approx(3 * var**0.5)
+    assert proj.depths[0].item() == pytest.approx(z)

@@ -34,7 +34,8 @@ from gca.config import ConfigError, build, section
 from gca.io import atomic_path
 from gca.laws.base import Material
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
-from gca.laws.pretrain import DeformationSampling, PretrainConfig, fit_elasticity, fit_plasticity, sweep_deformations, sweep_response_error
+from gca.laws.pretrain import DeformationSampling, PretrainConfig, fit_elasticity, fit_plasticity, response_error,
+                               sweep_deformations
 from gca.laws.presets import material_from_preset
 from gca.sim import MPMSolver, SimConfig, SimulationDiverged
 from gca.sim.rollout import check_state, simulate_frame
@@ -227,10 +228,21 @@ def warm_start(material: Material, reference: Material, cfg: PriorTrainConfig) -
     return losses
 
 
-def response_error_pct(elasticity, reference, max_strain: float) -> dict[str, float]:
-    """Law-level response error [%] of an elasticity against the reference (uniaxial, shear, mean)."""
+def response_error_pct(elasticity, reference, max_strain: float) -> dict[str, float | None]:
+    """Law-level response error [%] of an elasticity against the reference on each sweep, and their mean.
+
+    A sweep on which the reference is stress-free (simple shear of a volume-only law) has no relative
+    error: it is reported as None and left out of the mean.
+    """
     law, ref = copy.deepcopy(elasticity).cpu().float(), copy.deepcopy(reference).cpu().float()
-    return {k: 100.0 * v for k, v in sweep_response_error(law, ref, max_strain, 10, torch.float32).items()}
+    errors: dict[str, float | None] = {}
+    for name, Fs in sweep_deformations(max_strain, 10, torch.float32).items():
+        with torch.no_grad():
+            defined = bool(ref(Fs).norm() > 0)
+        errors[name] = 100.0 * response_error(law, ref, Fs) if defined else None
+    known = [e for e in errors.values() if e is not None]
+    errors["mean"] = sum(known) / len(known) if known else None
+    return errors
 
 
 @torch.no_grad()
@@ -345,7 +357,8 @@ def _pretrain(preset, law_cfg, cfg, seed, device, callback) -> PriorResult:
 def _metrics(evaluation: dict, fit: dict, history: list, data: dict, cfg: PriorTrainConfig) -> dict:
     """Metrics JSON of the stage (RMSE in m and cells, response errors in %)."""
     rmse = {phase: ev["rmse"] for phase, ev in evaluation.items()}
-    ratio = rmse["untrained"] / rmse["trained"] if rmse["trained"] > 0 else math.inf
+    ratio = (rmse["untrained"] / rmse["trained"] if 0 < rmse["trained"] < math.inf  # a diverged prior scores 0
+             else (0.0 if rmse["trained"] == math.inf else math.inf))
     tail = [loss for _, loss in history[-max(1, len(history) // 10):]]
     trajectories = data["train"] + data["heldout"]
     return {
@@ -381,7 +394,11 @@ def plot_prior(result: PriorResult, path, family: str = "") -> None:
     ax = fig.add_subplot(1, 3, 1)
     if result.history:
         its, losses = zip(*result.history)
-        ax.semilogy([i + 1 for i in its], losses, lw=0.8)
+        width = max(1, len(losses) // 20)
+        smooth = torch.tensor(losses).unfold(0, width, 1).mean(dim=1).tolist()
+        ax.semilogy([i + 1 for i in its], losses, lw=0.5, alpha=0.5, label="per iteration")
+        ax.semilogy([i + width for i in its[:len(smooth)]], smooth, lw=1.5, label=f"running mean ({width})")
+        ax.legend(fontsize=8)
     ax.set(xlabel="iteration", ylabel="window position loss [cells$^2$]", title=f"prior {family}: teacher forcing")
     for k, (name, label) in enumerate((("uniaxial", r"$\tau_{xx}$"), ("shear", r"$\tau_{xy}$"))):
         ax = fig.add_subplot(1, 3, k + 2)

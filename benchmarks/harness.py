@@ -1,0 +1,152 @@
+"""End-to-end benchmark harness: one scene through every stage, timed, on the GPU (or CPU).
+
+Runs the stage mains (assets -> particles -> prior -> ground_truth -> preprocess -> train ->
+evaluate) for one scene at a profile, in a work directory, and writes one JSON per (scene, method)
+under ``--out`` with the fields the performance issue asks for: device, versions, profile, scene,
+method, n_particles, n_gaussians, train_seconds, rollout_seconds, peak_memory_gib, the wall time per
+training phase (simulate, render_losses, backward, optimizer), per-iteration means, and the CD.
+Ends with a short table.
+
+    python benchmarks/harness.py --scene duck --methods gca neuma nclaw --profile paper \
+        --set train.iterations=5 --set velocity.iterations=20 --out benchmarks/results
+
+``--set key=value`` overrides a params entry (dotted key, YAML value) for this run only: the
+numbers it produces state them, so a reduced-iteration timing is never mistaken for a full run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "stages"))
+
+
+def _set(tree: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    node = tree
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+
+
+def make_params(scene: str, methods: list[str], profile: str, overrides: list[str], out: Path) -> dict:
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["profile"] = profile
+    spec = raw["scenes"][scene]
+    raw["scenes"] = {scene: {**spec, "methods": methods}}
+    raw["objects"] = {spec["object"]: raw["objects"][spec["object"]]}
+    raw["prior"]["families"] = {spec["prior"]: raw["prior"]["families"][spec["prior"]]}
+    for item in overrides:
+        key, _, value = item.partition("=")
+        _set(raw, key, yaml.safe_load(value))
+    out.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return raw
+
+
+def versions() -> dict:
+    import numpy
+    import warp
+    return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.__version__,
+            "numpy": numpy.__version__, "cuda": torch.version.cuda}
+
+
+def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, skip_prior: bool) -> dict:
+    import assets, evaluate, ground_truth, particles, preprocess, prior, train  # noqa: E401
+    spec = raw["scenes"][scene]
+    obj, family = spec["object"], spec["prior"]
+    d = lambda *p: str(work.joinpath(*p))  # noqa: E731
+    p = ["--params", str(params)]
+    seconds = {}
+
+    def timed(name, fn, argv):
+        t0 = time.perf_counter()
+        fn(argv)
+        seconds[name] = time.perf_counter() - t0
+        print(f"[harness] {name}: {seconds[name]:.1f} s", flush=True)
+
+    timed("assets", assets.main, ["--object", obj, "--out", d("assets", obj), "--metrics", d("m/assets.json")] + p)
+    timed("particles", particles.main, ["--object", obj, "--assets", d("assets", obj), "--out", d("particles.npz"),
+                                        "--metrics", d("m/particles.json")] + p)
+    if not (skip_prior and (work / "prior" / f"{family}.pt").is_file()):
+        timed("prior", prior.main, ["--family", family, "--out", d("prior", f"{family}.pt"),
+                                    "--metrics", d("m/prior.json"), "--plots", d("m/prior.png")] + p)
+    timed("ground_truth", ground_truth.main, ["--scene", scene, "--assets", d("assets", obj), "--particles",
+                                              d("particles.npz"), "--out", d("scene"), "--metrics", d("m/gt.json"),
+                                              "--device", device] + p)
+    timed("preprocess", preprocess.main, ["--scene", scene, "--scene-dir", d("scene"), "--out", d("prep"),
+                                          "--metrics", d("m/prep.json")] + p)
+    common = ["--scene", scene, "--scene-dir", d("scene"), "--particles", d("particles.npz"), "--gaussians",
+              d("assets", obj, "gaussians.ply"), "--prior-dir", d("prior"), "--device", device] + p
+    timed("train", train.main, common + ["--prep", d("prep"), "--out", d("runs")])
+    timed("evaluate", evaluate.main, common + ["--runs", d("runs"), "--out", d("eval")])
+    return seconds
+
+
+def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict, overrides: list[str]) -> list[dict]:
+    rows = []
+    gt = json.loads((work / "m/gt.json").read_text())
+    for method in raw["scenes"][scene]["methods"]:
+        train = json.loads((work / "runs" / method / "train.json").read_text())
+        metrics = json.loads((work / "eval" / f"{method}.json").read_text())
+        history = json.loads((work / "runs" / method / "history.json").read_text())["history"]
+        phases = {}
+        for rec in history:
+            for k, v in rec.items():
+                if k.startswith("time/"):
+                    phases[k[5:]] = phases.get(k[5:], 0.0) + v
+        rows.append({
+            "device": torch.cuda.get_device_name(0) if device == "cuda" else platform.processor() or "cpu",
+            "versions": versions(), "profile": raw["profile"], "overrides": overrides, "scene": scene,
+            "method": method, "n_particles": gt["n_particles"], "n_gaussians": gt["n_gaussians"],
+            "iterations": train["iterations"], "status": metrics["status"],
+            "train_seconds": train["train_seconds"], "rollout_seconds": metrics.get("rollout_seconds"),
+            "peak_memory_gib": train["peak_memory_gib"], "phase_seconds": phases,
+            "seconds_per_iteration": train["train_seconds"] / max(train["iterations"], 1),
+            "chamfer_mean": metrics.get("chamfer_mean"), "stage_seconds": stage_seconds})
+    return rows
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="duck")
+    ap.add_argument("--methods", nargs="+", default=["gca", "neuma", "nclaw"])
+    ap.add_argument("--profile", default="paper")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="dotted.key=yaml_value")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/gca-harness"))
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--reuse-prior", action="store_true", help="keep a prior already in the work directory")
+    args = ap.parse_args(argv)
+    args.work.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("MLFLOW_TRACKING_URI", f"sqlite:///{args.work / 'mlflow.db'}")
+    params = args.work / "params.yaml"
+    raw = make_params(args.scene, args.methods, args.profile, args.overrides, params)
+    stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior)
+    rows = collect(raw, args.scene, args.work, args.device, stage_seconds, args.overrides)
+    for row in rows:
+        tag = f"harness_{row['profile']}_{row['scene']}_{row['method']}_{args.device}.json"
+        (args.out / tag).write_text(json.dumps(row, indent=2, sort_keys=True) + "\n")
+    print(f"\n{'method':<12}{'P':>8}{'G':>8}{'it':>4}{'s/it':>8}{'sim':>8}{'render':>8}{'bwd':>8}"
+          f"{'rollout s':>10}{'peak GiB':>9}{'CD':>9}")
+    for r in rows:
+        ph, it = r["phase_seconds"], max(r["iterations"], 1)
+        print(f"{r['method']:<12}{r['n_particles']:>8}{r['n_gaussians']:>8}{r['iterations']:>4}"
+              f"{r['seconds_per_iteration']:>8.2f}{ph.get('simulate', 0) / it:>8.2f}{ph.get('render_losses', 0) / it:>8.2f}"
+              f"{ph.get('backward', 0) / it:>8.2f}{r['rollout_seconds'] or float('nan'):>10.2f}"
+              f"{r['peak_memory_gib']:>9.2f}{r['chamfer_mean'] or float('nan'):>9.4f}")
+    return rows
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
