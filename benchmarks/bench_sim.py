@@ -63,22 +63,44 @@ def _state(n, cfg, device):
     return x, v, C, F, tau, vol, mass
 
 
-def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str, repeats: int = 3) -> dict:
-    """Forward and forward+backward particle-steps per second of the bare step (best of ``repeats``)."""
+def make_material(law: str, device, dtype: torch.dtype) -> Material:
+    """``corotated`` (analytic) or ``neural``: NCLaw networks with LoRA r=16 on every layer (a GCA step)."""
+    if law == "neural":
+        from gca.laws.lora import apply_lora
+        from gca.laws.neural import NeuralElasticity, NeuralPlasticity
+        e, p = NeuralElasticity(), NeuralPlasticity()
+        apply_lora(e, 16, 16.0)
+        apply_lora(p, 16, 16.0)
+        return Material(e, p, RHO).to(device=device, dtype=dtype)
+    return Material(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), RHO).to(device=device, dtype=dtype)
+
+
+def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str, repeats: int = 3,
+               law: str = "none") -> dict:
+    """Forward and forward+backward particle-steps per second (best of ``repeats``).
+
+    ``law="none"``: the bare step with a fixed stress; otherwise the law is evaluated every step
+    (tau = elasticity(F) before, F = plasticity(F_trial) after), as in training.
+    """
     cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
     x, v, C, F, tau, vol, mass = _state(n, cfg, device)
+    material = None if law == "none" else make_material(law, device, cfg.torch_dtype)
 
     def chain(grad: bool):
         ins = [t.clone().requires_grad_(grad) for t in (x, v, C, F, tau)]
         xs, vs, Cs, Fs = ins[:4]
         for _ in range(steps):
-            xs, vs, Cs, Fs = solver.step(xs, vs, Cs, Fs, ins[4], vol, mass)
+            if material is None:
+                xs, vs, Cs, Fs = solver.step(xs, vs, Cs, Fs, ins[4], vol, mass)
+            else:
+                xs, vs, Cs, Ftr = solver.step(xs, vs, Cs, Fs, material.stress(Fs), vol, mass)
+                Fs = material.project(Ftr)
         if grad:
             (xs.sum() + vs.sum() + Fs.sum()).backward()
         _sync(device)
 
-    result = {"particles": n, "n_grid": n_grid, "steps": steps}
+    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law}
     for name, grad in (("fwd", False), ("fwd_bwd", True)):
         with torch.set_grad_enabled(grad):
             chain(grad)  # warm-up: kernel compile/load, allocator
@@ -92,16 +114,18 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
     return result
 
 
-def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, device, dtype, checkpoint) -> dict:
-    """Peak memory and time of forward + backward through a rollout of a corotated material."""
+def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, device, dtype, checkpoint,
+                   law: str = "corotated") -> dict:
+    """Peak memory and time of forward + backward through a rollout (corotated or LoRA-neural law)."""
     cfg = SimConfig(n_grid=n_grid, dt=2e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
     x, vol, mass = block(n, cfg, device)
-    material = Material(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), RHO).to(device=device,
-                                                                                     dtype=cfg.torch_dtype)
+    material = make_material("corotated" if law == "none" else law, device, cfg.torch_dtype)
+    params = [p for p in material.parameters() if p.requires_grad]
     v0 = torch.zeros_like(x).requires_grad_()
+    c = 12.0  # wave speed for the CFL check [m/s] (the neural law's numerical estimate is not needed here)
     warm = rollout(solver, material, x[:8], v0[:8], vol[:8], mass[:8], steps_per_frame, steps_per_frame,
-                   checkpoint=checkpoint)  # one-off costs: kernel load, torch.utils.checkpoint imports
+                   checkpoint=checkpoint, wave_speed=c)  # one-off costs: kernel load, checkpoint imports
     warm.x.sum().backward()
     material.zero_grad()
     v0.grad = None
@@ -109,7 +133,7 @@ def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, devi
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
-    out = rollout(solver, material, x, v0, vol, mass, n_steps, steps_per_frame, checkpoint=checkpoint)
+    out = rollout(solver, material, x, v0, vol, mass, n_steps, steps_per_frame, checkpoint=checkpoint, wave_speed=c)
     (out.x[1:] ** 2).sum().backward()
     _sync(device)
     seconds = time.perf_counter() - t0
@@ -118,8 +142,8 @@ def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, devi
     return {"particles": n, "n_grid": n_grid, "steps": n_steps, "steps_per_frame": steps_per_frame,
             "checkpoint": checkpoint, "seconds": seconds, "peak_bytes": int(peak),
             "peak_kind": "cuda_max_memory_allocated" if device.type == "cuda" else "process_max_rss",
-            "grad_finite": bool(torch.isfinite(v0.grad).all()),
-            "grad_log_E": float(material.elasticity.log_E.grad)}
+            "law": law, "grad_finite": bool(torch.isfinite(v0.grad).all()),
+            "grad_norm_law": float(sum(p.grad.norm() ** 2 for p in params if p.grad is not None) ** 0.5)}
 
 
 def _parse(argv=None):
@@ -136,19 +160,22 @@ def _parse(argv=None):
     p.add_argument("--rollout-grid", type=int, default=32)
     p.add_argument("--no-checkpoint", action="store_true", help="also measure the rollout without checkpoints")
     p.add_argument("--skip-rollout", action="store_true")
+    p.add_argument("--law", nargs="+", default=["none"], choices=["none", "corotated", "neural"],
+                   help="law evaluated each step in the throughput chains (none: fixed stress)")
+    p.add_argument("--rollout-law", default="corotated", choices=["corotated", "neural"])
     p.add_argument("--json", default=None, help="output path (default benchmarks/results/sim_<device>.json)")
     return p.parse_args(argv)
 
 
 def _table(results: dict) -> str:
-    lines = ["| particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    lines = ["| law | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in results["throughput"]:
-        lines.append(f"| {r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
+        lines.append(f"| {r['law']} | {r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
                      f"{r['fwd_particle_steps_per_s'] / 1e6:.3f} | {r['fwd_bwd_ms_per_step']:.2f} | "
                      f"{r['fwd_bwd_particle_steps_per_s'] / 1e6:.3f} |")
     for r in results["rollout"]:
-        lines.append(f"rollout {r['particles']} p x {r['steps']} steps ({r['n_grid']}^3, checkpoint="
+        lines.append(f"rollout ({r['law']}) {r['particles']} p x {r['steps']} steps ({r['n_grid']}^3, checkpoint="
                      f"{r['checkpoint']}): {r['seconds']:.1f} s fwd+bwd, peak {r['peak_bytes'] / 2**30:.2f} GiB "
                      f"({r['peak_kind']})")
     return "\n".join(lines)
@@ -161,14 +188,16 @@ def main(argv=None) -> dict:
     results = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
                or "cpu", "warp": wp.__version__, "torch": torch.__version__, "dtype": args.dtype,
                "throughput": [], "rollout": []}
-    for spec in args.sizes:
-        n, n_grid = (int(s) for s in spec.split(":"))
-        results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats))
-        print(results["throughput"][-1], flush=True)
+    for law in args.law:
+        for spec in args.sizes:
+            n, n_grid = (int(s) for s in spec.split(":"))
+            results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats, law))
+            print(results["throughput"][-1], flush=True)
     if not args.skip_rollout:
         for checkpoint in (True, False) if args.no_checkpoint else (True,):
             results["rollout"].append(rollout_memory(args.rollout_particles, args.rollout_steps, args.steps_per_frame,
-                                                     args.rollout_grid, device, args.dtype, checkpoint))
+                                                     args.rollout_grid, device, args.dtype, checkpoint,
+                                                     args.rollout_law))
             print(results["rollout"][-1], flush=True)
     print(_table(results))
     out = Path(args.json or f"benchmarks/results/sim_{device.type}.json")
