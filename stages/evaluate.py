@@ -15,7 +15,7 @@ from gca import config
 from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json, write_json
 from gca.scenes import scene_config, video_config
-from gca.scenes.world import load_body
+from gca.scenes.world import load_scene_body
 from gca.track import stage_run
 from gca.train.methods import get_method
 from gca.train.run import default_device, SceneInputs, load_learned_law, read_velocity, solver_for
@@ -54,7 +54,7 @@ def main(argv=None) -> dict:
     scene = scene_config(params, args.scene)
     methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
     inputs = SceneInputs(args.scene_dir, None, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
-    body = load_body(args.particles, args.gaussians, args.device)
+    body = load_scene_body(params, args.particles, args.gaussians, args.device)
     out = {}
     for method in methods:
         run_id = read_json(args.runs / method.name / "train.json").get("mlflow_run_id")

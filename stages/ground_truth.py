@@ -17,7 +17,7 @@ from gca.io import atomic_path, write_json
 from gca.render.shading import LightingConfig
 from gca.scenes import scene_config, video_config
 from gca.scenes.groundtruth import generate
-from gca.scenes.world import load_body
+from gca.scenes.world import load_scene_body
 from gca.sim.solver import SimConfig
 from gca.track import stage_run
 
@@ -40,7 +40,7 @@ def main(argv=None) -> dict:
     scene, video = scene_config(params, args.scene), video_config(params)
     sim = config.build(SimConfig, config.section(params, "sim"), "sim")
     lighting = config.build(LightingConfig, config.section(params, "render.lighting"), "render.lighting")
-    body = load_body(args.particles, args.assets / "gaussians.ply", args.device)
+    body = load_scene_body(params, args.particles, args.assets / "gaussians.ply", args.device)
     preset = config.section(params, f"materials.{scene.material}")
     with stage_run("ground_truth", params, scene=args.scene) as run:
         with atomic_path(args.out, is_dir=True) as tmp:

@@ -1,6 +1,5 @@
 """Rasterizer: float64 gradchecks (+ negative control), tiled == dense reference, image-formation facts."""
 
-import math
 
 import pytest
 import torch
@@ -58,7 +57,8 @@ def _render_fn(which: int, inputs, camera, cfg, corrupt=False):
         args[which] = _ScaleGrad.apply(x) if corrupt else x
         out = render(*args, camera, BG, cfg=cfg)
         covered = out["alpha"].detach() > 1e-3      # depth_expected is ill-conditioned where empty
-        return sum((out[k] * weights[k]).sum() for k in KEYS) + (out["depth_expected"] * weights["depth_expected"])[covered].sum()
+        expected = (out["depth_expected"] * weights["depth_expected"])[covered].sum()
+        return sum((out[k] * weights[k]).sum() for k in KEYS) + expected
     return fn
 
 
@@ -201,7 +201,8 @@ def test_uniform_stretch_scales_silhouette_area_by_s_squared():
 
 def test_behind_camera_and_offscreen_gaussians_are_culled():
     camera = _camera(16, 16)
-    means = torch.tensor([[0.5, 0.5, -1.5], [0.5, 0.5, -0.995], [30.0, 0.5, 0.5]], dtype=F64)  # behind, before near, off
+    # behind the camera (z = -0.5), closer than the near plane (z = 0.005), far off-screen
+    means = torch.tensor([[0.5, 0.5, -1.5], [0.5, 0.5, -0.995], [30.0, 0.5, 0.5]], dtype=F64)
     covs = (0.1**2 * torch.eye(3, dtype=F64)).repeat(3, 1, 1)
     out = render(means, covs, torch.ones(3, 3, dtype=F64), torch.ones(3, dtype=F64), camera, BG)
     assert (out["alpha"] == 0).all()

@@ -21,9 +21,8 @@ from gca.eval.geometry import CHAMFER_DEFINITION, chamfer_over_time
 from gca.eval.image import lpips_or_reason, psnr, ssim
 from gca.eval.law_response import law_response_curve, law_response_error
 from gca.laws.presets import material_from_preset
-from gca.render.rasterize import render
 from gca.scenes import load_trajectory, load_views, read_meta
-from gca.scenes.world import Body, gaussians_at, initial_velocity
+from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
 
@@ -57,7 +56,7 @@ def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], 
         renders = []
         for f in video_frames:
             means, covs = gaussians_at(body, traj.x[f], traj.F[f])
-            renders.append(render(means, covs, body.colors, body.opacities, view.camera, bg)["rgb"].clamp(0, 1))
+            renders.append(render_gaussians(body, means, covs, body.colors, view.camera, bg)["rgb"].clamp(0, 1))
         pred = torch.stack(renders).permute(0, 3, 1, 2)
         ref = torch.as_tensor(view.rgb, device=pred.device).permute(0, 3, 1, 2)
         metrics[name] = {"psnr": float(psnr(pred, ref).mean()), "ssim": float(ssim(pred, ref).mean())}

@@ -23,8 +23,7 @@ from gca.render.follow import smallest_axis_normal
 from gca.render.camera import Camera, look_at
 from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
 from gca.scenes.store import TRAIN_VIEW, frame_name, view_dir
-from gca.scenes.world import Body, gaussians_at, initial_velocity
-from gca.render.rasterize import render
+from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
 from gca.sim.rollout import Rollout, rollout
 from gca.sim.solver import MPMSolver, SimConfig
 
@@ -60,7 +59,7 @@ def _render_view(body: Body, traj: Rollout, frames: list[int], camera: Camera, l
     for j, f in enumerate(frames):
         means, covs = gaussians_at(body, traj.x[f], traj.F[f])
         colors = shading.shade(body.colors, smallest_axis_normal(covs), lights[j])
-        out = render(means, covs, colors, body.opacities, camera, bg)
+        out = render_gaussians(body, means, covs, colors, camera, bg)
         rgb.append(out["rgb"].clamp(0, 1).cpu().numpy())
         alpha.append(out["alpha"].cpu().numpy())
         depth.append(out["depth"].cpu().numpy())

@@ -11,7 +11,9 @@ gradients to the law's parameters and the initial velocity.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 import torch
@@ -19,8 +21,9 @@ import torch
 from gca.assets.particles import Particles, load_particles
 from gca.assets.ply import GaussianCloud, covariances, opacities, read_ply, sh0_to_rgb
 from gca.render.follow import Binding, follow
+from gca.config import build
 from gca.render.camera import Camera
-from gca.render.rasterize import render
+from gca.render.rasterize import RasterConfig, render
 
 
 @dataclasses.dataclass
@@ -36,6 +39,8 @@ class Body:
         covs0: Gaussian covariances [G, 3, 3] (m^2).
         colors: base RGB [G, 3] in [0, 1].
         opacities: [G] in [0, 1].
+        backend: rasterizer backend (``torch`` everywhere, ``gsplat`` on CUDA).
+        raster: rasterizer settings.
     """
 
     x0: torch.Tensor
@@ -46,6 +51,8 @@ class Body:
     covs0: torch.Tensor
     colors: torch.Tensor
     opacities: torch.Tensor
+    backend: str = "torch"
+    raster: RasterConfig = RasterConfig()
 
     @property
     def n_particles(self) -> int:
@@ -65,7 +72,7 @@ def gaussians_in_sim(cloud: GaussianCloud, sim_from_world: np.ndarray) -> tuple[
 
 
 def load_body(particles_path: str | Path, gaussians_path: str | Path, device: str | torch.device = "cpu",
-              dtype: torch.dtype = torch.float32) -> Body:
+              dtype: torch.dtype = torch.float32, backend: str = "torch", raster: RasterConfig = RasterConfig()) -> Body:
     """Load ``particles.npz`` and the object's ``gaussians.ply`` into a :class:`Body`."""
     particles: Particles = load_particles(particles_path)
     cloud = read_ply(gaussians_path)
@@ -80,7 +87,26 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                       weights=as_t(particles.binding_weights), n_gaussians=kept.n, n_particles=particles.n)
     return Body(x0=as_t(particles.x), vol=as_t(particles.vol), mass=as_t(particles.mass), binding=binding,
                 means0=as_t(means), covs0=as_t(covs), colors=as_t(np.clip(sh0_to_rgb(kept.sh_dc), 0, 1)),
-                opacities=as_t(opacities(kept)))
+                opacities=as_t(opacities(kept)), backend=backend, raster=raster)
+
+
+def raster_settings(params: Mapping) -> tuple[str, RasterConfig]:
+    """(backend, RasterConfig) from params ``render.backend`` / ``render.raster``; gsplat falls back to
+    torch (with a warning) where CUDA is missing, so the CI profile's choice works anywhere."""
+    backend = params.get("render", {}).get("backend", "torch")
+    raster = build(RasterConfig, params.get("render", {}).get("raster", {}), "render.raster")
+    if backend == "gsplat" and not torch.cuda.is_available():
+        warnings.warn("render.backend=gsplat needs CUDA: using the torch rasterizer", RuntimeWarning, stacklevel=2)
+        backend = "torch"
+    return backend, raster
+
+
+def load_scene_body(params: Mapping, particles_path, gaussians_path, device="cpu") -> Body:
+    """:func:`load_body` with the rasterizer settings of ``params``."""
+    backend, raster = raster_settings(params)
+    if torch.device(device).type != "cuda":
+        backend = "torch"
+    return load_body(particles_path, gaussians_path, device, backend=backend, raster=raster)
 
 
 def initial_velocity(x0: torch.Tensor, v0: torch.Tensor, w0: torch.Tensor | None = None) -> torch.Tensor:
@@ -96,9 +122,16 @@ def gaussians_at(body: Body, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Te
     return follow(body.binding, body.means0, body.covs0, body.x0, x, F)
 
 
+def render_gaussians(body: Body, means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, camera: Camera,
+                     bg: torch.Tensor) -> dict:
+    """Render the body's Gaussians at (means [G,3], covs [G,3,3]) with per-Gaussian ``colors`` [G,C]
+    through the body's rasterizer settings: ``{rgb [H,W,C], alpha [H,W], depth [H,W], ...}``."""
+    return render(means, covs, colors, body.opacities, camera, bg, backend=body.backend, cfg=body.raster)
+
+
 def render_body(body: Body, x: torch.Tensor, F: torch.Tensor, camera: Camera, background,
                 colors: torch.Tensor | None = None) -> dict:
     """Render the body at one state from ``camera``: ``{rgb [H,W,3], alpha [H,W], depth [H,W]}``."""
     means, covs = gaussians_at(body, x, F)
     bg = torch.as_tensor(background, dtype=means.dtype, device=means.device)
-    return render(means, covs, body.colors if colors is None else colors, body.opacities, camera, bg)
+    return render_gaussians(body, means, covs, body.colors if colors is None else colors, camera, bg)

@@ -29,9 +29,8 @@ from tqdm import tqdm
 from gca.align.cpr import CPR, CPRConfig
 from gca.align.rdga import RDGAConfig, rdga_loss
 from gca.render.camera import Camera
-from gca.render.rasterize import render
 from gca.scenes.store import ViewData
-from gca.scenes.world import Body, gaussians_at
+from gca.scenes.world import Body, gaussians_at, render_gaussians
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
 from gca.train.config import TrainConfig
@@ -91,11 +90,11 @@ def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) 
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
 
 
-def position_image(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> torch.Tensor:
+def position_image(body: Body, means: torch.Tensor, covs: torch.Tensor, camera: Camera) -> torch.Tensor:
     """Premultiplied rendered camera-frame positions [H, W, 3] (RDGA's global term projects them with K)."""
     _, w2c = camera.tensors(means.dtype, means.device)
     xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-    return render(means, covs, xyz_cam, opacities, camera, means.new_zeros(3))["rgb"]
+    return render_gaussians(body, means, covs, xyz_cam, camera, means.new_zeros(3))["rgb"]
 
 
 def to_uint8(rgb: torch.Tensor) -> np.ndarray:
@@ -129,7 +128,7 @@ class Objective:
         means, covs = gaussians_at(self.data.body, traj.x[f], traj.F[f])
         loss, stats = means.sum() * 0.0, {}
         for name, view in self.data.views.items():
-            out = render(means, covs, self.data.body.colors, self.data.body.opacities, view.camera, self.bg)
+            out = render_gaussians(self.data.body, means, covs, self.data.body.colors, view.camera, self.bg)
             if self.method.color:
                 l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
@@ -154,7 +153,7 @@ class Objective:
         if m.mask or m.geo:
             rdga = self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
             p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
-            pos = position_image(means, covs, self.data.body.opacities, view.camera) \
+            pos = position_image(self.data.body, means, covs, view.camera) \
                 if rdga.enabled and rdga.use_global else None
             l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=pos, K=self.K["train0"])
             loss = loss + l_rdga

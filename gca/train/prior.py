@@ -34,8 +34,8 @@ from gca.config import ConfigError, build, section
 from gca.io import atomic_path
 from gca.laws.base import Material
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
-from gca.laws.pretrain import DeformationSampling, PretrainConfig, fit_elasticity, fit_plasticity, response_error,
-                               sweep_deformations
+from gca.laws.pretrain import (DeformationSampling, PretrainConfig, fit_elasticity, fit_plasticity, response_error,
+                               sweep_deformations)
 from gca.laws.presets import material_from_preset
 from gca.sim import MPMSolver, SimConfig, SimulationDiverged
 from gca.sim.rollout import check_state, simulate_frame
@@ -61,9 +61,10 @@ class PriorTrainConfig:
     cosine_floor: float = 0.05  # final learning rate as a fraction of the initial one [1]
     grad_clip: float = 1.0  # global gradient-norm clip [loss units]
     warm_start: tuple[str, ...] = NETWORKS  # networks regressed onto the analytic law first ([] = none)
-    fit_elasticity: PretrainConfig = PretrainConfig()  # warm-start regression of the elasticity (stress)
-    fit_plasticity: PretrainConfig = PretrainConfig(  # ... of the return map, near the yield surface
-        sampling=DeformationSampling(stretch=0.05, compression=0.05))
+    fit_elasticity: PretrainConfig = PretrainConfig(lr=1e-2)  # warm-start regression of the elasticity (stress)
+    # ... of the return map: one step's trial states lie near the yield surface and barely rotated (the
+    # fluid's F -> J^(1/3) I drops rotations, which F + alpha R S cannot represent for R != I)
+    fit_plasticity: PretrainConfig = PretrainConfig(lr=1e-2, sampling=DeformationSampling(0.05, 0.05, 0.0))
     response_max_strain: float = 0.1  # sweeps of the law-level response error span +-this strain [1]
     log_every: int = 10  # iterations between logged training losses [count]
     cpu_threads: int = 1  # torch intra-op threads on a CPU device (0 = torch default; >1 is ~10x slower on a busy box)

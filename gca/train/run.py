@@ -27,7 +27,7 @@ from gca.laws.checkpoint import load_prior
 from gca.laws.lora import LoRAConfig
 from gca.scenes import SceneConfig, read_meta, load_views, scene_config, video_config
 from gca.scenes.prep import load_prep
-from gca.scenes.world import Body, initial_velocity, load_body
+from gca.scenes.world import Body, initial_velocity, load_scene_body
 from gca.sim.solver import MPMSolver, SimConfig
 from gca.train.config import TrainConfig, VelocityConfig
 from gca.train.law import LearnedLaw, build_law
@@ -60,7 +60,7 @@ def solver_for(params: Mapping, scene: SceneConfig, device="cpu") -> MPMSolver:
     return MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
 
 
-def load_train_data(inputs: SceneInputs, method: Method, velocity: tuple[list, list], background,
+def load_train_data(params: Mapping, inputs: SceneInputs, method: Method, velocity: tuple[list, list], background,
                     device="cpu") -> TrainData:
     """Everything the method may observe: training views, preprocessed depth/masks/keypoints."""
     meta = read_meta(inputs.scene_dir)
@@ -68,7 +68,7 @@ def load_train_data(inputs: SceneInputs, method: Method, velocity: tuple[list, l
     views = load_views(inputs.scene_dir, [n for n in names if n in meta["views"]["train"]])
     depth, masks, keypoints = load_prep(inputs.prep_dir, len(meta["video_frames"]))
     views["train0"].mask = masks  # a monocular method sees its own masks, not the renderer's alpha
-    body = load_body(inputs.particles, inputs.gaussians, device)
+    body = load_scene_body(params, inputs.particles, inputs.gaussians, device)
     return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=int(meta["substeps"]),
                      est_depth=depth, keypoints=keypoints, v_init=velocity_field(body, velocity),
                      background=tuple(background))
@@ -82,7 +82,7 @@ def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInput
     meta = read_meta(inputs.scene_dir)
     view = load_views(inputs.scene_dir, ["train0"])["train0"]
     view.mask = load_prep(inputs.prep_dir, len(meta["video_frames"]))[1]
-    body = load_body(inputs.particles, inputs.gaussians, device)
+    body = load_scene_body(params, inputs.particles, inputs.gaussians, device)
     prior = load_prior(inputs.prior, family=scene.prior)
     material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum())).to(device)
     v0, w0, history = estimate_velocity(solver_for(params, scene, device), material, body, view, meta["video_frames"],
@@ -124,7 +124,7 @@ def train_method(params: Mapping, scene_name: str, method: Method, inputs: Scene
     scene = scene_config(params, scene_name)
     video = video_config(params)
     tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
-    data = load_train_data(inputs, method, velocity, video.background, device)
+    data = load_train_data(params, inputs, method, velocity, video.background, device)
     law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
     objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"))
     out_dir.mkdir(parents=True, exist_ok=True)

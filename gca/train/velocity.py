@@ -17,9 +17,8 @@ import torch
 from tqdm import tqdm
 
 from gca.laws.base import Material
-from gca.render.rasterize import render
 from gca.scenes.store import ViewData
-from gca.scenes.world import Body, gaussians_at, initial_velocity
+from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
 from gca.sim.rollout import rollout
 from gca.sim.solver import MPMSolver
 from gca.train.config import VelocityConfig
@@ -29,7 +28,7 @@ def silhouette_loss(body: Body, x: torch.Tensor, F: torch.Tensor, camera, mask: 
                     bg: torch.Tensor, cfg: VelocityConfig) -> torch.Tensor:
     """Mask [H, W] (and optional colour [H, W, 3]) L2 of the body at state (x, F) seen from ``camera``."""
     means, covs = gaussians_at(body, x, F)
-    out = render(means, covs, body.colors, body.opacities, camera, bg)
+    out = render_gaussians(body, means, covs, body.colors, camera, bg)
     loss = cfg.lambda_mask * (out["alpha"] - mask).square().mean()
     if cfg.lambda_color:
         loss = loss + cfg.lambda_color * (out["rgb"] - rgb).square().mean()
