@@ -75,3 +75,56 @@ def _assert_no_switch_left(node):
     elif isinstance(node, list):
         for v in node:
             _assert_no_switch_left(v)
+
+
+def _numeric_strings(node, path=""):
+    """YAML 1.1 reads 1.0e5 (no exponent sign) as a string: find such values."""
+    import re
+    if isinstance(node, dict):
+        return [p for k, v in node.items() for p in _numeric_strings(v, f"{path}.{k}")]
+    if isinstance(node, list):
+        return [p for i, v in enumerate(node) for p in _numeric_strings(v, f"{path}[{i}]")]
+    return [f"{path}={node!r}"] if isinstance(node, str) and re.fullmatch(r"[-+]?[0-9.]+[eE][-+]?[0-9]+", node) else []
+
+
+@pytest.mark.parametrize("profile", config.PROFILES)
+def test_every_section_of_the_shipped_params_validates(repo_root, profile):
+    from gca.align import CPRConfig, RDGAConfig
+    from gca.assets.objects import ObjectConfig
+    from gca.assets.particles import ParticleConfig
+    from gca.eval.demos import demo_config
+    from gca.laws.lora import LoRAConfig
+    from gca.laws.neural import NeuralLawConfig
+    from gca.laws.presets import material_from_preset
+    from gca.render.shading import LightingConfig
+    from gca.report import ReportConfig
+    from gca.scenes import scene_config, video_config
+    from gca.scenes.world import raster_settings
+    from gca.sim.solver import SimConfig
+    from gca.train.config import TrainConfig, VelocityConfig
+    from gca.train.methods import get_method
+    from gca.train.prior import prior_configs
+    from gca.vision import VisionConfig
+
+    raw = config.read_yaml(repo_root / "params.yaml")
+    assert _numeric_strings(raw) == []
+    p = config.resolve(raw, profile)
+    for cls, name in ((SimConfig, "sim"), (LightingConfig, "render.lighting"), (VisionConfig, "vision"),
+                      (RDGAConfig, "align.rdga"), (CPRConfig, "align.cpr"), (NeuralLawConfig, "laws.neural"),
+                      (LoRAConfig, "laws.lora"), (TrainConfig, "train"), (VelocityConfig, "velocity"),
+                      (ParticleConfig, "particles"), (ReportConfig, "report")):
+        config.build(cls, config.section(p, name), name)
+    raster_settings(p)
+    video_config(p)
+    demo_config(p)
+    for name in p["objects"]:
+        config.build(ObjectConfig, p["objects"][name], f"objects.{name}")
+    for family in p["prior"]["families"]:
+        prior_configs(p, family)
+        material_from_preset(p["prior"]["families"][family])
+    for name in p["scenes"]:
+        scene = scene_config(p, name)
+        assert scene.object in p["objects"] and scene.material in p["materials"] and scene.prior in p["prior"]["families"]
+        for m in scene.methods:
+            get_method(m)
+        material_from_preset(p["materials"][scene.material], dt=scene.dt, n_particles=100)

@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 
 from gca.config import ConfigError
 from gca.laws.checkpoint import load_prior
