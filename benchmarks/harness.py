@@ -60,7 +60,8 @@ def versions() -> dict:
             "numpy": numpy.__version__, "cuda": torch.version.cuda}
 
 
-def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, skip_prior: bool) -> dict:
+def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, skip_prior: bool,
+               reuse_data: bool = False) -> dict:
     import assets, evaluate, ground_truth, particles, preprocess, prior, train  # noqa: E401
     spec = raw["scenes"][scene]
     obj, family = spec["object"], spec["prior"]
@@ -69,17 +70,27 @@ def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, ski
     seconds = {}
 
     def timed(name, fn, argv):
+        if reuse_data and name in ("assets", "particles", "ground_truth", "preprocess") and (work / "m" / f"{name}.done").is_file():
+            print(f"[harness] {name}: reused", flush=True)
+            return
         t0 = time.perf_counter()
         fn(argv)
         seconds[name] = time.perf_counter() - t0
+        (work / "m").mkdir(parents=True, exist_ok=True)
+        (work / "m" / f"{name}.done").touch()
         print(f"[harness] {name}: {seconds[name]:.1f} s", flush=True)
 
     timed("assets", assets.main, ["--object", obj, "--out", d("assets", obj), "--metrics", d("m/assets.json")] + p)
     timed("particles", particles.main, ["--object", obj, "--assets", d("assets", obj), "--out", d("particles.npz"),
                                         "--metrics", d("m/particles.json")] + p)
     if not (skip_prior and (work / "prior" / f"{family}.pt").is_file()):
-        timed("prior", prior.main, ["--family", family, "--out", d("prior", f"{family}.pt"),
-                                    "--metrics", d("m/prior.json"), "--plots", d("m/prior.png")] + p)
+        argv = ["--family", family, "--out", d("prior", f"{family}.pt"), "--metrics", d("m/prior.json"),
+                "--plots", d("m/prior.png")] + p
+        try:
+            timed("prior", prior.main, argv + ["--device", device])
+        except RuntimeError as exc:  # keep the timing run going; the failure is printed, not hidden
+            print(f"[harness] prior on {device} failed ({type(exc).__name__}: {exc}); retrying on cpu", flush=True)
+            timed("prior", prior.main, argv + ["--device", "cpu"])
     timed("ground_truth", ground_truth.main, ["--scene", scene, "--assets", d("assets", obj), "--particles",
                                               d("particles.npz"), "--out", d("scene"), "--metrics", d("m/gt.json"),
                                               "--device", device] + p)
@@ -126,13 +137,14 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--reuse-prior", action="store_true", help="keep a prior already in the work directory")
+    ap.add_argument("--reuse-data", action="store_true", help="keep assets/particles/scene/prep already made there")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("MLFLOW_TRACKING_URI", f"sqlite:///{args.work / 'mlflow.db'}")
     params = args.work / "params.yaml"
     raw = make_params(args.scene, args.methods, args.profile, args.overrides, params)
-    stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior)
+    stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data)
     rows = collect(raw, args.scene, args.work, args.device, stage_seconds, args.overrides)
     for row in rows:
         tag = f"harness_{row['profile']}_{row['scene']}_{row['method']}_{args.device}.json"

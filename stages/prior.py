@@ -26,6 +26,7 @@ def parse_args(argv):
     for name in ("out", "metrics", "plots"):
         ap.add_argument(f"--{name}", type=Path, required=True)
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     return ap.parse_args(argv)
 
 
@@ -33,7 +34,7 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     params = config.load(f"prior@{args.family}", args.params)
     preset, law_cfg, cfg = prior_configs(params, args.family)
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = args.device
     with stage_run("prior", params, tags={"family": args.family}) as run, \
             tqdm(desc=f"prior {args.family}", unit="step", leave=False) as bar:
         def progress(phase, i, n, **values):

@@ -9,6 +9,7 @@ ground truth (for scenes that ask for it), and efficiency (training time, peak m
 
 from __future__ import annotations
 
+import copy
 import time
 from pathlib import Path
 from typing import Mapping
@@ -69,13 +70,14 @@ def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], 
 
 def law_metrics(material, reference_preset: Mapping, dt: float) -> dict:
     """Law-level response error [%] (uniaxial, shear) of the learned elasticity vs the analytic one."""
-    reference = material_from_preset(reference_preset, dt=dt).to(next(iter(material.parameters())).device)
+    reference = material_from_preset(reference_preset, dt=dt).elasticity.float()
+    learned = copy.deepcopy(material.elasticity).cpu().float()  # the sweeps are small host tensors
     out, curves = {}, {}
     for kind in ("uniaxial", "shear"):
         with torch.no_grad():
-            out[f"law_error_{kind}_pct"] = law_response_error(material.elasticity, reference.elasticity, kind)
-            ours = law_response_curve(material.elasticity, kind)
-            ref = law_response_curve(reference.elasticity, kind)
+            out[f"law_error_{kind}_pct"] = law_response_error(learned, reference, kind)
+            ours = law_response_curve(learned, kind)
+            ref = law_response_curve(reference, kind)
         curves[kind] = {"strain": ours["strain"].tolist(), "ours": ours["component"].tolist(),
                         "reference": ref["component"].tolist()}
     out["law_curves"] = curves

@@ -96,7 +96,7 @@ def _fit(law: nn.Module, F: torch.Tensor, target: torch.Tensor, unit: float, cfg
     g = torch.Generator().manual_seed(cfg.seed + 1)
     history = []
     for step in range(cfg.steps):
-        idx = torch.randint(0, F.shape[0], (min(cfg.batch_size, F.shape[0]),), generator=g)
+        idx = torch.randint(0, F.shape[0], (min(cfg.batch_size, F.shape[0]),), generator=g).to(F.device)
         loss = (law(F[idx]) - target[idx]).square().sum(dim=(1, 2)).mean() / unit ** 2
         if not torch.isfinite(loss):
             raise RuntimeError(f"gca/laws/pretrain.py: {name} diverged at step {step}/{cfg.steps}: loss={loss.item()}, "
@@ -111,8 +111,8 @@ def _fit(law: nn.Module, F: torch.Tensor, target: torch.Tensor, unit: float, cfg
 
 
 def _training_set(law: nn.Module, reference: Law, cfg: PretrainConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    dtype = next(law.parameters()).dtype
-    F = sample_deformations(cfg.n_samples, cfg.sampling, torch.Generator().manual_seed(cfg.seed), dtype)
+    dtype, device = next(law.parameters()).dtype, next(law.parameters()).device
+    F = sample_deformations(cfg.n_samples, cfg.sampling, torch.Generator().manual_seed(cfg.seed), dtype).to(device)
     with torch.no_grad():
         target = reference(F).to(dtype)
     if target.shape != F.shape or not torch.isfinite(target).all():

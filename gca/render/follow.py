@@ -133,6 +133,9 @@ def covariance_from_scale_rot(log_scales: torch.Tensor, quats: torch.Tensor) -> 
     return M @ M.transpose(-1, -2)
 
 
+_EIGH_CHUNK = 16384  # matrices per batched eigh call on CUDA
+
+
 def smallest_axis_normal(covs: torch.Tensor) -> torch.Tensor:
     """Unit direction of each covariance's smallest axis [N, 3] (the flat Gaussian's normal).
 
@@ -144,5 +147,14 @@ def smallest_axis_normal(covs: torch.Tensor) -> torch.Tensor:
     """
     assert covs.ndim == 3 and covs.shape[1:] == (3, 3), f"{_WHERE}: covs must be [N, 3, 3], got {tuple(covs.shape)}"
     with torch.no_grad():
-        _, vectors = torch.linalg.eigh(0.5 * (covs + covs.transpose(-1, -2)))
+        sym = 0.5 * (covs + covs.transpose(-1, -2))
+        # cuSOLVER's batched eigh fails (CUSOLVER_STATUS_INTERNAL_ERROR) on ~1e5 3x3 matrices on an H100:
+        # solve in chunks there. The CPU path is a single call.
+        if sym.is_cuda and sym.shape[0]:
+            try:
+                vectors = torch.cat([torch.linalg.eigh(part)[1] for part in sym.split(_EIGH_CHUNK)])
+            except RuntimeError:  # a cuSOLVER failure: the host solver gives the same answer
+                vectors = torch.linalg.eigh(sym.cpu())[1].to(sym.device)
+        else:
+            vectors = torch.linalg.eigh(sym)[1] if sym.shape[0] else sym
     return vectors[..., :, 0]

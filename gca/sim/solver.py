@@ -104,6 +104,8 @@ class MPMSolver:
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
         self.device = torch.device(device)
+        if self.device.type == "cuda" and self.device.index is None:  # warp needs an explicit ordinal
+            self.device = torch.device("cuda", torch.cuda.current_device())
         wp.init()
         self.wp_device = wp.device_from_torch(self.device)
         self.k = KERNELS[cfg.dtype]
