@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
             out[method.name] = evaluate_method(params, args, scene, method, inputs, body)
             write_json(args.out / f"{method.name}.json", out[method.name])
             run.log_metrics({k: v for k, v in out[method.name].items() if k != "chamfer_per_frame"})
-            for name in ("strip.png", "rollout.gif"):
+            for name in ("strip.png", "rollout.gif", "cd_time.png"):
                 run.log_artifact(args.out / method.name / name)
         print(f"evaluate {args.scene}/{method.name}: {out[method.name]['status']} "
               f"CD={out[method.name].get('chamfer_mean', float('nan')):.4g}")

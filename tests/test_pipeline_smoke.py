@@ -74,6 +74,32 @@ def test_ground_truth_outputs_are_consistent(pipeline):
     assert np.all(view.depth[view.mask] > 0) and np.all(view.depth[~view.mask] == 0)
 
 
+def test_mask_matches_the_rendered_alpha(pipeline):
+    """Re-simulate and re-render the last ground-truth frame: the stored mask is its alpha > threshold."""
+    import torch
+
+    from gca import config
+    from gca.laws.presets import material_from_preset
+    from gca.scenes import load_view, read_meta, scene_config, video_config
+    from gca.scenes.groundtruth import simulate_scene
+    from gca.scenes.world import gaussians_at, load_scene_body, render_gaussians
+    from gca.sim.solver import SimConfig
+
+    params = config.load(path=pipeline / "params.yaml", via_dvc=False)
+    scene, video = scene_config(params, SCENE), video_config(params)
+    scene_dir = pipeline / "data/scenes" / SCENE
+    body = load_scene_body(params, pipeline / "data/particles/duck.npz", pipeline / "data/assets" / OBJECT / "gaussians.ply")
+    material = material_from_preset(params["materials"][scene.material], dt=scene.dt, n_particles=body.n_particles)
+    traj = simulate_scene(body, material, scene, video, config.build(SimConfig, params["sim"]))
+    view, meta = load_view(scene_dir, "train0"), read_meta(scene_dir)
+    j, f = len(meta["video_frames"]) - 1, meta["video_frames"][-1]
+    means, covs = gaussians_at(body, traj.x[f], traj.F[f])
+    with torch.no_grad():
+        alpha = render_gaussians(body, means, covs, body.colors, view.camera, torch.ones(3))["alpha"].numpy()
+    agree = ((alpha > video.mask_threshold) == view.mask[j]).mean()
+    assert agree > 0.999, f"mask and re-rendered alpha agree on only {agree:.4f} of the pixels"
+
+
 def test_every_method_has_metrics_and_reports_exist(pipeline):
     for method in METHODS:
         m = json.loads((pipeline / "metrics/eval" / SCENE / f"{method}.json").read_text())

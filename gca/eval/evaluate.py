@@ -119,4 +119,19 @@ def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, 
     write_strip(out_dir / "strip.png", rendered["train0"], gt_rgb)
     iio.imwrite(out_dir / "rollout.gif", (rendered["train0"] * 255 + 0.5).astype(np.uint8), duration=80, loop=0)
     metrics["strip_png"] = str(out_dir / "strip.png")
+    plot_chamfer(out_dir / "cd_time.png", meta["times"], metrics["chamfer_per_frame"][1:])
     return metrics
+
+
+def plot_chamfer(path: Path, times: list[float], cd: list[float]) -> None:
+    """Chamfer distance [m] against simulated time [s] of one run (an MLflow artifact)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.5, 3), dpi=100)
+    ax.plot(times, cd, marker="o", ms=3)
+    ax.set(xlabel="time [s]", ylabel="Chamfer distance [m]", title="CD over time")
+    fig.tight_layout()
+    fig.savefig(path, format="png", metadata={"Software": None})
+    plt.close(fig)
