@@ -11,6 +11,16 @@ from gca.laws.elastic import corotated_tau, sigma_tau, stvk_tau, volume_tau
 from gca.laws.ground_truth import neo_hookean_tau
 
 f64 = torch.float64
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fixtures3x3 import random_rotations  # noqa: E402
+from fixtures3x3 import random_F as _random_F  # noqa: E402
+
+
+def random_F(n, seed, spread=0.25, dtype=f64):
+    return _random_F(n, seed, spread, dtype)
 MU, LAM = 4.0e4, 3.0e4  # Pa (hand values below use these)
 LAWS = {
     "corotated": lambda F, mu, lam: corotated_tau(F, mu, lam),
@@ -21,17 +31,8 @@ LAWS = {
 }
 
 
-def random_F(n, seed, spread=0.25, dtype=f64):
-    g = torch.Generator().manual_seed(seed)
-    return torch.eye(3, dtype=dtype) + spread * torch.randn(n, 3, 3, generator=g, dtype=dtype)
 
 
-def random_rotations(n, seed, dtype=f64):
-    g = torch.Generator().manual_seed(seed)
-    Q, R = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=dtype))
-    Q = Q * torch.sign(torch.diagonal(R, dim1=1, dim2=2))[:, None, :]
-    Q[torch.det(Q) < 0, :, 0] *= -1
-    return Q
 
 
 def uniaxial(s):

@@ -12,6 +12,12 @@ from gca.laws.plastic import (drucker_prager_alpha, drucker_prager_plastic, iden
 from gca.laws.svd import det3, polar_rotation, svd
 
 f64 = torch.float64
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fixtures3x3 import random_rotations  # noqa: E402
+from fixtures3x3 import random_F  # noqa: E402
 MU, LAM = 1.2e5, 1.2e5  # NCLaw plasticine moduli (E = 3e5, nu = 0.25) [Pa]
 SIGMA_Y = 5e3  # [Pa]; yield strain sigma_y / (2 mu) = 0.0208
 PHI = 25.0  # [deg]
@@ -25,17 +31,8 @@ LAWS = {
 }
 
 
-def random_F(n, seed, spread=0.3, dtype=f64):
-    g = torch.Generator().manual_seed(seed)
-    return torch.eye(3, dtype=dtype) + spread * torch.randn(n, 3, 3, generator=g, dtype=dtype)
 
 
-def random_rotations(n, seed, dtype=f64):
-    g = torch.Generator().manual_seed(seed)
-    Q, R = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=dtype))
-    Q = Q * torch.sign(torch.diagonal(R, dim1=1, dim2=2))[:, None, :]
-    Q[torch.det(Q) < 0, :, 0] *= -1
-    return Q
 
 
 def hencky(F):

@@ -7,19 +7,16 @@ from torch.autograd import gradcheck
 from gca.laws.svd import det3, polar_rotation, svd, svd_map
 
 f64 = torch.float64
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fixtures3x3 import random_rotations  # noqa: E402
+from fixtures3x3 import random_F  # noqa: E402
 
 
-def random_F(n, seed, spread=0.3, dtype=f64):
-    g = torch.Generator().manual_seed(seed)
-    return torch.eye(3, dtype=dtype) + spread * torch.randn(n, 3, 3, generator=g, dtype=dtype)
 
 
-def random_rotations(n, seed, dtype=f64):
-    g = torch.Generator().manual_seed(seed)
-    Q, R = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=dtype))
-    Q = Q * torch.sign(torch.diagonal(R, dim1=1, dim2=2))[:, None, :]
-    Q[torch.det(Q) < 0, :, 0] *= -1
-    return Q
 
 
 def eye(n, dtype=f64):
