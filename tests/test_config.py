@@ -127,4 +127,10 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
         assert scene.object in p["objects"] and scene.material in p["materials"] and scene.prior in p["prior"]["families"]
         for m in scene.methods:
             get_method(m)
-        material_from_preset(p["materials"][scene.material], dt=scene.dt, n_particles=100)
+        gt = material_from_preset(p["materials"][scene.material], dt=scene.dt, n_particles=100)
+        prior = material_from_preset(p["prior"]["families"][scene.prior])
+        sim = config.build(SimConfig, p["sim"], "sim")
+        speed = max(abs(v) for v in scene.v0) * 3 ** 0.5 + 0.5 * max(abs(w) for w in scene.w0)  # |v| at launch
+        for law in (gt, prior):  # both run on this dt: the ground truth and every method starting from the prior
+            bound = sim.cfl * sim.dx / (law.wave_speed() + speed)
+            assert scene.dt <= bound, f"scenes.{name}.dt={scene.dt} exceeds the CFL bound {bound:.3g} ({profile})"
