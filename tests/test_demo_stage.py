@@ -24,6 +24,7 @@ from gca.laws.checkpoint import save_prior
 from gca.laws.lora import LoRAConfig
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 from gca.train.law import build_law
+from gca.train.run import save_law
 from gca.train.methods import get_method
 
 wp.config.quiet = True
@@ -74,7 +75,7 @@ def _write_trained_law(prior: Path, run_dir: Path) -> None:
         for p in law.trainable():
             p.copy_(0.5 * torch.randn(p.shape, generator=g))
     run_dir.mkdir(parents=True)
-    torch.save({"method": "gca", "kind": law.kind, "state": law.state()}, run_dir / "law.pt")
+    save_law(run_dir / "law.pt", law, "jelly", {"method": "gca"})
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from gca.align.rdga import RDGAConfig
 from gca.eval.efficiency import measure
 from gca.io import atomic_path, read_json, write_json
 from gca.laws.base import Material
-from gca.laws.checkpoint import load_prior
+from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
 from gca.laws.lora import LoRAConfig
 from gca.scenes import SceneConfig, read_meta, load_views, scene_config, video_config
 from gca.scenes.prep import load_prep
@@ -132,8 +132,7 @@ def train_method(params: Mapping, scene_name: str, method: Method, inputs: Scene
     with measure(device) as cost:
         result: TrainResult = train(solver_for(params, scene, device), law, data, objective, tcfg,
                                     checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
-    with atomic_path(out_dir / "law.pt") as tmp:
-        torch.save({"method": method.name, "kind": law.kind, "state": law.state()}, tmp)
+    save_law(out_dir / "law.pt", law, scene.prior, {"method": method.name, "scene": scene_name})
     write_json(out_dir / "history.json", {"history": result.history})
     (out_dir / "checkpoint.pt").unlink(missing_ok=True)
     summary = {"scene": scene_name, "method": method.name, "status": result.status, "message": result.message,
@@ -164,13 +163,43 @@ def _plot_history(history: list[dict], path: Path, title: str) -> None:
 def load_learned_law(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, run_dir: Path,
                      rho: float, device="cpu") -> LearnedLaw:
     """Rebuild a trained method's law from ``law.pt`` (the prior + what training changed)."""
-    law = law_for(params, method, scene_config(params, scene_name), inputs, rho, device)
+    scene = scene_config(params, scene_name)
+    law = law_for(params, method, scene, inputs, rho, device)
     path = run_dir / "law.pt"
     if path.is_file():
-        law.load_state(torch.load(path, weights_only=False, map_location=device)["state"])
+        load_law(path, law, scene.prior)
     elif method.trains:
         raise FileNotFoundError(f"{path}: missing trained law of {method.name} (run the train stage)")
     return law
+
+
+def save_law(path: Path, law: LearnedLaw, family: str, metadata: Mapping) -> None:
+    """What training changed: LoRA adapters (checked against their prior on load), all network weights
+    (full fine-tuning, a prior checkpoint), or the explicit law's parameters; nothing when untrained."""
+    e, p = law.material.elasticity, law.material.plasticity
+    if law.kind == "lora":
+        save_adapter(path, e, p, family, metadata=metadata)
+    elif law.kind == "full":
+        save_prior(path, e, p, family, metadata=dict(metadata))
+    elif law.kind == "explicit":
+        with atomic_path(path) as tmp:
+            torch.save({"kind": "explicit", "state": law.state(), "metadata": dict(metadata)}, tmp)
+
+
+def load_law(path: Path, law: LearnedLaw, family: str) -> None:
+    """Inverse of :func:`save_law` into a freshly built law of the same method (mismatches are refused)."""
+    e, p = law.material.elasticity, law.material.plasticity
+    if law.kind == "lora":
+        load_adapter(path, e, p, family)
+    elif law.kind == "full":
+        trained = load_prior(path, family=family, config=e.cfg)
+        e.load_state_dict(trained.elasticity.state_dict())
+        p.load_state_dict(trained.plasticity.state_dict())
+    elif law.kind == "explicit":
+        payload = torch.load(path, weights_only=False, map_location=e.log_E.device if hasattr(e, "log_E") else "cpu")
+        if payload.get("kind") != "explicit":
+            raise ValueError(f"{path}: not an explicit-law checkpoint (kind {payload.get('kind')!r})")
+        law.load_state(payload["state"])
 
 
 def read_velocity(path: Path) -> tuple[list[float], list[float]]:
