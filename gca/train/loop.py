@@ -90,8 +90,9 @@ def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) 
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
 
 
-def position_image(body: Body, means: torch.Tensor, covs: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """Premultiplied rendered camera-frame positions [H, W, 3] (RDGA's global term projects them with K)."""
+def position_image_ref(body: Body, means: torch.Tensor, covs: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Premultiplied camera-frame positions [H, W, 3] in a separate render pass: the slow reference of
+    :meth:`Objective._render` (which composites them with the colours in one pass)."""
     _, w2c = camera.tensors(means.dtype, means.device)
     xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
     return render_gaussians(body, means, covs, xyz_cam, camera, means.new_zeros(3))["rgb"]
@@ -128,7 +129,7 @@ class Objective:
         means, covs = gaussians_at(self.data.body, traj.x[f], traj.F[f])
         loss, stats = means.sum() * 0.0, {}
         for name, view in self.data.views.items():
-            out = render_gaussians(self.data.body, means, covs, self.data.body.colors, view.camera, self.bg)
+            out = self._render(means, covs, view, with_positions=name == "train0" and self._needs_positions())
             if self.method.color:
                 l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
@@ -143,6 +144,22 @@ class Objective:
             stats.update(R_e=float(R_e.detach()), R_p=float(R_p.detach()))
         return loss, stats
 
+    def _needs_positions(self) -> bool:
+        return self.method.geo and self.rdga.enabled and self.rdga.use_global
+
+    def _render(self, means, covs, view: ViewData, with_positions: bool) -> dict:
+        """RGB/alpha/depth; with ``with_positions`` also the premultiplied camera-frame positions
+        [H, W, 3] of RDGA's global term, composited in the same pass as 3 extra colour channels
+        (background 0), so the frame is rasterized once."""
+        body = self.data.body
+        if not with_positions:
+            return render_gaussians(body, means, covs, body.colors, view.camera, self.bg)
+        _, w2c = view.camera.tensors(means.dtype, means.device)
+        xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+        out = render_gaussians(body, means, covs, torch.cat([body.colors, xyz_cam], 1), view.camera,
+                               torch.cat([self.bg, self.bg.new_zeros(3)]))
+        return {**out, "rgb": out["rgb"][..., :3], "positions": out["rgb"][..., 3:]}
+
     def _mono_terms(self, out: dict, means, covs, view: ViewData, j: int, loss, stats):
         m = self.method
         if m.depth_l1:
@@ -153,8 +170,7 @@ class Objective:
         if m.mask or m.geo:
             rdga = self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
             p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
-            pos = position_image(self.data.body, means, covs, view.camera) \
-                if rdga.enabled and rdga.use_global else None
+            pos = out.get("positions") if rdga.enabled and rdga.use_global else None
             l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=pos, K=self.K["train0"])
             loss = loss + l_rdga
             stats.update({f"rdga/{k}": v for k, v in s.items()})
