@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from gca import config
+from gca.eval.config import MetricsConfig
 from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json, write_json
 from gca.scenes import scene_config, video_config
@@ -37,12 +38,13 @@ def evaluate_method(params, args, scene, method, inputs, body) -> dict:
     train = read_json(run_dir / "train.json")
     law = load_learned_law(params, args.scene, method, inputs, run_dir, float(body.mass.sum() / body.vol.sum()),
                            args.device)
+    cfg = config.build(MetricsConfig, config.section(params, "eval.metrics"), "eval.metrics")
     metrics = evaluate_run(solver_for(params, scene, args.device), law.material, body, read_velocity(args.runs / "velocity.json"),
-                           args.scene_dir, video_config(params).background, args.out / method.name)
+                           args.scene_dir, video_config(params).background, args.out / method.name, cfg)
     if train["status"] != "ok":
         metrics["status"] = train["status"]
     if config.section(params, f"scenes.{args.scene}").get("law_level", False):
-        metrics.update(law_metrics(law.material, config.section(params, f"materials.{scene.material}"), scene.dt))
+        metrics.update(law_metrics(law.material, config.section(params, f"materials.{scene.material}"), scene.dt, cfg))
     return {**metrics, "scene": args.scene, "method": method.name, "object": scene.object, "material": scene.material,
             "seed": int(params["seed"]), "profile": params["profile"], "device": device_name(body.x0.device),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}

@@ -92,6 +92,7 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
     from gca.align import CPRConfig, RDGAConfig
     from gca.assets.objects import ObjectConfig
     from gca.assets.particles import ParticleConfig
+    from gca.eval.config import MetricsConfig
     from gca.eval.demos import demo_config
     from gca.laws.lora import LoRAConfig
     from gca.laws.neural import NeuralLawConfig
@@ -112,7 +113,7 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
     for cls, name in ((SimConfig, "sim"), (LightingConfig, "render.lighting"), (VisionConfig, "vision"),
                       (RDGAConfig, "align.rdga"), (CPRConfig, "align.cpr"), (NeuralLawConfig, "laws.neural"),
                       (LoRAConfig, "laws.lora"), (TrainConfig, "train"), (VelocityConfig, "velocity"),
-                      (ParticleConfig, "particles"), (ReportConfig, "report")):
+                      (ParticleConfig, "particles"), (ReportConfig, "report"), (MetricsConfig, "eval.metrics")):
         config.build(cls, config.section(p, name), name)
     raster_settings(p)
     video_config(p)

@@ -18,7 +18,8 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from gca.eval.geometry import CHAMFER_DEFINITION, chamfer_over_time
+from gca.eval.config import MetricsConfig
+from gca.eval.geometry import CHAMFER_DEFINITION, CHAMFER_DEFINITION_SQUARED, chamfer_over_time
 from gca.eval.image import lpips_or_reason, psnr, ssim
 from gca.eval.law_response import law_response_curve, law_response_error
 from gca.laws.presets import material_from_preset
@@ -48,7 +49,7 @@ def predict(solver: MPMSolver, material, body: Body, velocity: tuple[list, list]
 
 
 def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], video_frames: list[int],
-                  background) -> tuple[dict, dict]:
+                  background, cfg: MetricsConfig = MetricsConfig()) -> tuple[dict, dict]:
     """PSNR/SSIM per view (mean over frames) and the rendered frames of each view [T, H, W, 3]."""
     data = load_views(scene_dir, views)
     bg = torch.tensor(background, dtype=body.x0.dtype, device=body.x0.device)
@@ -60,24 +61,25 @@ def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], 
             renders.append(render_gaussians(body, means, covs, body.colors, view.camera, bg)["rgb"].clamp(0, 1))
         pred = torch.stack(renders).permute(0, 3, 1, 2)
         ref = torch.as_tensor(view.rgb, device=pred.device).permute(0, 3, 1, 2)
-        metrics[name] = {"psnr": float(psnr(pred, ref).mean()), "ssim": float(ssim(pred, ref).mean())}
-        lp, reason = lpips_or_reason(pred, ref)
+        metrics[name] = {"psnr": float(psnr(pred, ref, max_val=cfg.image_max_val).mean()),
+                         "ssim": float(ssim(pred, ref, max_val=cfg.image_max_val, window=cfg.ssim_window).mean())}
+        lp, reason = lpips_or_reason(pred, ref, net=cfg.lpips_net, max_val=cfg.image_max_val)
         metrics[name]["lpips"] = None if lp is None else float(lp.mean())
         metrics["lpips_reason"] = reason
         frames[name] = pred.permute(0, 2, 3, 1).cpu().numpy()
     return metrics, frames
 
 
-def law_metrics(material, reference_preset: Mapping, dt: float) -> dict:
+def law_metrics(material, reference_preset: Mapping, dt: float, cfg: MetricsConfig = MetricsConfig()) -> dict:
     """Law-level response error [%] (uniaxial, shear) of the learned elasticity vs the analytic one."""
     reference = material_from_preset(reference_preset, dt=dt).elasticity.float()
     learned = copy.deepcopy(material.elasticity).cpu().float()  # the sweeps are small host tensors
     out, curves = {}, {}
-    for kind in ("uniaxial", "shear"):
+    for kind in cfg.response_sweeps:
         with torch.no_grad():
-            out[f"law_error_{kind}_pct"] = law_response_error(learned, reference, kind)
-            ours = law_response_curve(learned, kind)
-            ref = law_response_curve(reference, kind)
+            out[f"law_error_{kind}_pct"] = law_response_error(learned, reference, kind, cfg.response_points)
+            ours = law_response_curve(learned, kind, cfg.response_points)
+            ref = law_response_curve(reference, kind, cfg.response_points)
         curves[kind] = {"strain": ours["strain"].tolist(), "ours": ours["component"].tolist(),
                         "reference": ref["component"].tolist()}
     out["law_curves"] = curves
@@ -93,21 +95,21 @@ def write_strip(path: Path, frames: np.ndarray, gt: np.ndarray, n: int = 4) -> N
 
 
 def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], scene_dir: Path, background,
-                 out_dir: Path) -> dict:
+                 out_dir: Path, cfg: MetricsConfig = MetricsConfig()) -> dict:
     """All trajectory and image metrics of one trained law; writes strip.png and rollout.gif to ``out_dir``."""
     meta = read_meta(scene_dir)
     frames_idx = list(meta["video_frames"])
-    metrics: dict = {"chamfer_definition": CHAMFER_DEFINITION}
+    metrics: dict = {"chamfer_definition": CHAMFER_DEFINITION_SQUARED if cfg.chamfer_squared else CHAMFER_DEFINITION}
     try:
         traj, seconds = predict(solver, material, body, velocity, frames_idx, int(meta["substeps"]))
     except SimulationDiverged as exc:
         return {**metrics, "status": "diverged", "message": str(exc)}
     gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype, device=body.x0.device)
     pred = traj.x[[0] + frames_idx]
-    cd = chamfer_over_time(pred, gt)
+    cd = chamfer_over_time(pred, gt, squared=cfg.chamfer_squared)
     metrics.update(status="ok", rollout_seconds=seconds, chamfer_per_frame=cd.tolist(), chamfer_mean=float(cd[1:].mean()))
     views = ["train0"] + list(meta["views"]["eval"])
-    img, rendered = image_metrics(body, traj, scene_dir, views, frames_idx, background)
+    img, rendered = image_metrics(body, traj, scene_dir, views, frames_idx, background, cfg)
     metrics.update(psnr_train=img["train0"]["psnr"], ssim_train=img["train0"]["ssim"],
                    lpips_train=img["train0"]["lpips"], lpips_reason=img["lpips_reason"])
     held = [img[v] for v in meta["views"]["eval"]]
