@@ -12,14 +12,13 @@ import sys
 from pathlib import Path
 
 from gca import config
-from gca.eval.config import MetricsConfig
-from gca.eval.evaluate import device_name, evaluate_run, law_metrics
+from gca.eval.evaluate import evaluate_trained
 from gca.io import read_json, write_json
-from gca.scenes import scene_config, video_config
+from gca.scenes import scene_config
 from gca.scenes.world import load_scene_body
 from gca.track import stage_run
 from gca.train.methods import get_method
-from gca.train.run import default_device, SceneInputs, load_learned_law, read_velocity, solver_for
+from gca.train.run import default_device, SceneInputs
 
 
 def parse_args(argv):
@@ -31,23 +30,6 @@ def parse_args(argv):
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
     ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
     return ap.parse_args(argv)
-
-
-def evaluate_method(params, args, scene, method, inputs, body) -> dict:
-    run_dir = args.runs / method.name
-    train = read_json(run_dir / "train.json")
-    law = load_learned_law(params, args.scene, method, inputs, run_dir, float(body.mass.sum() / body.vol.sum()),
-                           args.device)
-    cfg = config.build(MetricsConfig, config.section(params, "eval.metrics"), "eval.metrics")
-    metrics = evaluate_run(solver_for(params, scene, args.device), law.material, body, read_velocity(args.runs / "velocity.json"),
-                           args.scene_dir, video_config(params).background, args.out / method.name, cfg)
-    if train["status"] != "ok":
-        metrics["status"] = train["status"]
-    if config.section(params, f"scenes.{args.scene}").get("law_level", False):
-        metrics.update(law_metrics(law.material, config.section(params, f"materials.{scene.material}"), scene.dt, cfg))
-    return {**metrics, "scene": args.scene, "method": method.name, "object": scene.object, "material": scene.material,
-            "seed": int(params["seed"]), "profile": params["profile"], "device": device_name(body.x0.device),
-            "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}
 
 
 def main(argv=None) -> dict:
@@ -63,7 +45,7 @@ def main(argv=None) -> dict:
         with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables)},
                        resume_run_id=run_id) as run:
-            out[method.name] = evaluate_method(params, args, scene, method, inputs, body)
+            out[method.name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out, args.device)
             write_json(args.out / f"{method.name}.json", out[method.name])
             run.log_metrics({k: v for k, v in out[method.name].items() if k != "chamfer_per_frame"})
             for name in ("strip.png", "rollout.gif", "cd_time.png"):
