@@ -2,42 +2,25 @@
 
     python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --runs runs/duck \
         --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
-        --prior-dir models/prior --out metrics/duck
+        --prior-dir models/prior --out metrics/eval/duck
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
-from gca import config
 from gca.eval.evaluate import evaluate_trained
 from gca.io import read_json, write_json
-from gca.scenes import scene_config
 from gca.scenes.world import load_scene_body
 from gca.track import stage_run
-from gca.train.methods import get_method
-from gca.train.run import default_device, SceneInputs
 
-
-def parse_args(argv):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name in ("scene-dir", "runs", "particles", "gaussians", "prior-dir", "out"):
-        ap.add_argument(f"--{name}", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
-    return ap.parse_args(argv)
+from common import scene_context, scene_parser  # stages/common.py
 
 
 def main(argv=None) -> dict:
-    args = parse_args(argv)
-    params = config.load(f"evaluate@{args.scene}", args.params)
-    scene = scene_config(params, args.scene)
-    methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
-    inputs = SceneInputs(args.scene_dir, None, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
+    paths = ("scene-dir", "runs", "particles", "gaussians", "prior-dir", "out")
+    args = scene_parser(__doc__.splitlines()[0], paths).parse_args(argv)
+    params, scene, methods, inputs = scene_context("evaluate", args)
     body = load_scene_body(params, args.particles, args.gaussians, args.device)
     out = {}
     for method in methods:

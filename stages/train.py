@@ -9,34 +9,18 @@ One MLflow run per (scene, method, seed), in the experiment of the method's firs
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
-from gca import config
-from gca.scenes import scene_config
 from gca.track import stage_run
-from gca.train.methods import get_method
-from gca.train.run import default_device, SceneInputs, estimate_scene_velocity, read_velocity, train_method
 
-
-def parse_args(argv):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name in ("scene-dir", "prep", "particles", "gaussians", "prior-dir", "out"):
-        ap.add_argument(f"--{name}", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
-    return ap.parse_args(argv)
+from common import scene_context, scene_parser  # stages/common.py
+from gca.train.run import estimate_scene_velocity, read_velocity, train_method
 
 
 def main(argv=None) -> dict:
-    args = parse_args(argv)
-    params = config.load(f"train@{args.scene}", args.params)
-    scene = scene_config(params, args.scene)
-    methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
-    inputs = SceneInputs(args.scene_dir, args.prep, args.particles, args.gaussians, args.prior_dir / f"{scene.prior}.pt")
+    paths = ("scene-dir", "prep", "particles", "gaussians", "prior-dir", "out")
+    args = scene_parser(__doc__.splitlines()[0], paths).parse_args(argv)
+    params, scene, methods, inputs = scene_context("train", args)
     args.out.mkdir(parents=True, exist_ok=True)
     with stage_run("train", params, scene=args.scene, method="velocity") as run:
         velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json", args.device)

@@ -1,0 +1,33 @@
+"""What the per-scene training stages share: their arguments and the scene they load (not a stage)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from gca import config
+from gca.scenes import scene_config
+from gca.train.methods import get_method
+from gca.train.run import SceneInputs, default_device
+
+
+def scene_parser(description: str, paths: tuple[str, ...]) -> argparse.ArgumentParser:
+    """--scene, --methods, --params, --device and the required path arguments ``paths``."""
+    ap = argparse.ArgumentParser(description=description)
+    for name in paths:
+        ap.add_argument(f"--{name}", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
+    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
+    return ap
+
+
+def scene_context(stage: str, args: argparse.Namespace):
+    """(params, scene config, methods, inputs) of ``<stage>@<scene>``."""
+    params = config.load(f"{stage}@{args.scene}", args.params)
+    scene = scene_config(params, args.scene)
+    methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
+    inputs = SceneInputs(args.scene_dir, getattr(args, "prep", None), args.particles, args.gaussians,
+                         args.prior_dir / f"{scene.prior}.pt")
+    return params, scene, methods, inputs
