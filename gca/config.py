@@ -81,7 +81,7 @@ def _active_profile(tree: Mapping) -> str:
     return profile
 
 
-def _params_via_dvc(stage: str, path: Path) -> dict:
+def _params_via_dvc(stage: str) -> dict:
     import dvc.api  # lazy: ~1 s import, and not installed on the GPU box
 
     return dict(dvc.api.params_show(stages=stage))
@@ -106,7 +106,7 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
     if via_dvc is None:
         via_dvc = bool(dvc_stage) and path.resolve() == Path(os.environ.get("DVC_ROOT", ".")).resolve() / "params.yaml"
     stage = dvc_stage or stage
-    tree = _params_via_dvc(stage, path) if via_dvc else read_yaml(path)
+    tree = _params_via_dvc(stage) if via_dvc else read_yaml(path)
     if via_dvc and "profile" not in tree:
         raise ConfigError(f"dvc.yaml: stage {stage!r} must declare the `profile` param (it selects the scale)")
     profile = _active_profile(tree)

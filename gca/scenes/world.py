@@ -90,12 +90,13 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                 opacities=as_t(opacities(kept)), backend=backend, raster=raster)
 
 
-def raster_settings(params: Mapping) -> tuple[str, RasterConfig]:
-    """(backend, RasterConfig) from params ``render.backend`` / ``render.raster``; gsplat falls back to
-    torch (with a warning) where CUDA is missing, so the CI profile's choice works anywhere."""
+def raster_settings(params: Mapping, device: str | torch.device | None = None) -> tuple[str, RasterConfig]:
+    """(backend, RasterConfig) from params ``render.backend`` / ``render.raster`` for rendering on
+    ``device`` (default: cuda when available); gsplat falls back to torch, with a warning, off CUDA."""
     backend = params.get("render", {}).get("backend", "torch")
     raster = build(RasterConfig, params.get("render", {}).get("raster", {}), "render.raster")
-    if backend == "gsplat" and not torch.cuda.is_available():
+    on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
+    if backend == "gsplat" and not on_cuda:
         warnings.warn("render.backend=gsplat needs CUDA: using the torch rasterizer", RuntimeWarning, stacklevel=2)
         backend = "torch"
     return backend, raster
@@ -103,9 +104,7 @@ def raster_settings(params: Mapping) -> tuple[str, RasterConfig]:
 
 def load_scene_body(params: Mapping, particles_path, gaussians_path, device="cpu") -> Body:
     """:func:`load_body` with the rasterizer settings of ``params``."""
-    backend, raster = raster_settings(params)
-    if torch.device(device).type != "cuda":
-        backend = "torch"
+    backend, raster = raster_settings(params, device)
     return load_body(particles_path, gaussians_path, device, backend=backend, raster=raster)
 
 

@@ -21,8 +21,8 @@ class TrainConfig:
         lambda_depth_l1: weight of the L1 monocular-depth loss (PAC-NeRF + depth row).
         cpr_every: apply CPR on every n-th supervised frame.
         checkpoint_every: save a resumable checkpoint every n iterations.
-        max_chamfer: a rollout whose mean distance to the observed silhouette exceeds this [m] is
-            treated as diverged (particles flying away).
+        max_spread_growth: a rollout whose particles spread further from their centre of mass than
+            at rest by more than this [m] is treated as diverged (particles flying away).
         seed: base seed of the run (matches, CPR subset).
     """
 
@@ -38,7 +38,7 @@ class TrainConfig:
     lambda_depth_l1: float = 1.0
     cpr_every: int = 2
     checkpoint_every: int = 10
-    max_chamfer: float = 0.5
+    max_spread_growth: float = 0.5
     seed: int = 0
 
 

@@ -289,6 +289,6 @@ def _check_drift(traj: Rollout, data: TrainData, n_video: int, cfg: TrainConfig)
         last = traj.x[data.video_frames[n_video - 1]]
         spread = (last - last.mean(0)).norm(dim=1).max()
         spread0 = (data.body.x0 - data.body.x0.mean(0)).norm(dim=1).max()
-    if float(spread) > spread0 + cfg.max_chamfer:
+    if float(spread) > spread0 + cfg.max_spread_growth:
         raise FloatingPointError(f"rollout blew up: particle spread {float(spread):.3g} m vs {float(spread0):.3g} m "
-                                 f"at rest (limit +{cfg.max_chamfer} m)")
+                                 f"at rest (limit +{cfg.max_spread_growth} m)")
