@@ -1,22 +1,19 @@
 """gca.laws.svd: rotation-valued SVD, clamped backward, exact spectral-map gradients at repeated values."""
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 from torch.autograd import gradcheck
 
-from gca.laws.svd import det3, polar_rotation, svd, svd_map
-
-f64 = torch.float64
-import sys
-from pathlib import Path
+from gca.laws.svd import det3, polar_rotation, svd, svd_map, torch_svd_rotations
+from gca.laws.svd_kernel import svd3
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures3x3 import random_rotations  # noqa: E402
-from fixtures3x3 import random_F  # noqa: E402
+from fixtures3x3 import random_F, random_rotations  # noqa: E402
 
-
-
-
+f64 = torch.float64
 
 
 def eye(n, dtype=f64):
@@ -35,6 +32,39 @@ def test_reconstruction_and_proper_rotations(dtype):
     inverted = det3(F) < 0
     assert 0 < int(inverted.sum()) < 64 and bool((sigma[inverted, 2] < 0).all()) and bool((sigma[~inverted] > 0).all())
     assert bool((sigma[:, 0] >= sigma[:, 1]).all()) and bool((sigma[:, 1] >= sigma[:, 2].abs()).all())
+
+
+def _kernel_cases() -> torch.Tensor:
+    """float32 batch: generic, identity, two/three repeated values, inverted, rotated, near-singular."""
+    g = torch.Generator().manual_seed(7)
+    F = [torch.eye(3) + 0.4 * torch.randn(400, 3, 3, generator=g), torch.eye(3).repeat(4, 1, 1),
+         torch.diag(torch.tensor([1.2, 1.2, 0.9]))[None], torch.diag(torch.tensor([0.7, 1.0, 1.0]))[None],
+         torch.diag(torch.tensor([1.1, 0.9, -0.8]))[None], 1e-3 * torch.randn(4, 3, 3, generator=g)]
+    R = random_rotations(8, 8).float()
+    F.append(R @ torch.diag(torch.tensor([1.3, 1.3, 0.6])))
+    return torch.cat(F)
+
+
+def test_warp_kernel_matches_torch_reference():
+    """Fast path (one warp kernel, float32) vs torch.linalg.svd with the same sign conventions."""
+    F = _kernel_cases()
+    U, sigma, Vh = svd3(F)
+    U_ref, s_ref, Vh_ref = torch_svd_rotations(F)
+    scale = F.flatten(1).abs().max(1).values.clamp(min=1.0)[:, None, None]
+    torch.testing.assert_close(U @ torch.diag_embed(sigma) @ Vh / scale, F / scale, atol=5e-6, rtol=0)
+    torch.testing.assert_close(sigma, s_ref, atol=2e-6, rtol=1e-6)
+    eye3 = torch.eye(3).expand_as(U)
+    torch.testing.assert_close(U @ U.transpose(1, 2), eye3, atol=2e-6, rtol=0)
+    torch.testing.assert_close(Vh @ Vh.transpose(1, 2), eye3, atol=2e-6, rtol=0)
+    assert bool((det3(U) > 0).all()) and bool((det3(Vh) > 0).all())
+    assert torch.equal(sigma[:, 2] < 0, det3(F) < 0)
+    well_posed = det3(F).abs() > 1e-2  # the polar rotation is unique and well conditioned there
+    torch.testing.assert_close((U @ Vh)[well_posed], (U_ref @ Vh_ref)[well_posed], atol=1e-5, rtol=0)
+
+
+def test_warp_kernel_refuses_float64():
+    with pytest.raises(ValueError, match="float32"):
+        svd3(torch.eye(3, dtype=f64)[None])
 
 
 def test_hand_values_diagonal():
