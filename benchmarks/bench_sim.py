@@ -10,6 +10,7 @@ on CUDA, the process' peak RSS on the CPU (a coarse upper bound that includes th
 Usage::
 
     python benchmarks/bench_sim.py --device cuda                      # paper sizes (H100)
+    python benchmarks/bench_sim.py --device cuda --law none neural --graph off on   # CUDA graphs vs launches
     python benchmarks/bench_sim.py --device cpu --sizes 10000:32 2000:32 --steps 5 \
         --rollout-particles 3000 --rollout-steps 40                   # CPU smoke sizes
 
@@ -28,10 +29,11 @@ from pathlib import Path
 import torch
 import warp as wp
 
-from gca.laws.base import Material
+from gca.laws.base import Elasticity, Material
 from gca.laws.elastic import CorotatedElasticity
 from gca.laws.plastic import IdentityPlasticity
 from gca.sim import MPMSolver, SimConfig, rollout
+from gca.sim.graph import graphed_frame
 
 RHO = 1000.0  # density [kg/m^3]
 PPC = 8  # particles per occupied cell when placing the block [count]
@@ -75,22 +77,45 @@ def make_material(law: str, device, dtype: torch.dtype) -> Material:
     return Material(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), RHO).to(device=device, dtype=dtype)
 
 
+class FixedStress(Elasticity):
+    """tau(F) = a fixed stress field [N,3,3] (Pa): the bare MPM step inside a Material (graph mode)."""
+
+    def __init__(self, tau: torch.Tensor):
+        super().__init__()
+        self.register_buffer("tau", tau)
+
+    def forward(self, F: torch.Tensor) -> torch.Tensor:
+        return self.tau
+
+
 def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str, repeats: int = 3,
-               law: str = "none") -> dict:
+               law: str = "none", graph: bool = False, steps_per_frame: int = 10) -> dict:
     """Forward and forward+backward particle-steps per second (best of ``repeats``).
 
     ``law="none"``: the bare step with a fixed stress; otherwise the law is evaluated every step
-    (tau = elasticity(F) before, F = plasticity(F_trial) after), as in training.
+    (tau = elasticity(F) before, F = plasticity(F_trial) after), as in training. ``graph``: frames
+    of ``steps_per_frame`` steps replayed through ``gca.sim.graph`` (CUDA graphs; forward and the
+    recompute-backward), as a rollout does on a GPU; otherwise the steps are launched one by one.
     """
     cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
     x, v, C, F, tau, vol, mass = _state(n, cfg, device)
-    material = None if law == "none" else make_material(law, device, cfg.torch_dtype)
+    if law == "none":
+        material = Material(FixedStress(tau), IdentityPlasticity(), RHO) if graph else None
+    else:
+        material = make_material(law, device, cfg.torch_dtype)
+    runner = solver.frame_graphs(material, steps_per_frame, n) if graph else None
+    if runner is not None:
+        runner.bind(vol, mass)
+        steps = steps_per_frame * max(1, steps // steps_per_frame)
 
     def chain(grad: bool):
         ins = [t.clone().requires_grad_(grad) for t in (x, v, C, F, tau)]
         xs, vs, Cs, Fs = ins[:4]
-        for _ in range(steps):
+        if runner is not None:
+            for _ in range(steps // steps_per_frame):
+                xs, vs, Cs, Fs, _ = graphed_frame(runner, xs, vs, Cs, Fs)
+        for _ in range(0 if runner is not None else steps):
             if material is None:
                 xs, vs, Cs, Fs = solver.step(xs, vs, Cs, Fs, ins[4], vol, mass)
             else:
@@ -100,7 +125,8 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
             (xs.sum() + vs.sum() + Fs.sum()).backward()
         _sync(device)
 
-    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law}
+    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law, "graph": graph,
+              "captured": bool(runner is not None and runner.capture)}
     for name, grad in (("fwd", False), ("fwd_bwd", True)):
         with torch.set_grad_enabled(grad):
             chain(grad)  # warm-up: kernel compile/load, allocator
@@ -115,7 +141,7 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
 
 
 def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, device, dtype, checkpoint,
-                   law: str = "corotated") -> dict:
+                   law: str = "corotated", graph: bool = False) -> dict:
     """Peak memory and time of forward + backward through a rollout (corotated or LoRA-neural law)."""
     cfg = SimConfig(n_grid=n_grid, dt=2e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
@@ -125,7 +151,7 @@ def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, devi
     v0 = torch.zeros_like(x).requires_grad_()
     c = 12.0  # wave speed for the CFL check [m/s] (the neural law's numerical estimate is not needed here)
     warm = rollout(solver, material, x[:8], v0[:8], vol[:8], mass[:8], steps_per_frame, steps_per_frame,
-                   checkpoint=checkpoint, wave_speed=c)  # one-off costs: kernel load, checkpoint imports
+                   checkpoint=checkpoint, wave_speed=c, graph=False)  # one-off costs: kernel load, imports
     warm.x.sum().backward()
     material.zero_grad()
     v0.grad = None
@@ -133,14 +159,15 @@ def rollout_memory(n: int, n_steps: int, steps_per_frame: int, n_grid: int, devi
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
-    out = rollout(solver, material, x, v0, vol, mass, n_steps, steps_per_frame, checkpoint=checkpoint, wave_speed=c)
+    out = rollout(solver, material, x, v0, vol, mass, n_steps, steps_per_frame, checkpoint=checkpoint, wave_speed=c,
+                  graph=graph)
     (out.x[1:] ** 2).sum().backward()
     _sync(device)
-    seconds = time.perf_counter() - t0
+    seconds = time.perf_counter() - t0  # with graph: includes the one-off capture
     peak = (torch.cuda.max_memory_allocated(device) if device.type == "cuda"
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
     return {"particles": n, "n_grid": n_grid, "steps": n_steps, "steps_per_frame": steps_per_frame,
-            "checkpoint": checkpoint, "seconds": seconds, "peak_bytes": int(peak),
+            "checkpoint": checkpoint, "graph": graph, "seconds": seconds, "peak_bytes": int(peak),
             "peak_kind": "cuda_max_memory_allocated" if device.type == "cuda" else "process_max_rss",
             "law": law, "grad_finite": bool(torch.isfinite(v0.grad).all()),
             "grad_norm_law": float(sum(p.grad.norm() ** 2 for p in params if p.grad is not None) ** 0.5)}
@@ -163,20 +190,23 @@ def _parse(argv=None):
     p.add_argument("--law", nargs="+", default=["none"], choices=["none", "corotated", "neural"],
                    help="law evaluated each step in the throughput chains (none: fixed stress)")
     p.add_argument("--rollout-law", default="corotated", choices=["corotated", "neural"])
+    p.add_argument("--graph", nargs="+", default=["off"], choices=["off", "on"],
+                   help="step launches one by one (off) and/or frames replayed from CUDA graphs (on)")
     p.add_argument("--json", default=None, help="output path (default benchmarks/results/sim_<device>.json)")
     return p.parse_args(argv)
 
 
 def _table(results: dict) -> str:
-    lines = ["| law | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| law | graph | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results["throughput"]:
-        lines.append(f"| {r['law']} | {r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
+        lines.append(f"| {r['law']} | {'on' if r.get('captured') else 'twin' if r.get('graph') else 'off'} | "
+                     f"{r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
                      f"{r['fwd_particle_steps_per_s'] / 1e6:.3f} | {r['fwd_bwd_ms_per_step']:.2f} | "
                      f"{r['fwd_bwd_particle_steps_per_s'] / 1e6:.3f} |")
     for r in results["rollout"]:
         lines.append(f"rollout ({r['law']}) {r['particles']} p x {r['steps']} steps ({r['n_grid']}^3, checkpoint="
-                     f"{r['checkpoint']}): {r['seconds']:.1f} s fwd+bwd, peak {r['peak_bytes'] / 2**30:.2f} GiB "
+                     f"{r['checkpoint']}, graph={r.get('graph', False)}): {r['seconds']:.1f} s fwd+bwd, peak {r['peak_bytes'] / 2**30:.2f} GiB "
                      f"({r['peak_kind']})")
     return "\n".join(lines)
 
@@ -188,17 +218,21 @@ def main(argv=None) -> dict:
     results = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
                or "cpu", "warp": wp.__version__, "torch": torch.__version__, "dtype": args.dtype,
                "throughput": [], "rollout": []}
+    graphs = [g == "on" for g in args.graph]
     for law in args.law:
         for spec in args.sizes:
-            n, n_grid = (int(s) for s in spec.split(":"))
-            results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats, law))
-            print(results["throughput"][-1], flush=True)
+            for graph in graphs:  # side by side in one run
+                n, n_grid = (int(s) for s in spec.split(":"))
+                results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats, law,
+                                                        graph, args.steps_per_frame))
+                print(results["throughput"][-1], flush=True)
     if not args.skip_rollout:
         for checkpoint in (True, False) if args.no_checkpoint else (True,):
-            results["rollout"].append(rollout_memory(args.rollout_particles, args.rollout_steps, args.steps_per_frame,
-                                                     args.rollout_grid, device, args.dtype, checkpoint,
-                                                     args.rollout_law))
-            print(results["rollout"][-1], flush=True)
+            for graph in graphs:
+                results["rollout"].append(rollout_memory(args.rollout_particles, args.rollout_steps,
+                                                         args.steps_per_frame, args.rollout_grid, device, args.dtype,
+                                                         checkpoint, args.rollout_law, graph))
+                print(results["rollout"][-1], flush=True)
     print(_table(results))
     out = Path(args.json or f"benchmarks/results/sim_{device.type}.json")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -24,6 +24,8 @@ from __future__ import annotations
 import torch
 import warp as wp
 
+from gca.warp_stream import on_torch_stream
+
 _WHERE = "gca/laws/svd_kernel.py"
 MAX_SWEEPS = 12  # cyclic sweeps of 3 rotations; float32 convergence takes <= 6 on random matrices
 _EPS = 1.2e-7  # float32 machine epsilon: columns count as orthogonal below this cosine
@@ -141,10 +143,6 @@ def svd3(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     device = wp.device_from_torch(F.device)
     args = [wp.from_torch(F, dtype=wp.mat33), wp.from_torch(U, dtype=wp.mat33), wp.from_torch(sigma, dtype=wp.vec3),
             wp.from_torch(Vh, dtype=wp.mat33)]
-    if F.device.type == "cuda":
-        stream = wp.stream_from_torch(F.device)
-        with wp.ScopedStream(stream, sync_enter=False):
-            wp.launch(_svd3_kernel, dim=n, inputs=args[:1], outputs=args[1:], device=device)
-    else:
+    with on_torch_stream(F.device):
         wp.launch(_svd3_kernel, dim=n, inputs=args[:1], outputs=args[1:], device=device)
     return U, sigma, Vh

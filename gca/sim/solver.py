@@ -14,7 +14,6 @@ The constitutive law lives in torch (``tau = law(F)``); warp does the transfers.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from typing import Sequence
 
@@ -22,7 +21,9 @@ import torch
 import warp as wp
 from torch.autograd.function import once_differentiable
 
+from gca.sim.graph import FrameGraphs, GraphCache
 from gca.sim.kernels import BOUNDARY_KINDS, KERNELS, PAD, grid_size
+from gca.warp_stream import on_torch_stream as _stream
 
 _WHERE = "gca/sim/solver.py"
 _TORCH_DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -46,6 +47,7 @@ class SimConfig:
     cfl: float = 0.5  # refuse dt > cfl * dx / (c + |v|max) [-]
     max_clamped_fraction: float = 0.1  # rollout raises if more particles sit on the clamp [-]
     dtype: str = "float32"  # float32 | float64 (float64 for gradient checks)
+    cuda_graphs: bool = True  # replay each frame from CUDA graphs on a GPU (gca.sim.graph) [-]
 
     def __post_init__(self):
         object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
@@ -86,13 +88,6 @@ class SimConfig:
         return _TORCH_DTYPES[self.dtype]
 
 
-def _stream(device: torch.device):
-    """Run warp on torch's current stream (CUDA); nothing to do on the CPU."""
-    if device.type == "cuda":
-        return wp.ScopedStream(wp.stream_from_torch(device))
-    return contextlib.nullcontext()
-
-
 class MPMSolver:
     """One MLS-MPM step on the unit cube, differentiable through torch autograd.
 
@@ -111,6 +106,11 @@ class MPMSolver:
         self.k = KERNELS[cfg.dtype]
         self.dtype = cfg.torch_dtype
         self._grids: dict[bool, tuple] = {}
+        self._graphs = GraphCache()
+
+    def frame_graphs(self, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
+        """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""
+        return self._graphs.get(self, material, n_steps, n, capture)
 
     def step(self, x, v, C, F, tau, vol, mass):
         """Advance the particles by one step of ``cfg.dt``.

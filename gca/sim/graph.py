@@ -1,0 +1,195 @@
+"""One frame's steps (law + MPM) replayed from CUDA graphs, forward and backward.
+
+A frame of ``n`` steps launches ~40 small kernels per step from Python (laws in torch, transfers in
+warp); at MPM sizes the GPU then waits on the launches (benchmarks/NOTES.md: ~6 ms per step for 10k
+and 100k particles alike). :class:`FrameGraphs` captures, once per (material, frame length, particle
+count):
+
+- a **forward graph**: static inputs (x, v, C, F) -> static outputs (x, v, C, F, F_trial), no autograd;
+- a **backward graph**: the frame recomputed with autograd from static inputs, then
+  ``torch.autograd.grad`` of its outputs against static output cotangents, giving the gradients of
+  the frame-start state and of the material's trainable parameters.
+
+:func:`graphed_frame` wraps them in a ``torch.autograd.Function`` that saves only the frame-start
+state, i.e. the same memory profile as per-frame checkpointing (``gca.sim.rollout``), with both
+passes replayed instead of launched. Parameters are read from their storage at replay time, so
+in-place optimiser updates are seen; anything the law decides in Python (branches, shapes) is frozen
+at capture, hence the cache key includes the material object and its trainable parameters.
+
+CPU twin: on a CPU device (or with ``capture=False``) the very same static-buffer code runs eagerly
+instead of replaying; the tests compare it with the checkpointed rollout in values and gradients.
+If capture fails on a GPU (a law that synchronises with the host, e.g. validates a parameter with
+``.item()``), the runner says so once and runs eagerly.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+
+_WHERE = "gca/sim/graph.py"
+_STATE = ("x", "v", "C", "F")
+
+
+def _trainable(material) -> list[torch.Tensor]:
+    """The material's parameters that require gradients, in registration order."""
+    return [p for p in material.parameters() if p.requires_grad]
+
+
+class FrameGraphs:
+    """Forward and backward of ``n_steps`` steps of ``material`` on ``n`` particles, replayable.
+
+    Args:
+        solver: the :class:`gca.sim.solver.MPMSolver` (fixes dt, grid, device, dtype).
+        material: law container with ``stress``/``project`` (an ``nn.Module``).
+        n_steps: steps per frame.
+        n: particle count.
+        capture: capture CUDA graphs (default: when the solver runs on CUDA); False runs the same
+            code eagerly (the CPU twin).
+    """
+
+    def __init__(self, solver, material, n_steps: int, n: int, capture: bool | None = None):
+        self.solver, self.material, self.n_steps, self.n = solver, material, int(n_steps), int(n)
+        self.params = _trainable(material)
+        dev, dt = solver.device, solver.dtype
+        self.capture = (dev.type == "cuda") if capture is None else bool(capture)
+        if self.capture and dev.type != "cuda":
+            raise ValueError(f"{_WHERE}: CUDA graph capture needs a CUDA solver, this one runs on {dev}")
+        shapes = {"x": (n, 3), "v": (n, 3), "C": (n, 3, 3), "F": (n, 3, 3)}
+        new = lambda: {k: torch.zeros(s, dtype=dt, device=dev) for k, s in shapes.items()}  # noqa: E731
+        self.vol = torch.zeros(n, dtype=dt, device=dev)
+        self.mass = torch.zeros(n, dtype=dt, device=dev)
+        self.fwd_in, self.bwd_in = new(), new()
+        self.bwd_cot = {**new(), "F_trial": torch.zeros(n, 3, 3, dtype=dt, device=dev)}
+        self.fwd_out = self.bwd_grads = None
+        self._fwd_graph = self._bwd_graph = None
+        self._captured = False
+
+    def key(self) -> tuple:
+        """What a cached runner must still match to be reused."""
+        return (id(self.material), self.n_steps, self.n, tuple(id(p) for p in self.params))
+
+    def matches(self, material, n_steps: int, n: int) -> bool:
+        return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
+                and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
+
+    def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:
+        """Copy the (constant) particle volumes and masses [N] into the static buffers."""
+        self.vol.copy_(vol)
+        self.mass.copy_(mass)
+
+    # -- the two passes, as plain functions of the static buffers -----------------------------------
+
+    def _run_forward(self):
+        from gca.sim.rollout import simulate_frame_trial  # circular import at module level
+
+        s = self.fwd_in
+        with torch.no_grad():
+            return simulate_frame_trial(self.solver, self.material, self.n_steps, s["x"], s["v"], s["C"], s["F"],
+                                        self.vol, self.mass)
+
+    def _run_backward(self):
+        from gca.sim.rollout import simulate_frame_trial
+
+        with torch.enable_grad():
+            ins = [self.bwd_in[k].detach().requires_grad_(True) for k in _STATE]
+            outs = simulate_frame_trial(self.solver, self.material, self.n_steps, *ins, self.vol, self.mass)
+            cots = [self.bwd_cot[k] for k in (*_STATE, "F_trial")]
+            grads = torch.autograd.grad(outs, [*ins, *self.params], cots, allow_unused=True)
+        return tuple(torch.zeros_like(t) if g is None else g for g, t in zip(grads, [*ins, *self.params]))
+
+    # -- capture ------------------------------------------------------------------------------------
+
+    def _ensure_captured(self) -> None:
+        if not self.capture or self._captured:
+            return
+        side = torch.cuda.Stream(self.solver.device)
+        side.wait_stream(torch.cuda.current_stream(self.solver.device))
+        try:
+            with torch.cuda.stream(side):  # warm-up: lazy inits, warp module loads, cuBLAS handles
+                self._run_forward()
+                self._run_backward()
+            torch.cuda.current_stream(self.solver.device).wait_stream(side)
+            self._fwd_graph, self._bwd_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self._fwd_graph, capture_error_mode="thread_local"):
+                self.fwd_out = self._run_forward()
+            with torch.cuda.graph(self._bwd_graph, capture_error_mode="thread_local"):
+                self.bwd_grads = self._run_backward()
+        except RuntimeError as err:  # a host sync inside the law: run eagerly instead
+            warnings.warn(f"{_WHERE}: CUDA graph capture of {type(self.material).__name__} failed, running "
+                          f"eagerly ({str(err).splitlines()[0]})", RuntimeWarning, stacklevel=3)
+            self.capture, self._fwd_graph, self._bwd_graph = False, None, None
+            torch.cuda.synchronize(self.solver.device)
+        self._captured = True
+
+    # -- public passes ----------------------------------------------------------------------------
+
+    def forward(self, x, v, C, F):
+        """New (x, v, C, F, F_trial) after ``n_steps`` steps, without autograd (fresh tensors)."""
+        for k, t in zip(_STATE, (x, v, C, F)):
+            self.fwd_in[k].copy_(t)
+        self._ensure_captured()
+        if self.capture:
+            self._fwd_graph.replay()
+            out = self.fwd_out
+        else:
+            out = self._run_forward()
+        return tuple(o.clone() for o in out)
+
+    def backward(self, state, cotangents):
+        """Gradients of the frame-start ``state`` (x, v, C, F) and of the trainable parameters.
+
+        Args:
+            state: the frame's inputs (x, v, C, F).
+            cotangents: gradients of the frame's outputs (x, v, C, F, F_trial).
+        """
+        for k, t in zip(_STATE, state):
+            self.bwd_in[k].copy_(t)
+        for k, g in zip((*_STATE, "F_trial"), cotangents):
+            self.bwd_cot[k].copy_(g)
+        self._ensure_captured()
+        grads = self.bwd_grads if self.capture else self._run_backward()
+        if self.capture:
+            self._bwd_graph.replay()
+        return tuple(g.clone() for g in grads)
+
+
+class _GraphedFrame(torch.autograd.Function):
+    """autograd bridge of :class:`FrameGraphs`: saves the frame-start state only."""
+
+    @staticmethod
+    def forward(ctx, runner: FrameGraphs, x, v, C, F, *params):
+        ctx.runner = runner
+        ctx.save_for_backward(x, v, C, F)
+        return runner.forward(x, v, C, F)
+
+    @staticmethod
+    def backward(ctx, *cotangents):
+        grads = ctx.runner.backward(ctx.saved_tensors, cotangents)
+        return (None, *grads)
+
+
+def graphed_frame(runner: FrameGraphs, x, v, C, F):
+    """Differentiable frame through the runner: (x, v, C, F) -> (x, v, C, F, F_trial)."""
+    if torch.is_grad_enabled():
+        return _GraphedFrame.apply(runner, x, v, C, F, *runner.params)
+    return runner.forward(x, v, C, F)
+
+
+class GraphCache:
+    """A few :class:`FrameGraphs` per solver, reused across rollouts (training iterations)."""
+
+    def __init__(self, size: int = 4):
+        self.size, self.runners = size, []
+
+    def get(self, solver, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
+        for r in self.runners:
+            if r.matches(material, n_steps, n) and (capture is None or r.capture == capture or r._captured):
+                self.runners.remove(r)
+                self.runners.append(r)
+                return r
+        runner = FrameGraphs(solver, material, n_steps, n, capture)
+        self.runners.append(runner)
+        del self.runners[:-self.size]
+        return runner
