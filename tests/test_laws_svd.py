@@ -155,3 +155,15 @@ def test_cuda_matches_cpu():
     R_cpu = polar_rotation(F)
     R_gpu = polar_rotation(F.cuda()).cpu()
     torch.testing.assert_close(R_gpu, R_cpu, atol=1e-5, rtol=1e-5)
+
+
+def test_bmm3_equals_matmul_with_broadcasting_and_gradients():
+    g = torch.Generator().manual_seed(11)
+    A = torch.randn(7, 3, 3, generator=g, dtype=f64, requires_grad=True)
+    B = torch.randn(7, 3, 3, generator=g, dtype=f64, requires_grad=True)
+    M = torch.randn(3, 3, generator=g, dtype=f64)
+    from gca.laws.svd import bmm3
+    torch.testing.assert_close(bmm3(A, B), A @ B, atol=1e-14, rtol=1e-14)
+    torch.testing.assert_close(bmm3(M, B), M @ B, atol=1e-14, rtol=1e-14)
+    torch.testing.assert_close(bmm3(A[None], B[:, None]), A[None] @ B[:, None], atol=1e-14, rtol=1e-14)
+    assert gradcheck(bmm3, (A, B))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from gca.laws.base import Elasticity, YoungPoisson, lame, per_particle
-from gca.laws.svd import check_F, det3, polar_rotation, svd_map
+from gca.laws.svd import bmm3, check_F, det3, polar_rotation, svd_map
 
 __all__ = ["lame", "corotated_tau", "stvk_tau", "volume_tau", "sigma_tau", "ELASTIC_FORMS",
            "CorotatedElasticity", "StVKElasticity", "VolumeElasticity", "SigmaElasticity"]
@@ -35,7 +35,7 @@ def corotated_tau(F: torch.Tensor, mu, lam) -> torch.Tensor:
     check_F(F, "corotated_tau")
     mu, lam = per_particle(mu, F, "mu", 2), per_particle(lam, F, "lam", 2)
     J = det3(F)[:, None, None]
-    return 2 * mu * (F - polar_rotation(F)) @ F.transpose(1, 2) + lam * J * (J - 1) * _eye_like(F)
+    return 2 * mu * bmm3(F - polar_rotation(F), F.transpose(1, 2)) + lam * J * (J - 1) * _eye_like(F)
 
 
 def stvk_tau(F: torch.Tensor, mu, lam) -> torch.Tensor:
@@ -56,10 +56,10 @@ def stvk_tau(F: torch.Tensor, mu, lam) -> torch.Tensor:
     check_F(F, "stvk_tau")
     mu, lam = per_particle(mu, F, "mu", 2), per_particle(lam, F, "lam", 2)
     I = _eye_like(F)
-    E = 0.5 * (F.transpose(1, 2) @ F - I)
+    E = 0.5 * (bmm3(F.transpose(1, 2), F) - I)
     tr_E = torch.diagonal(E, dim1=1, dim2=2).sum(-1)[:, None, None]
     S = 2 * mu * E + lam * tr_E * I
-    return F @ S @ F.transpose(1, 2)
+    return bmm3(bmm3(F, S), F.transpose(1, 2))
 
 
 def volume_tau(F: torch.Tensor, lam) -> torch.Tensor:

@@ -11,7 +11,7 @@ import torch
 
 from gca.laws.base import Elasticity, Plasticity, YoungPoisson, per_particle
 from gca.laws.plastic import SIGMA_MIN, hencky_split
-from gca.laws.svd import check_F, det3, svd_map
+from gca.laws.svd import bmm3, check_F, det3, svd_map
 
 __all__ = ["neo_hookean_tau", "viscoplastic_plastic", "NeoHookeanElasticity", "ViscoplasticPlasticity"]
 
@@ -36,7 +36,7 @@ def neo_hookean_tau(F: torch.Tensor, mu, lam, j_min: float = J_MIN) -> torch.Ten
     mu, lam = per_particle(mu, F, "mu", 2), per_particle(lam, F, "lam", 2)
     I = torch.eye(3, dtype=F.dtype, device=F.device).expand_as(F)
     log_J = torch.log(det3(F).clamp(min=j_min))[:, None, None]
-    return mu * (F @ F.transpose(1, 2) - I) + lam * log_J * I
+    return mu * (bmm3(F, F.transpose(1, 2)) - I) + lam * log_J * I
 
 
 def _plastic_increment(over, mu, eta, n, dt):

@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from gca.laws.base import Elasticity, Plasticity
-from gca.laws.svd import check_F, det3, svd
+from gca.laws.svd import bmm3, check_F, det3, svd
 
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
@@ -78,7 +78,7 @@ def invariant_features(F: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         z [N, 13] = [sigma - 1, vec(F^T F - I), det F - 1]; exactly 0 at F = I.
     """
     eye = torch.eye(3, dtype=F.dtype, device=F.device)
-    C = F.transpose(1, 2) @ F
+    C = bmm3(F.transpose(1, 2), F)
     return torch.cat([sigma - 1.0, (C - eye).reshape(-1, 9), (det3(F) - 1.0)[:, None]], dim=1)
 
 
@@ -110,7 +110,7 @@ class _InvariantNetwork(nn.Module):
             raise TypeError(f"gca/laws/neural.py: {type(self).__name__}: F is {F.dtype} but the network is "
                             f"{weight.dtype}; call .to({F.dtype}) on the law")
         U, sigma, Vh = svd(F)
-        R = U @ Vh
+        R = bmm3(U, Vh)
         X = self.mlp(invariant_features(F, sigma)).reshape(-1, 3, 3)
         return R, 0.5 * (X + X.transpose(1, 2))
 
@@ -129,8 +129,8 @@ class NeuralElasticity(_InvariantNetwork, Elasticity):
         """
         check_F(F, "NeuralElasticity.forward")
         R, S = self.rotation_and_stretch(F)
-        P = self.cfg.stress_scale * (R @ S)
-        return P @ F.transpose(1, 2)
+        P = self.cfg.stress_scale * bmm3(R, S)
+        return bmm3(P, F.transpose(1, 2))
 
     def wave_speed(self, rho, strain: float = 1e-2) -> float:
         """Estimated largest wave speed sqrt(M / rho) [m/s] for the CFL check.
@@ -169,4 +169,4 @@ class NeuralPlasticity(_InvariantNetwork, Plasticity):
         """
         check_F(F, "NeuralPlasticity.forward")
         R, S = self.rotation_and_stretch(F)
-        return F + self.cfg.alpha * (R @ S)
+        return F + self.cfg.alpha * bmm3(R, S)

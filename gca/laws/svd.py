@@ -62,6 +62,17 @@ def det3(F: torch.Tensor) -> torch.Tensor:
             + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
 
 
+def bmm3(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """Batched 3x3 product A B by broadcasting, for [..., 3, 3] operands (any broadcastable batch).
+
+    ``A @ B`` on [N, 3, 3] batches goes to cuBLAS batched GEMM, whose smallest tiles waste ~30x the
+    work: ~0.1 ms per product for N = 1e5 on an H100, the largest cost of a neural-law MPM step
+    (benchmarks/NOTES.md). Multiply-and-sum over the shared index is two memory-bound elementwise
+    kernels (a few microseconds), forward and backward. Same values as ``A @ B`` up to summation order.
+    """
+    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+
+
 def default_eps(dtype: torch.dtype) -> float:
     """Denominator clamp of the backward: sqrt(machine eps) (3.5e-4 in float32, 1.5e-8 in float64)."""
     return float(torch.finfo(dtype).eps) ** 0.5
@@ -115,13 +126,13 @@ class _SVD(torch.autograd.Function):
     def backward(ctx, v_U, v_sigma, v_Vh):
         U, sigma, Vh = ctx.saved_tensors
         V = Vh.transpose(1, 2)
-        A = _skew(U.transpose(1, 2) @ v_U)
-        B = _skew(V.transpose(1, 2) @ v_Vh.transpose(1, 2))
+        A = _skew(bmm3(U.transpose(1, 2), v_U))
+        B = _skew(bmm3(V.transpose(1, 2), v_Vh.transpose(1, 2)))
         s_i, s_j = sigma[:, :, None], sigma[:, None, :]
         M = 0.5 * (A + B) * _safe_reciprocal(s_j - s_i, ctx.eps) \
             + 0.5 * (A - B) * _safe_reciprocal(s_j + s_i, ctx.eps)
         M = M + torch.diag_embed(v_sigma)
-        return U @ M @ Vh, None
+        return bmm3(bmm3(U, M), Vh), None
 
 
 def svd(F: torch.Tensor, eps: float | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -193,7 +204,7 @@ class _SpectralMap(torch.autograd.Function):
         ctx.fn, ctx.left, ctx.eps, ctx.n_params = fn, left, eps, len(params)
         ctx.raw_params = [None if isinstance(p, torch.Tensor) else p for p in params]
         ctx.mark_non_differentiable(sigma)
-        return (U * y[:, None, :]) @ right, sigma
+        return bmm3(U * y[:, None, :], right), sigma
 
     @staticmethod
     @once_differentiable
@@ -201,13 +212,13 @@ class _SpectralMap(torch.autograd.Function):
         U, sigma, Vh, *tensors = ctx.saved_tensors
         params = tuple(t if t is not None else r for t, r in zip(tensors, ctx.raw_params))
         y, J, leaves = _jacobian(ctx.fn, sigma, params)
-        X = U.transpose(1, 2) @ v_G @ (U if ctx.left else Vh.transpose(1, 2))
+        X = bmm3(bmm3(U.transpose(1, 2), v_G), U if ctx.left else Vh.transpose(1, 2))
         M, v_y = _spectral_core(X, y.detach(), sigma, J, ctx.eps)
         if ctx.left:  # G = (U diag(y) V^T)(U V^T)^T: add the rotation factor's share, cotangent X^T diag(y)
             R_cot = X.transpose(1, 2) * y.detach()[:, None, :]
             M = M + _sum_quotient(torch.ones_like(y), sigma, ctx.eps) * 0.5 * _skew(R_cot)
         grads = _param_grads(y, leaves, v_y, ctx.needs_input_grad[4:])
-        return (U @ M @ Vh, None, None, None, *grads)
+        return (bmm3(bmm3(U, M), Vh), None, None, None, *grads)
 
 
 def _param_grads(y, leaves, v_y, needed) -> list:

@@ -17,6 +17,8 @@ import dataclasses
 
 import torch
 
+from gca.laws.svd import bmm3
+
 _WHERE = "gca/render/follow.py"
 
 
@@ -105,7 +107,7 @@ def follow(binding: Binding, means0: torch.Tensor, covs0: torch.Tensor, x0: torc
         f"{tuple(x0.shape)}/{tuple(x.shape)}/{tuple(F.shape)}"
     means = means0 + binding.apply(x - x0)
     F_g = binding.apply(F)
-    covs = F_g @ covs0 @ F_g.transpose(-1, -2)
+    covs = bmm3(bmm3(F_g, covs0), F_g.transpose(-1, -2))
     return means, covs
 
 
@@ -130,7 +132,7 @@ def covariance_from_scale_rot(log_scales: torch.Tensor, quats: torch.Tensor) -> 
         f"{_WHERE}: log_scales [N, 3] and quats [N, 4] expected, got {tuple(log_scales.shape)}, {tuple(quats.shape)}"
     R = quat_to_rotmat(quats)
     M = R * torch.exp(log_scales)[:, None, :]
-    return M @ M.transpose(-1, -2)
+    return bmm3(M, M.transpose(-1, -2))
 
 
 _EIGH_CHUNK = 16384  # matrices per batched eigh call on CUDA
