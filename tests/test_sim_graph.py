@@ -44,7 +44,7 @@ def _scene(n=40, dtype=F64, seed=1):
 def _loss_and_grads(material, solver, graph, x0, v0, vol, mass, n_steps=8, per_frame=2):
     v0 = v0.clone().requires_grad_(True)
     out = rollout(solver, material, x0, v0, vol, mass, n_steps, per_frame, checkpoint=True, graph=graph)
-    w = torch.linspace(0.5, 1.5, out.x.shape[1], dtype=x0.dtype)[:, None]
+    w = torch.linspace(0.5, 1.5, out.x.shape[1], dtype=x0.dtype, device=x0.device)[:, None]
     loss = (w * out.x[-1]).sum() + (out.F[-1] ** 2).sum() + 0.1 * out.F_trial[2].sum() + (out.v[3] ** 2).sum()
     params = [p for p in material.parameters() if p.requires_grad]
     return out, torch.autograd.grad(loss, [v0, *params])

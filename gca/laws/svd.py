@@ -34,6 +34,7 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
+import warp as wp
 from torch.autograd.function import once_differentiable
 
 from gca.laws.svd_kernel import svd3
@@ -82,11 +83,24 @@ def _svd_rotations(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     """Forward SVD with the sign fix (no autograd). F [N,3,3] -> U [N,3,3], sigma [N,3], Vh [N,3,3].
 
     float32 runs one warp kernel (``gca.laws.svd_kernel``: no host sync, capturable in a CUDA graph,
-    4x faster than LAPACK on the CPU); float64 uses :func:`torch_svd_rotations` (full precision).
+    7x faster than LAPACK on the CPU); float64, and the CPU where warp has no CPU compiler, use
+    :func:`torch_svd_rotations` (full precision).
     """
-    if F.dtype == torch.float32:
+    if F.dtype == torch.float32 and (F.is_cuda or _warp_cpu()):
         return svd3(F)
     return torch_svd_rotations(F)
+
+
+def _warp_cpu() -> bool:
+    """Whether warp can compile CPU kernels here (a GPU-only install ships no CPU compiler)."""
+    global _WARP_CPU
+    if _WARP_CPU is None:
+        wp.init()
+        _WARP_CPU = bool(wp.is_cpu_available())
+    return _WARP_CPU
+
+
+_WARP_CPU: bool | None = None
 
 
 def torch_svd_rotations(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
