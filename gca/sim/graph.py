@@ -27,6 +27,7 @@ from __future__ import annotations
 import warnings
 
 import torch
+from torch import nn
 
 _WHERE = "gca/sim/graph.py"
 _STATE = ("x", "v", "C", "F")
@@ -35,6 +36,19 @@ _STATE = ("x", "v", "C", "F")
 def _trainable(material) -> list[torch.Tensor]:
     """The material's parameters that require gradients, in registration order."""
     return [p for p in material.parameters() if p.requires_grad]
+
+
+class _Frame(nn.Module):
+    """``n_steps`` steps of ``material`` as a module, so the parameters can be swapped for aliases."""
+
+    def __init__(self, solver, material, n_steps: int):
+        super().__init__()
+        self.solver, self.material, self.n_steps = solver, material, n_steps
+
+    def forward(self, x, v, C, F, vol, mass):
+        from gca.sim.rollout import simulate_frame_trial  # circular import at module level
+
+        return simulate_frame_trial(self.solver, self.material, self.n_steps, x, v, C, F, vol, mass)
 
 
 class FrameGraphs:
@@ -52,6 +66,8 @@ class FrameGraphs:
     def __init__(self, solver, material, n_steps: int, n: int, capture: bool | None = None):
         self.solver, self.material, self.n_steps, self.n = solver, material, int(n_steps), int(n)
         self.params = _trainable(material)
+        self.frame = _Frame(solver, material, self.n_steps)
+        self.param_names = [f"material.{name}" for name, p in material.named_parameters() if p.requires_grad]
         dev, dt = solver.device, solver.dtype
         self.capture = (dev.type == "cuda") if capture is None else bool(capture)
         if self.capture and dev.type != "cuda":
@@ -82,22 +98,23 @@ class FrameGraphs:
     # -- the two passes, as plain functions of the static buffers -----------------------------------
 
     def _run_forward(self):
-        from gca.sim.rollout import simulate_frame_trial  # circular import at module level
-
         s = self.fwd_in
         with torch.no_grad():
-            return simulate_frame_trial(self.solver, self.material, self.n_steps, s["x"], s["v"], s["C"], s["F"],
-                                        self.vol, self.mass)
+            return self.frame(s["x"], s["v"], s["C"], s["F"], self.vol, self.mass)
 
     def _run_backward(self):
-        from gca.sim.rollout import simulate_frame_trial
-
+        """Recompute the frame and differentiate it. The trainable parameters enter as fresh aliases
+        (same storage, new autograd leaves): differentiating the parameters themselves would touch
+        their accumulation nodes, which may belong to a live graph on another stream (e.g. a
+        regulariser evaluated before the rollout) and then break the capture."""
         with torch.enable_grad():
             ins = [self.bwd_in[k].detach().requires_grad_(True) for k in _STATE]
-            outs = simulate_frame_trial(self.solver, self.material, self.n_steps, *ins, self.vol, self.mass)
+            alias = {name: p.detach().requires_grad_(True) for name, p in zip(self.param_names, self.params)}
+            outs = torch.func.functional_call(self.frame, alias, (*ins, self.vol, self.mass), strict=False)
             cots = [self.bwd_cot[k] for k in (*_STATE, "F_trial")]
-            grads = torch.autograd.grad(outs, [*ins, *self.params], cots, allow_unused=True)
-        return tuple(torch.zeros_like(t) if g is None else g for g, t in zip(grads, [*ins, *self.params]))
+            leaves = [*ins, *alias.values()]
+            grads = torch.autograd.grad(outs, leaves, cots, allow_unused=True)
+        return tuple(torch.zeros_like(t) if g is None else g for g, t in zip(grads, leaves))
 
     # -- capture ------------------------------------------------------------------------------------
 
