@@ -36,6 +36,7 @@ from gca.sim.solver import MPMSolver
 from gca.train.config import TrainConfig
 from gca.train.law import LearnedLaw
 from gca.train.methods import Method
+from gca.train.probe import GradProbe
 from gca.vision.matching import MatchConfig, match_cached
 
 DIVERGENCE_ERRORS = (SimulationDiverged, FloatingPointError)
@@ -108,6 +109,7 @@ class Objective:
     def __init__(self, method: Method, data: TrainData, cfg: TrainConfig, rdga: RDGAConfig,
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
+        self.probe: GradProbe | None = None  # set per step by _step (gradient provenance)
         self.rdga = dataclasses.replace(rdga, **dict(method.rdga))
         self.cpr = None
         if method.cpr:
@@ -127,9 +129,15 @@ class Objective:
         """Loss at video frame ``j`` (0-based)."""
         f = self.data.video_frames[j]
         means, covs = gaussians_at(self.data.body, traj.x[f], traj.F[f])
+        if self.probe is not None:
+            self.probe.watch("gaussians", "means", j, means)
+            self.probe.watch("gaussians", "covariances", j, covs)
         loss, stats = means.sum() * 0.0, {}
         for name, view in self.data.views.items():
             out = self._render(means, covs, view, with_positions=name == "train0" and self._needs_positions())
+            if self.probe is not None:
+                for key, image in out.items():
+                    self.probe.watch("render outputs", f"{name}/{key}", j, image)
             if self.method.color:
                 l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
@@ -251,6 +259,9 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
     timer.start()
     opt.zero_grad(set_to_none=True)
     traj = simulate(solver, law, data, n_video)
+    probe = objective.probe = GradProbe()
+    probe.watch("particles", "x", -1, traj.x)
+    probe.watch("particles", "F", -1, traj.F)
     timer.lap("simulate")
     loss, stats = 0.0, {}
     for j in range(n_video):
@@ -264,7 +275,7 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
     timer.lap("render_losses")
     loss.backward()
     timer.lap("backward")
-    _check_gradients(law)
+    _check_gradients(law, probe)
     grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip)
     opt.step()
     timer.lap("optimizer")
@@ -272,15 +283,17 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
-def _check_gradients(law: LearnedLaw) -> None:
-    """Raise FloatingPointError naming the parameter groups whose gradients are non-finite (never zeroed)."""
+def _check_gradients(law: LearnedLaw, probe: GradProbe | None = None) -> None:
+    """Raise FloatingPointError naming the parameter groups whose gradients are non-finite (never zeroed)
+    and, with a probe, where along the loss -> render -> Gaussians -> particles chain they broke."""
     bad = []
     for group in law.groups:
         n_bad = sum(int((~torch.isfinite(p.grad)).sum()) for p in group["params"] if p.grad is not None)
         if n_bad:
             bad.append(f"{group['name']}: {n_bad} non-finite gradient entries")
     if bad:
-        raise FloatingPointError("non-finite gradients after backward (" + "; ".join(bad) + ")")
+        where = f"; provenance: {probe.report()}" if probe is not None else ""
+        raise FloatingPointError("non-finite gradients after backward (" + "; ".join(bad) + ")" + where)
 
 
 def _check_drift(traj: Rollout, data: TrainData, n_video: int, cfg: TrainConfig) -> None:
