@@ -6,7 +6,7 @@ Kirchhoff-stress form used by NCLaw; see ``docs/architecture.md``), per step of 
     P2G   affine_p = -dt * vol_p * 4 * inv_dx^2 * tau_p + m_p * C_p
           m_i  += w_ip * m_p
           mv_i += w_ip * (m_p * v_p + affine_p @ (x_i - x_p))
-    grid  v_i = mv_i / (m_i + eps) + dt * g   (m_i > 0; else 0), then the wall condition
+    grid  v_i = mv_i / (m_i + eps) + dt * g   (m_i > m_min; else 0), then the wall condition
     G2P   v_p' = sum_i w_ip v_i
           C_p' = 4 * inv_dx^2 * sum_i w_ip v_i (x_i - x_p)^T
           F_trial = (I + dt C_p') F_p
@@ -138,6 +138,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         gravity: vec3,
         dt: T,
         eps: T,
+        m_min: T,
         n_grid: int,
         bound: int,
         kind: int,
@@ -146,7 +147,9 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     ):
         s0, s1, s2 = wp.tid()
         m = grid_m[s0, s1, s2]
-        if m <= T(0.0):  # empty node (no particle reads it with a nonzero weight)
+        # empty node, or one whose mass comes from B-spline weights so small that the adjoint of
+        # mv / m (ret / m, i.e. v / m) overflows float32 to inf and turns the gradients NaN
+        if m <= m_min:
             grid_v[s0, s1, s2] = vec3(T(0.0))
             return
         v = grid_mv[s0, s1, s2] / (m + eps) + dt * gravity

@@ -73,7 +73,7 @@ def step_ref(cfg: SimConfig, x, v, C, F, tau, vol, mass):
     mv = torch.zeros(G**3, 3, dtype=x.dtype, device=x.device).index_add(0, flat, contrib.reshape(-1, 3))
     m = torch.zeros(G**3, dtype=x.dtype, device=x.device).index_add(0, flat, (w * mass[:, None]).reshape(-1))
     g = torch.tensor(cfg.gravity, dtype=x.dtype, device=x.device)
-    gv = torch.where(m[:, None] > 0, mv / (m[:, None] + cfg.eps_mass) + dt * g, torch.zeros_like(mv))
+    gv = torch.where(m[:, None] > cfg.min_node_mass, mv / (m[:, None] + cfg.eps_mass) + dt * g, torch.zeros_like(mv))
     gv = _walls_ref(gv.reshape(G, G, G, 3), cfg).reshape(-1, 3)
     v_i = gv[flat].reshape(*w.shape, 3)
     v_new = (w[..., None] * v_i).sum(1)

@@ -44,6 +44,7 @@ class SimConfig:
     friction: float = 0.0  # Coulomb coefficient mu_b of the "friction" walls [-]
     clip: float = 0.5  # positions are clamped to [clip*dx, 1 - clip*dx] [cells]
     eps_mass: float = 0.0  # added to node mass in v = mv / (m + eps) [kg]
+    min_node_mass: float = 1e-15  # lighter nodes count as empty: float32 adjoint of mv/m overflows below ~1e-18 [kg]
     cfl: float = 0.5  # refuse dt > cfl * dx / (c + |v|max) [-]
     max_clamped_fraction: float = 0.1  # rollout raises if more particles sit on the clamp [-]
     dtype: str = "float32"  # float32 | float64 (float64 for gradient checks)
@@ -66,6 +67,8 @@ class SimConfig:
             problems.append(f"friction={self.friction} must be >= 0")
         if not 0 <= self.clip < self.n_grid / 2:
             problems.append(f"clip={self.clip} must be in [0, n_grid/2) cells")
+        if self.min_node_mass < 0:
+            problems.append(f"min_node_mass={self.min_node_mass} must be >= 0")
         if self.eps_mass < 0 or not 0 < self.cfl <= 1 or not 0 < self.max_clamped_fraction <= 1:
             problems.append("need eps_mass >= 0, 0 < cfl <= 1, 0 < max_clamped_fraction <= 1")
         if self.dtype not in _TORCH_DTYPES:
@@ -194,8 +197,8 @@ class MPMSolver:
         lo, hi = cfg.clamp_range
         wp.launch(k.p2g, dim=n, inputs=self._p2g_args(args, mv, m), device=dev)
         wp.launch(k.grid_update, dim=mv.shape, device=dev,
-                  inputs=[mv, m, k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.n_grid, cfg.bound,
-                          BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv])
+                  inputs=[mv, m, k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid,
+                          cfg.bound, BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv])
         wp.launch(k.g2p, dim=n, device=dev,
                   inputs=[args[0], args[3], gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])
 
