@@ -31,6 +31,7 @@ exact gradients at F = I and under uniaxial stretch (two equal singular values).
 
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import torch
@@ -91,16 +92,11 @@ def _svd_rotations(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     return torch_svd_rotations(F)
 
 
+@functools.cache
 def _warp_cpu() -> bool:
     """Whether warp can compile CPU kernels here (a GPU-only install ships no CPU compiler)."""
-    global _WARP_CPU
-    if _WARP_CPU is None:
-        wp.init()
-        _WARP_CPU = bool(wp.is_cpu_available())
-    return _WARP_CPU
-
-
-_WARP_CPU: bool | None = None
+    wp.init()
+    return bool(wp.is_cpu_available())
 
 
 def torch_svd_rotations(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

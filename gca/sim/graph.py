@@ -65,9 +65,10 @@ class FrameGraphs:
 
     def __init__(self, solver, material, n_steps: int, n: int, capture: bool | None = None):
         self.solver, self.material, self.n_steps, self.n = solver, material, int(n_steps), int(n)
-        self.params = _trainable(material)
+        trainable = [(f"material.{name}", p) for name, p in material.named_parameters() if p.requires_grad]
+        self.param_names = [name for name, _ in trainable]  # as seen from self.frame (functional_call)
+        self.params = [p for _, p in trainable]
         self.frame = _Frame(solver, material, self.n_steps)
-        self.param_names = [f"material.{name}" for name, p in material.named_parameters() if p.requires_grad]
         dev, dt = solver.device, solver.dtype
         self.capture = (dev.type == "cuda") if capture is None else bool(capture)
         if self.capture and dev.type != "cuda":
@@ -81,10 +82,6 @@ class FrameGraphs:
         self.fwd_out = self.bwd_grads = None
         self._fwd_graph = self._bwd_graph = None
         self._captured = False
-
-    def key(self) -> tuple:
-        """What a cached runner must still match to be reused."""
-        return (id(self.material), self.n_steps, self.n, tuple(id(p) for p in self.params))
 
     def matches(self, material, n_steps: int, n: int) -> bool:
         return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
@@ -166,9 +163,11 @@ class FrameGraphs:
         for k, g in zip((*_STATE, "F_trial"), cotangents):
             self.bwd_cot[k].copy_(g)
         self._ensure_captured()
-        grads = self.bwd_grads if self.capture else self._run_backward()
         if self.capture:
             self._bwd_graph.replay()
+            grads = self.bwd_grads
+        else:
+            grads = self._run_backward()
         return tuple(g.clone() for g in grads)
 
 
@@ -200,13 +199,13 @@ class GraphCache:
     def __init__(self, size: int = 4):
         self.size, self.runners = size, []
 
-    def get(self, solver, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
+    def get(self, solver, material, n_steps: int, n: int) -> FrameGraphs:
         for r in self.runners:
-            if r.matches(material, n_steps, n) and (capture is None or r.capture == capture or r._captured):
+            if r.matches(material, n_steps, n):
                 self.runners.remove(r)
                 self.runners.append(r)
                 return r
-        runner = FrameGraphs(solver, material, n_steps, n, capture)
+        runner = FrameGraphs(solver, material, n_steps, n)
         self.runners.append(runner)
         del self.runners[:-self.size]
         return runner

@@ -111,9 +111,9 @@ class MPMSolver:
         self._grids: dict[bool, tuple] = {}
         self._graphs = GraphCache()
 
-    def frame_graphs(self, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
+    def frame_graphs(self, material, n_steps: int, n: int) -> FrameGraphs:
         """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""
-        return self._graphs.get(self, material, n_steps, n, capture)
+        return self._graphs.get(self, material, n_steps, n)
 
     def step(self, x, v, C, F, tau, vol, mass):
         """Advance the particles by one step of ``cfg.dt``.
