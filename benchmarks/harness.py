@@ -122,6 +122,7 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
             "iterations": train["iterations"], "status": metrics["status"], "message": train.get("message", ""),
             "train_seconds": train["train_seconds"], "rollout_seconds": metrics.get("rollout_seconds"),
             "peak_memory_gib": train["peak_memory_gib"], "phase_seconds": phases,
+            "render_backend": train.get("render_backend"),
             "seconds_per_iteration": train["train_seconds"] / max(train["iterations"], 1),
             "chamfer_mean": metrics.get("chamfer_mean"), "stage_seconds": stage_seconds})
     return rows
@@ -138,6 +139,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--reuse-prior", action="store_true", help="keep a prior already in the work directory")
     ap.add_argument("--reuse-data", action="store_true", help="keep assets/particles/scene/prep already made there")
+    ap.add_argument("--tag", default="", help="suffix of the JSON names (side-by-side runs in one --out)")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -147,7 +149,7 @@ def main(argv=None) -> list[dict]:
     stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data)
     rows = collect(raw, args.scene, args.work, args.device, stage_seconds, args.overrides)
     for row in rows:
-        tag = f"harness_{row['profile']}_{row['scene']}_{row['method']}_{args.device}.json"
+        tag = f"harness_{row['profile']}_{row['scene']}_{row['method']}_{args.device}{args.tag}.json"
         (args.out / tag).write_text(json.dumps(row, indent=2, sort_keys=True) + "\n")
     print(f"\n{'method':<12}{'P':>8}{'G':>8}{'it':>4}{'s/it':>8}{'sim':>8}{'render':>8}{'bwd':>8}"
           f"{'rollout s':>10}{'peak GiB':>9}{'CD':>9}")

@@ -135,3 +135,13 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
         for law in (gt, prior):  # both run on this dt: the ground truth and every method starting from the prior
             bound = sim.cfl * sim.dx / (law.wave_speed() + speed)
             assert scene.dt <= bound, f"scenes.{name}.dt={scene.dt} exceeds the CFL bound {bound:.3g} ({profile})"
+
+
+def test_render_backend_auto_resolves_per_device():
+    from gca.scenes.world import raster_settings
+
+    assert raster_settings({"render": {"backend": "auto"}}, "cpu")[0] == "torch"
+    with pytest.warns(RuntimeWarning, match="needs CUDA"):
+        assert raster_settings({"render": {"backend": "gsplat"}}, "cpu")[0] == "torch"
+    with pytest.raises(ValueError, match="render.backend='opengl'"):
+        raster_settings({"render": {"backend": "opengl"}}, "cpu")

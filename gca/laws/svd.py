@@ -1,7 +1,7 @@
 """Batched 3x3 SVD with proper-rotation factors and gradients that stay finite at repeated values.
 
-Forward (both entry points): ``F = U diag(sigma) Vh`` from ``torch.linalg.svd`` in float64 and one warp
-kernel in float32 (``gca.laws.svd_kernel``, same conventions; sigma descending),
+Forward (both entry points): ``F = U diag(sigma) Vh`` from one warp kernel (``gca.laws.svd_kernel``,
+float32 and float64; sigma descending), or ``torch.linalg.svd`` where warp cannot compile CPU kernels,
 then NCLaw's sign fix (reference notes §3.6): where det U < 0 the 3rd column of U and sigma_3 are
 negated, and likewise for V, so that U and V are proper rotations. Under inversion (det F < 0)
 sigma_3 is negative; |sigma_3| is still the smallest.
@@ -83,11 +83,11 @@ def default_eps(dtype: torch.dtype) -> float:
 def _svd_rotations(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Forward SVD with the sign fix (no autograd). F [N,3,3] -> U [N,3,3], sigma [N,3], Vh [N,3,3].
 
-    float32 runs one warp kernel (``gca.laws.svd_kernel``: no host sync, capturable in a CUDA graph,
-    7x faster than LAPACK on the CPU); float64, and the CPU where warp has no CPU compiler, use
-    :func:`torch_svd_rotations` (full precision).
+    One warp kernel (``gca.laws.svd_kernel``, float32 or float64: no host sync, capturable in a CUDA
+    graph, 7x faster than LAPACK on the CPU); :func:`torch_svd_rotations` on a CPU where warp has no
+    compiler (GPU-only installs) and for other float types.
     """
-    if F.dtype == torch.float32 and (F.is_cuda or _warp_cpu()):
+    if F.dtype in (torch.float32, torch.float64) and (F.is_cuda or _warp_cpu()):
         return svd3(F)
     return torch_svd_rotations(F)
 

@@ -90,16 +90,33 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                 opacities=as_t(opacities(kept)), backend=backend, raster=raster)
 
 
+BACKEND_CHOICES = ("auto", "torch", "gsplat")
+
+
 def raster_settings(params: Mapping, device: str | torch.device | None = None) -> tuple[str, RasterConfig]:
     """(backend, RasterConfig) from params ``render.backend`` / ``render.raster`` for rendering on
-    ``device`` (default: cuda when available); gsplat falls back to torch, with a warning, off CUDA."""
+    ``device`` (default: cuda when available).
+
+    ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise;
+    an explicit ``gsplat`` off CUDA falls back to torch with a warning.
+    """
     backend = params.get("render", {}).get("backend", "torch")
+    if backend not in BACKEND_CHOICES:
+        raise ValueError(f"params: render.backend={backend!r} is not one of {BACKEND_CHOICES}")
     raster = build(RasterConfig, params.get("render", {}).get("raster", {}), "render.raster")
     on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
+    if backend == "auto":
+        return ("gsplat" if on_cuda and gsplat_available() else "torch"), raster
     if backend == "gsplat" and not on_cuda:
         warnings.warn("render.backend=gsplat needs CUDA: using the torch rasterizer", RuntimeWarning, stacklevel=2)
         backend = "torch"
     return backend, raster
+
+
+def gsplat_available() -> bool:
+    """Whether the optional gsplat package can be imported (not imported here: it JIT-compiles CUDA)."""
+    import importlib.util
+    return importlib.util.find_spec("gsplat") is not None
 
 
 def load_scene_body(params: Mapping, particles_path, gaussians_path, device="cpu") -> Body:

@@ -17,8 +17,11 @@ losses. Checkpoints are written every ``checkpoint_every`` iterations and resume
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -100,7 +103,8 @@ def position_image_ref(body: Body, means: torch.Tensor, covs: torch.Tensor, came
 
 
 def to_uint8(rgb: torch.Tensor) -> np.ndarray:
-    return (rgb.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    """RGB in [0, 1] [..., 3] -> uint8 on the host (converted on the tensor's device, copied once)."""
+    return (rgb.detach().clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 class Objective:
@@ -125,35 +129,81 @@ class Objective:
         self.est_depth = torch.as_tensor(data.est_depth, dtype=x0.dtype, device=x0.device)
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
-    def frame(self, traj: Rollout, j: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
-        """Loss at video frame ``j`` (0-based)."""
+    def loss(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
+        """Sum of the method's losses over video frames ``0 .. n_video - 1`` and their mean stats.
+
+        Three passes, so the GPU is never waited on frame by frame: render every frame (all views)
+        back to back; copy the frames that need feature matching to the host at once and match them
+        in a thread pool (OpenCV releases the GIL); then the per-frame losses. The stats are read
+        back in one transfer at the end.
+        """
+        renders = [self._render_frame(traj, j) for j in range(n_video)]
+        matches = self._match_frames([r["train0"] for r in renders]) if self._needs_matches() else [None] * n_video
+        loss, stats = traj.x.new_zeros(()), _MeanStats(n_video)
+        for j in range(n_video):
+            l_j = self._frame_loss(traj, j, renders[j], matches[j], law, stats)
+            loss = loss + l_j
+        return loss, stats.read()
+
+    def _render_frame(self, traj: Rollout, j: int) -> dict[str, dict]:
+        """Every view's render outputs at video frame ``j`` (0-based)."""
         f = self.data.video_frames[j]
         means, covs = gaussians_at(self.data.body, traj.x[f], traj.F[f])
         if self.probe is not None:
             self.probe.watch("gaussians", "means", j, means)
             self.probe.watch("gaussians", "covariances", j, covs)
-        loss, stats = means.sum() * 0.0, {}
+        outs = {}
         for name, view in self.data.views.items():
-            out = self._render(means, covs, view, with_positions=name == "train0" and self._needs_positions())
+            outs[name] = self._render(means, covs, view, with_positions=name == "train0" and self._needs_positions())
             if self.probe is not None:
-                for key, image in out.items():
+                for key, image in outs[name].items():
                     self.probe.watch("render outputs", f"{name}/{key}", j, image)
+        return outs
+
+    def _frame_loss(self, traj: Rollout, j: int, outs: dict[str, dict], pq, law: LearnedLaw,
+                    stats: "_MeanStats") -> torch.Tensor:
+        """Loss at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None)."""
+        loss = traj.x.new_zeros(())
+        for name, out in outs.items():
             if self.method.color:
                 l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
-                stats[f"color/{name}"] = float(l_color.detach())
+                stats.add(f"color/{name}", l_color)
             if name == "train0":
-                loss, stats = self._mono_terms(out, means, covs, view, j, loss, stats)
+                loss = loss + self._mono_terms(out, pq, j, stats)
         if self.cpr is not None and j % self.cfg.cpr_every == 0:
             # Algorithm 2 on the frame's state: elastic F_e^t and the trial F of the frame's last Euler step
+            f = self.data.video_frames[j]
             R_e, R_p, _ = self.cpr.residuals(law.material.elasticity, law.material.plasticity, traj.F[f],
                                              traj.F_trial[f])
             loss = loss + R_e + R_p
-            stats.update(R_e=float(R_e.detach()), R_p=float(R_p.detach()))
-        return loss, stats
+            stats.add("R_e", R_e)
+            stats.add("R_p", R_p)
+        return loss
 
     def _needs_positions(self) -> bool:
         return self.method.geo and self.rdga.enabled and self.rdga.use_global
+
+    def _frame_rdga(self) -> RDGAConfig | None:
+        """The RDGA config of the train0 terms (silhouette only without ``geo``), None without them."""
+        m = self.method
+        if not (m.mask or m.geo):
+            return None
+        return self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
+
+    def _needs_matches(self) -> bool:
+        rdga = self._frame_rdga()
+        return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
+
+    def _match_frames(self, outs: list[dict]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Matches (p [M, 2] in the render, q [M, 2] in the GT frame) of every frame's train0 render,
+        from one host copy of all frames and a thread pool of SIFT detections."""
+        frames = to_uint8(torch.stack([o["rgb"] for o in outs]))
+        keypoints = self.data.keypoints
+        work = lambda j: match_cached(frames[j], *keypoints[j], self.match)  # noqa: E731
+        if len(frames) == 1:
+            return [work(0)]
+        return list(_match_pool().map(work, range(len(frames))))
 
     def _render(self, means, covs, view: ViewData, with_positions: bool) -> dict:
         """RGB/alpha/depth; with ``with_positions`` also the premultiplied camera-frame positions
@@ -168,21 +218,45 @@ class Objective:
                                torch.cat([self.bg, self.bg.new_zeros(3)]))
         return {**out, "rgb": out["rgb"][..., :3], "positions": out["rgb"][..., 3:]}
 
-    def _mono_terms(self, out: dict, means, covs, view: ViewData, j: int, loss, stats):
-        m = self.method
-        if m.depth_l1:
+    def _mono_terms(self, out: dict, pq, j: int, stats: "_MeanStats") -> torch.Tensor:
+        """Monocular terms of train0 at frame ``j``: L1 depth (PAC-NeRF + depth) and silhouette/RDGA."""
+        loss = out["alpha"].new_zeros(())
+        if self.method.depth_l1:
             mask, est = self.mask[j], self.est_depth[j]
             l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
             loss = loss + self.cfg.lambda_depth_l1 * l_depth
-            stats["depth_l1"] = float(l_depth.detach())
-        if m.mask or m.geo:
-            rdga = self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
-            p, q = match_cached(to_uint8(out["rgb"]), *self.data.keypoints[j], self.match)
+            stats.add("depth_l1", l_depth)
+        rdga = self._frame_rdga()
+        if rdga is not None:
+            p, q = pq if pq is not None else (np.zeros((0, 2), np.float32),) * 2
             pos = out.get("positions") if rdga.enabled and rdga.use_global else None
             l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=pos, K=self.K["train0"])
             loss = loss + l_rdga
-            stats.update({f"rdga/{k}": v for k, v in s.items()})
-        return loss, stats
+            for k, v in s.items():
+                stats.add(f"rdga/{k}", v)
+        return loss
+
+
+class _MeanStats:
+    """Per-frame statistics averaged over ``n`` frames; tensors are read back in one transfer."""
+
+    def __init__(self, n: int):
+        self.n, self.values = n, {}
+
+    def add(self, key: str, value) -> None:
+        value = value.detach() if isinstance(value, torch.Tensor) else float(value)
+        self.values[key] = self.values[key] + value if key in self.values else value
+
+    def read(self) -> dict[str, float]:
+        keys = [k for k, v in self.values.items() if isinstance(v, torch.Tensor)]
+        read = dict(zip(keys, torch.stack([self.values[k].double() for k in keys]).tolist())) if keys else {}
+        return {k: read.get(k, v) / self.n for k, v in self.values.items()}
+
+
+@functools.cache
+def _match_pool() -> ThreadPoolExecutor:
+    """Threads for the per-frame SIFT matching (OpenCV releases the GIL)."""
+    return ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1)), thread_name_prefix="gca-match")
 
 
 def _optimizer(law: LearnedLaw, cfg: TrainConfig):
@@ -263,12 +337,7 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
     probe.watch("particles", "x", -1, traj.x)
     probe.watch("particles", "F", -1, traj.F)
     timer.lap("simulate")
-    loss, stats = 0.0, {}
-    for j in range(n_video):
-        l_j, s_j = objective.frame(traj, j, law)
-        loss = loss + l_j
-        for k, v in s_j.items():
-            stats[k] = stats.get(k, 0.0) + v / n_video
+    loss, stats = objective.loss(traj, n_video, law)
     if not torch.isfinite(loss):
         raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
     _check_drift(traj, data, n_video, cfg)

@@ -1,0 +1,101 @@
+"""Where one training iteration spends its time: cProfile (Python, host syncs included) and the
+CUDA kernel totals of torch.profiler, on a work directory the harness has filled (a script).
+
+Usage (after ``benchmarks/harness.py --work /tmp/h ...`` has run the scene's stages)::
+
+    python benchmarks/profile_train.py --work /tmp/h --scene duck --method gca --iterations 2
+
+Runs ``--warmup`` untimed iterations (graph capture, JIT), then ``--iterations`` under cProfile and
+prints the ``--top`` functions by cumulative time, then one more under torch.profiler and prints
+the top kernels by CUDA time. Details go to ``--out`` when given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import pstats
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def build(work: Path, scene: str, method_name: str, device: str):
+    """(solver, law, data, objective, cfg, opt) of ``method`` as the train stage would build them."""
+    from gca import config
+    from gca.scenes import scene_config, video_config
+    from gca.train import loop
+    from gca.train.config import TrainConfig
+    from gca.train.methods import get_method
+    from gca.train.run import (SceneInputs, law_for, load_train_data, objective_for, read_velocity,
+                               solver_for)
+    params = config.load(path=work / "params.yaml", via_dvc=False)
+    spec = params["scenes"][scene]
+    inputs = SceneInputs(scene_dir=work / "scene", prep_dir=work / "prep", particles=work / "particles.npz",
+                         gaussians=work / "assets" / spec["object"] / "gaussians.ply",
+                         prior=work / "prior" / f"{spec['prior']}.pt")
+    method = get_method(method_name)
+    video = video_config(params)
+    data = load_train_data(params, inputs, method, read_velocity(work / "runs" / "velocity.json"),
+                           video.background, device)
+    law = law_for(params, method, scene_config(params, scene), inputs,
+                  float(data.body.mass.sum() / data.body.vol.sum()), device)
+    objective = objective_for(params, method, data, spec)
+    cfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    opt, _ = loop._optimizer(law, cfg)
+    return solver_for(params, scene_config(params, scene), device), law, data, objective, cfg, opt
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/gca-harness"))
+    ap.add_argument("--scene", default="duck")
+    ap.add_argument("--method", default="gca")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--iterations", type=int, default=2)
+    ap.add_argument("--horizon", type=int, default=0, help="video frames supervised (0: all)")
+    ap.add_argument("--top", type=int, default=35)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    from gca.train import loop
+    solver, law, data, objective, cfg, opt = build(args.work, args.scene, args.method, args.device)
+    n_video = args.horizon or len(data.video_frames)
+
+    def step():
+        return loop._step(solver, law, data, objective, cfg, opt, n_video)
+
+    for _ in range(args.warmup):
+        step()
+    prof = cProfile.Profile()
+    records = []
+    prof.enable()
+    for _ in range(args.iterations):
+        records.append(step())
+    prof.disable()
+    text = io.StringIO()
+    pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(args.top)
+    phases = {k: sum(r[k] for r in records) / len(records) for k in records[0] if k.startswith("time/")}
+    print("per iteration [s]:", {k[5:]: round(v, 3) for k, v in phases.items()})
+    print(text.getvalue()[-9000:])
+    if args.device == "cuda":
+        from torch.profiler import ProfilerActivity, profile
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as tp:
+            step()
+        table = tp.key_averages().table(sort_by="cuda_time_total", row_limit=args.top, max_name_column_width=50)
+        print(table[-6000:])
+        if args.out:
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / f"profile_train_{args.method}_cuda.txt").write_text(table)
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / f"profile_train_{args.method}_cprofile.txt").write_text(text.getvalue())
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    main(sys.argv[1:])
