@@ -114,3 +114,31 @@ def test_lora_state_dict_and_errors():
         apply_lora(nn.GELU(), 2, 2.0)
     with pytest.raises(ValueError, match="rank"):
         LoRALinear(nn.Linear(3, 3, bias=False), rank=0, alpha=1.0)
+
+
+def lowrank_reference(layer: LoRALinear, x: torch.Tensor) -> torch.Tensor:
+    """``W x + scale * (alpha / r) * B (A x)`` through the rank-r path (the slow reference)."""
+    y = torch.nn.functional.linear(x, layer.weight, layer.bias)
+    return y + (layer.scale * layer.scaling) * torch.nn.functional.linear(
+        torch.nn.functional.linear(x, layer.lora_A), layer.lora_B)
+
+
+@pytest.mark.grad
+def test_merged_forward_equals_lowrank_path_float64():
+    """The merged-weight forward equals the rank-r path in values and in the gradients of x, A, B."""
+    g = torch.Generator().manual_seed(3)
+    layer = LoRALinear(torch.nn.Linear(13, 64, bias=False).double(), rank=4, alpha=8.0, generator=g)
+    with torch.no_grad():
+        layer.lora_B.normal_(generator=g)
+    layer.scale = 0.7
+    x = torch.randn(50, 13, dtype=torch.float64, generator=g, requires_grad=True)
+    y, y_ref = layer(x), lowrank_reference(layer, x)
+    torch.testing.assert_close(y, y_ref, rtol=1e-13, atol=1e-13)
+    w = torch.randn_like(y)
+    grads = torch.autograd.grad((y * w).sum(), (x, layer.lora_A, layer.lora_B))
+    grads_ref = torch.autograd.grad((y_ref * w).sum(), (x, layer.lora_A, layer.lora_B))
+    for a, b in zip(grads, grads_ref):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    merged = lambda x, A, B: torch.func.functional_call(layer, {"lora_A": A, "lora_B": B}, (x,))  # noqa: E731
+    assert torch.autograd.gradcheck(merged, (x[:3].detach().requires_grad_(), layer.lora_A.detach().requires_grad_(),
+                                             layer.lora_B.detach().requires_grad_()))
