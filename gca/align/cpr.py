@@ -96,21 +96,24 @@ class CPRConfig:
 class HypothesisFit:
     """One hypothesis fitted on S.
 
+    Every field stays on the device of the fit (no host synchronisation while training); ``float()``
+    reads one.
+
     Attributes:
         name: hypothesis name.
         theta: [P] float64, E[Theta_hat] (mean of the group estimates).
         theta_groups: [G, P] float64, per-group estimates.
-        var_param: relative variance of the group estimates (dimensionless).
-        fit_residual: relative misfit on S at theta (set after the residual pass).
-        weight: omega = 1 / (Var + eps).
+        var_param: [] float64, relative variance of the group estimates (dimensionless).
+        fit_residual: [] float64, relative misfit on S at theta (set after the residual pass).
+        weight: [] float64, omega = 1 / (Var + eps).
     """
 
     name: str
     theta: torch.Tensor
     theta_groups: torch.Tensor
-    var_param: float
-    fit_residual: float = float("nan")
-    weight: float = float("nan")
+    var_param: torch.Tensor
+    fit_residual: torch.Tensor | None = None
+    weight: torch.Tensor | None = None
 
 
 # ----------------------------------------------------------------------------- hypotheses
@@ -120,7 +123,7 @@ def elastic_tau(name: str, F: torch.Tensor, theta) -> torch.Tensor:
     Args:
         name: one of :data:`ELASTIC_HYPOTHESES`.
         F: [N, 3, 3] elastic deformation gradient.
-        theta: sequence of floats in the order of :data:`ELASTIC_PARAMS`.
+        theta: floats or [] tensors in the order of :data:`ELASTIC_PARAMS` (a [P] tensor works).
 
     Returns:
         [N, 3, 3] tau [Pa].
@@ -128,9 +131,9 @@ def elastic_tau(name: str, F: torch.Tensor, theta) -> torch.Tensor:
     from gca.laws import elastic  # lazy: keeps `import gca.align` light
 
     if name == "volume":
-        return elastic.volume_tau(F, float(theta[0]))
+        return elastic.volume_tau(F, theta[0])
     law = {"corotated": elastic.corotated_tau, "stvk": elastic.stvk_tau, "sigma": elastic.sigma_tau}[name]
-    return law(F, float(theta[0]), float(theta[1]))
+    return law(F, theta[0], theta[1])
 
 
 def plastic_map(name: str, F: torch.Tensor, theta, lam_over_mu: float, cohesion: float) -> torch.Tensor:
@@ -141,7 +144,7 @@ def plastic_map(name: str, F: torch.Tensor, theta, lam_over_mu: float, cohesion:
         F: [N, 3, 3] trial deformation gradient.
         theta: () for identity/sigma, (k,) for von Mises (yield strain sigma_y/(2 mu)),
             (phi,) for Drucker-Prager (friction angle, deg); each a float or a [N] tensor.
-        lam_over_mu: Lame ratio used by Drucker-Prager.
+        lam_over_mu: Lame ratio used by Drucker-Prager (float or [] tensor).
         cohesion: Drucker-Prager cohesion.
 
     Returns:
@@ -155,7 +158,7 @@ def plastic_map(name: str, F: torch.Tensor, theta, lam_over_mu: float, cohesion:
         return plastic.sigma_plastic(F)
     if name == "von_mises":  # threshold sigma_y / (2 mu) = k with mu = 1/2
         return plastic.von_mises_plastic(F, 0.5, theta[0])
-    return plastic.drucker_prager_plastic(F, 1.0, float(lam_over_mu), theta[0], float(cohesion))
+    return plastic.drucker_prager_plastic(F, 1.0, lam_over_mu, theta[0], cohesion)
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -176,7 +179,8 @@ def solve_linear_groups(basis: torch.Tensor, target: torch.Tensor, group_ids: to
         n_groups: G.
 
     Returns:
-        [G, P] estimates (on the CPU); a tiny ridge (1e-12 of the trace) keeps unidentifiable parameters at 0.
+        [G, P] estimates (on the basis' device); a tiny ridge (1e-12 of the trace) keeps unidentifiable
+        parameters at 0.
     """
     A = basis.flatten(2).double()  # [P, S, 9]
     b = target.flatten(1).double().to(A.device)  # [S, 9]
@@ -185,18 +189,22 @@ def solve_linear_groups(basis: torch.Tensor, target: torch.Tensor, group_ids: to
     rhs = group_sums(torch.einsum("psk,sk->sp", A, b), group_ids, n_groups)  # [G, P]
     trace = gram.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
     eye = torch.eye(A.shape[0], dtype=torch.float64, device=A.device)
-    return torch.linalg.solve(gram + (1e-12 * trace + _TINY) * eye, rhs).cpu()
+    return torch.linalg.solve_ex(gram + (1e-12 * trace + _TINY) * eye, rhs)[0]  # _ex: no host sync for its info
 
 
-def _candidates(lo: float, hi: float, n: int, log: bool) -> torch.Tensor:
+def _candidates(lo: torch.Tensor, hi: torch.Tensor, n: int, log: bool) -> torch.Tensor:
+    """n candidates from lo to hi ([] tensors), evenly spaced (geometrically with ``log``), [n]."""
+    t = torch.linspace(0.0, 1.0, n, dtype=torch.float64, device=lo.device)
     if log:
-        return torch.logspace(math.log10(lo), math.log10(hi), n, dtype=torch.float64)
-    return torch.linspace(lo, hi, n, dtype=torch.float64)
+        return torch.exp(torch.log(lo) + (torch.log(hi) - torch.log(lo)) * t)
+    return lo + (hi - lo) * t
 
 
 def grid_fit_groups(errors: Callable[[torch.Tensor], torch.Tensor], lo: float, hi: float, log: bool,
-                    group_ids: torch.Tensor, n_groups: int, grid_size: int, rounds: int) -> torch.Tensor:
-    """1-D least squares per group by a shared grid search with zoom refinement.
+                    group_ids: torch.Tensor, n_groups: int, grid_size: int, rounds: int,
+                    device: torch.device | str = "cpu") -> torch.Tensor:
+    """1-D least squares per group by a shared grid search with zoom refinement, on ``device``
+    without host synchronisation (the zoom range stays a device tensor).
 
     Each round evaluates ``grid_size`` candidates on all of S, takes each group's best (ties go to
     the largest value, e.g. any yield strain beyond the largest strain fits an elastic response),
@@ -207,45 +215,55 @@ def grid_fit_groups(errors: Callable[[torch.Tensor], torch.Tensor], lo: float, h
         lo, hi: search range; ``log`` for a geometric grid (lo > 0).
         group_ids: [S] group of each particle; n_groups: G.
         grid_size: candidates per round; rounds: number of rounds.
+        device: where the candidates and the search live (that of ``errors``' output).
 
     Returns:
-        [G, 1] estimates.
+        [G, 1] float64 estimates on ``device``.
     """
-    best_loss = torch.full((n_groups,), math.inf, dtype=torch.float64)
-    best = torch.zeros(n_groups, dtype=torch.float64)
+    f64 = dict(dtype=torch.float64, device=device)
+    lo_t, hi_t = torch.tensor(float(lo), **f64), torch.tensor(float(hi), **f64)
+    group_ids = group_ids.to(device)
+    best_loss = torch.full((n_groups,), math.inf, **f64)
+    best = torch.zeros(n_groups, **f64)
     for _ in range(rounds):
-        cands = _candidates(lo, hi, grid_size, log)
-        losses = group_sums(errors(cands).double().T.cpu(), group_ids.cpu(), n_groups)  # [G, K]
+        cands = _candidates(lo_t, hi_t, grid_size, log)
+        losses = group_sums(errors(cands).double().T, group_ids, n_groups)  # [G, K]
         idx = grid_size - 1 - losses.flip(1).argmin(1)  # [G], last minimiser
         loss = losses.gather(1, idx[:, None])[:, 0]
         better = loss <= best_loss
         best, best_loss = torch.where(better, cands[idx], best), torch.where(better, loss, best_loss)
-        lo, hi = float(cands[(idx - 1).clamp(min=0)].min()), float(cands[(idx + 1).clamp(max=grid_size - 1)].max())
+        lo_t, hi_t = cands[(idx - 1).clamp(min=0)].min(), cands[(idx + 1).clamp(max=grid_size - 1)].max()
     return best[:, None]
 
 
-def relative_variance(theta_groups: torch.Tensor, floor: float = _TINY) -> float:
-    """Scale-free dispersion sum_j Var_g(theta_gj) / max(sum_j mean_g(theta_gj)^2, floor).
+def relative_variance(theta_groups: torch.Tensor, floor: float = _TINY) -> torch.Tensor:
+    """Scale-free dispersion sum_j Var_g(theta_gj) / max(sum_j mean_g(theta_gj)^2, floor), a [] float64
+    tensor on the estimates' device.
 
     Args:
         theta_groups: [G, P] per-group estimates (P = 0 gives 0).
         floor: lower bound of the normaliser (units of theta^2).
     """
     if theta_groups.shape[1] == 0:
-        return 0.0
-    var = theta_groups.var(dim=0, unbiased=False).sum()
-    norm = theta_groups.mean(dim=0).square().sum().clamp(min=floor)
-    return float(var / norm)
+        return theta_groups.new_zeros((), dtype=torch.float64)
+    var = theta_groups.double().var(dim=0, unbiased=False).sum()
+    norm = theta_groups.double().mean(dim=0).square().sum().clamp(min=floor)
+    return var / norm
 
 
 # ----------------------------------------------------------------------------- the regularizer
 def _check_F(F: torch.Tensor, name: str) -> None:
     if F.ndim != 3 or F.shape[1:] != (3, 3):
         raise ValueError(f"gca/align/cpr.py: {name} must be [N, 3, 3], got {tuple(F.shape)}")
-    bad = ~torch.isfinite(F).flatten(1).all(1)
-    if bad.any():
-        raise FloatingPointError(f"gca/align/cpr.py: {name} has {int(bad.sum())} of {F.shape[0]} particles with "
-                                 f"non-finite entries (first: {int(bad.nonzero()[0])}); the simulation diverged")
+
+
+def _check_finite(named: dict[str, torch.Tensor]) -> None:
+    """Raise FloatingPointError naming each [N, 3, 3] input with non-finite particles (one host read)."""
+    counts = torch.stack([(~torch.isfinite(F.detach()).flatten(1).all(1)).sum() for F in named.values()]).tolist()
+    bad = [f"{name} has {c} of {F.shape[0]} particles with non-finite entries"
+           for (name, F), c in zip(named.items(), counts) if c]
+    if bad:
+        raise FloatingPointError("gca/align/cpr.py: " + "; ".join(bad) + "; the simulation diverged")
 
 
 def _sq_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -277,7 +295,13 @@ class CPR:
         self.subset = torch.randperm(self.n_particles, generator=g)[: min(cfg.subset_size, self.n_particles)]
         self.n_groups = min(cfg.n_groups, len(self.subset))
         self.group_ids = torch.arange(len(self.subset)) % self.n_groups  # S is already a random order
-        self._calls, self._fits = 0, None
+        self._calls, self._fits, self._on_device = 0, None, {}
+
+    def _indices(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(S, group ids) on ``device``, copied once per device."""
+        if device not in self._on_device:
+            self._on_device[device] = (self.subset.to(device), self.group_ids.to(device))
+        return self._on_device[device]
 
     # -- parameter solving ---------------------------------------------------------------------
     def fit_elastic(self, F_S: torch.Tensor, tau_S: torch.Tensor) -> dict[str, HypothesisFit]:
@@ -291,62 +315,68 @@ class CPR:
             n_par = len(ELASTIC_PARAMS[name])
             units = torch.eye(n_par, dtype=torch.float64)
             basis = torch.stack([elastic_tau(name, F64, u.tolist()) for u in units])  # [P, S, 3, 3]
-            groups = solve_linear_groups(basis, tau_S, self.group_ids, self.n_groups)
+            groups = solve_linear_groups(basis, tau_S, self._indices(F64.device)[1], self.n_groups)
             fits[name] = HypothesisFit(name, groups.mean(0), groups, relative_variance(groups))
         return fits
 
-    def _lam_over_mu(self, elastic_fits: dict[str, HypothesisFit]) -> float:
-        """lam/mu of the most credible two-parameter elastic fit (fallback: cfg.fallback_poisson)."""
-        two = [f for f in elastic_fits.values() if f.theta.numel() == 2 and f.theta[0] > 0]
+    def _lam_over_mu(self, elastic_fits: dict[str, HypothesisFit], device) -> torch.Tensor:
+        """lam/mu of the most credible two-parameter elastic fit with mu > 0 ([] float64 on ``device``;
+        cfg.fallback_poisson's ratio when there is none), chosen on the device."""
+        nu = self.cfg.fallback_poisson
+        fallback = torch.tensor(2 * nu / (1 - 2 * nu), dtype=torch.float64, device=device)
+        two = [f for f in elastic_fits.values() if f.theta.numel() == 2]
         if not two:
-            nu = self.cfg.fallback_poisson
-            return 2 * nu / (1 - 2 * nu)
-        best = max(two, key=lambda f: f.weight)
-        return float(best.theta[1] / best.theta[0])
+            return fallback
+        theta = torch.stack([f.theta for f in two])  # [H, 2] (mu, lam)
+        weight = torch.stack([f.weight for f in two])
+        valid = theta[:, 0] > 0
+        best = torch.where(valid, weight, torch.full_like(weight, -math.inf)).argmax()
+        ratio = theta[best, 1] / torch.where(valid[best], theta[best, 0], torch.ones_like(theta[best, 0]))
+        return torch.where(valid.any(), ratio, fallback)
 
     def _batched_errors(self, name: str, F: torch.Tensor, target: torch.Tensor, cands: torch.Tensor,
-                        lam_over_mu: float) -> torch.Tensor:
+                        lam_over_mu) -> torch.Tensor:
         """[K, S] squared errors of hypothesis ``name`` at K candidate values (one law call on K*S)."""
         K, n = len(cands), F.shape[0]
         theta = cands.to(F.device).repeat_interleave(n)  # [K*S], candidate k for particles k*S .. (k+1)*S - 1
         out = plastic_map(name, F.repeat(K, 1, 1), (theta,), lam_over_mu, self.cfg.dp_cohesion)
         return _sq_error(out, target.repeat(K, 1, 1)).reshape(K, n)
 
-    def fit_plastic(self, Ftr_S: torch.Tensor, Fe_S: torch.Tensor, lam_over_mu: float) -> dict[str, HypothesisFit]:
+    def fit_plastic(self, Ftr_S: torch.Tensor, Fe_S: torch.Tensor, lam_over_mu) -> dict[str, HypothesisFit]:
         """Fit every enabled plastic hypothesis to the neural return map on S.
 
         Args:
             Ftr_S: [S, 3, 3] F_trial on S. Fe_S: [S, 3, 3] neural F_e on S (detached).
-            lam_over_mu: Lame ratio for Drucker-Prager.
+            lam_over_mu: Lame ratio for Drucker-Prager (float or [] tensor).
         """
         cfg, F64, target, fits = self.cfg, Ftr_S.detach().double(), Fe_S.detach().double(), {}
         ranges = {"von_mises": (*cfg.yield_strain_range, True, cfg.yield_strain_range[0] ** 2),
                   "drucker_prager": (*cfg.friction_angle_range, False, 1.0)}
         for name in cfg.plastic:
             if name not in ranges:
-                groups = torch.zeros(self.n_groups, 0, dtype=torch.float64)
-                fits[name] = HypothesisFit(name, groups.mean(0), groups, 0.0)
+                groups = torch.zeros(self.n_groups, 0, dtype=torch.float64, device=F64.device)
+                fits[name] = HypothesisFit(name, groups.mean(0), groups, relative_variance(groups))
                 continue
             lo, hi, log, floor = ranges[name]
             errors = lambda c, name=name: self._batched_errors(name, F64, target, c, lam_over_mu)
-            groups = grid_fit_groups(errors, lo, hi, log, self.group_ids, self.n_groups, cfg.grid_size,
-                                     cfg.refine_rounds)
+            groups = grid_fit_groups(errors, lo, hi, log, self._indices(F64.device)[1], self.n_groups, cfg.grid_size,
+                                     cfg.refine_rounds, device=F64.device)
             fits[name] = HypothesisFit(name, groups.mean(0), groups, relative_variance(groups, floor))
         return fits
 
     # -- residuals -----------------------------------------------------------------------------
     def _weighted_residual(self, fits: dict[str, HypothesisFit], output: torch.Tensor,
-                           hypothesis: Callable[[HypothesisFit], torch.Tensor], scale: float,
+                           hypothesis: Callable[[HypothesisFit], torch.Tensor], scale: torch.Tensor,
                            s_index, refit: bool) -> torch.Tensor:
         """sum_k omega_k mean_i ||output_i - H_k(.)_i||^2 / scale; sets misfit and omega when refitting."""
         total = output.new_zeros(())
         for fit in fits.values():
-            err = _sq_error(output, hypothesis(fit).to(output.dtype)) / scale  # [n]
+            err = _sq_error(output, hypothesis(fit).to(output.dtype)) / scale.to(output.dtype)  # [n]
             if refit:
-                fit.fit_residual = float(err.detach()[s_index].double().mean())
+                fit.fit_residual = err.detach()[s_index].double().mean()
                 var = fit.var_param + (fit.fit_residual if self.cfg.include_fit_residual else 0.0)
                 fit.weight = 1.0 / (var + self.cfg.eps)
-            total = total + fit.weight * err.mean()
+            total = total + fit.weight.to(output.dtype) * err.mean()
         return total
 
     def _outputs(self, elasticity, plasticity, F_e, F_trial, tau, F_next):
@@ -358,12 +388,12 @@ class CPR:
         for out, name in ((tau, "neural stress tau"), (F_next, "neural plastic F_e")):
             if out.shape != F_e.shape:
                 raise ValueError(f"gca/align/cpr.py: {name} has shape {tuple(out.shape)}, expected {tuple(F_e.shape)}")
-            _check_F(out, name)
         return F_e, F_trial, tau, F_next
 
     def residuals(self, elasticity: Callable, plasticity: Callable, F_e: torch.Tensor, F_trial: torch.Tensor,
                   tau: Optional[torch.Tensor] = None, F_next: Optional[torch.Tensor] = None):
-        """CPR residuals of one time step (Algorithm 2).
+        """CPR residuals of one time step (Algorithm 2), with one host synchronisation (the finiteness
+        check of the inputs and the neural outputs).
 
         Args:
             elasticity: neural elasticity, ``forward(F[N,3,3]) -> tau[N,3,3]`` (Kirchhoff, Pa).
@@ -376,7 +406,7 @@ class CPR:
 
         Returns:
             ``(R_e, R_p, info)``: scalar tensors (dimensionless, differentiable w.r.t. the laws'
-            parameters) and a dict with the fits (see :meth:`log_dict`).
+            parameters) and a dict with the fits (see :meth:`log_dict`; its numbers are [] tensors).
         """
         for F, name in ((F_e, "F_e"), (F_trial, "F_trial")):
             _check_F(F, name)
@@ -384,33 +414,34 @@ class CPR:
                 raise ValueError(f"gca/align/cpr.py: {name} has {F.shape[0]} particles, CPR was built for "
                                  f"{self.n_particles}")
         F_e, F_trial, tau, F_next = self._outputs(elasticity, plasticity, F_e, F_trial, tau, F_next)
-        S, cfg = self.subset, self.cfg
+        _check_finite({"F_e": F_e, "F_trial": F_trial, "neural stress tau": tau, "neural plastic F_e": F_next})
+        S, cfg = self._indices(F_e.device)[0], self.cfg
         idx, s_index = (S, slice(None)) if cfg.residual_on == "subset" else (slice(None), S)
-        scale_e = max(float(tau.detach()[S].double().square().sum((-2, -1)).mean()), _TINY)
+        scale_e = tau.detach()[S].double().square().sum((-2, -1)).mean().clamp(min=_TINY)
         eye = torch.eye(3, dtype=torch.float64, device=F_trial.device)
-        scale_p = max(float((F_trial.detach()[S].double() - eye).square().sum((-2, -1)).mean()), _TINY)
+        scale_p = (F_trial.detach()[S].double() - eye).square().sum((-2, -1)).mean().clamp(min=_TINY)
         refit = self._fits is None or self._calls % cfg.refit_every == 0
         self._calls += 1
         e_fits = self.fit_elastic(F_e[S], tau.detach()[S]) if refit else self._fits[0]
-        R_e = self._weighted_residual(e_fits, tau[idx], lambda f: elastic_tau(f.name, F_e[idx], f.theta.tolist()),
+        R_e = self._weighted_residual(e_fits, tau[idx], lambda f: elastic_tau(f.name, F_e[idx], f.theta),
                                       scale_e, s_index, refit)
-        lam_over_mu = self._lam_over_mu(e_fits) if refit else self._fits[2]
+        lam_over_mu = self._lam_over_mu(e_fits, F_e.device) if refit else self._fits[2]
         p_fits = self.fit_plastic(F_trial[S], F_next.detach()[S], lam_over_mu) if refit else self._fits[1]
         R_p = self._weighted_residual(
             p_fits, F_next[idx],
-            lambda f: plastic_map(f.name, F_trial[idx], f.theta.tolist(), lam_over_mu, cfg.dp_cohesion),
+            lambda f: plastic_map(f.name, F_trial[idx], f.theta, lam_over_mu, cfg.dp_cohesion),
             scale_p, s_index, refit)
         self._fits = (e_fits, p_fits, lam_over_mu)
         R_e, R_p = cfg.lambda_e * R_e, cfg.lambda_p * R_p
         info = {"elastic": e_fits, "plastic": p_fits, "scale_e": scale_e, "scale_p": scale_p,
-                "lam_over_mu": lam_over_mu, "refit": refit, "R_e": float(R_e.detach()), "R_p": float(R_p.detach())}
+                "lam_over_mu": lam_over_mu, "refit": refit, "R_e": R_e.detach(), "R_p": R_p.detach()}
         return R_e, R_p, info
 
     # -- logging -------------------------------------------------------------------------------
     @staticmethod
     def best(fits: dict[str, HypothesisFit]) -> Optional[str]:
         """Name of the hypothesis with the largest weight (None if no hypothesis is enabled)."""
-        return max(fits, key=lambda k: fits[k].weight) if fits else None
+        return max(fits, key=lambda k: float(fits[k].weight)) if fits else None
 
     @staticmethod
     def log_dict(info: dict, prefix: str = "cpr/") -> dict[str, float]:
@@ -420,14 +451,15 @@ class CPR:
         sigma_y}``, ``{prefix}p/drucker_prager/phi``, ``{prefix}p/<hyp>/{weight,var,misfit}``, ``R_e``, ``R_p``.
         sigma_y [Pa] = 2 mu k with mu of the most credible elastic fit (nan without one).
         """
-        out = {f"{prefix}R_e": info["R_e"], f"{prefix}R_p": info["R_p"]}
+        out = {f"{prefix}R_e": float(info["R_e"]), f"{prefix}R_p": float(info["R_p"])}
         mus = {n: float(f.theta[0]) for n, f in info["elastic"].items() if f.theta.numel() == 2}
         mu_ref = mus.get(CPR.best({n: info["elastic"][n] for n in mus}), float("nan")) if mus else float("nan")
         for kind, fits, names in (("e", info["elastic"], ELASTIC_PARAMS), ("p", info["plastic"], PLASTIC_PARAMS)):
             for name, fit in fits.items():
                 key = f"{prefix}{kind}/{name}/"
                 out.update({key + p: float(v) for p, v in zip(names[name], fit.theta)})
-                out.update({key + "weight": fit.weight, key + "var": fit.var_param, key + "misfit": fit.fit_residual})
+                out.update({key + "weight": float(fit.weight), key + "var": float(fit.var_param),
+                            key + "misfit": float(fit.fit_residual)})
                 if names[name] == ("mu", "lam"):
                     out[key + "E"], out[key + "nu"] = lame_to_E_nu(*(float(v) for v in fit.theta))
                 if name == "von_mises":
