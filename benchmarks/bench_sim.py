@@ -66,13 +66,16 @@ def _state(n, cfg, device):
 
 
 def make_material(law: str, device, dtype: torch.dtype) -> Material:
-    """``corotated`` (analytic) or ``neural``: NCLaw networks with LoRA r=16 on every layer (a GCA step)."""
-    if law == "neural":
+    """``corotated`` (analytic) or ``neural``: NCLaw networks with LoRA r=16 on every layer (a GCA step),
+    features and heads in warp kernels (``gca.laws.fused``); ``neural_ref``: the same through the torch
+    reference path."""
+    if law in ("neural", "neural_ref"):
         from gca.laws.lora import apply_lora
         from gca.laws.neural import NeuralElasticity, NeuralPlasticity
         e, p = NeuralElasticity(), NeuralPlasticity()
         apply_lora(e, 16, 16.0)
         apply_lora(p, 16, 16.0)
+        e.fast_path = p.fast_path = law == "neural"
         return Material(e, p, RHO).to(device=device, dtype=dtype)
     return Material(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), RHO).to(device=device, dtype=dtype)
 
@@ -187,7 +190,7 @@ def _parse(argv=None):
     p.add_argument("--rollout-grid", type=int, default=32)
     p.add_argument("--no-checkpoint", action="store_true", help="also measure the rollout without checkpoints")
     p.add_argument("--skip-rollout", action="store_true")
-    p.add_argument("--law", nargs="+", default=["none"], choices=["none", "corotated", "neural"],
+    p.add_argument("--law", nargs="+", default=["none"], choices=["none", "corotated", "neural", "neural_ref"],
                    help="law evaluated each step in the throughput chains (none: fixed stress)")
     p.add_argument("--rollout-law", default="corotated", choices=["corotated", "neural"])
     p.add_argument("--graph", nargs="+", default=["off"], choices=["off", "on"],

@@ -31,8 +31,9 @@ import math
 import torch
 from torch import nn
 
+from gca.laws import fused
 from gca.laws.base import Elasticity, Plasticity
-from gca.laws.svd import bmm3, check_F, det3, svd
+from gca.laws.svd import _warp_cpu, bmm3, check_F, det3, svd
 
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
@@ -96,19 +97,38 @@ def make_mlp(cfg: NeuralLawConfig) -> nn.Sequential:
 
 
 class _InvariantNetwork(nn.Module):
-    """Shared trunk: F -> (R, S) with R the polar rotation and S = sym(MLP(z(F)))."""
+    """Shared trunk: F -> (R, S) with R the polar rotation and S = sym(MLP(z(F))).
+
+    ``fast_path`` (default True): the features and the output head run as warp kernels with
+    hand-written adjoints (``gca.laws.fused``) where warp can run (CUDA, or a CPU with warp's
+    compiler); False, or elsewhere, uses the torch reference below. Both give the same values and
+    gradients to rounding; the flag is an implementation choice, not part of the checkpoint.
+    """
+
+    fast_path: bool = True
 
     def __init__(self, cfg: NeuralLawConfig | None = None):
         super().__init__()
         self.cfg = cfg if cfg is not None else NeuralLawConfig()
         self.mlp = make_mlp(self.cfg)
 
-    def rotation_and_stretch(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """F [N,3,3] -> (R [N,3,3] polar rotation, S [N,3,3] symmetric network output)."""
+    def _check_dtype(self, F: torch.Tensor) -> None:
         weight = self.mlp[0].weight
         if F.dtype != weight.dtype:
             raise TypeError(f"gca/laws/neural.py: {type(self).__name__}: F is {F.dtype} but the network is "
                             f"{weight.dtype}; call .to({F.dtype}) on the law")
+
+    def _fused(self, F: torch.Tensor) -> bool:
+        return self.fast_path and F.dtype in (torch.float32, torch.float64) and (F.is_cuda or _warp_cpu())
+
+    def fused_network(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Fast path: F -> (R [N,3,3], X [N,9] raw MLP output), features in one warp kernel."""
+        R, z = fused.features(F)
+        return R, self.mlp(z)
+
+    def rotation_and_stretch(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """F [N,3,3] -> (R [N,3,3] polar rotation, S [N,3,3] symmetric network output) (torch reference)."""
+        self._check_dtype(F)
         U, sigma, Vh = svd(F)
         R = bmm3(U, Vh)
         X = self.mlp(invariant_features(F, sigma)).reshape(-1, 3, 3)
@@ -128,6 +148,10 @@ class NeuralElasticity(_InvariantNetwork, Elasticity):
             tau [N, 3, 3] in Pa; exactly 0 where F = I.
         """
         check_F(F, "NeuralElasticity.forward")
+        if self._fused(F):
+            self._check_dtype(F)
+            R, X = self.fused_network(F)
+            return fused.elastic_head(X, R, F, self.cfg.stress_scale)
         R, S = self.rotation_and_stretch(F)
         P = self.cfg.stress_scale * bmm3(R, S)
         return bmm3(P, F.transpose(1, 2))
@@ -168,5 +192,9 @@ class NeuralPlasticity(_InvariantNetwork, Plasticity):
             F_e [N, 3, 3]; exactly I where F = I.
         """
         check_F(F, "NeuralPlasticity.forward")
+        if self._fused(F):
+            self._check_dtype(F)
+            R, X = self.fused_network(F)
+            return fused.plastic_head(X, R, F, self.cfg.alpha)
         R, S = self.rotation_and_stretch(F)
         return F + self.cfg.alpha * bmm3(R, S)

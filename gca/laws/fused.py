@@ -1,0 +1,267 @@
+"""The neural laws' per-particle algebra in warp kernels with hand-written adjoints (fast path).
+
+:class:`gca.laws.neural.NeuralElasticity` (and the plasticity) compute, per particle,
+
+    U, sigma, Vh = svd(F),  R = U Vh,  z = [sigma - 1, vec(F^T F - I), det F - 1]      (features)
+    X = MLP(z) [9]                                                                     (torch GEMMs)
+    S = sym(X),  tau = stress_scale R S F^T   |   F_e = F + alpha R S                   (heads)
+
+In torch the features and heads are ~60 elementwise kernels forward and more backward per network
+and step (their launches dominated a neural-law MPM step on the GPU, ``benchmarks/NOTES.md``). Here
+they are two warp kernels each way: ``features`` (after the SVD kernel) and a head, with adjoints
+written out by hand (warp's automatic adjoint cannot go through the SVD's data-dependent loop):
+
+    features:  v_F = U (diag(v_sigma) + K) Vh + F (v_C + v_C^T) + v_J cof(F),
+               K_ij = (X_ij - X_ji) / (sigma_i + sigma_j) (i != j), K_ii = 0, X = U^T v_R Vh^T,
+    elastic:   P = s R S, tau = P F^T:  v_F = v_tau^T P, v_R = s v_tau F S, v_X = sym(s R^T v_tau F),
+    plastic:   F_e = F + a R S:         v_F = v_Fe,      v_R = a v_Fe S,   v_X = sym(a R^T v_Fe).
+
+The rotation term is the polar-rotation VJP of ``gca.laws.svd``'s backward (its U-V term cancels
+exactly for R = U Vh), with the same sign-keeping clamp |sigma_i + sigma_j| >= eps (only reached
+under inversion). The MLP stays in torch (one GEMM per layer, merged LoRA weights), so gradients
+reach the weights through autograd as before. Same values as the torch path to rounding, tested
+with float64 gradient checks and against the torch implementation.
+"""
+
+# no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
+import functools
+import types
+
+import torch
+import warp as wp
+from torch.autograd.function import once_differentiable
+
+from gca.laws.svd import _svd_rotations, default_eps
+from gca.warp_stream import on_torch_stream
+
+_WHERE = "gca/laws/fused.py"
+_WP = {torch.float32: wp.float32, torch.float64: wp.float64}
+N_FEATURES = 13
+
+
+@functools.cache
+def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
+    """Build the feature and head kernels and their adjoints for float32 or float64."""
+    T = _WP[dtype]
+    vec3 = wp.types.vector(3, T)
+    mat33 = wp.types.matrix((3, 3), T)
+    module = f"gca_laws_fused_{T.__name__}"
+
+    @wp.func
+    def cofactor(f: mat33):
+        """d det(F) / dF: rows are cross products of the other two rows."""
+        r0 = vec3(f[0, 0], f[0, 1], f[0, 2])
+        r1 = vec3(f[1, 0], f[1, 1], f[1, 2])
+        r2 = vec3(f[2, 0], f[2, 1], f[2, 2])
+        return wp.matrix_from_rows(wp.cross(r1, r2), wp.cross(r2, r0), wp.cross(r0, r1))
+
+    @wp.func
+    def safe_recip(d: T, eps: T):
+        """1/d with |d| clamped to >= eps, sign kept (0 counts as +)."""
+        if d < T(0.0):
+            return T(-1.0) / wp.max(-d, eps)
+        return T(1.0) / wp.max(d, eps)
+
+    @wp.func
+    def sym_of_row(X: wp.array2d(dtype=T), p: int):
+        """sym(M) of the row-major 3x3 M = X[p].reshape(3, 3)."""
+        M = mat33(X[p, 0], X[p, 1], X[p, 2], X[p, 3], X[p, 4], X[p, 5], X[p, 6], X[p, 7], X[p, 8])
+        return T(0.5) * (M + wp.transpose(M))
+
+    @wp.func
+    def store_sym(G: mat33, out: wp.array2d(dtype=T), p: int):
+        """out[p] = vec(sym(G)) (the VJP of M -> sym(M))."""
+        S = T(0.5) * (G + wp.transpose(G))
+        for i in range(3):
+            for j in range(3):
+                out[p, 3 * i + j] = S[i, j]
+
+    @wp.kernel(module=module)
+    def features(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
+                 Vh: wp.array(dtype=mat33), R: wp.array(dtype=mat33), z: wp.array2d(dtype=T)):
+        p = wp.tid()
+        f = F[p]
+        R[p] = U[p] @ Vh[p]
+        sv = s[p]
+        C = wp.transpose(f) @ f
+        for i in range(3):
+            z[p, i] = sv[i] - T(1.0)
+            for j in range(3):
+                shift = T(0.0)
+                if i == j:
+                    shift = T(1.0)
+                z[p, 3 + 3 * i + j] = C[i, j] - shift
+        z[p, 12] = wp.determinant(f) - T(1.0)
+
+    @wp.kernel(module=module)
+    def features_adjoint(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
+                         Vh: wp.array(dtype=mat33), v_R: wp.array(dtype=mat33), v_z: wp.array2d(dtype=T),
+                         eps: T, v_F: wp.array(dtype=mat33)):
+        p = wp.tid()
+        f = F[p]
+        u = U[p]
+        vh = Vh[p]
+        sv = s[p]
+        v_C = mat33(v_z[p, 3], v_z[p, 4], v_z[p, 5], v_z[p, 6], v_z[p, 7], v_z[p, 8], v_z[p, 9], v_z[p, 10],
+                    v_z[p, 11])
+        D = wp.diag(vec3(v_z[p, 0], v_z[p, 1], v_z[p, 2]))
+        X = wp.transpose(u) @ v_R[p] @ wp.transpose(vh)
+        K = mat33()
+        for i in range(3):
+            for j in range(3):
+                if i != j:
+                    K[i, j] = (X[i, j] - X[j, i]) * safe_recip(sv[i] + sv[j], eps)
+        v_F[p] = u @ (D + K) @ vh + f @ (v_C + wp.transpose(v_C)) + v_z[p, 12] * cofactor(f)
+
+    @wp.kernel(module=module)
+    def elastic_head(X: wp.array2d(dtype=T), R: wp.array(dtype=mat33), F: wp.array(dtype=mat33), scale: T,
+                     tau: wp.array(dtype=mat33)):
+        p = wp.tid()
+        tau[p] = (scale * R[p] @ sym_of_row(X, p)) @ wp.transpose(F[p])
+
+    @wp.kernel(module=module)
+    def elastic_head_adjoint(X: wp.array2d(dtype=T), R: wp.array(dtype=mat33), F: wp.array(dtype=mat33), scale: T,
+                             v_tau: wp.array(dtype=mat33), v_X: wp.array2d(dtype=T), v_R: wp.array(dtype=mat33),
+                             v_F: wp.array(dtype=mat33)):
+        p = wp.tid()
+        S = sym_of_row(X, p)
+        r = R[p]
+        v_P = v_tau[p] @ F[p]
+        v_F[p] = wp.transpose(v_tau[p]) @ (scale * r @ S)
+        v_R[p] = scale * v_P @ S
+        store_sym(scale * wp.transpose(r) @ v_P, v_X, p)
+
+    @wp.kernel(module=module)
+    def plastic_head(X: wp.array2d(dtype=T), R: wp.array(dtype=mat33), F: wp.array(dtype=mat33), alpha: T,
+                     F_e: wp.array(dtype=mat33)):
+        p = wp.tid()
+        F_e[p] = F[p] + alpha * R[p] @ sym_of_row(X, p)
+
+    @wp.kernel(module=module)
+    def plastic_head_adjoint(X: wp.array2d(dtype=T), R: wp.array(dtype=mat33), alpha: T,
+                             v_Fe: wp.array(dtype=mat33), v_X: wp.array2d(dtype=T), v_R: wp.array(dtype=mat33)):
+        p = wp.tid()
+        v_R[p] = alpha * v_Fe[p] @ sym_of_row(X, p)
+        store_sym(alpha * wp.transpose(R[p]) @ v_Fe[p], v_X, p)
+
+    return types.SimpleNamespace(features=features, features_adjoint=features_adjoint, elastic_head=elastic_head,
+                                 elastic_head_adjoint=elastic_head_adjoint, plastic_head=plastic_head,
+                                 plastic_head_adjoint=plastic_head_adjoint, mat33=mat33, vec3=vec3, T=T)
+
+
+def _launch(kernel, n: int, device: torch.device, args: list) -> None:
+    with on_torch_stream(device):
+        wp.launch(kernel, dim=n, inputs=args, device=wp.device_from_torch(device))
+
+
+def _m(t: torch.Tensor, k) -> wp.array:
+    return wp.from_torch(t.contiguous(), dtype=k.mat33)
+
+
+def _v(t: torch.Tensor, k) -> wp.array:
+    return wp.from_torch(t.contiguous(), dtype=k.vec3)
+
+
+def _a(t: torch.Tensor) -> wp.array:
+    return wp.from_torch(t.contiguous())
+
+
+class _Features(torch.autograd.Function):
+    """F [N,3,3] -> (R [N,3,3] polar rotation, z [N,13] rest-shifted invariants)."""
+
+    @staticmethod
+    def forward(ctx, F):
+        F = F.detach().contiguous()
+        U, sigma, Vh = _svd_rotations(F)
+        k = make_law_kernels(F.dtype)
+        R = torch.empty_like(F)
+        z = torch.empty(F.shape[0], N_FEATURES, dtype=F.dtype, device=F.device)
+        if F.shape[0]:
+            _launch(k.features, F.shape[0], F.device, [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _m(R, k), _a(z)])
+        ctx.save_for_backward(F, U, sigma, Vh)
+        return R, z
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_R, v_z):
+        F, U, sigma, Vh = ctx.saved_tensors
+        k = make_law_kernels(F.dtype)
+        v_R = torch.zeros_like(F) if v_R is None else v_R.contiguous()
+        v_z = torch.zeros(F.shape[0], N_FEATURES, dtype=F.dtype, device=F.device) if v_z is None else v_z.contiguous()
+        v_F = torch.empty_like(F)
+        if F.shape[0]:
+            _launch(k.features_adjoint, F.shape[0], F.device,
+                    [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _m(v_R, k), _a(v_z), k.T(default_eps(F.dtype)),
+                     _m(v_F, k)])
+        return v_F
+
+
+class _ElasticHead(torch.autograd.Function):
+    """(X [N,9], R, F) -> tau = scale R sym(X) F^T [N,3,3]."""
+
+    @staticmethod
+    def forward(ctx, X, R, F, scale):
+        X, R, F = (t.detach().contiguous() for t in (X, R, F))
+        k = make_law_kernels(F.dtype)
+        tau = torch.empty_like(F)
+        if F.shape[0]:
+            _launch(k.elastic_head, F.shape[0], F.device, [_a(X), _m(R, k), _m(F, k), k.T(scale), _m(tau, k)])
+        ctx.save_for_backward(X, R, F)
+        ctx.scale = scale
+        return tau
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_tau):
+        X, R, F = ctx.saved_tensors
+        k = make_law_kernels(F.dtype)
+        v_X, v_R, v_F = torch.empty_like(X), torch.empty_like(R), torch.empty_like(F)
+        if F.shape[0]:
+            _launch(k.elastic_head_adjoint, F.shape[0], F.device,
+                    [_a(X), _m(R, k), _m(F, k), k.T(ctx.scale), _m(v_tau.contiguous(), k), _a(v_X), _m(v_R, k),
+                     _m(v_F, k)])
+        return v_X, v_R, v_F, None
+
+
+class _PlasticHead(torch.autograd.Function):
+    """(X [N,9], R, F) -> F_e = F + alpha R sym(X) [N,3,3]."""
+
+    @staticmethod
+    def forward(ctx, X, R, F, alpha):
+        X, R, F = (t.detach().contiguous() for t in (X, R, F))
+        k = make_law_kernels(F.dtype)
+        F_e = torch.empty_like(F)
+        if F.shape[0]:
+            _launch(k.plastic_head, F.shape[0], F.device, [_a(X), _m(R, k), _m(F, k), k.T(alpha), _m(F_e, k)])
+        ctx.save_for_backward(X, R)
+        ctx.alpha = alpha
+        return F_e
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_Fe):
+        X, R = ctx.saved_tensors
+        k = make_law_kernels(R.dtype)
+        v_Fe = v_Fe.contiguous()
+        v_X, v_R = torch.empty_like(X), torch.empty_like(R)
+        if R.shape[0]:
+            _launch(k.plastic_head_adjoint, R.shape[0], R.device,
+                    [_a(X), _m(R, k), k.T(ctx.alpha), _m(v_Fe, k), _a(v_X), _m(v_R, k)])
+        return v_X, v_R, v_Fe, None
+
+
+def features(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R [N,3,3], z [N,13]) of F [N,3,3] (float32/float64, CPU with warp or CUDA), differentiable."""
+    if F.dtype not in _WP:
+        raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
+    return _Features.apply(F)
+
+
+def elastic_head(X: torch.Tensor, R: torch.Tensor, F: torch.Tensor, scale: float) -> torch.Tensor:
+    """tau = scale R sym(X.reshape(-1, 3, 3)) F^T [N,3,3] (Pa), differentiable in X, R, F."""
+    return _ElasticHead.apply(X, R, F, float(scale))
+
+
+def plastic_head(X: torch.Tensor, R: torch.Tensor, F: torch.Tensor, alpha: float) -> torch.Tensor:
+    """F_e = F + alpha R sym(X.reshape(-1, 3, 3)) [N,3,3], differentiable in X, R, F."""
+    return _PlasticHead.apply(X, R, F, float(alpha))
