@@ -89,3 +89,19 @@ def test_fast_path_objectivity():
 def test_wrong_dtype_is_refused():
     with pytest.raises(TypeError, match="float32 or float64"):
         fused.features(torch.eye(3, dtype=torch.float16)[None])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
+def test_fast_path_on_cuda_equals_the_cpu(law_cls):
+    """The CUDA build of the kernels against the CPU one (float64: values and gradients)."""
+    law = scramble(apply_lora(law_cls(NeuralLawConfig(widths=(32, 32))).double(), rank=4, alpha=4.0), seed=3)
+    out = {}
+    for device in ("cpu", "cuda"):
+        law.to(device)
+        F = hard_F().to(device).requires_grad_(True)
+        y = law(F)
+        params = [F] + [p for p in law.parameters() if p.requires_grad]
+        out[device] = [t.cpu() for t in (y, *torch.autograd.grad(y.square().sum(), params))]
+    for a, b in zip(out["cuda"], out["cpu"]):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
