@@ -105,3 +105,11 @@ def test_fast_path_on_cuda_equals_the_cpu(law_cls):
         out[device] = [t.cpu() for t in (y, *torch.autograd.grad(y.square().sum(), params))]
     for a, b in zip(out["cuda"], out["cpu"]):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
+
+
+@pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
+def test_fast_path_handles_an_empty_batch(law_cls):
+    F = torch.zeros(0, 3, 3, requires_grad=True)
+    y = law_cls()(F)
+    y.sum().backward()
+    assert y.shape == (0, 3, 3) and F.grad.shape == (0, 3, 3)

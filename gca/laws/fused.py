@@ -32,17 +32,17 @@ import warp as wp
 from torch.autograd.function import once_differentiable
 
 from gca.laws.svd import _svd_rotations, default_eps
+from gca.laws.svd_kernel import WARP_FLOATS
 from gca.warp_stream import on_torch_stream
 
 _WHERE = "gca/laws/fused.py"
-_WP = {torch.float32: wp.float32, torch.float64: wp.float64}
 N_FEATURES = 13
 
 
 @functools.cache
 def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
     """Build the feature and head kernels and their adjoints for float32 or float64."""
-    T = _WP[dtype]
+    T = WARP_FLOATS[dtype]
     vec3 = wp.types.vector(3, T)
     mat33 = wp.types.matrix((3, 3), T)
     module = f"gca_laws_fused_{T.__name__}"
@@ -154,6 +154,8 @@ def _launch(kernel, n: int, device: torch.device, args: list) -> None:
         wp.launch(kernel, dim=n, inputs=args, device=wp.device_from_torch(device))
 
 
+# torch -> warp views (contiguous copies where needed): [N,3,3] as mat33, [N,3] as vec3, [N,k] as 2-D;
+# callers skip empty batches (warp refuses to view a zero-size tensor)
 def _m(t: torch.Tensor, k) -> wp.array:
     return wp.from_torch(t.contiguous(), dtype=k.mat33)
 
@@ -186,8 +188,8 @@ class _Features(torch.autograd.Function):
     def backward(ctx, v_R, v_z):
         F, U, sigma, Vh = ctx.saved_tensors
         k = make_law_kernels(F.dtype)
-        v_R = torch.zeros_like(F) if v_R is None else v_R.contiguous()
-        v_z = torch.zeros(F.shape[0], N_FEATURES, dtype=F.dtype, device=F.device) if v_z is None else v_z.contiguous()
+        v_R = torch.zeros_like(F) if v_R is None else v_R
+        v_z = torch.zeros(F.shape[0], N_FEATURES, dtype=F.dtype, device=F.device) if v_z is None else v_z
         v_F = torch.empty_like(F)
         if F.shape[0]:
             _launch(k.features_adjoint, F.shape[0], F.device,
@@ -218,7 +220,7 @@ class _ElasticHead(torch.autograd.Function):
         v_X, v_R, v_F = torch.empty_like(X), torch.empty_like(R), torch.empty_like(F)
         if F.shape[0]:
             _launch(k.elastic_head_adjoint, F.shape[0], F.device,
-                    [_a(X), _m(R, k), _m(F, k), k.T(ctx.scale), _m(v_tau.contiguous(), k), _a(v_X), _m(v_R, k),
+                    [_a(X), _m(R, k), _m(F, k), k.T(ctx.scale), _m(v_tau, k), _a(v_X), _m(v_R, k),
                      _m(v_F, k)])
         return v_X, v_R, v_F, None
 
@@ -252,7 +254,7 @@ class _PlasticHead(torch.autograd.Function):
 
 def features(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(R [N,3,3], z [N,13]) of F [N,3,3] (float32/float64, CPU with warp or CUDA), differentiable."""
-    if F.dtype not in _WP:
+    if F.dtype not in WARP_FLOATS:
         raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
     return _Features.apply(F)
 

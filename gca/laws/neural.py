@@ -33,7 +33,7 @@ from torch import nn
 
 from gca.laws import fused
 from gca.laws.base import Elasticity, Plasticity
-from gca.laws.svd import _warp_cpu, bmm3, check_F, det3, svd
+from gca.laws.svd import bmm3, check_F, det3, svd, warp_runs
 
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
@@ -119,10 +119,11 @@ class _InvariantNetwork(nn.Module):
                             f"{weight.dtype}; call .to({F.dtype}) on the law")
 
     def _fused(self, F: torch.Tensor) -> bool:
-        return self.fast_path and F.dtype in (torch.float32, torch.float64) and (F.is_cuda or _warp_cpu())
+        return self.fast_path and warp_runs(F)
 
     def fused_network(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Fast path: F -> (R [N,3,3], X [N,9] raw MLP output), features in one warp kernel."""
+        self._check_dtype(F)
         R, z = fused.features(F)
         return R, self.mlp(z)
 
@@ -149,7 +150,6 @@ class NeuralElasticity(_InvariantNetwork, Elasticity):
         """
         check_F(F, "NeuralElasticity.forward")
         if self._fused(F):
-            self._check_dtype(F)
             R, X = self.fused_network(F)
             return fused.elastic_head(X, R, F, self.cfg.stress_scale)
         R, S = self.rotation_and_stretch(F)
@@ -193,7 +193,6 @@ class NeuralPlasticity(_InvariantNetwork, Plasticity):
         """
         check_F(F, "NeuralPlasticity.forward")
         if self._fused(F):
-            self._check_dtype(F)
             R, X = self.fused_network(F)
             return fused.plastic_head(X, R, F, self.cfg.alpha)
         R, S = self.rotation_and_stretch(F)

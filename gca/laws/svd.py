@@ -38,7 +38,7 @@ import torch
 import warp as wp
 from torch.autograd.function import once_differentiable
 
-from gca.laws.svd_kernel import svd3
+from gca.laws.svd_kernel import WARP_FLOATS, svd3
 
 
 def check_F(F: torch.Tensor, where: str) -> None:
@@ -87,9 +87,14 @@ def _svd_rotations(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     graph, 7x faster than LAPACK on the CPU); :func:`torch_svd_rotations` on a CPU where warp has no
     compiler (GPU-only installs) and for other float types.
     """
-    if F.dtype in (torch.float32, torch.float64) and (F.is_cuda or _warp_cpu()):
+    if warp_runs(F):
         return svd3(F)
     return torch_svd_rotations(F)
+
+
+def warp_runs(F: torch.Tensor) -> bool:
+    """Whether our warp kernels take ``F``: float32/float64 on CUDA, or on a CPU where warp compiles."""
+    return F.dtype in WARP_FLOATS and (F.is_cuda or _warp_cpu())
 
 
 @functools.cache

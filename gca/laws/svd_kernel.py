@@ -32,13 +32,13 @@ from gca.warp_stream import on_torch_stream
 _WHERE = "gca/laws/svd_kernel.py"
 MAX_SWEEPS = 16  # cyclic sweeps of 3 rotations; convergence takes <= 6 (float32) / 7 (float64) on random F
 _EPS = {torch.float32: 1.2e-7, torch.float64: 2.3e-16}  # columns count as orthogonal below this cosine
-_WP = {torch.float32: wp.float32, torch.float64: wp.float64}
+WARP_FLOATS = {torch.float32: wp.float32, torch.float64: wp.float64}  # torch dtype -> warp scalar
 
 
 @functools.cache
 def make_svd_kernel(dtype: torch.dtype) -> types.SimpleNamespace:
     """Build the SVD kernel for ``torch.float32`` or ``torch.float64`` (one warp module each)."""
-    T = _WP[dtype]
+    T = WARP_FLOATS[dtype]
     vec3 = wp.types.vector(3, T)
     mat33 = wp.types.matrix((3, 3), T)
     eps = T(_EPS[dtype])
@@ -142,7 +142,7 @@ def svd3(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
     Runs on torch's current CUDA stream (so it can be captured in a CUDA graph).
     """
-    if F.dtype not in _WP or F.ndim != 3 or tuple(F.shape[1:]) != (3, 3):
+    if F.dtype not in WARP_FLOATS or F.ndim != 3 or tuple(F.shape[1:]) != (3, 3):
         raise ValueError(f"{_WHERE}: svd3 needs a float32/float64 [N, 3, 3] tensor, got {F.dtype} {tuple(F.shape)}")
     F = F.detach().contiguous()
     n = F.shape[0]
