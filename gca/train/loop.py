@@ -115,6 +115,9 @@ class Objective:
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
         self.probe: GradProbe | None = None  # set per step by _step (gradient provenance)
         self.rdga = dataclasses.replace(rdga, **dict(method.rdga))
+        # the train0 RDGA terms: the full config with ``geo``, silhouette only with ``mask``, none otherwise
+        self.train0_rdga = self.rdga if method.geo else (
+            dataclasses.replace(self.rdga, use_global=False, use_anchor=False) if method.mask else None)
         self.cpr = None
         if method.cpr:
             if method.cpr_remove_target:
@@ -182,17 +185,11 @@ class Objective:
         return loss
 
     def _needs_positions(self) -> bool:
-        return self.method.geo and self.rdga.enabled and self.rdga.use_global
-
-    def _frame_rdga(self) -> RDGAConfig | None:
-        """The RDGA config of the train0 terms (silhouette only without ``geo``), None without them."""
-        m = self.method
-        if not (m.mask or m.geo):
-            return None
-        return self.rdga if m.geo else dataclasses.replace(self.rdga, use_global=False, use_anchor=False)
+        rdga = self.train0_rdga
+        return rdga is not None and rdga.enabled and rdga.use_global
 
     def _needs_matches(self) -> bool:
-        rdga = self._frame_rdga()
+        rdga = self.train0_rdga
         return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
 
     def _match_frames(self, outs: list[dict]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -201,8 +198,6 @@ class Objective:
         frames = to_uint8(torch.stack([o["rgb"] for o in outs]))
         keypoints = self.data.keypoints
         work = lambda j: match_cached(frames[j], *keypoints[j], self.match)  # noqa: E731
-        if len(frames) == 1:
-            return [work(0)]
         return list(_match_pool().map(work, range(len(frames))))
 
     def _render(self, means, covs, view: ViewData, with_positions: bool) -> dict:
@@ -226,11 +221,12 @@ class Objective:
             l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
             loss = loss + self.cfg.lambda_depth_l1 * l_depth
             stats.add("depth_l1", l_depth)
-        rdga = self._frame_rdga()
+        rdga = self.train0_rdga
         if rdga is not None:
             p, q = pq if pq is not None else (np.zeros((0, 2), np.float32),) * 2
-            pos = out.get("positions") if rdga.enabled and rdga.use_global else None
-            l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=pos, K=self.K["train0"])
+            # "positions" is rendered exactly when the global term needs it (_needs_positions)
+            l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=out.get("positions"),
+                                  K=self.K["train0"])
             loss = loss + l_rdga
             for k, v in s.items():
                 stats.add(f"rdga/{k}", v)
