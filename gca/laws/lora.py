@@ -98,6 +98,12 @@ class LoRALinear(nn.Module):
             return TF.linear(x, self.weight, self.bias)
         return TF.linear(x, self.weight + self.delta_weight(), self.bias)
 
+    def forward_lowrank(self, x: torch.Tensor) -> torch.Tensor:
+        """Reference of :meth:`forward` through the rank-r path ``W x + b + scale (alpha / r) B (A x)``
+        (same values to rounding; three [N, .] products forward instead of one)."""
+        y = TF.linear(x, self.weight, self.bias)
+        return y + (self.scale * self.scaling) * TF.linear(TF.linear(x, self.lora_A), self.lora_B)
+
     def merge(self) -> nn.Linear:
         """A plain frozen ``nn.Linear`` with weight ``W + scale * (alpha/r) * B A`` (deployment)."""
         merged = nn.Linear(self.in_features, self.out_features, bias=self.bias is not None,
