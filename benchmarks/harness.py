@@ -53,6 +53,11 @@ def make_params(scene: str, methods: list[str], profile: str, overrides: list[st
     return raw
 
 
+def result_name(profile: str, scene: str, method: str, device: str, tag: str = "") -> str:
+    """File name of one (scene, method) JSON under ``--out``."""
+    return f"harness_{profile}_{scene}_{method}_{device}{tag}.json"
+
+
 def versions() -> dict:
     import numpy
     import warp
@@ -149,8 +154,7 @@ def main(argv=None) -> list[dict]:
     stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data)
     rows = collect(raw, args.scene, args.work, args.device, stage_seconds, args.overrides)
     for row in rows:
-        tag = f"harness_{row['profile']}_{row['scene']}_{row['method']}_{args.device}{args.tag}.json"
-        (args.out / tag).write_text(json.dumps(row, indent=2, sort_keys=True) + "\n")
+        (args.out / result_name(row["profile"], row["scene"], row["method"], args.device, args.tag)).write_text(json.dumps(row, indent=2, sort_keys=True) + "\n")
     print(f"\n{'method':<12}{'P':>8}{'G':>8}{'it':>4}{'s/it':>8}{'sim':>8}{'render':>8}{'bwd':>8}"
           f"{'rollout s':>10}{'peak GiB':>9}{'CD':>9}")
     for r in rows:

@@ -25,6 +25,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from harness import result_name  # noqa: E402
 KEEP = ("assets", "prior", "scene", "prep", "m", "particles.npz")  # what the copies reuse (not runs/eval)
 
 
@@ -52,7 +54,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--device", default="cuda", help="as given to the harness (names its JSON files)")
     args = ap.parse_args(argv)
-    solo = {m: json.loads((args.out / f"harness_{args.profile}_{args.scene}_{m}_{args.device}.json").read_text())
+    solo = {m: json.loads((args.out / result_name(args.profile, args.scene, m, args.device)).read_text())
             for m in args.methods}
     procs, works = [], []
     for i in range(args.copies):
@@ -73,7 +75,7 @@ def main(argv=None) -> dict:
     rows = []
     for i in range(args.copies):
         for m in args.methods:
-            path = args.out / f"harness_{args.profile}_{args.scene}_{m}_{args.device}_pack{i}.json"
+            path = args.out / result_name(args.profile, args.scene, m, args.device, f"_pack{i}")
             if path.is_file():
                 r = json.loads(path.read_text())
                 rows.append({"copy": i, "method": m, "train_seconds": r["train_seconds"],
