@@ -6,6 +6,8 @@ checkpointed rollout in values and gradients, pass a float64 gradcheck, reuse it
 see in-place parameter updates (what the optimiser does between replays).
 """
 
+import warnings
+
 import pytest
 import torch
 import warp as wp
@@ -121,3 +123,32 @@ def test_cuda_graphs_match_eager_on_gpu():
     torch.testing.assert_close(out.x, ref.x, atol=1e-5, rtol=1e-5)
     for a, b in zip(g, g_ref):
         torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_capture_survives_unreachable_warp_memory():
+    """An unreachable solver (a reference cycle holding warp-owned grid buffers) must not be collected
+    inside a capture: warp would free its memory while torch captures, and the capture would fail.
+    The collector runs at every allocation here, so without the pause it would collect in the capture."""
+    import gc
+
+    material = _law(dtype=torch.float32).cuda()
+    scene = [t.cuda() for t in _scene(n=300, dtype=torch.float32)]
+    threshold = gc.get_threshold()
+    gc.disable()
+    try:
+        old = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1), "cuda")
+        old.me = old  # a cycle: only the cyclic collector frees it
+        old.grid(scene[0], scene[1], torch.zeros(300, 3, 3, device="cuda"), torch.zeros(300, 3, 3, device="cuda"),
+                 scene[2], scene[3])  # allocates its warp grid buffers
+        del old
+        gc.set_threshold(1, 1, 1)
+        gc.enable()
+        solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1), "cuda")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)  # the eager fallback warns
+            _loss_and_grads(material, solver, True, *scene)
+        assert solver.frame_graphs(material, 2, 300).capture
+    finally:
+        gc.set_threshold(*threshold)
+        gc.enable()

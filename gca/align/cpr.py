@@ -221,7 +221,7 @@ def grid_fit_groups(errors: Callable[[torch.Tensor], torch.Tensor], lo: float, h
         [G, 1] float64 estimates on ``device``.
     """
     f64 = dict(dtype=torch.float64, device=device)
-    lo_t, hi_t = torch.tensor(float(lo), **f64), torch.tensor(float(hi), **f64)
+    lo_t, hi_t = torch.full((), float(lo), **f64), torch.full((), float(hi), **f64)  # fills, no host copy
     group_ids = group_ids.to(device)
     best_loss = torch.full((n_groups,), math.inf, **f64)
     best = torch.zeros(n_groups, **f64)
@@ -323,15 +323,16 @@ class CPR:
         """lam/mu of the most credible two-parameter elastic fit with mu > 0 ([] float64 on ``device``;
         cfg.fallback_poisson's ratio when there is none), chosen on the device."""
         nu = self.cfg.fallback_poisson
-        fallback = torch.tensor(2 * nu / (1 - 2 * nu), dtype=torch.float64, device=device)
+        fallback = torch.full((), 2 * nu / (1 - 2 * nu), dtype=torch.float64, device=device)
         two = [f for f in elastic_fits.values() if f.theta.numel() == 2]
         if not two:
             return fallback
         theta = torch.stack([f.theta for f in two])  # [H, 2] (mu, lam)
         weight = torch.stack([f.weight for f in two])
         valid = theta[:, 0] > 0
-        best = torch.where(valid, weight, torch.full_like(weight, -math.inf)).argmax()
-        ratio = theta[best, 1] / torch.where(valid[best], theta[best, 0], torch.ones_like(theta[best, 0]))
+        best = torch.where(valid, weight, torch.full_like(weight, -math.inf)).argmax()[None]
+        (mu, lam), ok = theta.index_select(0, best)[0], valid.index_select(0, best)[0]  # a tensor index: no .item()
+        ratio = lam / torch.where(ok, mu, torch.ones_like(mu))
         return torch.where(valid.any(), ratio, fallback)
 
     def _batched_errors(self, name: str, F: torch.Tensor, target: torch.Tensor, cands: torch.Tensor,

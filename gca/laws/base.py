@@ -43,6 +43,8 @@ def per_particle(p, F: torch.Tensor, name: str, trailing: int) -> torch.Tensor:
     Returns:
         p as a tensor of shape [] or [N, 1, ...] on F's device and dtype.
     """
+    if isinstance(p, (int, float)):  # a device fill, not a blocking host -> device copy
+        return torch.full((), float(p), dtype=F.dtype, device=F.device)
     t = torch.as_tensor(p, dtype=F.dtype, device=F.device)
     if t.ndim == 0:
         return t

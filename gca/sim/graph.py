@@ -24,6 +24,8 @@ If capture fails on a GPU (a law that synchronises with the host, e.g. validates
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import warnings
 
 import torch
@@ -49,6 +51,26 @@ class _Frame(nn.Module):
         from gca.sim.rollout import simulate_frame_trial  # circular import at module level
 
         return simulate_frame_trial(self.solver, self.material, self.n_steps, x, v, C, F, vol, mass)
+
+
+@contextlib.contextmanager
+def _collector_paused():
+    """Python's cyclic garbage collector off while capturing (collected once before).
+
+    A collection inside a capture can free warp-owned device memory of an unrelated, unreachable
+    object (e.g. the grid buffers of an earlier solver, which sits in a reference cycle with its
+    graph cache); warp does not know that torch is capturing and frees at once, which CUDA forbids
+    during capture (``cudaErrorStreamCaptureUnsupported``): the capture then fails and the frame runs
+    eagerly. torch >= 2.6 no longer collects on entering ``torch.cuda.graph``.
+    """
+    gc.collect()
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
 
 
 class FrameGraphs:
@@ -126,10 +148,11 @@ class FrameGraphs:
                 self._run_backward()
             torch.cuda.current_stream(self.solver.device).wait_stream(side)
             self._fwd_graph, self._bwd_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self._fwd_graph, capture_error_mode="thread_local"):
-                self.fwd_out = self._run_forward()
-            with torch.cuda.graph(self._bwd_graph, capture_error_mode="thread_local"):
-                self.bwd_grads = self._run_backward()
+            with _collector_paused():
+                with torch.cuda.graph(self._fwd_graph, capture_error_mode="thread_local"):
+                    self.fwd_out = self._run_forward()
+                with torch.cuda.graph(self._bwd_graph, capture_error_mode="thread_local"):
+                    self.bwd_grads = self._run_backward()
         except RuntimeError as err:  # a host sync inside the law: run eagerly instead
             warnings.warn(f"{_WHERE}: CUDA graph capture of {type(self.material).__name__} failed, running "
                           f"eagerly ({str(err).splitlines()[0]})", RuntimeWarning, stacklevel=3)
