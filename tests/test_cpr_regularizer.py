@@ -13,6 +13,8 @@ from gca.laws.elastic import corotated_tau, sigma_tau, stvk_tau, volume_tau
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 from gca.laws.plastic import drucker_prager_plastic, identity_plastic, von_mises_plastic
 
+from test_neural_laws import scramble
+
 N = 320
 MU, LAM = lame(1e5, 0.2)  # NCLaw jelly: mu = 4.167e4 Pa, lam = 2.778e4 Pa
 ELASTIC_ONLY = CPRConfig(plastic=())
@@ -263,6 +265,49 @@ def test_residuals_synchronise_with_the_host_once_on_cuda():
             R_e, R_p, _ = cpr.residuals(elasticity, plasticity, F, Ftr)
         finally:
             torch.cuda.set_sync_debug_mode("default")
-    syncs = [w for w in caught if "synchroniz" in str(w.message).lower()]
+    syncs = [w for w in caught if "called a synchronizing" in str(w.message).lower()]  # not the "prototype" note
     assert len(syncs) <= 1, [str(w.message) for w in syncs]
     assert torch.isfinite(R_e + R_p)
+
+
+@pytest.mark.parametrize("refit_every, chunks", [(1, (7,)), (3, (4, 3)), (2, (1, 5, 1))])
+def test_frames_in_one_call_equal_frame_by_frame(refit_every, chunks):
+    """B frames in one batched call = B calls of ``residuals`` in order: the summed R_e, R_p, the
+    gradients of the neural laws' parameters and the last frame's fits; split into several batched
+    calls, the refit schedule (``refit_every``) carries over as in the frame-by-frame calls."""
+    cfg = dataclasses.replace(CPRConfig(), refit_every=refit_every)
+    torch.manual_seed(0)
+    el = NeuralElasticity(NeuralLawConfig(widths=(16, 16), stress_scale=1e4)).double()
+    pl = scramble(NeuralPlasticity(NeuralLawConfig(widths=(16, 16), alpha=0.3)).double(), seed=1)  # it yields
+    params = [*el.parameters(), *pl.parameters()]
+    F_e = torch.stack([_deformations(seed=s, dtype=torch.float64) for s in range(7)])
+    # growing strain: each frame's grid search zooms to its own range
+    F_tr = torch.stack([_deformations(seed=20 + s, amplitude=0.02 * (s + 1), dtype=torch.float64) for s in range(7)])
+
+    serial = CPR(cfg, N, seed=3)
+    R_e = R_p = 0.0
+    for b in range(7):
+        r_e, r_p, info_serial = serial.residuals(el, pl, F_e[b], F_tr[b])
+        R_e, R_p = R_e + r_e, R_p + r_p
+    g_serial = torch.autograd.grad(R_e + R_p, params)
+
+    batched = CPR(cfg, N, seed=3)
+    B_e = B_p = 0.0
+    start = 0
+    for size in chunks:
+        r_e, r_p, info = batched.residuals_frames(el, pl, F_e[start:start + size], F_tr[start:start + size])
+        B_e, B_p, start = B_e + r_e, B_p + r_p, start + size
+    g_batched = torch.autograd.grad(B_e + B_p, params)
+
+    torch.testing.assert_close(B_e, R_e, rtol=1e-10, atol=0)
+    torch.testing.assert_close(B_p, R_p, rtol=1e-10, atol=0)
+    assert float(R_e) > 0 and float(R_p) > 0
+    yields = [float(info_serial['plastic']['von_mises'].theta[0]), float(info['plastic']['von_mises'].theta[0])]
+    assert yields[0] < 0.5, yields  # a real yield strain was fitted, not the no-yield end of the range
+    for a, b in zip(g_batched, g_serial):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12 * float(b.abs().max()))
+    assert info["refit"] == info_serial["refit"]
+    for kind in ("elastic", "plastic"):
+        for name, fit in info_serial[kind].items():
+            for field in ("theta", "weight", "var_param", "fit_residual"):
+                torch.testing.assert_close(getattr(info[kind][name], field), getattr(fit, field), rtol=1e-10, atol=1e-14)

@@ -154,8 +154,9 @@ def textured_scene(tmp_path_factory):
 
 
 def test_batched_objective_equals_frame_by_frame(textured_scene):
-    """Objective.loss (all renders first, pooled matching, one stats read-back) equals the serial
-    reference: each frame rendered, matched on the calling thread and scored in turn."""
+    """Objective.loss (all renders first, pooled matching, CPR's frames in one batched call, one stats
+    read-back) equals the serial reference: each frame rendered, matched on the calling thread, scored
+    and given its own CPR call in turn."""
     from gca.sim.rollout import rollout
     from gca.train.loop import _MeanStats
     from gca.vision.matching import match_cached
@@ -180,7 +181,14 @@ def test_batched_objective_equals_frame_by_frame(textured_scene):
         outs = serial_obj._render_frame(traj, j)
         rgb = (outs["train0"]["rgb"].detach().clamp(0, 1).numpy() * 255 + 0.5).astype("uint8")
         pq = match_cached(rgb, *data.keypoints[j], serial_obj.match)
-        serial = serial + serial_obj._frame_loss(traj, j, outs, pq, law, ref_stats)
+        serial = serial + serial_obj._frame_loss(traj, j, outs, pq, ref_stats)
+        if j % cfg.cpr_every == 0:  # CPR frame by frame (the objective batches its frames in one call)
+            f = data.video_frames[j]
+            R_e, R_p, _ = serial_obj.cpr.residuals(law.material.elasticity, law.material.plasticity, traj.F[f],
+                                                   traj.F_trial[f])
+            serial = serial + R_e + R_p
+            ref_stats.add("R_e", R_e)
+            ref_stats.add("R_p", R_p)
     assert stats["rdga/n_matches"] > 0 and stats["R_e"] > 0, "the test needs matches and CPR to compare"
     torch.testing.assert_close(batched, serial)
     assert stats == pytest.approx(ref_stats.read())

@@ -94,10 +94,11 @@ class CPRConfig:
 
 @dataclasses.dataclass
 class HypothesisFit:
-    """One hypothesis fitted on S.
+    """One hypothesis fitted on S, for one frame or, stacked along a leading dim, for several.
 
     Every field stays on the device of the fit (no host synchronisation while training); ``float()``
-    reads one.
+    reads one. Shapes for one frame (what ``CPR.residuals`` reports); the stacked form used inside
+    :meth:`CPR.residuals_frames` puts a leading [T] before each.
 
     Attributes:
         name: hypothesis name.
@@ -114,6 +115,27 @@ class HypothesisFit:
     var_param: torch.Tensor
     fit_residual: torch.Tensor | None = None
     weight: torch.Tensor | None = None
+
+    def rows(self, index: torch.Tensor) -> "HypothesisFit":
+        """The stacked fit's rows ``index`` ([k] long tensor on the fit's device)."""
+        pick = lambda t: None if t is None else t.index_select(0, index)  # noqa: E731
+        return HypothesisFit(self.name, *(pick(t) for t in (self.theta, self.theta_groups, self.var_param,
+                                                              self.fit_residual, self.weight)))
+
+    def squeeze(self) -> "HypothesisFit":
+        """A one-row stacked fit as a one-frame fit."""
+        one = lambda t: None if t is None else t[0]  # noqa: E731
+        return HypothesisFit(self.name, *(one(t) for t in (self.theta, self.theta_groups, self.var_param,
+                                                            self.fit_residual, self.weight)))
+
+    @staticmethod
+    def cat(first: Optional["HypothesisFit"], then: "HypothesisFit") -> "HypothesisFit":
+        """Rows of ``first`` (or none) followed by those of ``then`` (fields present in both)."""
+        if first is None:
+            return then
+        join = lambda a, b: None if a is None or b is None else torch.cat([a, b])  # noqa: E731
+        return HypothesisFit(then.name, *(join(getattr(first, f), getattr(then, f))
+                                          for f in ("theta", "theta_groups", "var_param", "fit_residual", "weight")))
 
 
 # ----------------------------------------------------------------------------- hypotheses
@@ -193,61 +215,68 @@ def solve_linear_groups(basis: torch.Tensor, target: torch.Tensor, group_ids: to
 
 
 def _candidates(lo: torch.Tensor, hi: torch.Tensor, n: int, log: bool) -> torch.Tensor:
-    """n candidates from lo to hi ([] tensors), evenly spaced (geometrically with ``log``), [n]."""
+    """n candidates per row from lo to hi ([R] tensors), evenly spaced (geometrically with ``log``), [R, n]."""
     t = torch.linspace(0.0, 1.0, n, dtype=torch.float64, device=lo.device)
     if log:
-        return torch.exp(torch.log(lo) + (torch.log(hi) - torch.log(lo)) * t)
-    return lo + (hi - lo) * t
+        return torch.exp(torch.log(lo)[:, None] + (torch.log(hi) - torch.log(lo))[:, None] * t)
+    return lo[:, None] + (hi - lo)[:, None] * t
 
 
 def grid_fit_groups(errors: Callable[[torch.Tensor], torch.Tensor], lo: float, hi: float, log: bool,
-                    group_ids: torch.Tensor, n_groups: int, grid_size: int, rounds: int,
+                    group_ids: torch.Tensor, n_groups: int, grid_size: int, rounds: int, n_frames: int = 1,
                     device: torch.device | str = "cpu") -> torch.Tensor:
-    """1-D least squares per group by a shared grid search with zoom refinement, on ``device``
-    without host synchronisation (the zoom range stays a device tensor).
+    """1-D least squares per (frame, group) by a grid search with zoom refinement, on ``device``
+    without host synchronisation (the zoom ranges stay device tensors).
 
-    Each round evaluates ``grid_size`` candidates on all of S, takes each group's best (ties go to
-    the largest value, e.g. any yield strain beyond the largest strain fits an elastic response),
-    and zooms to the hull of the groups' best neighbourhoods.
+    Each round evaluates ``grid_size`` candidates per frame on all of that frame's S, takes each
+    group's best (ties go to the largest value, e.g. any yield strain beyond the largest strain fits
+    an elastic response), and zooms each frame to the hull of its groups' best neighbourhoods.
 
     Args:
-        errors: candidates [K] -> [K, S] per-particle squared errors (one batched law call).
+        errors: candidates [R, K] -> [R, K, S] per-particle squared errors (one batched law call).
         lo, hi: search range; ``log`` for a geometric grid (lo > 0).
         group_ids: [S] group of each particle; n_groups: G.
         grid_size: candidates per round; rounds: number of rounds.
+        n_frames: R, frames fitted at once (independently).
         device: where the candidates and the search live (that of ``errors``' output).
 
     Returns:
-        [G, 1] float64 estimates on ``device``.
+        [R, G, 1] float64 estimates on ``device``.
     """
     f64 = dict(dtype=torch.float64, device=device)
-    lo_t, hi_t = torch.full((), float(lo), **f64), torch.full((), float(hi), **f64)  # fills, no host copy
+    R, K = n_frames, grid_size
+    lo_t, hi_t = torch.full((R,), float(lo), **f64), torch.full((R,), float(hi), **f64)  # fills, no host copy
     group_ids = group_ids.to(device)
-    best_loss = torch.full((n_groups,), math.inf, **f64)
-    best = torch.zeros(n_groups, **f64)
+    best_loss = torch.full((R, n_groups), math.inf, **f64)
+    best = torch.zeros(R, n_groups, **f64)
     for _ in range(rounds):
-        cands = _candidates(lo_t, hi_t, grid_size, log)
-        losses = group_sums(errors(cands).double().T, group_ids, n_groups)  # [G, K]
-        idx = grid_size - 1 - losses.flip(1).argmin(1)  # [G], last minimiser
-        loss = losses.gather(1, idx[:, None])[:, 0]
+        cands = _candidates(lo_t, hi_t, K, log)  # [R, K]
+        per_particle = errors(cands).double().permute(2, 0, 1)  # [S, R, K]
+        losses = group_sums(per_particle, group_ids, n_groups).permute(1, 0, 2)  # [R, G, K]
+        idx = K - 1 - losses.flip(-1).argmin(-1)  # [R, G], last minimiser
+        loss = losses.gather(-1, idx[..., None])[..., 0]
         better = loss <= best_loss
-        best, best_loss = torch.where(better, cands[idx], best), torch.where(better, loss, best_loss)
-        lo_t, hi_t = cands[(idx - 1).clamp(min=0)].min(), cands[(idx + 1).clamp(max=grid_size - 1)].max()
-    return best[:, None]
+        best, best_loss = torch.where(better, cands.gather(1, idx), best), torch.where(better, loss, best_loss)
+        lo_t = cands.gather(1, (idx - 1).clamp(min=0)).min(1).values
+        hi_t = cands.gather(1, (idx + 1).clamp(max=K - 1)).max(1).values
+    return best[..., None]
 
 
 def relative_variance(theta_groups: torch.Tensor, floor: float = _TINY) -> torch.Tensor:
-    """Scale-free dispersion sum_j Var_g(theta_gj) / max(sum_j mean_g(theta_gj)^2, floor), a [] float64
-    tensor on the estimates' device.
+    """Scale-free dispersion sum_j Var_g(theta_gj) / max(sum_j mean_g(theta_gj)^2, floor), float64 on
+    the estimates' device.
 
     Args:
-        theta_groups: [G, P] per-group estimates (P = 0 gives 0).
+        theta_groups: [..., G, P] per-group estimates (P = 0 gives 0).
         floor: lower bound of the normaliser (units of theta^2).
+
+    Returns:
+        [...] (a [] tensor for [G, P] estimates).
     """
-    if theta_groups.shape[1] == 0:
-        return theta_groups.new_zeros((), dtype=torch.float64)
-    var = theta_groups.double().var(dim=0, unbiased=False).sum()
-    norm = theta_groups.double().mean(dim=0).square().sum().clamp(min=floor)
+    if theta_groups.shape[-1] == 0:
+        return theta_groups.new_zeros(theta_groups.shape[:-2], dtype=torch.float64)
+    var = theta_groups.double().var(dim=-2, unbiased=False).sum(-1)
+    norm = theta_groups.double().mean(dim=-2).square().sum(-1).clamp(min=floor)
     return var / norm
 
 
@@ -303,85 +332,117 @@ class CPR:
             self._on_device[device] = (self.subset.to(device), self.group_ids.to(device))
         return self._on_device[device]
 
-    # -- parameter solving ---------------------------------------------------------------------
+    # -- parameter solving (R frames at once, each independently) -----------------------------
+    def _frame_groups(self, n_frames: int, device) -> tuple[torch.Tensor, int]:
+        """Group ids [R*S] of R frames' subsets stacked (frame r's group g is r*G + g) and R*G."""
+        group_ids = self._indices(device)[1]
+        frame = torch.arange(n_frames, device=device)[:, None] * self.n_groups
+        return (frame + group_ids).reshape(-1), n_frames * self.n_groups
+
     def fit_elastic(self, F_S: torch.Tensor, tau_S: torch.Tensor) -> dict[str, HypothesisFit]:
-        """Fit every enabled elastic hypothesis to the neural stresses on S.
+        """Fit every enabled elastic hypothesis to the neural stresses on S, per frame.
 
         Args:
-            F_S: [S, 3, 3] F_e on S. tau_S: [S, 3, 3] neural tau on S [Pa] (detached).
+            F_S: [R, S, 3, 3] F_e on S. tau_S: [R, S, 3, 3] neural tau on S [Pa] (detached).
+
+        Returns:
+            stacked fits: theta [R, P], theta_groups [R, G, P], var_param [R].
         """
-        F64, fits = F_S.detach().double(), {}
+        R, n = F_S.shape[:2]
+        F64, fits = F_S.detach().double().reshape(R * n, 3, 3), {}
+        gids, n_groups = self._frame_groups(R, F64.device)
         for name in self.cfg.elastic:
             n_par = len(ELASTIC_PARAMS[name])
             units = torch.eye(n_par, dtype=torch.float64)
-            basis = torch.stack([elastic_tau(name, F64, u.tolist()) for u in units])  # [P, S, 3, 3]
-            groups = solve_linear_groups(basis, tau_S, self._indices(F64.device)[1], self.n_groups)
-            fits[name] = HypothesisFit(name, groups.mean(0), groups, relative_variance(groups))
+            basis = torch.stack([elastic_tau(name, F64, u.tolist()) for u in units])  # [P, R*S, 3, 3]
+            groups = solve_linear_groups(basis, tau_S.reshape(R * n, 3, 3), gids, n_groups).reshape(R, self.n_groups, n_par)
+            fits[name] = HypothesisFit(name, groups.mean(1), groups, relative_variance(groups))
         return fits
 
-    def _lam_over_mu(self, elastic_fits: dict[str, HypothesisFit], device) -> torch.Tensor:
-        """lam/mu of the most credible two-parameter elastic fit with mu > 0 ([] float64 on ``device``;
-        cfg.fallback_poisson's ratio when there is none), chosen on the device."""
+    def _lam_over_mu(self, elastic_fits: dict[str, HypothesisFit], n_frames: int, device) -> torch.Tensor:
+        """lam/mu per frame of the most credible two-parameter elastic fit with mu > 0 ([R] float64 on
+        ``device``; cfg.fallback_poisson's ratio where there is none), chosen on the device."""
         nu = self.cfg.fallback_poisson
-        fallback = torch.full((), 2 * nu / (1 - 2 * nu), dtype=torch.float64, device=device)
-        two = [f for f in elastic_fits.values() if f.theta.numel() == 2]
+        fallback = torch.full((n_frames,), 2 * nu / (1 - 2 * nu), dtype=torch.float64, device=device)
+        two = [f for f in elastic_fits.values() if f.theta.shape[-1] == 2]
         if not two:
             return fallback
-        theta = torch.stack([f.theta for f in two])  # [H, 2] (mu, lam)
-        weight = torch.stack([f.weight for f in two])
-        valid = theta[:, 0] > 0
-        best = torch.where(valid, weight, torch.full_like(weight, -math.inf)).argmax()[None]
-        (mu, lam), ok = theta.index_select(0, best)[0], valid.index_select(0, best)[0]  # a tensor index: no .item()
-        ratio = lam / torch.where(ok, mu, torch.ones_like(mu))
-        return torch.where(valid.any(), ratio, fallback)
+        theta = torch.stack([f.theta for f in two])  # [H, R, 2] (mu, lam)
+        weight = torch.stack([f.weight for f in two])  # [H, R]
+        valid = theta[..., 0] > 0
+        best = torch.where(valid, weight, torch.full_like(weight, -math.inf)).argmax(0, keepdim=True)  # [1, R]
+        mu, lam = (theta[..., j].gather(0, best)[0] for j in (0, 1))  # a tensor index: no .item()
+        ratio = lam / torch.where(valid.gather(0, best)[0], mu, torch.ones_like(mu))
+        return torch.where(valid.any(0), ratio, fallback)
 
     def _batched_errors(self, name: str, F: torch.Tensor, target: torch.Tensor, cands: torch.Tensor,
-                        lam_over_mu) -> torch.Tensor:
-        """[K, S] squared errors of hypothesis ``name`` at K candidate values (one law call on K*S)."""
-        K, n = len(cands), F.shape[0]
-        theta = cands.to(F.device).repeat_interleave(n)  # [K*S], candidate k for particles k*S .. (k+1)*S - 1
-        out = plastic_map(name, F.repeat(K, 1, 1), (theta,), lam_over_mu, self.cfg.dp_cohesion)
-        return _sq_error(out, target.repeat(K, 1, 1)).reshape(K, n)
+                        lam_over_mu: torch.Tensor) -> torch.Tensor:
+        """[R, K, S] squared errors of hypothesis ``name`` at each frame's K candidates [R, K] (one law
+        call on R*K*S particles); ``F``, ``target`` [R, S, 3, 3], ``lam_over_mu`` [R]."""
+        (R, n), K = F.shape[:2], cands.shape[1]
+        flat = lambda t: t.expand(R, K, n, *t.shape[3:]).reshape(R * K * n, *t.shape[3:])  # noqa: E731
+        theta = flat(cands.to(F.device)[:, :, None])
+        out = plastic_map(name, flat(F[:, None]), (theta,), flat(lam_over_mu[:, None, None]), self.cfg.dp_cohesion)
+        return _sq_error(out, flat(target[:, None])).reshape(R, K, n)
 
-    def fit_plastic(self, Ftr_S: torch.Tensor, Fe_S: torch.Tensor, lam_over_mu) -> dict[str, HypothesisFit]:
-        """Fit every enabled plastic hypothesis to the neural return map on S.
+    def fit_plastic(self, Ftr_S: torch.Tensor, Fe_S: torch.Tensor, lam_over_mu: torch.Tensor) -> dict[str, HypothesisFit]:
+        """Fit every enabled plastic hypothesis to the neural return map on S, per frame.
 
         Args:
-            Ftr_S: [S, 3, 3] F_trial on S. Fe_S: [S, 3, 3] neural F_e on S (detached).
-            lam_over_mu: Lame ratio for Drucker-Prager (float or [] tensor).
+            Ftr_S: [R, S, 3, 3] F_trial on S. Fe_S: [R, S, 3, 3] neural F_e on S (detached).
+            lam_over_mu: [R] Lame ratio for Drucker-Prager.
+
+        Returns:
+            stacked fits: theta [R, P], theta_groups [R, G, P], var_param [R].
         """
         cfg, F64, target, fits = self.cfg, Ftr_S.detach().double(), Fe_S.detach().double(), {}
+        R = F64.shape[0]
         ranges = {"von_mises": (*cfg.yield_strain_range, True, cfg.yield_strain_range[0] ** 2),
                   "drucker_prager": (*cfg.friction_angle_range, False, 1.0)}
         for name in cfg.plastic:
             if name not in ranges:
-                groups = torch.zeros(self.n_groups, 0, dtype=torch.float64, device=F64.device)
-                fits[name] = HypothesisFit(name, groups.mean(0), groups, relative_variance(groups))
+                groups = torch.zeros(R, self.n_groups, 0, dtype=torch.float64, device=F64.device)
+                fits[name] = HypothesisFit(name, groups.mean(1), groups, relative_variance(groups))
                 continue
             lo, hi, log, floor = ranges[name]
             errors = lambda c, name=name: self._batched_errors(name, F64, target, c, lam_over_mu)
             groups = grid_fit_groups(errors, lo, hi, log, self._indices(F64.device)[1], self.n_groups, cfg.grid_size,
-                                     cfg.refine_rounds, device=F64.device)
-            fits[name] = HypothesisFit(name, groups.mean(0), groups, relative_variance(groups, floor))
+                                     cfg.refine_rounds, n_frames=R, device=F64.device)
+            fits[name] = HypothesisFit(name, groups.mean(1), groups, relative_variance(groups, floor))
         return fits
 
     # -- residuals -----------------------------------------------------------------------------
-    def _weighted_residual(self, fits: dict[str, HypothesisFit], output: torch.Tensor,
-                           hypothesis: Callable[[HypothesisFit], torch.Tensor], scale: torch.Tensor,
-                           s_index, refit: bool) -> torch.Tensor:
-        """sum_k omega_k mean_i ||output_i - H_k(.)_i||^2 / scale; sets misfit and omega when refitting."""
-        total = output.new_zeros(())
-        for fit in fits.values():
-            err = _sq_error(output, hypothesis(fit).to(output.dtype)) / scale.to(output.dtype)  # [n]
-            if refit:
-                fit.fit_residual = err.detach()[s_index].double().mean()
-                var = fit.var_param + (fit.fit_residual if self.cfg.include_fit_residual else 0.0)
-                fit.weight = 1.0 / (var + self.cfg.eps)
-            total = total + fit.weight.to(output.dtype) * err.mean()
-        return total
+    def _weighted_residual(self, new: Optional[dict[str, HypothesisFit]], cached: Optional[dict[str, HypothesisFit]],
+                           output: torch.Tensor, hypothesis: Callable[[str, torch.Tensor], torch.Tensor],
+                           scale: torch.Tensor, s_index, plan: "_RefitPlan") -> tuple[torch.Tensor, dict]:
+        """sum_b sum_k omega_k^b mean_i ||output_bi - H_k(.)_bi||^2 / scale_b over the B frames.
+
+        ``new`` (or None) are the stacked fits of the plan's refit frames; their misfit and omega are
+        set here from those frames' errors. The table the plan indexes is ``cached`` (or no) rows
+        followed by the new ones; it is returned.
+
+        Args:
+            output: [B, n, 3, 3] neural outputs. scale: [B].
+            hypothesis: (name, theta [B, P]) -> [B, n, 3, 3].
+        """
+        total, table = output.new_zeros(()), {}
+        for name in (new if new is not None else cached):
+            fresh = new[name] if new is not None else None
+            rows = HypothesisFit.cat(cached[name] if cached is not None else None, fresh) if fresh is not None \
+                else cached[name]
+            theta = rows.theta.index_select(0, plan.source)  # [B, P]
+            err = _sq_error(output, hypothesis(name, theta).to(output.dtype)) / scale.to(output.dtype)[:, None]  # [B, n]
+            if fresh is not None:
+                fresh.fit_residual = err.detach()[plan.refit][:, s_index].double().mean(1)  # [R]
+                var = fresh.var_param + (fresh.fit_residual if self.cfg.include_fit_residual else 0.0)
+                fresh.weight = 1.0 / (var + self.cfg.eps)
+                rows = HypothesisFit.cat(cached[name] if cached is not None else None, fresh)
+            table[name] = rows
+            total = total + (rows.weight.index_select(0, plan.source).to(output.dtype) * err.mean(1)).sum()
+        return total, table
 
     def _outputs(self, elasticity, plasticity, F_e, F_trial, tau, F_next):
-        """Inputs (detached if configured) and the neural outputs, checked for divergence."""
+        """Inputs (detached if configured) and the neural outputs, checked for divergence; [B*N, 3, 3]."""
         if self.cfg.detach_F:
             F_e, F_trial = F_e.detach(), F_trial.detach()
         tau = elasticity(F_e) if tau is None else tau
@@ -393,49 +454,88 @@ class CPR:
 
     def residuals(self, elasticity: Callable, plasticity: Callable, F_e: torch.Tensor, F_trial: torch.Tensor,
                   tau: Optional[torch.Tensor] = None, F_next: Optional[torch.Tensor] = None):
-        """CPR residuals of one time step (Algorithm 2), with one host synchronisation (the finiteness
-        check of the inputs and the neural outputs).
+        """CPR residuals of one time step (Algorithm 2): :meth:`residuals_frames` of one frame.
 
         Args:
-            elasticity: neural elasticity, ``forward(F[N,3,3]) -> tau[N,3,3]`` (Kirchhoff, Pa).
-            plasticity: neural plasticity, ``forward(F_trial[N,3,3]) -> F_e[N,3,3]``.
             F_e: [N, 3, 3] elastic deformation gradient of the state.
             F_trial: [N, 3, 3] trial deformation gradient after the Euler step.
-            tau, F_next: optional precomputed ``elasticity(F_e)`` / ``plasticity(F_trial)`` (saves a
-                forward pass when the simulator already has them; they keep whatever graph they carry,
-                so ``detach_F`` then applies only to the hypotheses' side).
+            tau, F_next: optional precomputed [N, 3, 3] ``elasticity(F_e)`` / ``plasticity(F_trial)``.
 
         Returns:
-            ``(R_e, R_p, info)``: scalar tensors (dimensionless, differentiable w.r.t. the laws'
-            parameters) and a dict with the fits (see :meth:`log_dict`; its numbers are [] tensors).
+            ``(R_e, R_p, info)`` as :meth:`residuals_frames`.
         """
         for F, name in ((F_e, "F_e"), (F_trial, "F_trial")):
             _check_F(F, name)
-            if F.shape[0] != self.n_particles:
-                raise ValueError(f"gca/align/cpr.py: {name} has {F.shape[0]} particles, CPR was built for "
+        one = lambda t: None if t is None else t[None]  # noqa: E731
+        return self.residuals_frames(elasticity, plasticity, F_e[None], F_trial[None], one(tau), one(F_next))
+
+    def residuals_frames(self, elasticity: Callable, plasticity: Callable, F_e: torch.Tensor, F_trial: torch.Tensor,
+                         tau: Optional[torch.Tensor] = None, F_next: Optional[torch.Tensor] = None):
+        """Sum of the CPR residuals of B time steps (Algorithm 2 on each), in one batched pass with one
+        host synchronisation (the finiteness check of the inputs and the neural outputs).
+
+        Equal to B calls of :meth:`residuals` in frame order, ``refit_every`` included: frame b is call
+        ``c + b`` of the run; frames due for a refit are fitted (all at once, each on its own S),
+        the others reuse the most recent refit before them (earlier in the batch, or cached).
+
+        Args:
+            elasticity: neural elasticity, ``forward(F[M,3,3]) -> tau[M,3,3]`` (Kirchhoff, Pa).
+            plasticity: neural plasticity, ``forward(F_trial[M,3,3]) -> F_e[M,3,3]``.
+            F_e: [B, N, 3, 3] elastic deformation gradients of the states.
+            F_trial: [B, N, 3, 3] trial deformation gradients after each state's Euler step.
+            tau, F_next: optional precomputed [B, N, 3, 3] ``elasticity(F_e)`` / ``plasticity(F_trial)``
+                (they keep whatever graph they carry, so ``detach_F`` then applies only to the
+                hypotheses' side).
+
+        Returns:
+            ``(R_e, R_p, info)``: scalar tensors (summed over the B frames; dimensionless,
+            differentiable w.r.t. the laws' parameters) and a dict with the last frame's fits (see
+            :meth:`log_dict`; its numbers are [] tensors).
+        """
+        for F, name in ((F_e, "F_e"), (F_trial, "F_trial")):
+            if F.ndim != 4 or F.shape[2:] != (3, 3) or F.shape[:2] != F_e.shape[:2]:
+                raise ValueError(f"gca/align/cpr.py: {name} must be [B, N, 3, 3] like F_e, got {tuple(F.shape)}")
+            if F.shape[1] != self.n_particles:
+                raise ValueError(f"gca/align/cpr.py: {name} has {F.shape[1]} particles, CPR was built for "
                                  f"{self.n_particles}")
-        F_e, F_trial, tau, F_next = self._outputs(elasticity, plasticity, F_e, F_trial, tau, F_next)
-        _check_finite({"F_e": F_e, "F_trial": F_trial, "neural stress tau": tau, "neural plastic F_e": F_next})
-        S, cfg = self._indices(F_e.device)[0], self.cfg
+        B, N = F_e.shape[:2]
+        flat = lambda t: None if t is None else t.reshape(B * N, 3, 3)  # noqa: E731
+        outs = self._outputs(elasticity, plasticity, flat(F_e), flat(F_trial), flat(tau), flat(F_next))
+        _check_finite(dict(zip(("F_e", "F_trial", "neural stress tau", "neural plastic F_e"), outs)))
+        F_e, F_trial, tau, F_next = (t.reshape(B, N, 3, 3) for t in outs)
+        S, cfg, dev = self._indices(F_e.device)[0], self.cfg, F_e.device
         idx, s_index = (S, slice(None)) if cfg.residual_on == "subset" else (slice(None), S)
-        scale_e = tau.detach()[S].double().square().sum((-2, -1)).mean().clamp(min=_TINY)
-        eye = torch.eye(3, dtype=torch.float64, device=F_trial.device)
-        scale_p = (F_trial.detach()[S].double() - eye).square().sum((-2, -1)).mean().clamp(min=_TINY)
-        refit = self._fits is None or self._calls % cfg.refit_every == 0
-        self._calls += 1
-        e_fits = self.fit_elastic(F_e[S], tau.detach()[S]) if refit else self._fits[0]
-        R_e = self._weighted_residual(e_fits, tau[idx], lambda f: elastic_tau(f.name, F_e[idx], f.theta),
-                                      scale_e, s_index, refit)
-        lam_over_mu = self._lam_over_mu(e_fits, F_e.device) if refit else self._fits[2]
-        p_fits = self.fit_plastic(F_trial[S], F_next.detach()[S], lam_over_mu) if refit else self._fits[1]
-        R_p = self._weighted_residual(
-            p_fits, F_next[idx],
-            lambda f: plastic_map(f.name, F_trial[idx], f.theta, lam_over_mu, cfg.dp_cohesion),
-            scale_p, s_index, refit)
-        self._fits = (e_fits, p_fits, lam_over_mu)
+        scale_e = tau.detach()[:, S].double().square().sum((-2, -1)).mean(1).clamp(min=_TINY)  # [B]
+        eye = torch.eye(3, dtype=torch.float64, device=dev)
+        scale_p = (F_trial.detach()[:, S].double() - eye).square().sum((-2, -1)).mean(1).clamp(min=_TINY)
+        plan = _RefitPlan(self._calls, B, cfg.refit_every, self._fits is not None, dev)
+        self._calls += B
+        cached = self._fits or {"elastic": None, "plastic": None, "lam_over_mu": None}
+        r = plan.refit
+        e_new = self.fit_elastic(F_e[r][:, S], tau.detach()[r][:, S]) if plan.n_refit else None
+        R_e, e_fits = self._weighted_residual(
+            e_new, cached["elastic"], tau[:, idx],
+            lambda name, theta: _per_frame(elastic_tau, name, F_e[:, idx], theta), scale_e, s_index, plan)
+        lam_table = cached["lam_over_mu"]
+        if plan.n_refit:
+            lam_new = self._lam_over_mu(e_new, plan.n_refit, dev)
+            lam_table = lam_new if lam_table is None else torch.cat([lam_table, lam_new])
+        lam_b = lam_table.index_select(0, plan.source)  # [B]
+        p_new = self.fit_plastic(F_trial[r][:, S], F_next.detach()[r][:, S], lam_new) if plan.n_refit else None
+        dp = lambda name, F, theta, lam: plastic_map(name, F, theta, lam, cfg.dp_cohesion)  # noqa: E731
+        R_p, p_fits = self._weighted_residual(
+            p_new, cached["plastic"], F_next[:, idx],
+            lambda name, theta: _per_frame(dp, name, F_trial[:, idx], theta, lam_b), scale_p, s_index, plan)
+        last = plan.source[-1:]  # the table row of the last frame: the most recent refit
+        self._fits = {"elastic": {n: f.rows(last) for n, f in e_fits.items()},
+                      "plastic": {n: f.rows(last) for n, f in p_fits.items()},
+                      "lam_over_mu": lam_table.index_select(0, last)}
         R_e, R_p = cfg.lambda_e * R_e, cfg.lambda_p * R_p
-        info = {"elastic": e_fits, "plastic": p_fits, "scale_e": scale_e, "scale_p": scale_p,
-                "lam_over_mu": lam_over_mu, "refit": refit, "R_e": R_e.detach(), "R_p": R_p.detach()}
+        info = {"elastic": {n: f.squeeze() for n, f in self._fits["elastic"].items()},
+                "plastic": {n: f.squeeze() for n, f in self._fits["plastic"].items()},
+                "scale_e": scale_e[-1], "scale_p": scale_p[-1], "lam_over_mu": lam_b[-1],
+                "refit": plan.last_refit, "refit_frames": plan.n_refit, "frames": B,
+                "R_e": R_e.detach(), "R_p": R_p.detach()}
         return R_e, R_p, info
 
     # -- logging -------------------------------------------------------------------------------
@@ -466,3 +566,39 @@ class CPR:
                 if name == "von_mises":
                     out[key + "sigma_y"] = 2.0 * mu_ref * float(fit.theta[0])
         return out
+
+
+class _RefitPlan:
+    """Which of B consecutive CPR calls refit, and which fit each one uses (host arithmetic only).
+
+    Call ``c0 + b`` refits when it is a multiple of ``every`` (the first call ever always is: c0 = 0).
+    Refit frames form the slice ``refit`` (an arithmetic progression, so indexing needs no index copy).
+    The fits table has the cached rows (1, when there are cached fits) then one row per refit frame;
+    ``source`` [B] (device) gives each frame's row: its own refit, or the most recent one before it.
+    """
+
+    def __init__(self, c0: int, B: int, every: int, has_cache: bool, device):
+        r0 = (-c0) % every
+        self.refit = slice(r0, B, every)
+        self.n_refit = len(range(r0, B, every))
+        if not has_cache and r0 != 0:
+            raise RuntimeError("gca/align/cpr.py: CPR has no fits to reuse before its first refit")
+        b = torch.arange(B, device=device)
+        refits_so_far = torch.where(b >= r0, torch.div(b - r0, every, rounding_mode="floor") + 1, torch.zeros_like(b))
+        self.source = refits_so_far - 1 + int(has_cache)
+        self.last_refit = (B - 1 - r0) % every == 0 and B - 1 >= r0
+
+
+def _per_frame(fn: Callable, name: str, F: torch.Tensor, theta: torch.Tensor, *per_frame: torch.Tensor) -> torch.Tensor:
+    """``fn(name, F [B*n, 3, 3], params, *extra)`` with frame b's parameters on its n particles.
+
+    Args:
+        F: [B, n, 3, 3]. theta: [B, P] parameters per frame. per_frame: further [B] values per frame.
+
+    Returns:
+        [B, n, 3, 3].
+    """
+    B, n = F.shape[:2]
+    expand = lambda t: t[:, None].expand(B, n).reshape(B * n)  # noqa: E731
+    params = [expand(theta[:, j]) for j in range(theta.shape[1])]
+    return fn(name, F.reshape(B * n, 3, 3), params, *(expand(t) for t in per_frame)).reshape(B, n, 3, 3)
