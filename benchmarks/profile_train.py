@@ -67,7 +67,9 @@ def main(argv=None) -> None:
     n_video = args.horizon or len(data.video_frames)
 
     def step():
-        return loop._step(solver, law, data, objective, cfg, opt, n_video)
+        record = loop._gradient(solver, law, data, objective, cfg, n_video)
+        opt.step()
+        return record
 
     for _ in range(args.warmup):
         step()

@@ -2,7 +2,10 @@
 
     python stages/train.py --scene duck --scene-dir data/scenes/duck --prep data/prep/duck \
         --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
-        --prior-dir models/prior --out runs/duck [--methods gca neuma]
+        --prior-dir models/prior --out runs/duck [--methods gca neuma] [--velocity runs/duck/velocity.json]
+
+``--velocity`` reuses a launch velocity estimated by an earlier run of this stage on the same scene
+(several processes training one scene's methods in parallel share one estimate: benchmarks/grid.py).
 
 One MLflow run per (scene, method, seed), in the experiment of the method's first paper table.
 """
@@ -10,6 +13,7 @@ One MLflow run per (scene, method, seed), in the experiment of the method's firs
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from gca.track import stage_run
 
@@ -19,13 +23,16 @@ from gca.train.run import estimate_scene_velocity, read_velocity, train_method
 
 def main(argv=None) -> dict:
     paths = ("scene-dir", "prep", "particles", "gaussians", "prior-dir", "out")
-    args = scene_parser(__doc__.splitlines()[0], paths).parse_args(argv)
+    ap = scene_parser(__doc__.splitlines()[0], paths)
+    ap.add_argument("--velocity", type=Path, help="reuse this velocity.json instead of estimating it")
+    args = ap.parse_args(argv)
     params, scene, methods, inputs = scene_context("train", args)
     args.out.mkdir(parents=True, exist_ok=True)
-    with stage_run("train", params, scene=args.scene, method="velocity") as run:
-        velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json", args.device)
-        run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
-    velocity = read_velocity(args.out / "velocity.json")
+    if args.velocity is None:
+        with stage_run("train", params, scene=args.scene, method="velocity") as run:
+            velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json", args.device)
+            run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
+    velocity = read_velocity(args.velocity or args.out / "velocity.json")
     results = {}
     for method in methods:
         with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],

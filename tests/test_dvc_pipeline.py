@@ -72,8 +72,8 @@ def test_repro_runs_every_stage_and_writes_every_report(repo):
                   "train@ball", "evaluate@cat", "demo", "report"]:
         assert f"Running stage '{stage}'" in log
     for name in REPORTS:
-        assert (dest / "reports" / f"{name}.md").is_file() and (dest / "reports" / f"{name}.csv").is_file()
-    assert (dest / "reports" / "README.md").is_file()
+        assert (dest / "reports/ci" / f"{name}.md").is_file() and (dest / "reports/ci" / f"{name}.csv").is_file()
+    assert (dest / "reports/ci" / "README.md").is_file() and not (dest / "reports/paper").exists()
     for scene in SCENES:
         methods = yaml.safe_load((dest / "params.yaml").read_text())["scenes"][scene]["methods"]
         for method in methods:

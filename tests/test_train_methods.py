@@ -199,3 +199,77 @@ def test_batched_objective_equals_frame_by_frame(textured_scene):
         assert (a is None) == (c is None)
         if a is not None:
             torch.testing.assert_close(a, c)
+
+
+def _diverging_simulate(monkeypatch, fail_calls):
+    """Make ``loop.simulate`` raise SimulationDiverged on the given call numbers; returns the parameters
+    each call saw (the law's trainable tensors, cloned)."""
+    from gca.sim.rollout import SimulationDiverged
+    from gca.train import loop
+
+    real, seen = loop.simulate, []
+
+    def fake(solver, law, data, n_video):
+        seen.append([p.detach().clone() for p in law.trainable()])
+        if len(seen) - 1 in fail_calls:
+            raise SimulationDiverged(f"planted divergence at call {len(seen) - 1}")
+        return real(solver, law, data, n_video)
+
+    monkeypatch.setattr(loop, "simulate", fake)
+    return seen
+
+
+def _neuma_run(scene, **cfg_kw):
+    method = get_method("neuma")
+    cfg = TrainConfig(curriculum_start=1.0, **cfg_kw)
+    law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
+                          CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg))
+
+
+def test_a_diverging_update_is_taken_back_and_retaken_at_half_the_lr(scene, monkeypatch):
+    """Iteration 1's rollout diverges: update 0 is undone and retaken from the same gradient at half the
+    step (Adam's first step is lr * g / |g|), iteration 1 is retried from there, and the run goes on."""
+    law, run = _neuma_run(scene, iterations=3, max_rejections=2, backtrack_factor=0.5)
+    seen = _diverging_simulate(monkeypatch, fail_calls={1})
+    result = run()
+    assert result.status == "ok", result.message
+    assert [h["iteration"] for h in result.history] == [0, 1, 2]
+    assert [(r["iteration"], r["lr_scale"]) for r in result.rejected] == [(1, 0.5)]
+    assert "planted divergence at call 1" in result.rejected[0]["message"]
+    assert len(seen) == 4  # iteration 0, 1 (diverged), 1 again, 2
+    p0, p1, p1_retaken = seen[0], seen[1], seen[2]
+    moved = False
+    for a, b, c in zip(p0, p1, p1_retaken):
+        torch.testing.assert_close(c - a, (b - a) / 2, rtol=1e-4, atol=1e-9)
+        moved |= bool((b - a).abs().max() > 0)
+    assert moved, "update 0 moved nothing: the test would not see a wrong retake"
+    assert result.history[1]["lr_scale"] == 0.5 and result.history[0]["lr_scale"] == 1.0
+
+
+def test_divergence_after_max_rejections_ends_the_run_with_the_last_finite_law(scene, monkeypatch):
+    law, run = _neuma_run(scene, iterations=4, max_rejections=2)
+    seen = _diverging_simulate(monkeypatch, fail_calls={1, 2, 3})
+    result = run()
+    assert result.status == "diverged" and result.iterations == 1
+    assert "after 2 rejected updates in a row" in result.message
+    assert [r["lr_scale"] for r in result.rejected] == [0.5, 0.25]
+    assert [h["iteration"] for h in result.history] == [0]
+    for p, p0 in zip(law.trainable(), seen[0]):  # the law whose rollout was finite, not the last attempt
+        torch.testing.assert_close(p.detach(), p0, rtol=0, atol=0)
+
+
+def test_divergence_of_the_prior_itself_is_not_retried(scene, monkeypatch):
+    law, run = _neuma_run(scene, iterations=2, max_rejections=3)
+    seen = _diverging_simulate(monkeypatch, fail_calls={0})
+    result = run()
+    assert result.status == "diverged" and "before any update" in result.message
+    assert len(seen) == 1 and result.rejected == [] and result.history == []
+
+
+def test_backtracking_settings_are_validated():
+    with pytest.raises(ValueError, match="backtrack_factor"):
+        TrainConfig(backtrack_factor=1.0)
+    with pytest.raises(ValueError, match="max_rejections"):
+        TrainConfig(max_rejections=-1)

@@ -24,6 +24,10 @@ class TrainConfig:
         max_spread_growth: a rollout whose particles spread further from their centre of mass than
             at rest by more than this [m] is treated as diverged (particles flying away).
         seed: base seed of the run (matches, CPR subset).
+        max_rejections: updates after which the rollout diverged that are taken back and retaken with a
+            smaller learning rate, in a row, before the run is declared diverged (0: the first
+            divergence ends the run).
+        backtrack_factor: learning-rate multiplier applied at each rejected update (for the rest of the run).
     """
 
     iterations: int = 200
@@ -40,6 +44,14 @@ class TrainConfig:
     checkpoint_every: int = 10
     max_spread_growth: float = 0.5
     seed: int = 0
+    max_rejections: int = 3
+    backtrack_factor: float = 0.5
+
+    def __post_init__(self):
+        if self.max_rejections < 0:
+            raise ValueError(f"train.max_rejections must be >= 0, got {self.max_rejections}")
+        if not 0.0 < self.backtrack_factor < 1.0:
+            raise ValueError(f"train.backtrack_factor must be in (0, 1), got {self.backtrack_factor}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,13 +9,18 @@ One iteration (NeuMA stage B, with GCA's losses where the method asks for them):
    depth (PAC-NeRF + depth), and CPR residuals on the frame's deformation gradients;
 3. backward once, clip the gradient norm, step Adam with cosine decay.
 
-A run that diverges (non-finite loss or state, particles leaving the domain, a rollout drifting
-away from the observed silhouette) stops cleanly and is reported as diverged with its last finite
-losses. Checkpoints are written every ``checkpoint_every`` iterations and resumed from.
+An update after which the rollout diverges (non-finite loss or state, particles leaving the domain, a
+rollout drifting away from the observed silhouette) is rejected: the law and the optimiser go back to
+before it, the learning rate is multiplied by ``backtrack_factor`` for the rest of the run and the
+update is retaken from the same gradient. After ``max_rejections`` rejections in a row (or a
+divergence before any update, i.e. of the prior itself) the run stops cleanly and is reported as
+diverged with its last finite losses; every rejection is listed in the result. Checkpoints are
+written every ``checkpoint_every`` iterations and resumed from.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -77,6 +82,7 @@ class TrainResult:
     history: list[dict]
     message: str = ""
     seconds: float = 0.0
+    rejected: list[dict] = dataclasses.field(default_factory=list)  # {"iteration", "message", "lr_scale"}
 
 
 def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
@@ -113,7 +119,7 @@ class Objective:
     def __init__(self, method: Method, data: TrainData, cfg: TrainConfig, rdga: RDGAConfig,
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
-        self.probe: GradProbe | None = None  # set per step by _step (gradient provenance)
+        self.probe: GradProbe | None = None  # set per iteration by _gradient (gradient provenance)
         self.rdga = dataclasses.replace(rdga, **dict(method.rdga))
         # the train0 RDGA terms: the full config with ``geo``, silhouette only with ``mask``, none otherwise
         self.train0_rdga = self.rdga if method.geo else (
@@ -259,53 +265,144 @@ def _match_pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1)), thread_name_prefix="gca-match")
 
 
+class _Schedule:
+    """Cosine decay from each group's lr to ``cosine_floor`` of it, times a backtracking scale.
+
+    ``scale`` starts at 1 and shrinks by ``backtrack_factor`` at each rejected update; it is part of
+    the checkpoint so a resumed run keeps the smaller steps.
+    """
+
+    def __init__(self, opt: torch.optim.Optimizer, cfg: TrainConfig):
+        self.opt, self.cfg, self.scale = opt, cfg, 1.0
+        self.base = [g["lr"] for g in opt.param_groups]
+        self.it = 0
+        self._apply()
+
+    def factor(self, it: int) -> float:
+        c, floor = self.cfg, self.cfg.cosine_floor
+        return self.scale * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it, c.iterations) / c.iterations)))
+
+    def _apply(self, it: int | None = None) -> None:
+        for group, base in zip(self.opt.param_groups, self.base):
+            group["lr"] = base * self.factor(self.it if it is None else it)
+
+    def step(self) -> None:
+        self.it += 1
+        self._apply()
+
+    def shrink(self) -> None:
+        self.scale *= self.cfg.backtrack_factor
+        self._apply()
+
+    def state_dict(self) -> dict:
+        return {"it": self.it, "scale": self.scale}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.it = int(state.get("it", state.get("last_epoch", 0)))  # LambdaLR checkpoints: last_epoch
+        self.scale = float(state.get("scale", 1.0))
+        self._apply()
+
+
 def _optimizer(law: LearnedLaw, cfg: TrainConfig):
     opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in law.groups])
-    floor = cfg.cosine_floor
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda it: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it, cfg.iterations) / cfg.iterations)))
-    return opt, sched
+    return opt, _Schedule(opt, cfg)
 
 
-def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list) -> None:
+class _Undo:
+    """What one optimiser update changed, so it can be taken back and retaken with a smaller lr:
+    the parameters and Adam's state before it, the (clipped) gradient it used and its schedule step."""
+
+    def __init__(self, law: LearnedLaw, opt: torch.optim.Optimizer, sched: _Schedule):
+        params = law.trainable()
+        self.params = [p.detach().clone() for p in params]
+        self.grads = [None if p.grad is None else p.grad.detach().clone() for p in params]
+        self.opt_state = copy.deepcopy(opt.state_dict())
+        self.it = sched.it
+
+    def restore(self, law: LearnedLaw, opt: torch.optim.Optimizer) -> None:
+        """The parameters, gradients and Adam state as they were before the update (lrs untouched)."""
+        with torch.no_grad():
+            for p, saved, g in zip(law.trainable(), self.params, self.grads):
+                p.copy_(saved)
+                p.grad = None if g is None else g.clone()
+        lrs = [group["lr"] for group in opt.param_groups]
+        opt.load_state_dict(copy.deepcopy(self.opt_state))
+        for group, lr in zip(opt.param_groups, lrs):  # load_state_dict brings the old lrs back too
+            group["lr"] = lr
+
+    def retake(self, law: LearnedLaw, opt: torch.optim.Optimizer, sched: _Schedule) -> None:
+        """Restore, then step again from the same gradient at the update's own schedule step and the
+        schedule's current (shrunk) scale."""
+        self.restore(law, opt)
+        sched._apply(self.it)
+        opt.step()
+        sched._apply()
+
+
+def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list) -> None:
     from gca.io import atomic_path
     with atomic_path(path) as tmp:
         torch.save({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                    "iteration": it, "history": history}, tmp)
+                    "iteration": it, "history": history, "rejected": rejected}, tmp)
 
 
-def _resume(path: Path | None, law: LearnedLaw, opt, sched) -> tuple[int, list]:
+def _resume(path: Path | None, law: LearnedLaw, opt, sched) -> tuple[int, list, list]:
     if path is None or not path.is_file():
-        return 0, []
+        return 0, [], []
     ckpt = torch.load(path, weights_only=False)
     law.load_state(ckpt["law"])
     opt.load_state_dict(ckpt["opt"])
     sched.load_state_dict(ckpt["sched"])
-    return int(ckpt["iteration"]), list(ckpt["history"])
+    return int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", []))
 
 
 def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
           checkpoint_path: Path | None = None, on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
-    """Run the optimisation; returns the status and the per-iteration history."""
+    """Run the optimisation; returns the status, the per-iteration history and the rejected updates."""
     start = time.perf_counter()
     if not law.trainable():
         return TrainResult("ok", 0, [], "nothing to train", 0.0)
     opt, sched = _optimizer(law, cfg)
-    it0, history = _resume(checkpoint_path, law, opt, sched)
+    it0, history, rejected = _resume(checkpoint_path, law, opt, sched)
     n_video = len(data.video_frames)
-    for it in tqdm(range(it0, cfg.iterations), desc="train", unit="it", initial=it0, total=cfg.iterations):
+    undo, in_a_row = None, 0  # the last update (none yet after a resume: it is not in the checkpoint)
+    bar = tqdm(total=cfg.iterations, desc="train", unit="it", initial=it0)
+    it = it0
+    while it < cfg.iterations:
         try:
-            record = _step(solver, law, data, objective, cfg, opt, horizon(cfg, it, n_video))
+            record = _gradient(solver, law, data, objective, cfg, horizon(cfg, it, n_video))
         except DIVERGENCE_ERRORS as exc:
-            return TrainResult("diverged", it, history, f"{type(exc).__name__}: {exc}", time.perf_counter() - start)
+            message = f"{type(exc).__name__}: {exc}"
+            if undo is None or in_a_row >= cfg.max_rejections:
+                why = "before any update" if undo is None else f"after {in_a_row} rejected updates in a row"
+                if undo is not None:  # keep the last law whose rollout was finite
+                    undo.restore(law, opt)
+                bar.close()
+                return TrainResult("diverged", it, history, f"{message} ({why})", time.perf_counter() - start,
+                                   rejected)
+            sched.shrink()
+            undo.retake(law, opt, sched)
+            in_a_row += 1
+            rejected.append({"iteration": it, "message": message, "lr_scale": sched.scale})
+            bar.set_postfix(rejected=len(rejected))
+            continue
+        in_a_row = 0
+        undo = _Undo(law, opt, sched)
+        t0 = time.perf_counter()
+        opt.step()
+        record["time/optimizer"] = time.perf_counter() - t0
         sched.step()
         record["iteration"] = it
+        record["lr_scale"] = sched.scale
         history.append(record)
         if on_iteration:
             on_iteration(it, record)
-        if checkpoint_path is not None and ((it + 1) % cfg.checkpoint_every == 0 or it + 1 == cfg.iterations):
-            _save_checkpoint(checkpoint_path, law, opt, sched, it + 1, history)
-    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start)
+        it += 1
+        bar.update(1)
+        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations):
+            _save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected)
+    bar.close()
+    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start, rejected)
 
 
 class PhaseTimer:
@@ -328,10 +425,16 @@ class PhaseTimer:
         self._t = t
 
 
-def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
+def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
+    """Rollout, losses, backward and clipping: the law's ``.grad`` is ready for the update.
+
+    Returns the iteration's record (loss, gradient norm before clipping, horizon, stats, phase times).
+    Raises one of ``DIVERGENCE_ERRORS`` when the rollout, the loss or a gradient is not usable.
+    """
     timer = PhaseTimer(data.body.x0.device)
     timer.start()
-    opt.zero_grad(set_to_none=True)
+    for p in law.trainable():
+        p.grad = None
     traj = simulate(solver, law, data, n_video)
     probe = objective.probe = GradProbe()
     probe.watch("particles", "x", -1, traj.x)
@@ -346,8 +449,6 @@ def _step(solver, law, data, objective, cfg, opt, n_video) -> dict:
     timer.lap("backward")
     _check_gradients(law, probe)
     grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip)
-    opt.step()
-    timer.lap("optimizer")
     return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, **stats,
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 

@@ -1,0 +1,359 @@
+"""The pipeline's stage commands for a scene x method grid, scheduled over the GPUs of one machine.
+
+What ``dvc repro`` runs, without dvc (the GPU machine has none): the stage commands are read from
+``dvc.yaml`` and expanded for the chosen scenes, their objects and prior families; the order comes
+from the stages' deps and outs; each job runs as its own process pinned to one GPU
+(``CUDA_VISIBLE_DEVICES``), ``--slots`` jobs per GPU at once (packing, ``pack.py``). The outputs land
+where ``dvc repro`` puts them, inside ``--work``, so the ``report`` stage reads them as it always does.
+A scene's ``train`` stage is split per method (the first method estimates the launch velocity, the
+others reuse it with ``--velocity``) so one scene's methods train on several GPUs at once.
+
+    python benchmarks/grid.py --work /tmp/t1 --scenes ball duck pawn cat fish bottle \
+        --methods gca neuma nclaw --profile paper --gpus 4 --slots 2 --deadline 540
+
+Resumable: a finished job leaves ``<work>/.grid/<job>.done`` and is not run again; training resumes
+from its checkpoint. ``--deadline`` [s] launches no job that its estimated cost would not finish in
+time, so a long grid runs as a few commands of bounded length (repeat the command until it reports
+every job done). A failed job is logged with its output's tail, its dependents are skipped, the
+others go on. ``--priors DIR`` takes ``<family>.pt`` from an earlier run instead of pretraining.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import heapq
+import itertools
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Estimated cost of a job [GPU-minutes, paper profile, one H100, alone]: for priorities (longest path
+# first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid.
+COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
+        "train": 0.6, "train:gca": 4.5, "train:neuma": 2.7, "train:neuma_multiview": 4.0,
+        "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.3, "demo": 1.0}
+
+
+@dataclasses.dataclass
+class Job:
+    """One stage command. ``deps``/``outs``: paths relative to the work directory."""
+
+    name: str
+    cmd: str
+    deps: list[str]
+    outs: list[str]
+    cost: float
+    after: set[str] = dataclasses.field(default_factory=set)  # names of jobs that must finish first
+
+
+def _substitute(text: str, key: str, item) -> str:
+    def one(m: re.Match) -> str:
+        path = m.group(1).split(".")
+        if path[0] == "key":
+            return key
+        if path[0] == "item":
+            value = item
+            for p in path[1:]:
+                value = value[p]
+            return str(value)
+        return m.group(0)  # a params reference (${profile}): _params_sub
+    return re.sub(r"\$\{([^}]+)\}", one, text)
+
+
+def _foreach_items(spec: str, params: dict) -> dict:
+    """The mapping a ``foreach: ${a.b}`` ranges over, from params."""
+    m = re.fullmatch(r"\$\{([^}]+)\}", spec.strip())
+    if not m:
+        raise ValueError(f"dvc.yaml: foreach {spec!r} is not a ${{...}} reference")
+    node = params
+    for p in m.group(1).split("."):
+        node = node[p]
+    return node
+
+
+def _paths(entries) -> list[str]:
+    out = []
+    for e in entries or []:
+        out.extend(e.keys() if isinstance(e, dict) else [e])
+    return [str(p) for p in out]
+
+
+def expand(dvc: dict, params: dict, stages: list[str] | None = None) -> dict[str, Job]:
+    """The stage jobs of ``dvc.yaml`` for ``params`` (its foreach over objects, families and scenes),
+    with ``${profile}`` and the other top-level params substituted; ``stages``: keep only these."""
+    jobs = {}
+    for name, stage in dvc["stages"].items():
+        if stages is not None and name not in stages:
+            continue
+        if "foreach" in stage:
+            items = _foreach_items(stage["foreach"], params).items()
+            body = stage["do"]
+        else:
+            items, body = [(None, None)], stage
+        for key, item in items:
+            sub = (lambda t: _params_sub(_substitute(t, key, item), params)) if key is not None else \
+                (lambda t: _params_sub(t, params))
+            job_name = f"{name}@{key}" if key is not None else name
+            jobs[job_name] = Job(job_name, sub(" ".join(body["cmd"].split())), [sub(p) for p in _paths(body.get("deps"))],
+                                 [sub(p) for p in _paths(body.get("outs"))] + [sub(p) for p in _paths(body.get("metrics"))],
+                                 COST.get(name, 1.0))
+    return jobs
+
+
+def _params_sub(text: str, params: dict) -> str:
+    def one(m: re.Match) -> str:
+        node = params
+        for p in m.group(1).split("."):
+            node = node[p]
+        return str(node)
+    return re.sub(r"\$\{([^}]+)\}", one, text)
+
+
+def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
+    """``train@<scene>`` -> one job per method; the first (cheapest) estimates the velocity."""
+    out = {}
+    for name, job in jobs.items():
+        if not name.startswith("train@"):
+            out[name] = job
+            continue
+        scene = name.split("@", 1)[1]
+        methods = sorted(params["scenes"][scene]["methods"], key=lambda m: COST.get(f"train:{m}", COST["train"]))
+        run_dir = re.search(r"--out (\S+)", job.cmd).group(1)
+        first = None
+        for m in methods:
+            cmd = f"{job.cmd} --methods {m}"
+            if first is not None:
+                cmd += f" --velocity {run_dir}/velocity.json"
+            j = Job(f"{name}:{m}", cmd, list(job.deps), [f"{run_dir}/{m}"] + ([] if first else [f"{run_dir}/velocity.json"]),
+                    COST.get(f"train:{m}", COST["train"]))
+            if first is not None:
+                j.after.add(first)
+            first = first or j.name
+            out[j.name] = j
+    return out
+
+
+def _under(path: str, root: str) -> bool:
+    return path == root or path.startswith(root.rstrip("/") + "/")
+
+
+def link(jobs: dict[str, Job]) -> dict[str, Job]:
+    """Job B runs after job A when one of B's deps is (under) one of A's outs or A's out is under B's dep."""
+    for b in jobs.values():
+        for a in jobs.values():
+            if a is not b and any(_under(d, o) or _under(o, d) for d in b.deps for o in a.outs):
+                b.after.add(a.name)
+    return jobs
+
+
+def critical_path(jobs: dict[str, Job]) -> dict[str, float]:
+    """Longest cost from each job to the end of the grid (list-scheduling priority)."""
+    children = {n: [] for n in jobs}
+    for j in jobs.values():
+        for a in j.after:
+            if a in children:
+                children[a].append(j.name)
+    memo: dict[str, float] = {}
+
+    def walk(n: str) -> float:
+        if n not in memo:
+            memo[n] = jobs[n].cost + max((walk(c) for c in children[n]), default=0.0)
+        return memo[n]
+    return {n: walk(n) for n in jobs}
+
+
+def grid_params(profile: str, scenes: list[str], methods: list[str] | None, overrides: list[str]) -> dict:
+    """params.yaml restricted to ``scenes`` (and the objects and prior families they need)."""
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["profile"] = profile
+    unknown = [s for s in scenes if s not in raw["scenes"]]
+    if unknown:
+        raise SystemExit(f"params.yaml: unknown scene(s) {unknown}; valid: {sorted(raw['scenes'])}")
+    raw["scenes"] = {s: dict(raw["scenes"][s]) for s in scenes}
+    if methods:
+        for s in scenes:
+            raw["scenes"][s]["methods"] = list(methods)
+    objects = {spec["object"] for spec in raw["scenes"].values()}
+    raw["objects"] = {k: v for k, v in raw["objects"].items() if k in objects}
+    families = {spec["prior"] for spec in raw["scenes"].values()}
+    raw["prior"]["families"] = {k: v for k, v in raw["prior"]["families"].items() if k in families}
+    for item in overrides:
+        key, _, value = item.partition("=")
+        node = raw
+        *head, last = key.split(".")
+        for k in head:
+            node = node.setdefault(k, {})
+        node[last] = yaml.safe_load(value)
+    return raw
+
+
+def prepare(work: Path, params: dict) -> None:
+    """The work directory as a checkout: the code linked, its own params.yaml."""
+    work.mkdir(parents=True, exist_ok=True)
+    for name in ("stages", "gca", "dvc.yaml"):
+        target = work / name
+        if not target.exists():
+            target.symlink_to(ROOT / name)
+    (work / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    (work / ".grid").mkdir(exist_ok=True)
+
+
+class Scheduler:
+    """List scheduling of jobs over ``gpus x slots`` places, longest remaining path first."""
+
+    def __init__(self, jobs: dict[str, Job], work: Path, gpus: int, slots: int, deadline: float | None, log):
+        self.jobs, self.work, self.log = jobs, work, log
+        self.places = [g for g in range(gpus) for _ in range(slots)]
+        self.priority = critical_path(jobs)
+        self.deadline = None if deadline is None else time.monotonic() + deadline
+        self.state = {n: ("done" if self._marker(n).is_file() else "todo") for n in jobs}
+        self.running: dict[str, tuple[subprocess.Popen, int, float]] = {}
+
+    def _marker(self, name: str) -> Path:
+        return self.work / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + ".done")
+
+    def _ready(self) -> list[str]:
+        return [n for n, s in self.state.items() if s == "todo" and all(self.state.get(a) == "done" for a in self.jobs[n].after)]
+
+    def _skip_dependents(self) -> None:
+        changed = True
+        while changed:
+            changed = False
+            for n, s in self.state.items():
+                if s == "todo" and any(self.state.get(a) in ("failed", "skipped") for a in self.jobs[n].after):
+                    self.state[n] = "skipped"
+                    self.log(f"skip {n}: an upstream job failed")
+                    changed = True
+
+    def _launch(self, name: str, gpu: int) -> None:
+        job = self.jobs[name]
+        argv = shlex.split(job.cmd)
+        if argv[0] == "python":
+            argv[0] = sys.executable
+        env = {**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu), "PYTHONUNBUFFERED": "1",
+               "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+               "MLFLOW_TRACKING_URI": os.environ.get("MLFLOW_TRACKING_URI", f"sqlite:///{self.work / 'mlflow.db'}")}
+        logf = open(self.work / ".grid" / (self._marker(name).stem + ".log"), "w")
+        proc = subprocess.Popen(argv, cwd=self.work, env=env, stdout=logf, stderr=subprocess.STDOUT)
+        self.running[name] = (proc, gpu, time.monotonic())
+        self.state[name] = "running"
+        self.log(f"start {name} on gpu {gpu}")
+
+    def _reap(self) -> None:
+        for name, (proc, gpu, t0) in list(self.running.items()):
+            rc = proc.poll()
+            if rc is None:
+                continue
+            del self.running[name]
+            self.places.append(gpu)
+            took = time.monotonic() - t0
+            if rc == 0:
+                self.state[name] = "done"
+                self._marker(name).write_text(f"{took:.1f}\n")
+                self.log(f"done  {name} in {took:.0f} s")
+            else:
+                self.state[name] = "failed"
+                tail = (self.work / ".grid" / (self._marker(name).stem + ".log")).read_text()[-1500:]
+                self.log(f"FAIL  {name} (exit {rc}) after {took:.0f} s:\n{tail}")
+                self._skip_dependents()
+
+    def _fits(self, name: str) -> bool:
+        return self.deadline is None or time.monotonic() + 60 * self.jobs[name].cost * 1.3 < self.deadline
+
+    def run(self) -> dict[str, str]:
+        while True:
+            self._reap()
+            ready = sorted(self._ready(), key=lambda n: -self.priority[n])
+            for name in ready:
+                if not self.places:
+                    break
+                if not self._fits(name):
+                    continue
+                gpu = min(self.places, key=lambda g: sum(1 for _, (_, gg, _) in self.running.items() if gg == g))
+                self.places.remove(gpu)
+                self._launch(name, gpu)
+            if not self.running:
+                return self.state
+            time.sleep(1.0)
+
+
+def collect(work: Path, out: Path) -> Path:
+    """The small results of a grid in one archive: metrics, reports, train/eval summaries, priors, logs."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "grid_results.tar.gz"
+    keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity\.json|"
+                      r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/loss\.png|\.grid/.*|params\.yaml)$")
+    with tarfile.open(path, "w:gz") as tar:
+        for f in sorted(work.rglob("*")):
+            rel = f.relative_to(work).as_posix()
+            if f.is_file() and not f.is_symlink() and keep.match(rel) and f.stat().st_size < 8 * 2 ** 20:
+                tar.add(f, arcname=rel)
+    return path
+
+
+def main(argv=None) -> dict[str, str]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--scenes", nargs="+", required=True)
+    ap.add_argument("--methods", nargs="+", help="default: each scene's methods in params.yaml")
+    ap.add_argument("--profile", default="paper")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="dotted.key=yaml_value")
+    ap.add_argument("--gpus", type=int, default=1)
+    ap.add_argument("--slots", type=int, default=2, help="concurrent jobs per GPU")
+    ap.add_argument("--deadline", type=float, default=None, help="seconds: launch nothing that would end later")
+    ap.add_argument("--stages", nargs="+", default=["assets", "particles", "prior", "ground_truth", "preprocess",
+                                                   "train", "evaluate", "report"])
+    ap.add_argument("--priors", type=Path, help="folder of <family>.pt from an earlier run (no prior jobs)")
+    ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
+    args = ap.parse_args(argv)
+    params = grid_params(args.profile, args.scenes, args.methods, args.overrides)
+    prepare(args.work, params)
+    jobs = expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, args.stages)
+    if args.priors is not None:
+        for family in params["prior"]["families"]:
+            src = args.priors / f"{family}.pt"
+            if not src.is_file():
+                raise SystemExit(f"{src}: no prior for family {family!r} (--priors)")
+            dst = args.work / "models" / "prior" / f"{family}.pt"
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, dst)
+            jobs.pop(f"prior@{family}", None)
+    jobs = link(split_train(jobs, params))
+    if "report" in jobs:  # report reads metrics/demo only when it exists: run without the demo stage
+        jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
+    logfile = open(args.work / ".grid" / "grid.log", "a")
+
+    def log(msg: str) -> None:
+        line = f"[grid {time.strftime('%H:%M:%S')}] {msg}"
+        print(line, flush=True)
+        logfile.write(line + "\n")
+        logfile.flush()
+
+    scheduler = Scheduler(jobs, args.work, args.gpus, args.slots, args.deadline, log)
+    todo = sum(1 for s in scheduler.state.values() if s == "todo")
+    log(f"{len(jobs)} jobs ({todo} to run) on {args.gpus} GPU(s) x {args.slots} slots, profile {args.profile}")
+    t0 = time.monotonic()
+    state = scheduler.run()
+    counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
+    log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("" if counts["todo"] else "; nothing left to run"))
+    for name in sorted(state):
+        if state[name] != "done":
+            log(f"  {state[name]:>8}  {name}")
+    if args.collect:
+        log(f"results: {collect(args.work, args.collect)}")
+    return state
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

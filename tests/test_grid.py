@@ -1,0 +1,90 @@
+"""benchmarks/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs, scheduled."""
+
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import grid  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def jobs():
+    params = grid.grid_params("ci", ["ball", "cat"], ["gca", "nclaw"], ["train.iterations=3"])
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    return params, grid.link(grid.split_train(grid.expand(dvc, params, ["assets", "particles", "prior", "ground_truth",
+                                                                          "preprocess", "train", "evaluate", "report"]),
+                                              params))
+
+
+def test_grid_params_keep_only_what_the_scenes_need():
+    params = grid.grid_params("paper", ["fish"], None, ["train.iterations=7"])
+    assert list(params["scenes"]) == ["fish"] and list(params["objects"]) == ["fish"]
+    assert list(params["prior"]["families"]) == ["sand"] and params["train"]["iterations"] == 7
+    with pytest.raises(SystemExit, match="unknown scene"):
+        grid.grid_params("ci", ["teapot"], None, [])
+
+
+def test_stage_commands_are_dvc_yaml_expanded(jobs):
+    params, jobs = jobs
+    assert {"assets@ball", "assets@cat", "prior@jelly", "prior@plasticine", "ground_truth@cat", "evaluate@ball",
+            "report", "train@ball:nclaw", "train@ball:gca"} <= set(jobs)
+    assert "prior@sand" not in jobs and "train@ball" not in jobs
+    assert jobs["report"].cmd.split("--out ")[1].startswith("reports/ci ")
+    assert jobs["assets@cat"].cmd.startswith("python stages/assets.py --object cat --out data/assets/cat")
+    gca = jobs["train@ball:gca"]
+    assert gca.cmd.endswith("--methods gca --velocity runs/ball/velocity.json")
+    assert jobs["train@ball:nclaw"].cmd.endswith("--methods nclaw")  # the cheap one estimates the velocity
+
+
+def test_order_follows_deps_and_outs(jobs):
+    _, jobs = jobs
+    assert {"train@ball:nclaw", "prior@jelly", "ground_truth@ball", "preprocess@ball", "particles@ball",
+            "assets@ball"} <= jobs["train@ball:gca"].after
+    assert "prior@plasticine" not in jobs["train@ball:gca"].after
+    assert {"train@cat:gca", "train@cat:nclaw"} <= jobs["evaluate@cat"].after
+    assert {"evaluate@ball", "evaluate@cat"} <= jobs["report"].after
+    prio = grid.critical_path(jobs)
+    assert prio["prior@jelly"] > prio["train@ball:gca"] > prio["evaluate@ball"] > prio["report"] > 0
+
+
+def _fake(name, code, after=()):
+    return grid.Job(name, f"python -c {code!r}", [], [], 0.01, set(after))
+
+
+def test_scheduler_skips_dependents_of_a_failure_and_resumes(tmp_path):
+    (tmp_path / ".grid").mkdir()
+    jobs = {"a": _fake("a", "open('a.txt','w').write('1')"), "bad": _fake("bad", "raise SystemExit(3)"),
+            "b": _fake("b", "open('b.txt','w').write(open('a.txt').read())", ["a"]),
+            "c": _fake("c", "print('never')", ["bad"]), "d": _fake("d", "print('never')", ["c", "b"])}
+    lines = []
+    state = grid.Scheduler(jobs, tmp_path, gpus=2, slots=1, deadline=None, log=lines.append).run()
+    assert state == {"a": "done", "bad": "failed", "b": "done", "c": "skipped", "d": "skipped"}
+    assert (tmp_path / "b.txt").read_text() == "1"
+    assert any("FAIL  bad (exit 3)" in line for line in lines)
+    (tmp_path / "a.txt").unlink()
+    again = grid.Scheduler({k: v for k, v in jobs.items() if k in "ab"}, tmp_path, 1, 1, None, lines.append)
+    assert again.state == {"a": "done", "b": "done"} and again.run() == {"a": "done", "b": "done"}
+    assert not (tmp_path / "a.txt").exists()  # a finished job is not run again
+
+
+def test_deadline_launches_nothing_that_would_end_late(tmp_path):
+    (tmp_path / ".grid").mkdir()
+    slow = grid.Job("slow", "python -c pass", [], [], cost=10.0)  # 10 estimated minutes
+    state = grid.Scheduler({"slow": slow}, tmp_path, 1, 1, deadline=60.0, log=lambda m: None).run()
+    assert state == {"slow": "todo"}
+
+
+def test_collect_keeps_the_small_results(tmp_path):
+    for rel in ("metrics/eval/ball/gca.json", "reports/ci/table1_synthetic_cd.md", "runs/ball/gca/train.json",
+                "runs/ball/gca/law.pt", "data/scenes/ball/meta.json", "models/prior/jelly.pt"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("x")
+    with tarfile.open(grid.collect(tmp_path, tmp_path / "out")) as tar:
+        names = set(tar.getnames())
+    assert names == {"metrics/eval/ball/gca.json", "reports/ci/table1_synthetic_cd.md", "runs/ball/gca/train.json",
+                     "models/prior/jelly.pt"}
