@@ -241,7 +241,8 @@ class Scheduler:
         argv = shlex.split(job.cmd)
         if argv[0] == "python":
             argv[0] = sys.executable
-        env = {**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu), "PYTHONUNBUFFERED": "1",
+        env = {"OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // max(1, len(self.places) + len(self.running)))),
+               **os.environ, "CUDA_VISIBLE_DEVICES": str(gpu), "PYTHONUNBUFFERED": "1",
                "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
                "MLFLOW_TRACKING_URI": os.environ.get("MLFLOW_TRACKING_URI", f"sqlite:///{self.work / 'mlflow.db'}")}
         logf = open(self.work / ".grid" / (self._marker(name).stem + ".log"), "w")
@@ -316,7 +317,11 @@ def main(argv=None) -> dict[str, str]:
                                                    "train", "evaluate", "report"])
     ap.add_argument("--priors", type=Path, help="folder of <family>.pt from an earlier run (no prior jobs)")
     ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
+    ap.add_argument("--collect-only", action="store_true", help="only --collect what --work holds")
     args = ap.parse_args(argv)
+    if args.collect_only:
+        print(f"[grid] results: {collect(args.work, args.collect)}")
+        return {}
     params = grid_params(args.profile, args.scenes, args.methods, args.overrides)
     prepare(args.work, params)
     jobs = expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, args.stages)
