@@ -119,13 +119,29 @@ def test_log_dict_reports_E_nu_and_weights():
 def test_target_removed_changes_the_most_credible_law():
     F = _deformations()
     law = FixedLaw(corotated_tau, MU, LAM)
-    _, _, full = CPR(ELASTIC_ONLY, N, seed=0).residuals(law, identity_plastic, F, F)
+    R_full, _, full = CPR(ELASTIC_ONLY, N, seed=0).residuals(law, identity_plastic, F, F)
     removed_cfg = dataclasses.replace(ELASTIC_ONLY, elastic=("stvk", "volume", "sigma"))
     R_e, _, removed = CPR(removed_cfg, N, seed=0).residuals(law, identity_plastic, F, F)
     assert CPR.best(full["elastic"]) == "corotated"
     assert "corotated" not in removed["elastic"] and CPR.best(removed["elastic"]) in ("stvk", "sigma")
     assert max(f.weight for f in removed["elastic"].values()) < 0.5 / ELASTIC_ONLY.eps  # no exact fit left
-    assert float(R_e) > 0.1
+    assert float(R_e) > 2 * float(R_full)  # the credible exact fit was what kept the residual small
+
+
+def test_normalized_weights_stop_wrong_hypotheses_pulling_an_exact_law():
+    """A law that is exactly corotated: with omega as written every wrong hypothesis pulls it away
+    (grad of omega_k * misfit_k ~ grad log misfit_k); the credibility distribution omega / sum omega
+    leaves it almost alone (the pull shrinks by sum_k omega_k, here > 50x)."""
+    F = _deformations(dtype=torch.float64)
+    grads = {}
+    for weighting in ("raw", "normalized"):
+        law = FixedLaw(corotated_tau, MU, LAM, scale=1.0)
+        R_e, _, info = CPR(dataclasses.replace(ELASTIC_ONLY, weighting=weighting), N, 0).residuals(
+            law, identity_plastic, F, F)
+        (grads[weighting],) = torch.autograd.grad(R_e, law.scale)
+        total_weight = sum(float(f.weight) for f in info["elastic"].values())
+    assert float(grads["raw"].abs()) > 50 * float(grads["normalized"].abs()) > 0
+    assert float(grads["raw"] / grads["normalized"]) == pytest.approx(total_weight, rel=1e-6)
 
 
 def test_residual_is_scale_free():
@@ -181,7 +197,8 @@ def test_gradient_reaches_every_neural_parameter():
 def _frozen_residual(info, F, s, law):
     """R_e recomputed from the solved targets (theta, omega, scale held fixed), float64."""
     tau = s * law(F)
-    return sum(f.weight * (tau - elastic_tau(k, F, f.theta.tolist())).square().sum((-2, -1)).mean()
+    total_weight = sum(f.weight for f in info["elastic"].values())  # weighting="normalized"
+    return sum(f.weight / total_weight * (tau - elastic_tau(k, F, f.theta.tolist())).square().sum((-2, -1)).mean()
                for k, f in info["elastic"].items()) / info["scale_e"]
 
 
@@ -231,16 +248,20 @@ def test_divergence_and_bad_input_raise():
 
 
 def test_weights_and_residual_follow_the_documented_formula():
-    """On S (residual_on='subset'): omega = 1/(V_param + misfit + eps) and R_e = sum omega * misfit;
-    without the misfit term parameter-free hypotheses get the maximal weight 1/eps (the literal reading)."""
+    """On S (residual_on='subset'): omega = 1/(V_param + misfit + eps) and R_e = sum omega * misfit / sum
+    omega (``weighting="raw"``: without the division); without the misfit term parameter-free
+    hypotheses get the maximal weight 1/eps (the literal reading)."""
     F = _deformations()
     law = FixedLaw(lambda F: corotated_tau(F, MU, LAM) + sigma_tau(F, 0.3 * MU, 0.0))
-    cfg = dataclasses.replace(ELASTIC_ONLY, residual_on="subset")
-    R_e, _, info = CPR(cfg, N, 0).residuals(law, identity_plastic, F, F)
-    fits = info["elastic"].values()
-    for f in fits:
-        assert float(f.weight) == pytest.approx(1.0 / (float(f.var_param) + float(f.fit_residual) + cfg.eps), rel=1e-12)
-    assert float(R_e) == pytest.approx(sum(float(f.weight * f.fit_residual) for f in fits), rel=1e-5)
+    for weighting in ("normalized", "raw"):
+        cfg = dataclasses.replace(ELASTIC_ONLY, residual_on="subset", weighting=weighting)
+        R_e, _, info = CPR(cfg, N, 0).residuals(law, identity_plastic, F, F)
+        fits = info["elastic"].values()
+        for f in fits:
+            assert float(f.weight) == pytest.approx(1.0 / (float(f.var_param) + float(f.fit_residual) + cfg.eps),
+                                                    rel=1e-12)
+        norm = sum(float(f.weight) for f in fits) if weighting == "normalized" else 1.0
+        assert float(R_e) == pytest.approx(sum(float(f.weight * f.fit_residual) for f in fits) / norm, rel=1e-5)
     literal = CPRConfig(include_fit_residual=False, plastic=("identity", "sigma"), elastic=())
     _, _, info = CPR(literal, N, 0).residuals(law, FixedLaw(von_mises_plastic, MU, 1e3), F, _deformations(7))
     assert all(float(f.weight) == pytest.approx(1 / literal.eps) for f in info["plastic"].values())

@@ -201,18 +201,19 @@ def test_batched_objective_equals_frame_by_frame(textured_scene):
             torch.testing.assert_close(a, c)
 
 
-def _diverging_simulate(monkeypatch, fail_calls):
-    """Make ``loop.simulate`` raise SimulationDiverged on the given call numbers; returns the parameters
-    each call saw (the law's trainable tensors, cloned)."""
+def _diverging_simulate(monkeypatch, fail_calls, error=None):
+    """Make ``loop.simulate`` raise ``error`` (SimulationDiverged) on the given call numbers; returns the
+    parameters each call saw (the law's trainable tensors, cloned)."""
     from gca.sim.rollout import SimulationDiverged
     from gca.train import loop
+    error = error or SimulationDiverged
 
     real, seen = loop.simulate, []
 
     def fake(solver, law, data, n_video):
         seen.append([p.detach().clone() for p in law.trainable()])
         if len(seen) - 1 in fail_calls:
-            raise SimulationDiverged(f"planted divergence at call {len(seen) - 1}")
+            raise error(f"planted divergence at call {len(seen) - 1}")
         return real(solver, law, data, n_video)
 
     monkeypatch.setattr(loop, "simulate", fake)
@@ -228,11 +229,14 @@ def _neuma_run(scene, **cfg_kw):
     return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg))
 
 
-def test_a_diverging_update_is_taken_back_and_retaken_at_half_the_lr(scene, monkeypatch):
-    """Iteration 1's rollout diverges: update 0 is undone and retaken from the same gradient at half the
-    step (Adam's first step is lr * g / |g|), iteration 1 is retried from there, and the run goes on."""
+@pytest.mark.parametrize("error", ["SimulationDiverged", "CFLError"])
+def test_a_diverging_update_is_taken_back_and_retaken_at_half_the_lr(scene, monkeypatch, error):
+    """Iteration 1's rollout diverges (or the law got too stiff for dt): update 0 is undone and retaken
+    from the same gradient at half the step (Adam's first step is lr * g / |g|), iteration 1 is retried
+    from there, and the run goes on."""
+    import gca.sim as sim
     law, run = _neuma_run(scene, iterations=3, max_rejections=2, backtrack_factor=0.5)
-    seen = _diverging_simulate(monkeypatch, fail_calls={1})
+    seen = _diverging_simulate(monkeypatch, fail_calls={1}, error=getattr(sim, error))
     result = run()
     assert result.status == "ok", result.message
     assert [h["iteration"] for h in result.history] == [0, 1, 2]

@@ -35,6 +35,15 @@ have V_param = 0 whatever their fit, and a law can fit badly yet consistently, s
 V = V_param + mean_S ||target - H(E[Theta_hat])||^2 / s. An exact fit then has V = 0 and the largest
 weight 1/eps; and since V >= misfit, each weighted term omega_k * misfit_k stays below 1.
 
+Weighting (``weighting``). With omega_k as written, the gradient of omega_k * misfit_k (omega detached)
+is about grad misfit_k / misfit_k = grad log misfit_k for a hypothesis that fits badly: every wrong
+hypothesis pulls the law towards itself with unit strength, however little credible it is. Measured
+at the paper profile (benchmarks/NOTES.md, session 5): a gel duck whose prior already matched its law
+drifted away from it (silhouette loss x50, CD x14) until it diverged. The default therefore weights by
+the credibility distribution omega_k / sum_j omega_j: R is a weighted mean of the misfits, dominated
+by the hypotheses whose parameters are stable and fit, and near zero when one of them explains the
+neural law. ``weighting="raw"`` keeps the paper's unnormalised sum.
+
 Normalisation (s_e, s_p, detached, from S): stresses are 1e3-1e5 Pa, so s_e = mean_S ||E_theta(F_e)||^2
 (the neural stress energy); plastic maps return F (~ I) but their content is the strain, so
 s_p = mean_S ||F_trial - I||^2. A relative mismatch of order 1 thus gives a residual of order 1.
@@ -67,6 +76,7 @@ class CPRConfig:
     lambda_e: float = 1.0  # weight of R_e in the loss (paper: 1) [dimensionless]
     lambda_p: float = 1.0  # weight of R_p in the loss (paper: 1) [dimensionless]
     include_fit_residual: bool = True  # Var += relative misfit on S (False: parameter dispersion only)
+    weighting: str = "normalized"  # omega_k / sum_j omega_j ("normalized") or omega_k as written ("raw")
     residual_on: str = "all"  # "all" particles (Algorithm 2) or the "subset" S (cheaper)
     detach_F: bool = True  # stop the CPR gradient at F_e / F_trial (it shapes the laws, not the path)
     refit_every: int = 1  # re-solve parameters and weights every k calls (Algorithm 2: 1) [calls]
@@ -88,6 +98,8 @@ class CPRConfig:
         if self.subset_size < 2 or self.n_groups < 2 or self.grid_size < 3 or self.refit_every < 1:
             raise ValueError("gca/align/cpr.py: need subset_size >= 2, n_groups >= 2, grid_size >= 3, "
                              f"refit_every >= 1; got {self}")
+        if self.weighting not in ("normalized", "raw"):
+            raise ValueError(f"gca/align/cpr.py: weighting must be 'normalized' or 'raw', got {self.weighting!r}")
         if not self.eps > 0 or self.residual_on not in ("all", "subset"):
             raise ValueError(f"gca/align/cpr.py: eps must be > 0 and residual_on 'all'|'subset', got {self}")
 
@@ -425,7 +437,7 @@ class CPR:
             output: [B, n, 3, 3] neural outputs. scale: [B].
             hypothesis: (name, theta [B, P]) -> [B, n, 3, 3].
         """
-        total, table = output.new_zeros(()), {}
+        table, weights, misfits = {}, [], []
         for name in (new if new is not None else cached):
             fresh = new[name] if new is not None else None
             rows = HypothesisFit.cat(cached[name] if cached is not None else None, fresh) if fresh is not None \
@@ -438,8 +450,14 @@ class CPR:
                 fresh.weight = 1.0 / (var + self.cfg.eps)
                 rows = HypothesisFit.cat(cached[name] if cached is not None else None, fresh)
             table[name] = rows
-            total = total + (rows.weight.index_select(0, plan.source).to(output.dtype) * err.mean(1)).sum()
-        return total, table
+            weights.append(rows.weight.index_select(0, plan.source).to(output.dtype))  # [B]
+            misfits.append(err.mean(1))  # [B]
+        if not weights:  # no hypothesis enabled on this side
+            return output.new_zeros(()), table
+        w, e = torch.stack(weights), torch.stack(misfits)  # [K, B]
+        if self.cfg.weighting == "normalized":
+            w = w / w.sum(0, keepdim=True)
+        return (w * e).sum(), table
 
     def _outputs(self, elasticity, plasticity, F_e, F_trial, tau, F_next):
         """Inputs (detached if configured) and the neural outputs, checked for divergence; [B*N, 3, 3]."""

@@ -39,6 +39,7 @@ from gca.align.rdga import RDGAConfig, rdga_loss
 from gca.render.camera import Camera
 from gca.scenes.store import ViewData
 from gca.scenes.world import Body, gaussians_at, render_gaussians
+from gca.sim.cfl import CFLError
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
 from gca.train.config import TrainConfig
@@ -47,7 +48,9 @@ from gca.train.methods import Method
 from gca.train.probe import GradProbe
 from gca.vision.matching import MatchConfig, match_cached
 
-DIVERGENCE_ERRORS = (SimulationDiverged, FloatingPointError)
+# CFLError: the law stiffened until the scene's dt no longer resolves its waves: the rollout cannot be
+# trusted, like one that blew up (an update that does this is rejected, not a crash)
+DIVERGENCE_ERRORS = (SimulationDiverged, FloatingPointError, CFLError)
 
 
 @dataclasses.dataclass
