@@ -13,4 +13,4 @@ fi
 git config user.email >/dev/null || export GIT_AUTHOR_NAME=gca GIT_AUTHOR_EMAIL=gca@localhost GIT_COMMITTER_NAME=gca GIT_COMMITTER_EMAIL=gca@localhost
 echo "pipeline: profile=$PROFILE"
 dvc exp run -S "profile=$PROFILE"
-echo "pipeline: done. Tables and figures: reports/README.md; runs: mlflow ui --backend-store-uri sqlite:///mlflow.db"
+echo "pipeline: done. Tables and figures: reports/$PROFILE/README.md; runs: mlflow ui --backend-store-uri sqlite:///mlflow.db"
