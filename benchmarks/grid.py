@@ -9,7 +9,8 @@ A scene's ``train`` stage is split per method (the first method estimates the la
 others reuse it with ``--velocity``) so one scene's methods train on several GPUs at once.
 
     python benchmarks/grid.py --work /tmp/t1 --scenes ball duck pawn cat fish bottle \
-        --methods gca neuma nclaw --profile paper --gpus 4 --slots 2 --deadline 540
+        --methods gca neuma nclaw --profile paper --gpus 4 --slots 2 --deadline 540 \
+        --before "python3 -c 'from gsplat.cuda._backend import _C'"
 
 Resumable: a finished job leaves ``<work>/.grid/<job>.done`` and is not run again; training resumes
 from its checkpoint. ``--deadline`` [s] launches no job that its estimated cost would not finish in
@@ -318,6 +319,8 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--priors", type=Path, help="folder of <family>.pt from an earlier run (no prior jobs)")
     ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
     ap.add_argument("--collect-only", action="store_true", help="only --collect what --work holds")
+    ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
+                                     "jobs share: concurrent first builds can corrupt its cache)")
     args = ap.parse_args(argv)
     if args.collect_only:
         print(f"[grid] results: {collect(args.work, args.collect)}")
@@ -345,6 +348,10 @@ def main(argv=None) -> dict[str, str]:
         logfile.write(line + "\n")
         logfile.flush()
 
+    if args.before:
+        log(f"before: {args.before}")
+        subprocess.run(args.before, shell=True, check=True, cwd=args.work,
+                       env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"})
     scheduler = Scheduler(jobs, args.work, args.gpus, args.slots, args.deadline, log)
     todo = sum(1 for s in scheduler.state.values() if s == "todo")
     log(f"{len(jobs)} jobs ({todo} to run) on {args.gpus} GPU(s) x {args.slots} slots, profile {args.profile}")

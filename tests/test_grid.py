@@ -88,3 +88,11 @@ def test_collect_keeps_the_small_results(tmp_path):
         names = set(tar.getnames())
     assert names == {"metrics/eval/ball/gca.json", "reports/ci/table1_synthetic_cd.md", "runs/ball/gca/train.json",
                      "models/prior/jelly.pt"}
+
+
+def test_before_runs_once_ahead_of_the_jobs(tmp_path):
+    work = tmp_path / "w"
+    state = grid.main(["--work", str(work), "--scenes", "duck", "--profile", "ci", "--stages", "report",
+                       "--before", "python -c \"open('before.txt','w').write('x')\""])
+    assert (work / "before.txt").read_text() == "x" and (work / "params.yaml").is_file()
+    assert set(state) == {"report"}
