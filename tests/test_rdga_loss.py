@@ -171,3 +171,18 @@ def test_anchors_survive_the_simulated_estimator_and_l1_does_not():
     l1_true, _ = rdga_loss(out, alpha > 0.5, depth, p, p, dataclasses.replace(cfg, depth_term="l1"))
     assert float(l1_true) == 0.0 and float(l1) > 0.1  # the L1 term penalises the correct geometry
     assert float(rank) < -0.8  # the rank term nearly reaches its optimum at the correct geometry
+
+
+def test_global_reductions_on_hand_computed_residuals():
+    """Two matches off by (3, 4) and (0, 0) px: norm 5, mean 2.5, mean_sq 12.5; only mean_sq's gradient
+    shrinks with the residual (x0.1 residual -> x0.1 gradient), the others keep a unit-size pull."""
+    from gca.align.rdga import global_term
+    q = torch.zeros(2, 2, dtype=torch.float64)
+    for reduction, value in (("norm", 5.0), ("mean", 2.5), ("mean_sq", 12.5)):
+        P = torch.tensor([[3.0, 4.0], [0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+        assert float(global_term(P, q, reduction)) == pytest.approx(value, rel=1e-6)  # sqrt(. + 1e-12)
+        (g_big,) = torch.autograd.grad(global_term(P, q, reduction), P)
+        P_small = (0.1 * P.detach()).requires_grad_(True)
+        (g_small,) = torch.autograd.grad(global_term(P_small, q, reduction), P_small)
+        ratio = float(g_small.norm() / g_big.norm())
+        assert ratio == pytest.approx(0.1 if reduction == "mean_sq" else 1.0, rel=1e-4)

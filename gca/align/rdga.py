@@ -37,7 +37,9 @@ Choices made where the paper is silent or ambiguous (each a switch in :class:`RD
   moves the material seen at p_i toward where its feature was observed in the GT frame. Only
   matches with rendered alpha(p_i) >= ``alpha_threshold`` and ``M_gt(q_i)`` set are used.
   ``global_reduction="norm"`` is the paper's ``||.||_2`` of the whole [M,2] difference (Frobenius,
-  grows like sqrt(M)); ``"mean"`` is the mean per-match distance [px].
+  grows like sqrt(M)); ``"mean"`` is the mean per-match distance [px]; ``"mean_sq"`` the mean squared
+  per-match distance [px^2], whose gradient vanishes as the residual does (the two others push with a
+  unit-length gradient even at the matcher's noise floor: benchmarks/NOTES.md, session 5).
 - Anchor term: ``anchor_reduction="sum"`` is literal; ``"mean"`` divides by |A|.
   ``depth_term="l1"`` (ablation "Replace Rank w/ L1") keeps the anchor selection (stable region +
   exact-rank consensus filter) and replaces ``-gamma_i`` by the mean absolute difference of the two
@@ -87,7 +89,8 @@ class RDGAConfig:
             (p_i in the rendered mask's stable region, literal), "gt" (q_i in M_gt's) or "both".
         alpha_threshold: rendered alpha above which a pixel is in the rendered mask [-].
         mask_reduction: "mean" or "sum" over pixels for L_mask.
-        global_reduction: "norm" (paper, Frobenius of [M,2]) or "mean" (per-match distance).
+        global_reduction: "norm" (paper, Frobenius of [M,2]), "mean" (per-match distance [px]) or
+            "mean_sq" (mean squared per-match distance [px^2]).
         anchor_reduction: "sum" (paper) or "mean" over anchors.
     """
 
@@ -112,7 +115,7 @@ class RDGAConfig:
 
     def __post_init__(self) -> None:
         choices = {"depth_term": DEPTH_TERMS, "stable_region": STABLE_MODES, "stable_on": STABLE_ON,
-                   "mask_reduction": ("mean", "sum"), "global_reduction": ("norm", "mean"),
+                   "mask_reduction": ("mean", "sum"), "global_reduction": ("norm", "mean", "mean_sq"),
                    "anchor_reduction": ("sum", "mean")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -251,13 +254,15 @@ def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "no
     """Global alignment ``||P_render - P_gt||_2`` [px] of matched point sets [M, 2].
 
     ``reduction="norm"`` is the paper's norm of the whole [M, 2] difference; ``"mean"`` the mean
-    per-match Euclidean distance. Zero (with grad) when M = 0.
+    per-match Euclidean distance; ``"mean_sq"`` the mean squared one [px^2]. Zero (with grad) when M = 0.
     """
     diff = P_render - P_gt.to(P_render)
     if len(diff) == 0:
         return P_render.sum() * 0.0
     if reduction == "norm":
         return torch.sqrt((diff ** 2).sum() + 1e-12)
+    if reduction == "mean_sq":
+        return (diff ** 2).sum(-1).mean()
     return torch.sqrt((diff ** 2).sum(-1) + 1e-12).mean()
 
 
