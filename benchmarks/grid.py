@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import heapq
-import itertools
 import os
 import re
 import shlex
@@ -58,17 +56,22 @@ class Job:
     after: set[str] = dataclasses.field(default_factory=set)  # names of jobs that must finish first
 
 
-def _substitute(text: str, key: str, item) -> str:
+def _walk(node, dotted: str):
+    """``node[a][b]...`` for ``dotted = "a.b..."``."""
+    for k in dotted.split("."):
+        node = node[k]
+    return node
+
+
+def _interpolate(text: str, params: dict, key: str | None = None, item=None) -> str:
+    """dvc.yaml's ``${...}``: ``${key}``/``${item.x}`` of a foreach, anything else from params."""
     def one(m: re.Match) -> str:
-        path = m.group(1).split(".")
-        if path[0] == "key":
+        ref = m.group(1)
+        if key is not None and ref == "key":
             return key
-        if path[0] == "item":
-            value = item
-            for p in path[1:]:
-                value = value[p]
-            return str(value)
-        return m.group(0)  # a params reference (${profile}): _params_sub
+        if key is not None and ref.startswith("item."):
+            return str(_walk(item, ref[len("item."):]))
+        return str(_walk(params, ref))
     return re.sub(r"\$\{([^}]+)\}", one, text)
 
 
@@ -77,10 +80,7 @@ def _foreach_items(spec: str, params: dict) -> dict:
     m = re.fullmatch(r"\$\{([^}]+)\}", spec.strip())
     if not m:
         raise ValueError(f"dvc.yaml: foreach {spec!r} is not a ${{...}} reference")
-    node = params
-    for p in m.group(1).split("."):
-        node = node[p]
-    return node
+    return _walk(params, m.group(1))
 
 
 def _paths(entries) -> list[str]:
@@ -103,22 +103,12 @@ def expand(dvc: dict, params: dict, stages: list[str] | None = None) -> dict[str
         else:
             items, body = [(None, None)], stage
         for key, item in items:
-            sub = (lambda t: _params_sub(_substitute(t, key, item), params)) if key is not None else \
-                (lambda t: _params_sub(t, params))
+            sub = lambda t, key=key, item=item: _interpolate(t, params, key, item)  # noqa: E731
             job_name = f"{name}@{key}" if key is not None else name
             jobs[job_name] = Job(job_name, sub(" ".join(body["cmd"].split())), [sub(p) for p in _paths(body.get("deps"))],
                                  [sub(p) for p in _paths(body.get("outs"))] + [sub(p) for p in _paths(body.get("metrics"))],
                                  COST.get(name, 1.0))
     return jobs
-
-
-def _params_sub(text: str, params: dict) -> str:
-    def one(m: re.Match) -> str:
-        node = params
-        for p in m.group(1).split("."):
-            node = node[p]
-        return str(node)
-    return re.sub(r"\$\{([^}]+)\}", one, text)
 
 
 def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
@@ -191,8 +181,8 @@ def grid_params(profile: str, scenes: list[str], methods: list[str] | None, over
     raw["prior"]["families"] = {k: v for k, v in raw["prior"]["families"].items() if k in families}
     for item in overrides:
         key, _, value = item.partition("=")
-        node = raw
         *head, last = key.split(".")
+        node = raw
         for k in head:
             node = node.setdefault(k, {})
         node[last] = yaml.safe_load(value)
@@ -215,14 +205,16 @@ class Scheduler:
 
     def __init__(self, jobs: dict[str, Job], work: Path, gpus: int, slots: int, deadline: float | None, log):
         self.jobs, self.work, self.log = jobs, work, log
-        self.places = [g for g in range(gpus) for _ in range(slots)]
+        self.places = [g for g in range(gpus) for _ in range(slots)]  # free places (a GPU per slot)
+        self.threads = max(1, (os.cpu_count() or 1) // len(self.places))  # CPU threads per job
         self.priority = critical_path(jobs)
         self.deadline = None if deadline is None else time.monotonic() + deadline
         self.state = {n: ("done" if self._marker(n).is_file() else "todo") for n in jobs}
         self.running: dict[str, tuple[subprocess.Popen, int, float]] = {}
 
-    def _marker(self, name: str) -> Path:
-        return self.work / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + ".done")
+    def _marker(self, name: str, suffix: str = ".done") -> Path:
+        """``.grid/<job>.done`` (finished) or, with ``suffix=".log"``, the job's output."""
+        return self.work / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + suffix)
 
     def _ready(self) -> list[str]:
         return [n for n, s in self.state.items() if s == "todo" and all(self.state.get(a) == "done" for a in self.jobs[n].after)]
@@ -242,11 +234,10 @@ class Scheduler:
         argv = shlex.split(job.cmd)
         if argv[0] == "python":
             argv[0] = sys.executable
-        env = {"OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // max(1, len(self.places) + len(self.running)))),
-               **os.environ, "CUDA_VISIBLE_DEVICES": str(gpu), "PYTHONUNBUFFERED": "1",
+        env = {"OMP_NUM_THREADS": str(self.threads), **os.environ, "CUDA_VISIBLE_DEVICES": str(gpu), "PYTHONUNBUFFERED": "1",
                "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
                "MLFLOW_TRACKING_URI": os.environ.get("MLFLOW_TRACKING_URI", f"sqlite:///{self.work / 'mlflow.db'}")}
-        logf = open(self.work / ".grid" / (self._marker(name).stem + ".log"), "w")
+        logf = open(self._marker(name, ".log"), "w")
         proc = subprocess.Popen(argv, cwd=self.work, env=env, stdout=logf, stderr=subprocess.STDOUT)
         self.running[name] = (proc, gpu, time.monotonic())
         self.state[name] = "running"
@@ -266,7 +257,7 @@ class Scheduler:
                 self.log(f"done  {name} in {took:.0f} s")
             else:
                 self.state[name] = "failed"
-                tail = (self.work / ".grid" / (self._marker(name).stem + ".log")).read_text()[-1500:]
+                tail = self._marker(name, ".log").read_text()[-1500:]
                 self.log(f"FAIL  {name} (exit {rc}) after {took:.0f} s:\n{tail}")
                 self._skip_dependents()
 

@@ -29,26 +29,13 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "stages"))
-
-
-def _set(tree: dict, dotted: str, value) -> None:
-    keys = dotted.split(".")
-    node = tree
-    for k in keys[:-1]:
-        node = node.setdefault(k, {})
-    node[keys[-1]] = value
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from grid import grid_params  # noqa: E402  (the same params restriction as the grid runner)
 
 
 def make_params(scene: str, methods: list[str], profile: str, overrides: list[str], out: Path) -> dict:
-    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
-    raw["profile"] = profile
-    spec = raw["scenes"][scene]
-    raw["scenes"] = {scene: {**spec, "methods": methods}}
-    raw["objects"] = {spec["object"]: raw["objects"][spec["object"]]}
-    raw["prior"]["families"] = {spec["prior"]: raw["prior"]["families"][spec["prior"]]}
-    for item in overrides:
-        key, _, value = item.partition("=")
-        _set(raw, key, yaml.safe_load(value))
+    """params.yaml for one scene (its object and prior family only) at ``profile``, written to ``out``."""
+    raw = grid_params(profile, [scene], methods, overrides)
     out.write_text(yaml.safe_dump(raw, sort_keys=False))
     return raw
 

@@ -128,17 +128,19 @@ class HypothesisFit:
     fit_residual: torch.Tensor | None = None
     weight: torch.Tensor | None = None
 
+    _TENSORS = ("theta", "theta_groups", "var_param", "fit_residual", "weight")
+
+    def _map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> "HypothesisFit":
+        """The fit with ``fn`` applied to each tensor field (None stays None)."""
+        return HypothesisFit(self.name, *(None if (t := getattr(self, f)) is None else fn(t) for f in self._TENSORS))
+
     def rows(self, index: torch.Tensor) -> "HypothesisFit":
         """The stacked fit's rows ``index`` ([k] long tensor on the fit's device)."""
-        pick = lambda t: None if t is None else t.index_select(0, index)  # noqa: E731
-        return HypothesisFit(self.name, *(pick(t) for t in (self.theta, self.theta_groups, self.var_param,
-                                                              self.fit_residual, self.weight)))
+        return self._map(lambda t: t.index_select(0, index))
 
     def squeeze(self) -> "HypothesisFit":
         """A one-row stacked fit as a one-frame fit."""
-        one = lambda t: None if t is None else t[0]  # noqa: E731
-        return HypothesisFit(self.name, *(one(t) for t in (self.theta, self.theta_groups, self.var_param,
-                                                            self.fit_residual, self.weight)))
+        return self._map(lambda t: t[0])
 
     @staticmethod
     def cat(first: Optional["HypothesisFit"], then: "HypothesisFit") -> "HypothesisFit":
@@ -146,8 +148,7 @@ class HypothesisFit:
         if first is None:
             return then
         join = lambda a, b: None if a is None or b is None else torch.cat([a, b])  # noqa: E731
-        return HypothesisFit(then.name, *(join(getattr(first, f), getattr(then, f))
-                                          for f in ("theta", "theta_groups", "var_param", "fit_residual", "weight")))
+        return HypothesisFit(then.name, *(join(getattr(first, f), getattr(then, f)) for f in HypothesisFit._TENSORS))
 
 
 # ----------------------------------------------------------------------------- hypotheses
@@ -439,16 +440,14 @@ class CPR:
         """
         table, weights, misfits = {}, [], []
         for name in (new if new is not None else cached):
-            fresh = new[name] if new is not None else None
-            rows = HypothesisFit.cat(cached[name] if cached is not None else None, fresh) if fresh is not None \
-                else cached[name]
-            theta = rows.theta.index_select(0, plan.source)  # [B, P]
+            old, fresh = (None if d is None else d[name] for d in (cached, new))
+            theta = torch.cat([f.theta for f in (old, fresh) if f is not None]).index_select(0, plan.source)  # [B, P]
             err = _sq_error(output, hypothesis(name, theta).to(output.dtype)) / scale.to(output.dtype)[:, None]  # [B, n]
             if fresh is not None:
                 fresh.fit_residual = err.detach()[plan.refit][:, s_index].double().mean(1)  # [R]
                 var = fresh.var_param + (fresh.fit_residual if self.cfg.include_fit_residual else 0.0)
                 fresh.weight = 1.0 / (var + self.cfg.eps)
-                rows = HypothesisFit.cat(cached[name] if cached is not None else None, fresh)
+            rows = HypothesisFit.cat(old, fresh) if fresh is not None else old
             table[name] = rows
             weights.append(rows.weight.index_select(0, plan.source).to(output.dtype))  # [B]
             misfits.append(err.mean(1))  # [B]

@@ -74,6 +74,14 @@ class _RssSampler(threading.Thread):
         return self.peak
 
 
+def synced_clock(device: str | torch.device) -> float:
+    """``time.perf_counter()`` [s] once the device has finished its queued work (CUDA synchronised)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
+
+
 @contextlib.contextmanager
 def measure(device: str | torch.device = "cpu", interval_s: float = 0.005) -> Iterator[Usage]:
     """Measure wall time and peak memory of a ``with`` block.

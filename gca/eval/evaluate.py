@@ -10,7 +10,6 @@ ground truth (for scenes that ask for it), and efficiency (training time, peak m
 from __future__ import annotations
 
 import copy
-import time
 from pathlib import Path
 from typing import Mapping
 
@@ -19,6 +18,7 @@ import numpy as np
 import torch
 
 from gca.eval.config import MetricsConfig
+from gca.eval.efficiency import synced_clock
 from gca.eval.geometry import CHAMFER_DEFINITION, CHAMFER_DEFINITION_SQUARED, chamfer_over_time
 from gca.eval.image import lpips_or_reason, psnr, ssim
 from gca.eval.law_response import law_response_curve, law_response_error
@@ -53,15 +53,9 @@ def predict(solver: MPMSolver, material, body: Body, velocity: tuple[list, list]
             return rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=video_frames[-1] * substeps,
                            steps_per_frame=substeps, checkpoint=False)
     run()
-    t0 = _synced_clock(body.x0.device)
+    t0 = synced_clock(body.x0.device)
     traj = run()
-    return traj, _synced_clock(body.x0.device) - t0
-
-
-def _synced_clock(device: torch.device) -> float:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter()
+    return traj, synced_clock(body.x0.device) - t0
 
 
 def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], video_frames: list[int],
@@ -72,12 +66,12 @@ def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], 
     metrics, frames = {}, {}
     for name, view in data.items():
         renders = []
-        t0 = _synced_clock(body.x0.device)
+        t0 = synced_clock(body.x0.device)
         for f in video_frames:
             means, covs = gaussians_at(body, traj.x[f], traj.F[f])
             renders.append(render_gaussians(body, means, covs, body.colors, view.camera, bg)["rgb"].clamp(0, 1))
         pred = torch.stack(renders).permute(0, 3, 1, 2)
-        metrics.setdefault("render_seconds", {})[name] = _synced_clock(body.x0.device) - t0
+        metrics.setdefault("render_seconds", {})[name] = synced_clock(body.x0.device) - t0
         ref = torch.as_tensor(view.rgb, device=pred.device).permute(0, 3, 1, 2)
         metrics[name] = {"psnr": float(psnr(pred, ref, max_val=cfg.image_max_val).mean()),
                          "ssim": float(ssim(pred, ref, max_val=cfg.image_max_val, window=cfg.ssim_window).mean())}

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from gca.align.cpr import CPR, CPRConfig
 from gca.align.rdga import RDGAConfig, rdga_loss
+from gca.eval.efficiency import synced_clock
 from gca.render.camera import Camera
 from gca.scenes.store import ViewData
 from gca.scenes.world import Body, gaussians_at, render_gaussians
@@ -415,9 +416,7 @@ class PhaseTimer:
         self.device, self.seconds, self._t = device, {}, None
 
     def _now(self) -> float:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        return time.perf_counter()
+        return synced_clock(self.device)
 
     def start(self) -> None:
         self._t = self._now()
