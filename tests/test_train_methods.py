@@ -102,15 +102,11 @@ def test_ablation_switches_reach_rdga(scene):
 
 def test_training_resumes_from_its_checkpoint(scene, tmp_path):
     """An interrupted run (2 of 3 iterations, checkpointed) resumes at iteration 2, not from scratch."""
-    method = get_method("neuma")
     ckpt = tmp_path / "checkpoint.pt"
 
     def run(iterations):
-        cfg = TrainConfig(iterations=iterations, curriculum_start=1.0, checkpoint_every=1)
-        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
-        objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
-                              CPRConfig(subset_size=16, n_groups=2), MatchConfig())
-        return law, train(tiny_solver(), law, _data(scene, method), objective, cfg, checkpoint_path=ckpt)
+        law, go = _neuma_run(scene, checkpoint_path=ckpt, iterations=iterations, checkpoint_every=1)
+        return law, go()
 
     law2, first = run(2)
     assert ckpt.is_file() and [h["iteration"] for h in first.history] == [0, 1]
@@ -220,13 +216,15 @@ def _diverging_simulate(monkeypatch, fail_calls, error=None):
     return seen
 
 
-def _neuma_run(scene, **cfg_kw):
+def _neuma_run(scene, checkpoint_path=None, **cfg_kw):
+    """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``)."""
     method = get_method("neuma")
     cfg = TrainConfig(curriculum_start=1.0, **cfg_kw)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())
-    return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg))
+    return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg,
+                               checkpoint_path=checkpoint_path))
 
 
 @pytest.mark.parametrize("error", ["SimulationDiverged", "CFLError"])
