@@ -186,3 +186,52 @@ def test_global_reductions_on_hand_computed_residuals():
         (g_small,) = torch.autograd.grad(global_term(P_small, q, reduction), P_small)
         ratio = float(g_small.norm() / g_big.norm())
         assert ratio == pytest.approx(0.1 if reduction == "mean_sq" else 1.0, rel=1e-4)
+
+
+def _sheet_motion(gradient: str) -> tuple[float, float]:
+    """d P_render / d t [px/m] at the image centre for a dense sheet of small Gaussians (1 m in front of
+    the camera) translated sideways by t, and the camera's fx [px]."""
+    from gca.align.rdga import position_colors, position_image
+    from gca.render import look_at
+    from gca.render.rasterize import render
+
+    camera = look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 30.0, 48, 48)
+    K, w2c = camera.tensors(torch.float64)
+    g = torch.arange(-0.15, 0.1501, 0.006, dtype=torch.float64)
+    gx, gy = torch.meshgrid(g, g, indexing="ij")
+    means0 = torch.stack([gx.ravel(), gy.ravel(), torch.zeros(gx.numel(), dtype=torch.float64)], -1)
+    covs = torch.diag(torch.tensor([0.006, 0.006, 0.002], dtype=torch.float64) ** 2).expand(len(means0), 3, 3)
+    t = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    means = means0 + t * torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+    colors = position_colors(xyz_cam, gradient)
+    out = render(means, covs, colors, torch.full((len(means),), 0.9, dtype=torch.float64), camera,
+                 torch.zeros(colors.shape[1], dtype=torch.float64))
+    alpha = out["alpha"].detach() if gradient == "material" else out["alpha"]
+    P = render_points(position_image(out["rgb"], gradient), alpha, torch.tensor([[23.5, 23.5]], dtype=torch.float64), K)
+    (dP,) = torch.autograd.grad(P[0, 0], t)
+    return float(dP), float(K[0, 0])
+
+
+def test_global_gradient_moves_the_material_seen_at_p_not_the_ray():
+    """The surface seen at a pixel of a dense splat stays on that pixel's ray however the Gaussians move,
+    so the rasterizer's full derivative of P_render is ~0 (a gradient of noise, benchmarks/NOTES.md
+    session 6); with the compositing weights held it is the image motion of that material, fx / z."""
+    material, fx = _sheet_motion("material")
+    full, _ = _sheet_motion("full")
+    assert abs(material) == pytest.approx(fx, rel=0.05)   # 1 m away: fx px per metre of motion
+    assert abs(full) < 0.2 * fx  # 0.1 fx here, -> 0 as the splat gets denser
+
+
+def test_material_position_image_keeps_the_value():
+    from gca.align.rdga import position_colors, position_image
+
+    x = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    w = torch.rand(4, 5, dtype=torch.float64, requires_grad=True)  # stand-in compositing weights
+    held = position_image(w @ position_colors(x, "material"), "material")
+    torch.testing.assert_close(held, w @ x)
+    gx, gw = torch.autograd.grad(held.sum(), (x, w))
+    torch.testing.assert_close(gx, w.sum(0)[:, None].expand(5, 3).detach())
+    torch.testing.assert_close(gw, torch.zeros_like(gw), rtol=0, atol=1e-12)  # none through the weights (to rounding)
+    with pytest.raises(ValueError, match="global_gradient"):
+        position_colors(x, "weights")

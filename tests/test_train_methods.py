@@ -117,19 +117,20 @@ def test_training_resumes_from_its_checkpoint(scene, tmp_path):
     assert any(moved), "the resumed run should have taken one more optimiser step"
 
 
-def test_fused_position_render_matches_two_passes(scene):
+@pytest.mark.parametrize("gradient", ["material", "full"])
+def test_fused_position_render_matches_two_passes(scene, gradient):
     """RGB + positions composited in one pass equal the separate renders (forward and gradient)."""
     from gca.train.loop import position_image_ref
     from gca.scenes.world import gaussians_at, render_gaussians
 
     body, view = scene[0], scene[1]
-    objective = Objective(get_method("gca"), _data(scene, get_method("gca")), TrainConfig(), RDGAConfig(r=5, k=5),
-                          CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    objective = Objective(get_method("gca"), _data(scene, get_method("gca")), TrainConfig(),
+                          RDGAConfig(r=5, k=5, global_gradient=gradient), CPRConfig(subset_size=16, n_groups=2), MatchConfig())
     x = body.x0.clone().requires_grad_(True)
     means, covs = gaussians_at(body, x, torch.eye(3).expand(body.n_particles, 3, 3))
     fused = objective._render(means, covs, view, with_positions=True)
     rgb = render_gaussians(body, means, covs, body.colors, view.camera, torch.ones(3))["rgb"]
-    pos = position_image_ref(body, means, covs, view.camera)
+    pos = position_image_ref(body, means, covs, view.camera, gradient)
     torch.testing.assert_close(fused["rgb"], rgb)
     torch.testing.assert_close(fused["positions"], pos)
     g_fused = torch.autograd.grad(fused["positions"].sum() + fused["rgb"].sum(), x, retain_graph=True)[0]

@@ -36,6 +36,13 @@ Choices made where the paper is silent or ambiguous (each a switch in :class:`RD
   positions of the Gaussians (hence particles) covering p_i. ``P_gt_i = q_i``. Minimising the term
   moves the material seen at p_i toward where its feature was observed in the GT frame. Only
   matches with rendered alpha(p_i) >= ``alpha_threshold`` and ``M_gt(q_i)`` set are used.
+  Its gradient (``global_gradient="material"``, default) flows through the composited positions
+  only, with the compositing weights held fixed: the surface seen at a pixel of a dense splat lies on
+  that pixel's ray whatever the Gaussians do, so ``pi(X(p_i)) = p_i`` identically and its *full*
+  derivative is ~0 plus discretisation noise (the weights' and the positions' parts cancel); held
+  weights give ``d P_render_i / d mu_g = w_g / sum w * d pi / d mu_g``, i.e. the image motion of
+  the material seen at p_i, which is what moving that feature towards q_i needs. ``"full"`` keeps
+  the rasterizer's full derivative (sessions <= 6; benchmarks/NOTES.md, session 6).
   ``global_reduction="norm"`` is the paper's ``||.||_2`` of the whole [M,2] difference (Frobenius,
   grows like sqrt(M)); ``"mean"`` is the mean per-match distance [px]; ``"mean_sq"`` the mean squared
   per-match distance [px^2], whose gradient vanishes as the residual does (the two others push with a
@@ -64,6 +71,7 @@ _WHERE = "gca/align/rdga.py"
 STABLE_MODES = ("eroded", "paper_literal")
 STABLE_ON = ("render", "gt", "both")
 DEPTH_TERMS = ("rank", "l1")
+GLOBAL_GRADIENTS = ("material", "full")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +100,8 @@ class RDGAConfig:
         global_reduction: "norm" (paper, Frobenius of [M,2]), "mean" (per-match distance [px]) or
             "mean_sq" (mean squared per-match distance [px^2]).
         anchor_reduction: "sum" (paper) or "mean" over anchors.
+        global_gradient: "material" (the global term's gradient moves the material seen at p_i:
+            compositing weights held) or "full" (the rasterizer's full derivative, ~0 on dense splats).
     """
 
     enabled: bool = True
@@ -112,11 +122,12 @@ class RDGAConfig:
     mask_reduction: str = "mean"
     global_reduction: str = "norm"
     anchor_reduction: str = "sum"
+    global_gradient: str = "material"
 
     def __post_init__(self) -> None:
         choices = {"depth_term": DEPTH_TERMS, "stable_region": STABLE_MODES, "stable_on": STABLE_ON,
                    "mask_reduction": ("mean", "sum"), "global_reduction": ("norm", "mean", "mean_sq"),
-                   "anchor_reduction": ("sum", "mean")}
+                   "anchor_reduction": ("sum", "mean"), "global_gradient": GLOBAL_GRADIENTS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{_WHERE}: RDGAConfig.{name}={getattr(self, name)!r} not in {allowed}")
@@ -333,12 +344,33 @@ def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q
     return term, stats
 
 
+def position_colors(xyz: torch.Tensor, gradient: str = "material") -> torch.Tensor:
+    """Extra colour channels to composite for the position image: [G, 3] positions -> [G, 3] ("full")
+    or [G, 6] ("material": the positions and a detached copy, see :func:`position_image`)."""
+    if gradient not in GLOBAL_GRADIENTS:
+        raise ValueError(f"{_WHERE}: global_gradient={gradient!r} not in {GLOBAL_GRADIENTS}")
+    return xyz if gradient == "full" else torch.cat([xyz, xyz.detach()], -1)
+
+
+def position_image(channels: torch.Tensor, gradient: str = "material") -> torch.Tensor:
+    """The premultiplied position image [H, W, 3] from the channels of :func:`position_colors` [H, W, 3|6].
+
+    "material": ``sum w x`` minus ``sum w x.detach()`` (the weights' part of the derivative) plus its
+    value: the value is ``sum w x``, the gradient ``sum w dx`` (compositing weights held).
+    """
+    if gradient == "full":
+        return channels
+    pos, pos_weights = channels[..., :3], channels[..., 3:]
+    return pos - pos_weights + pos_weights.detach()
+
+
 def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Tensor, int]:
     """Global term over matches on the object in both frames: (term, number of matches used)."""
     if pos_image is None:
         raise ValueError(f"{_WHERE}: use_global=True needs pos_image (rendered positions, see render_points)")
     on_object = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)
-    P_render = render_points(pos_image, alpha, p[on_object], K)
+    held = alpha.detach() if cfg.global_gradient == "material" else alpha  # the un-premultiplying weights
+    P_render = render_points(pos_image, held, p[on_object], K)
     return global_term(P_render, q[on_object], cfg.global_reduction), int(on_object.sum())
 
 

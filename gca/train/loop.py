@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from gca.align.cpr import CPR, CPRConfig
-from gca.align.rdga import RDGAConfig, rdga_loss
+from gca.align.rdga import RDGAConfig, position_colors, position_image, rdga_loss
 from gca.eval.efficiency import synced_clock
 from gca.render.camera import Camera
 from gca.scenes.store import ViewData
@@ -104,11 +104,15 @@ def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) 
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
 
 
-def position_image_ref(body: Body, means: torch.Tensor, covs: torch.Tensor, camera: Camera) -> torch.Tensor:
+def position_image_ref(body: Body, means: torch.Tensor, covs: torch.Tensor, camera: Camera,
+                       gradient: str = "material") -> torch.Tensor:
     """Premultiplied camera-frame positions [H, W, 3] in a separate render pass: the slow reference of
-    :meth:`Objective._render` (which composites them with the colours in one pass)."""
+    :meth:`Objective._render` (which composites them with the colours in one pass). With ``gradient=
+    "material"`` the Gaussians' geometry is detached, so only the composited positions carry a gradient."""
     _, w2c = camera.tensors(means.dtype, means.device)
     xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+    if gradient == "material":
+        means, covs = means.detach(), covs.detach()
     return render_gaussians(body, means, covs, xyz_cam, camera, means.new_zeros(3))["rgb"]
 
 
@@ -223,9 +227,11 @@ class Objective:
             return render_gaussians(body, means, covs, body.colors, view.camera, self.bg)
         _, w2c = view.camera.tensors(means.dtype, means.device)
         xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-        out = render_gaussians(body, means, covs, torch.cat([body.colors, xyz_cam], 1), view.camera,
-                               torch.cat([self.bg, self.bg.new_zeros(3)]))
-        return {**out, "rgb": out["rgb"][..., :3], "positions": out["rgb"][..., 3:]}
+        extra = position_colors(xyz_cam, self.train0_rdga.global_gradient)
+        out = render_gaussians(body, means, covs, torch.cat([body.colors, extra], 1), view.camera,
+                               torch.cat([self.bg, self.bg.new_zeros(extra.shape[1])]))
+        return {**out, "rgb": out["rgb"][..., :3],
+                "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
 
     def _mono_terms(self, out: dict, pq, j: int, stats: "_MeanStats") -> torch.Tensor:
         """Monocular terms of train0 at frame ``j``: L1 depth (PAC-NeRF + depth) and silhouette/RDGA."""

@@ -7,8 +7,10 @@ column i, row j is ``(i, j)`` (``gca.align.rdga`` uses the same). ``p`` [M, 2] l
 Backends (``MatchConfig.backend``):
 
 - ``"sift"`` (default, no weights): OpenCV SIFT, brute-force L2 k-NN (k = 2), Lowe's ratio test,
-  then RANSAC on a fundamental matrix (general 3D motion) or a homography (near-planar / small
-  motion), or no geometric check. GT keypoints and descriptors can be computed once per frame
+  then RANSAC on a homography (default: a render and its GT frame differ by a small motion) or a
+  fundamental matrix (general 3D motion; with ~10 matches an 8-point F fits outliers: on the duck's
+  exact GT state F kept 20% wrong matches, mean 5.3 px, against 0.9 px for H at 3 px,
+  ``benchmarks/match_quality.py``), or no geometric check. GT keypoints and descriptors can be computed once per frame
   (:func:`detect_keypoints`), stored (:func:`pack_keypoints`) and reused (:func:`match_cached`).
 - ``"loftr"``: kornia's LoFTR, only from a LOCAL checkpoint (``loftr_weights``); dense, so there
   is no keypoint cache.
@@ -50,8 +52,8 @@ class MatchConfig:
     backend: str = "sift"
     n_features: int = 0
     ratio: float = 0.75
-    geometry: str = "fundamental"
-    ransac_px: float = 1.0
+    geometry: str = "homography"
+    ransac_px: float = 3.0
     ransac_confidence: float = 0.999
     loftr_weights: str = ""
     loftr_confidence: float = 0.5
