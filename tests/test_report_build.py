@@ -77,14 +77,14 @@ def _row(df: pd.DataFrame, label: str, source: str) -> dict:
 def test_table1_cells(metrics):
     df = tables.table1_synthetic_cd(load_runs(metrics)).df
     ours, nclaw, neuma = (_row(df, m, "measured") for m in ("Ours", "NCLaw", "NeuMA"))
-    assert ours["Ball (Elastomer)"] == "0.500"
-    assert ours["Duck (Gel)"] == "0.500 ± 0.141"  # mean and sample std of 0.4, 0.6
+    assert ours["Ball (Elastomer)"] == "0.50000"  # measured CDs [m] with 5 decimals, the paper's with 3
+    assert ours["Duck (Gel)"] == "0.50000 ± 0.14142"  # mean and sample std of 0.4, 0.6
     assert ours["Pawn (Rubber)"] == "> 100 (diverged)"
     assert ours["Cat (Plasticine)"] == "—"
     assert ours["Average"] == "> 100 (diverged)"
-    assert nclaw["Average"] == "3.500"  # mean of 1..6
+    assert nclaw["Average"] == "3.50000"  # mean of 1..6
     assert neuma["Ball (Elastomer)"] == "failed"
-    assert neuma["Average"] == "1.000 (1/6 scenes)"
+    assert neuma["Average"] == "1.00000 (1/6 scenes)"
     assert _row(df, "NeuMA", "paper")["Duck (Gel)"] == "1.863"
     assert _row(df, "Ours", "paper")["Average"] == "0.496"
     assert list(df["Source"]) == ["measured", "paper"] * 3

@@ -118,3 +118,20 @@ def test_rollout_input_errors():
         rollout(solver, material, x0, v0, vol, mass, n_steps=5, steps_per_frame=2)
     with pytest.raises(ValueError, match="v0 must have shape"):
         rollout(solver, material, x0, v0[:4], vol, mass, n_steps=2, steps_per_frame=1)
+
+
+def test_cfl_refinement_takes_smaller_steps_with_the_same_frames():
+    """dt = 1e-3 s against a bound of ~2.7e-4 s: with max_refine = 4 each step becomes 4 steps of 2.5e-4 s,
+    frame for frame the rollout of a solver built with that dt; with max_refine = 3 it is refused."""
+    x0, v0, vol, mass = _blob(10, seed=2)
+    material = Material(CorotatedElasticity(1e7, 0.3), IdentityPlasticity(), 1e3).double()
+    refined = rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=4)), material,
+                      x0, v0, vol, mass, n_steps=4, steps_per_frame=2)
+    direct = rollout(MPMSolver(SimConfig(n_grid=16, dt=2.5e-4, dtype="float64")), material,
+                     x0, v0, vol, mass, n_steps=16, steps_per_frame=8)
+    assert refined.refine == 4 and direct.refine == 1 and refined.x.shape == (3, 10, 3)
+    torch.testing.assert_close(refined.x, direct.x, rtol=0, atol=0)
+    torch.testing.assert_close(refined.F, direct.F, rtol=0, atol=0)
+    with pytest.raises(CFLError, match="max_refine=3 sub-steps allow \\(needs 4\\)"):
+        rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=3)), material,
+                x0, v0, vol, mass, n_steps=4, steps_per_frame=2)

@@ -75,6 +75,9 @@ def format_average(cell: Cell, n_scenes: int, decimals: int) -> str:
     return text
 
 
+MEASURED_CD_DECIMALS = 5  # our CDs are in metres, ~1e-3 to 1e-2: three decimals would hide the orderings
+
+
 def _cd_rows(runs: Runs, methods: Mapping[str, str], scenes: Sequence[str], published: Mapping,
              decimals: int, with_average: bool) -> list[dict]:
     """Measured and paper rows of a Chamfer table with one column per scene (+ optional average)."""
@@ -83,10 +86,12 @@ def _cd_rows(runs: Runs, methods: Mapping[str, str], scenes: Sequence[str], publ
         measured = {"Method": label, "Source": MEASURED}
         printed = {"Method": label, "Source": PUBLISHED}
         for scene in scenes:
-            measured[scene_label(scene)] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), decimals)
+            measured[scene_label(scene)] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY),
+                                                       MEASURED_CD_DECIMALS)
             printed[scene_label(scene)] = paper_cell(published[method].get(scene), decimals)
         if with_average:
-            measured["Average"] = format_average(scene_average(runs, method, scenes), len(scenes), decimals)
+            measured["Average"] = format_average(scene_average(runs, method, scenes), len(scenes),
+                                                 MEASURED_CD_DECIMALS)
             printed["Average"] = paper_cell(published[method].get("average"), decimals)
         rows += [measured, printed]
     return rows
@@ -197,7 +202,7 @@ def table6_ood(runs: Runs) -> Table:
         measured = {"Configuration": label, "Source": MEASURED}
         printed = {"Configuration": label, "Source": PUBLISHED}
         for scene, column in paper.TABLE6_COLUMNS.items():
-            measured[column] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), 3)
+            measured[column] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), MEASURED_CD_DECIMALS)
             printed[column] = paper_cell(paper.TABLE6_OOD[method][scene], 3)
         rows += [measured, printed]
     return Table("table6_ood", "Table 6: robustness to out-of-distribution materials (CD, lower is better)",

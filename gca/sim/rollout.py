@@ -18,11 +18,12 @@ from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step f
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 from torch.utils.checkpoint import checkpoint as torch_checkpoint
 
-from gca.sim.cfl import check_cfl
+from gca.sim.cfl import CFLError, check_cfl, max_stable_dt
 from gca.sim.graph import graphed_frame
 from gca.sim.solver import MPMSolver
 
@@ -54,6 +55,7 @@ class Rollout:
     C: torch.Tensor
     clamped: list
     F_trial: torch.Tensor | None = None
+    refine: int = 1  # each step was taken as this many steps of dt / refine (CFL refinement)
 
 
 def law_name(material) -> str:
@@ -124,6 +126,28 @@ def _check_inputs(x0, v0, vol, mass, n_steps, steps_per_frame):
                          f"steps_per_frame={steps_per_frame}")
 
 
+def refinement(cfg, wave_speed: float, max_velocity: float) -> int:
+    """Smallest k <= ``cfg.max_refine`` with ``dt / k`` inside the CFL bound (1 when dt already is).
+
+    A learned law can stiffen during training past the bound the scene's dt was chosen for; with
+    ``max_refine > 1`` the rollout then takes k smaller steps per step (same frames, same physics,
+    more accurate time integration) instead of refusing.
+
+    Raises:
+        CFLError: even ``dt / max_refine`` exceeds the bound (or the speeds are non-finite).
+    """
+    if not (math.isfinite(wave_speed) and math.isfinite(max_velocity)):
+        check_cfl(cfg.dt, cfg.dx, wave_speed, max_velocity, cfg.cfl)  # raises, naming the values
+    bound = max_stable_dt(cfg.dx, wave_speed, max_velocity, cfg.cfl)
+    k = max(1, math.ceil(cfg.dt / bound * (1 - 1e-12)))
+    if k > cfg.max_refine:
+        raise CFLError(f"{_WHERE}: dt={cfg.dt:.3g} s exceeds the CFL bound {bound:.3g} s = cfl {cfg.cfl} * dx "
+                       f"{cfg.dx:.4g} m / (wave speed {wave_speed:.4g} m/s + |v|max {max_velocity:.4g} m/s) by "
+                       f"more than sim.max_refine={cfg.max_refine} sub-steps allow (needs {k}): lower sim.dt, "
+                       f"raise sim.max_refine or use a coarser grid")
+    return k
+
+
 def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_per_frame: int,
             checkpoint: bool = True, C0=None, F0=None, wave_speed: float | None = None,
             graph: bool | None = None) -> Rollout:
@@ -151,13 +175,13 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         :class:`Rollout` with ``n_steps // steps_per_frame + 1`` frames.
 
     Raises:
-        CFLError: dt too large for the wave speed and the initial speeds.
+        CFLError: dt / ``cfg.max_refine`` too large for the wave speed and the initial speeds.
         SimulationDiverged: non-finite or runaway state, or particles leaving the domain.
     """
     _check_inputs(x0, v0, vol, mass, n_steps, steps_per_frame)
-    cfg = solver.cfg
     c = float(material.wave_speed() if wave_speed is None else wave_speed)
-    check_cfl(cfg.dt, cfg.dx, c, max_velocity=float(v0.detach().norm(dim=1).max()), cfl=cfg.cfl)
+    k = refinement(solver.cfg, c, float(v0.detach().norm(dim=1).max()))
+    solver, n_steps, steps_per_frame = solver.refined(k), n_steps * k, steps_per_frame * k
     eye = torch.eye(3, dtype=x0.dtype, device=x0.device)
     C = torch.zeros(x0.shape[0], 3, 3, dtype=x0.dtype, device=x0.device) if C0 is None else C0
     F = eye.expand(x0.shape[0], 3, 3).contiguous() if F0 is None else F0
@@ -182,4 +206,4 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         Fs.append(F)
         Ftrs.append(F_trial)
     return Rollout(x=torch.stack(xs), F=torch.stack(Fs), v=torch.stack(vs), C=C, clamped=clamped,
-                   F_trial=torch.stack(Ftrs))
+                   F_trial=torch.stack(Ftrs), refine=k)

@@ -49,6 +49,7 @@ class SimConfig:
     max_clamped_fraction: float = 0.1  # rollout raises if more particles sit on the clamp [-]
     dtype: str = "float32"  # float32 | float64 (float64 for gradient checks)
     cuda_graphs: bool = True  # replay each frame from CUDA graphs on a GPU (gca.sim.graph) [-]
+    max_refine: int = 1  # a law breaking the CFL bound at dt runs k <= max_refine times smaller steps (same frames); 1 = refuse [-]
 
     def __post_init__(self):
         object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
@@ -71,6 +72,8 @@ class SimConfig:
             problems.append(f"min_node_mass={self.min_node_mass} must be >= 0")
         if self.eps_mass < 0 or not 0 < self.cfl <= 1 or not 0 < self.max_clamped_fraction <= 1:
             problems.append("need eps_mass >= 0, 0 < cfl <= 1, 0 < max_clamped_fraction <= 1")
+        if int(self.max_refine) != self.max_refine or self.max_refine < 1:
+            problems.append(f"max_refine={self.max_refine} must be an integer >= 1")
         if self.dtype not in _TORCH_DTYPES:
             problems.append(f"dtype={self.dtype!r} must be one of {sorted(_TORCH_DTYPES)}")
         if problems:
@@ -110,6 +113,15 @@ class MPMSolver:
         self.dtype = cfg.torch_dtype
         self._grids: dict[bool, tuple] = {}
         self._graphs = GraphCache()
+        self._refined: dict[int, "MPMSolver"] = {}
+
+    def refined(self, k: int) -> "MPMSolver":
+        """This solver with ``dt / k`` (cached; ``k = 1`` is ``self``): k steps replace each step."""
+        if k == 1:
+            return self
+        if k not in self._refined:
+            self._refined[k] = MPMSolver(dataclasses.replace(self.cfg, dt=self.cfg.dt / k, max_refine=1), self.device)
+        return self._refined[k]
 
     def frame_graphs(self, material, n_steps: int, n: int) -> FrameGraphs:
         """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""

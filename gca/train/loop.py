@@ -457,7 +457,7 @@ def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
     timer.lap("backward")
     _check_gradients(law, probe)
     grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip)
-    return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, **stats,
+    return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine, **stats,
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
