@@ -68,9 +68,9 @@ class VelocityConfig:
     """
 
     iterations: int = 100
-    n_video_frames: int = 3
+    n_video_frames: int = 8
     lr: float = 0.2
     lambda_mask: float = 1.0
     lambda_color: float = 0.0
     angular: bool = True
-    reg_view_axis: float = 1e-2
+    reg_view_axis: float = 0.0
