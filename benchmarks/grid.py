@@ -179,14 +179,19 @@ def grid_params(profile: str, scenes: list[str], methods: list[str] | None, over
     raw["objects"] = {k: v for k, v in raw["objects"].items() if k in objects}
     families = {spec["prior"] for spec in raw["scenes"].values()}
     raw["prior"]["families"] = {k: v for k, v in raw["prior"]["families"].items() if k in families}
+    return apply_overrides(raw, overrides)
+
+
+def apply_overrides(params: dict, overrides: list[str]) -> dict:
+    """Set each ``dotted.key=yaml_value`` in ``params`` (in place; missing sections are created)."""
     for item in overrides:
         key, _, value = item.partition("=")
         *head, last = key.split(".")
-        node = raw
+        node = params
         for k in head:
             node = node.setdefault(k, {})
         node[last] = yaml.safe_load(value)
-    return raw
+    return params
 
 
 def prepare(work: Path, params: dict) -> None:

@@ -19,28 +19,17 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from grid import apply_overrides  # noqa: E402  (the grid runner's --set)
 
 from gca import config  # noqa: E402
 from gca.scenes import scene_config  # noqa: E402
 from gca.scenes.groundtruth import scene_cameras  # noqa: E402
 from gca.train.run import SceneInputs, default_device, estimate_scene_velocity  # noqa: E402
-
-
-def with_overrides(params: dict, text: str) -> dict:
-    """A copy of ``params`` with ``"a.b=1 c=2"`` applied (values parsed as YAML)."""
-    out = copy.deepcopy(params)
-    for item in text.split():
-        key, _, value = item.partition("=")
-        *head, last = key.split(".")
-        node = out
-        for k in head:
-            node = node[k]
-        node[last] = yaml.safe_load(value)
-    return out
 
 
 def errors(params, scene_name: str, fit: dict) -> dict:
@@ -70,7 +59,7 @@ def main(argv=None) -> list[dict]:
                          w / f"models/prior/{scene.prior}.pt")
     rows = []
     for text in args.variant or [""]:
-        params = with_overrides(base, text)
+        params = apply_overrides(copy.deepcopy(base), text.split())
         with tempfile.TemporaryDirectory() as tmp:
             fit = estimate_scene_velocity(params, args.scene, inputs, Path(tmp) / "velocity.json", args.device)
         rows.append({"variant": text or "params.yaml", **fit, **errors(params, args.scene, fit)})

@@ -196,15 +196,14 @@ def _sheet_motion(gradient: str) -> tuple[float, float]:
     from gca.render.rasterize import render
 
     camera = look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 30.0, 48, 48)
-    K, w2c = camera.tensors(torch.float64)
+    K, _ = camera.tensors(torch.float64)
     g = torch.arange(-0.15, 0.1501, 0.006, dtype=torch.float64)
     gx, gy = torch.meshgrid(g, g, indexing="ij")
     means0 = torch.stack([gx.ravel(), gy.ravel(), torch.zeros(gx.numel(), dtype=torch.float64)], -1)
     covs = torch.diag(torch.tensor([0.006, 0.006, 0.002], dtype=torch.float64) ** 2).expand(len(means0), 3, 3)
     t = torch.zeros((), dtype=torch.float64, requires_grad=True)
     means = means0 + t * torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-    xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-    colors = position_colors(xyz_cam, gradient)
+    colors = position_colors(camera.to_camera(means), gradient)
     out = render(means, covs, colors, torch.full((len(means),), 0.9, dtype=torch.float64), camera,
                  torch.zeros(colors.shape[1], dtype=torch.float64))
     alpha = out["alpha"].detach() if gradient == "material" else out["alpha"]

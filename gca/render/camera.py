@@ -93,6 +93,11 @@ class Camera:
         return (torch.tensor(self.K.tolist(), dtype=dtype, device=device),
                 torch.tensor(self.w2c.tolist(), dtype=dtype, device=device))
 
+    def to_camera(self, points: torch.Tensor) -> torch.Tensor:
+        """World points [N, 3] -> camera-frame points [N, 3] (OpenCV axes, z forward) [m]."""
+        _, w2c = self.tensors(points.dtype, points.device)
+        return points @ w2c[:3, :3].T + w2c[:3, 3]
+
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Project world points to pixel coordinates.
 
@@ -103,8 +108,8 @@ class Camera:
             ``(uv [N, 2] pixels, z [N] camera-space depth)``.
         """
         assert points.ndim == 2 and points.shape[1] == 3, f"points must be [N, 3], got {tuple(points.shape)}"
-        K, w2c = self.tensors(points.dtype, points.device)
-        x_cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+        K, _ = self.tensors(points.dtype, points.device)
+        x_cam = self.to_camera(points)
         z = x_cam[:, 2]
         uv = (x_cam[:, :2] / z[:, None]) * K.diagonal()[:2] + K[:2, 2]
         return uv, z

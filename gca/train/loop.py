@@ -109,8 +109,7 @@ def position_image_ref(body: Body, means: torch.Tensor, covs: torch.Tensor, came
     """Premultiplied camera-frame positions [H, W, 3] in a separate render pass: the slow reference of
     :meth:`Objective._render` (which composites them with the colours in one pass). With ``gradient=
     "material"`` the Gaussians' geometry is detached, so only the composited positions carry a gradient."""
-    _, w2c = camera.tensors(means.dtype, means.device)
-    xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+    xyz_cam = camera.to_camera(means)
     if gradient == "material":
         means, covs = means.detach(), covs.detach()
     return render_gaussians(body, means, covs, xyz_cam, camera, means.new_zeros(3))["rgb"]
@@ -225,9 +224,7 @@ class Objective:
         body = self.data.body
         if not with_positions:
             return render_gaussians(body, means, covs, body.colors, view.camera, self.bg)
-        _, w2c = view.camera.tensors(means.dtype, means.device)
-        xyz_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-        extra = position_colors(xyz_cam, self.train0_rdga.global_gradient)
+        extra = position_colors(view.camera.to_camera(means), self.train0_rdga.global_gradient)
         out = render_gaussians(body, means, covs, torch.cat([body.colors, extra], 1), view.camera,
                                torch.cat([self.bg, self.bg.new_zeros(extra.shape[1])]))
         return {**out, "rgb": out["rgb"][..., :3],
