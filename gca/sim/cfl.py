@@ -50,3 +50,25 @@ def check_cfl(dt: float, dx: float, wave_speed: float, max_velocity: float = 0.0
             f"/ (wave speed {wave_speed:.4g} m/s + |v|max {max_velocity:.4g} m/s); lower sim.dt to "
             f"<= {bound:.3g} s (more steps per frame) or use a coarser grid")
     return bound
+
+
+def refinement(cfg, wave_speed: float, max_velocity: float) -> int:
+    """Smallest k <= ``cfg.max_refine`` with ``dt / k`` inside the CFL bound (1 when dt already is).
+
+    A learned law can stiffen during training past the bound the scene's dt was chosen for; with
+    ``max_refine > 1`` the rollout then takes k smaller steps per step (same frames, same physics,
+    more accurate time integration) instead of refusing.
+
+    Raises:
+        CFLError: even ``dt / max_refine`` exceeds the bound (or the speeds are non-finite).
+    """
+    if not (math.isfinite(wave_speed) and math.isfinite(max_velocity)):
+        check_cfl(cfg.dt, cfg.dx, wave_speed, max_velocity, cfg.cfl)  # raises, naming the values
+    bound = max_stable_dt(cfg.dx, wave_speed, max_velocity, cfg.cfl)
+    k = max(1, math.ceil(cfg.dt / bound * (1 - 1e-12)))
+    if k > cfg.max_refine:
+        raise CFLError(f"gca/sim/cfl.py: dt={cfg.dt:.3g} s exceeds the CFL bound {bound:.3g} s = cfl {cfg.cfl} * dx "
+                       f"{cfg.dx:.4g} m / (wave speed {wave_speed:.4g} m/s + |v|max {max_velocity:.4g} m/s) by "
+                       f"more than sim.max_refine={cfg.max_refine} sub-steps allow (needs {k}): lower sim.dt, "
+                       f"raise sim.max_refine or use a coarser grid")
+    return k

@@ -18,12 +18,11 @@ from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step f
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
 from torch.utils.checkpoint import checkpoint as torch_checkpoint
 
-from gca.sim.cfl import CFLError, check_cfl, max_stable_dt
+from gca.sim.cfl import refinement
 from gca.sim.graph import graphed_frame
 from gca.sim.solver import MPMSolver
 
@@ -124,28 +123,6 @@ def _check_inputs(x0, v0, vol, mass, n_steps, steps_per_frame):
     if steps_per_frame < 1 or n_steps < 1 or n_steps % steps_per_frame:
         raise ValueError(f"{_WHERE}: n_steps={n_steps} must be a positive multiple of "
                          f"steps_per_frame={steps_per_frame}")
-
-
-def refinement(cfg, wave_speed: float, max_velocity: float) -> int:
-    """Smallest k <= ``cfg.max_refine`` with ``dt / k`` inside the CFL bound (1 when dt already is).
-
-    A learned law can stiffen during training past the bound the scene's dt was chosen for; with
-    ``max_refine > 1`` the rollout then takes k smaller steps per step (same frames, same physics,
-    more accurate time integration) instead of refusing.
-
-    Raises:
-        CFLError: even ``dt / max_refine`` exceeds the bound (or the speeds are non-finite).
-    """
-    if not (math.isfinite(wave_speed) and math.isfinite(max_velocity)):
-        check_cfl(cfg.dt, cfg.dx, wave_speed, max_velocity, cfg.cfl)  # raises, naming the values
-    bound = max_stable_dt(cfg.dx, wave_speed, max_velocity, cfg.cfl)
-    k = max(1, math.ceil(cfg.dt / bound * (1 - 1e-12)))
-    if k > cfg.max_refine:
-        raise CFLError(f"{_WHERE}: dt={cfg.dt:.3g} s exceeds the CFL bound {bound:.3g} s = cfl {cfg.cfl} * dx "
-                       f"{cfg.dx:.4g} m / (wave speed {wave_speed:.4g} m/s + |v|max {max_velocity:.4g} m/s) by "
-                       f"more than sim.max_refine={cfg.max_refine} sub-steps allow (needs {k}): lower sim.dt, "
-                       f"raise sim.max_refine or use a coarser grid")
-    return k
 
 
 def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_per_frame: int,
