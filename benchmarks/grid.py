@@ -208,9 +208,11 @@ def prepare(work: Path, params: dict) -> None:
 class Scheduler:
     """List scheduling of jobs over ``gpus x slots`` places, longest remaining path first."""
 
-    def __init__(self, jobs: dict[str, Job], work: Path, gpus: int, slots: int, deadline: float | None, log):
+    def __init__(self, jobs: dict[str, Job], work: Path, gpus: int | list[int], slots: int, deadline: float | None, log):
+        """``gpus``: a count (GPUs 0 .. gpus-1) or the GPU ids to use."""
         self.jobs, self.work, self.log = jobs, work, log
-        self.places = [g for g in range(gpus) for _ in range(slots)]  # free places (a GPU per slot)
+        ids = list(range(gpus)) if isinstance(gpus, int) else list(gpus)
+        self.places = [g for g in ids for _ in range(slots)]  # free places (a GPU per slot)
         self.threads = max(1, (os.cpu_count() or 1) // len(self.places))  # CPU threads per job
         self.priority = critical_path(jobs)
         self.deadline = None if deadline is None else time.monotonic() + deadline
@@ -300,6 +302,15 @@ def collect(work: Path, out: Path) -> Path:
     return path
 
 
+def gpu_ids(text: str) -> int | list[int]:
+    """``--gpus``: ``4`` -> 4 (GPUs 0..3); ``1,2,3`` -> [1, 2, 3] (leaves GPU 0 to something else);
+    ``3,`` -> [3] (one id)."""
+    try:
+        return [int(g) for g in text.split(",") if g] if "," in text else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--gpus {text!r}: a count or comma-separated GPU ids") from None
+
+
 def main(argv=None) -> dict[str, str]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True)
@@ -307,7 +318,7 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--methods", nargs="+", help="default: each scene's methods in params.yaml")
     ap.add_argument("--profile", default="paper")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="dotted.key=yaml_value")
-    ap.add_argument("--gpus", type=int, default=1)
+    ap.add_argument("--gpus", type=gpu_ids, default=1, help="a count (GPUs 0 .. N-1) or ids: 0,1,2 (one id: 3,)")
     ap.add_argument("--slots", type=int, default=2, help="concurrent jobs per GPU")
     ap.add_argument("--deadline", type=float, default=None, help="seconds: launch nothing that would end later")
     ap.add_argument("--stages", nargs="+", default=["assets", "particles", "prior", "ground_truth", "preprocess",
@@ -350,7 +361,7 @@ def main(argv=None) -> dict[str, str]:
                        env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"})
     scheduler = Scheduler(jobs, args.work, args.gpus, args.slots, args.deadline, log)
     todo = sum(1 for s in scheduler.state.values() if s == "todo")
-    log(f"{len(jobs)} jobs ({todo} to run) on {args.gpus} GPU(s) x {args.slots} slots, profile {args.profile}")
+    log(f"{len(jobs)} jobs ({todo} to run) on GPU(s) {args.gpus} x {args.slots} slots, profile {args.profile}")
     t0 = time.monotonic()
     state = scheduler.run()
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}

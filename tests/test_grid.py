@@ -1,5 +1,6 @@
 """benchmarks/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs, scheduled."""
 
+import argparse
 import sys
 import tarfile
 from pathlib import Path
@@ -70,6 +71,18 @@ def test_scheduler_skips_dependents_of_a_failure_and_resumes(tmp_path):
     again = grid.Scheduler({k: v for k, v in jobs.items() if k in "ab"}, tmp_path, 1, 1, None, lines.append)
     assert again.state == {"a": "done", "b": "done"} and again.run() == {"a": "done", "b": "done"}
     assert not (tmp_path / "a.txt").exists()  # a finished job is not run again
+
+
+def test_gpus_by_id_pins_jobs_to_those_gpus_only(tmp_path):
+    (tmp_path / ".grid").mkdir()
+    code = "import os; open({!r}, 'w').write(os.environ['CUDA_VISIBLE_DEVICES'])"
+    jobs = {n: grid.Job(n, f"python -c {code.format(n + '.gpu')!r}", [], [], 0.01) for n in "abcd"}
+    assert grid.gpu_ids("2,3") == [2, 3] and grid.gpu_ids("4") == 4 and grid.gpu_ids("0,") == [0]
+    with pytest.raises(argparse.ArgumentTypeError, match="comma-separated"):
+        grid.gpu_ids("1;2")
+    state = grid.Scheduler(jobs, tmp_path, gpus=[2, 3], slots=1, deadline=None, log=lambda m: None).run()
+    assert set(state.values()) == {"done"}
+    assert {(tmp_path / f"{n}.gpu").read_text() for n in "abcd"} == {"2", "3"}
 
 
 def test_deadline_launches_nothing_that_would_end_late(tmp_path):
