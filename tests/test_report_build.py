@@ -210,3 +210,21 @@ def test_stage_main_end_to_end(metrics, tmp_path, repo_root):
     found = mlflow.search_runs(experiment_names=["gca/report"], output_format="list")
     assert len(found) == 1 and found[0].data.tags["stage"] == "report"
     assert found[0].data.metrics["table1_average_cd.nclaw"] == pytest.approx(3.5)
+
+
+def test_strips_come_from_the_reported_runs_not_the_current_checkout(tmp_path, monkeypatch):
+    """Results kept elsewhere (``<root>/metrics/eval``) resolve ``strip_png`` against ``<root>``: a
+    same-named strip of this checkout's own runs (the cwd) must not be drawn in their report."""
+    import matplotlib.image as mpimg
+    kept, here = tmp_path / "kept", tmp_path / "checkout"
+    rel = "metrics/eval/ball/gca/strip.png"
+    _write(kept / "metrics" / "eval", _record("ball", "gca", chamfer_mean=0.5, strip_png=rel))
+    (here / rel).parent.mkdir(parents=True)
+    mpimg.imsave(here / rel, np.zeros((8, 32, 3)))  # the decoy
+    monkeypatch.chdir(here)
+    written = build_reports(kept / "metrics" / "eval", tmp_path / "r1")
+    assert "strip_ball.png" not in {p.name for p in written}
+    (kept / rel).parent.mkdir(parents=True)
+    mpimg.imsave(kept / rel, np.ones((8, 32, 3)))
+    written = build_reports(kept / "metrics" / "eval", tmp_path / "r2")
+    assert "strip_ball.png" in {p.name for p in written}

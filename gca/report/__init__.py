@@ -32,6 +32,14 @@ class ReportConfig:
     dpi: int = 120  # resolution of every figure [dots per inch]; the same at both profiles
 
 
+def _run_root(metrics_dir: Path) -> Path:
+    """The folder the runs' relative media paths (``strip_png``: ``metrics/eval/<scene>/<method>/strip.png``)
+    start from: the root above ``<root>/metrics/eval``, else the metrics folder's parent. Never the current
+    folder: a report of results kept elsewhere must not pick up this checkout's own (CI-profile) strips."""
+    resolved = metrics_dir.resolve()
+    return resolved.parents[1] if resolved.parts[-2:] == ("metrics", "eval") else resolved.parent
+
+
 def _write_figures(runs: Runs, fig_dir: Path, cfg: ReportConfig, search_dirs: Sequence[Path]) -> list[Path]:
     """Every figure the metrics allow; figures without data are skipped."""
     scenes = sorted({scene for scene, _ in runs})
@@ -113,7 +121,7 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
     cfg = cfg or ReportConfig()
     metrics_dir, out_dir = Path(metrics_dir), Path(out_dir)
     runs = load_runs(metrics_dir)
-    search_dirs = [Path.cwd(), metrics_dir.resolve().parent]
+    search_dirs = [_run_root(metrics_dir)]
     with atomic_path(out_dir, is_dir=True) as tmp:
         tmp.chmod(0o755)  # mkdtemp makes it private; reports are for everyone
         tables = build_tables(runs)

@@ -150,8 +150,9 @@ def table4_efficiency(runs: Runs) -> Table:
         rows.append({"Method": label, "Source": MEASURED,
                      "Mem. (GB)": format_cell(_mean_over_scenes(runs, method, "peak_memory_gib"), 1),
                      "Train (min)": format_cell(_mean_over_scenes(runs, method, "train_seconds", 1 / 60), 1),
-                     "Infer. (s)": format_cell(_mean_over_scenes(runs, method, "rollout_seconds"), 1),
-                     "CD": format_average(scene_average(runs, method, paper.SYNTHETIC_SCENES), n_all, 2),
+                     "Infer. (s)": format_cell(_mean_over_scenes(runs, method, "rollout_seconds"), 2),
+                     "CD": format_average(scene_average(runs, method, paper.SYNTHETIC_SCENES), n_all,
+                                          MEASURED_CD_DECIMALS),
                      "Scenes": f"{_n_scenes(runs, method)}/{n_all}"})
         rows.append({"Method": label, "Source": PUBLISHED, "Mem. (GB)": paper_cell(published["memory_gb"], 1),
                      "Train (min)": paper_cell(published["train_min"], 1),
