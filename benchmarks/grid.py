@@ -289,11 +289,12 @@ class Scheduler:
 
 
 def collect(work: Path, out: Path) -> Path:
-    """The small results of a grid in one archive: metrics, reports, train/eval summaries, priors, logs."""
+    """The small results of a grid in one archive: metrics, reports, train/eval summaries, the learned laws
+    (~40 kB each: a run can be evaluated again elsewhere), priors, logs."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / "grid_results.tar.gz"
     keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity\.json|"
-                      r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/loss\.png|\.grid/.*|params\.yaml)$")
+                      r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/.*|params\.yaml)$")
     with tarfile.open(path, "w:gz") as tar:
         for f in sorted(work.rglob("*")):
             rel = f.relative_to(work).as_posix()

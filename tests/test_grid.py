@@ -100,7 +100,7 @@ def test_collect_keeps_the_small_results(tmp_path):
     with tarfile.open(grid.collect(tmp_path, tmp_path / "out")) as tar:
         names = set(tar.getnames())
     assert names == {"metrics/eval/ball/gca.json", "reports/ci/table1_synthetic_cd.md", "runs/ball/gca/train.json",
-                     "models/prior/jelly.pt"}
+                     "runs/ball/gca/law.pt", "models/prior/jelly.pt"}
 
 
 def test_before_runs_once_ahead_of_the_jobs(tmp_path):
