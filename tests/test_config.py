@@ -145,3 +145,18 @@ def test_render_backend_auto_resolves_per_device():
         assert raster_settings({"render": {"backend": "gsplat"}}, "cpu")[0] == "torch"
     with pytest.raises(ValueError, match="render.backend='opengl'"):
         raster_settings({"render": {"backend": "opengl"}}, "cpu")
+
+
+def _own_prior_scenes(raw: dict) -> list[str]:
+    """Scenes whose ground-truth material is exactly their prior family (same laws and parameters)."""
+    families, materials = raw["prior"]["families"], raw["materials"]
+    return [n for n, scene in raw["scenes"].items() if materials[scene["material"]] == families[scene["prior"]]]
+
+
+def test_no_scene_is_its_own_prior(repo_root):
+    """Table 1 compares adapting a prior against not adapting it: a scene whose ground truth is its prior
+    family's law makes NCLaw exact and the comparison empty (duck and cat were, until session 7)."""
+    raw = config.read_yaml(repo_root / "params.yaml")
+    assert not _own_prior_scenes(raw), f"params.yaml: scenes whose ground truth is their prior: {_own_prior_scenes(raw)}"
+    degenerate = {**raw, "materials": {**raw["materials"], "gel": dict(raw["prior"]["families"]["jelly"])}}
+    assert "duck" in _own_prior_scenes(degenerate)  # the check catches the old params
