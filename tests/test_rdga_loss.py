@@ -120,6 +120,38 @@ def test_global_term_zero_when_aligned_and_pulls_toward_q(channels):
     torch.testing.assert_close(-delta.grad, shift / shift.norm())  # descent moves toward q
 
 
+def test_global_max_px_drops_the_wrong_match_that_would_set_the_norms_direction():
+    """Matches off by (2, 1) px but one off by (0, 14) px (all well inside the object): the paper's norm
+    turns towards the outlier; with ``global_max_px`` 6 the term is the inliers' alone (value and gradient)."""
+    alpha, depth, p, uv = _scene()
+    centre = (H - 1) / 2
+    p = p[((p - centre).norm(dim=1) <= 8.0)]  # q = p + shift stays > 2 px inside the radius-18 disk
+    p = p[(p - centre).norm(dim=1).argsort()]  # p[0]: the most central, the outlier
+    shift = torch.tensor([2.0, 1.0], dtype=torch.float64).repeat(len(p), 1)
+    shift[0] = torch.tensor([0.0, 14.0], dtype=torch.float64)
+    out, mask = {"alpha": alpha, "depth": depth}, alpha > 0.5
+    delta = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+
+    def term(max_px, p, q):
+        delta.grad = None
+        cfg = RDGAConfig(use_anchor=False, lambda_mask=0.0, lambda1=1.0, global_max_px=max_px)
+        loss, stats = rdga_loss(out, mask, depth, p, q, cfg, (uv + delta) * alpha[..., None])
+        loss.backward()
+        return float(loss.detach()), delta.grad.clone(), stats["n_global"]
+
+    all_value, all_grad, n_all = term(0.0, p, p + shift)
+    cut_value, cut_grad, n_cut = term(6.0, p, p + shift)
+    ref_value, ref_grad, n_ref = term(0.0, p[1:], p[1:] + shift[1:])
+    assert n_all == len(p) and n_cut == n_ref == len(p) - 1
+    assert cut_value == pytest.approx(ref_value, rel=1e-9) and torch.allclose(cut_grad, ref_grad)
+    assert cut_value == pytest.approx(5 ** 0.5 * n_cut ** 0.5, rel=1e-6)  # norm of (n-1) residuals of sqrt(5)
+    cos = lambda a, b: float(a @ b / (a.norm() * b.norm()))  # noqa: E731
+    assert cos(-cut_grad, shift[1]) > 0.999  # descent towards the inliers' q
+    assert cos(-all_grad, shift[1]) < 0.97  # without the cut one outlier in ~a dozen turns it by > 14 deg
+    with pytest.raises(ValueError, match="global_max_px"):
+        RDGAConfig(global_max_px=-1.0)
+
+
 def test_render_points_matches_the_pixel_centre_convention():
     alpha, _, p, uv = _scene()
     torch.testing.assert_close(render_points(uv * alpha[..., None], alpha, p[20:25]), p[20:25])

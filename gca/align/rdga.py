@@ -47,6 +47,10 @@ Choices made where the paper is silent or ambiguous (each a switch in :class:`RD
   grows like sqrt(M)); ``"mean"`` is the mean per-match distance [px]; ``"mean_sq"`` the mean squared
   per-match distance [px^2], whose gradient vanishes as the residual does (the two others push with a
   unit-length gradient even at the matcher's noise floor: benchmarks/NOTES.md, session 5).
+  ``global_max_px`` > 0 drops matches whose current residual exceeds it [px] (a truncated loss): the
+  norm is dominated by its largest residual, and one wrong match (6% are, at ~1 px RANSAC noise, at the
+  exact state: benchmarks/NOTES.md, session 6) then sets the whole term's direction. 0 (default) keeps
+  every match, as the paper writes it.
 - Anchor term: ``anchor_reduction="sum"`` is literal; ``"mean"`` divides by |A|.
   ``depth_term="l1"`` (ablation "Replace Rank w/ L1") keeps the anchor selection (stable region +
   exact-rank consensus filter) and replaces ``-gamma_i`` by the mean absolute difference of the two
@@ -102,6 +106,8 @@ class RDGAConfig:
         anchor_reduction: "sum" (paper) or "mean" over anchors.
         global_gradient: "material" (the global term's gradient moves the material seen at p_i:
             compositing weights held) or "full" (the rasterizer's full derivative, ~0 on dense splats).
+        global_max_px: matches whose residual |P_render - P_gt| exceeds this are left out of the
+            global term [px]; 0 keeps all (paper).
     """
 
     enabled: bool = True
@@ -123,6 +129,7 @@ class RDGAConfig:
     global_reduction: str = "norm"
     anchor_reduction: str = "sum"
     global_gradient: str = "material"
+    global_max_px: float = 0.0
 
     def __post_init__(self) -> None:
         choices = {"depth_term": DEPTH_TERMS, "stable_region": STABLE_MODES, "stable_on": STABLE_ON,
@@ -135,6 +142,8 @@ class RDGAConfig:
             raise ValueError(f"{_WHERE}: RDGAConfig.r must be an odd integer >= 1, got {self.r}")
         if self.k < 3 or self.k % 2 == 0:
             raise ValueError(f"{_WHERE}: RDGAConfig.k must be an odd integer >= 3, got {self.k}")
+        if not self.global_max_px >= 0:
+            raise ValueError(f"{_WHERE}: RDGAConfig.global_max_px must be >= 0 [px] (0 = off), got {self.global_max_px}")
         if not -1.0 <= self.tau < 1.0:
             raise ValueError(f"{_WHERE}: RDGAConfig.tau must lie in [-1, 1), got {self.tau}")
         if not self.temperature > 0:
@@ -370,8 +379,11 @@ def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Te
         raise ValueError(f"{_WHERE}: use_global=True needs pos_image (rendered positions, see render_points)")
     on_object = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)
     held = alpha.detach() if cfg.global_gradient == "material" else alpha  # the un-premultiplying weights
-    P_render = render_points(pos_image, held, p[on_object], K)
-    return global_term(P_render, q[on_object], cfg.global_reduction), int(on_object.sum())
+    P_render, P_gt = render_points(pos_image, held, p[on_object], K), q[on_object]
+    if cfg.global_max_px > 0:  # truncated: a wrong match's residual would set the norm's direction
+        inlier = (P_render.detach() - P_gt.to(P_render)).norm(dim=-1) <= cfg.global_max_px
+        P_render, P_gt = P_render[inlier], P_gt[inlier]
+    return global_term(P_render, P_gt, cfg.global_reduction), len(P_gt)
 
 
 def _as_tensor(x: Any, like: torch.Tensor) -> torch.Tensor:
