@@ -9,9 +9,11 @@ Motion along the camera's viewing axis only changes the silhouette's size slight
 free-flight frames it is weakly observable from one view. An L2 prior pulling that component to zero
 (``reg_view_axis``, in the spirit of NeuMA's vertical-drop prior on v_x, v_z) biases every thrown
 object whose launch has a component along the ray (session 6: the whole v0 error, 0.4-0.65 m/s, lay
-along the ray on all six scenes). The default fits through the first ground contact instead
-(``n_video_frames`` ~80 ms): when the object lands depends on its height, so on the along-ray part of
-its image motion, which pins that component without a prior (``benchmarks/velocity_fit.py``).
+along the ray on all six scenes). The default fits without it, through the first ground contact and
+not much further (``n_video_frames``): when the object lands depends on its height, so on the along-ray
+part of its image motion, which pins that component; frames well after the contact show the prior's
+impact response, not the truth's, and a wrong prior then biases v0 (session 7: 20 frames, ~85% impact,
+gave the pawn 0.58 m/s of error, 4 frames 0.11; ``benchmarks/velocity_fit.py``).
 """
 
 from __future__ import annotations
