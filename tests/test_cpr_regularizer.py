@@ -154,6 +154,24 @@ def test_residual_is_scale_free():
         assert float(a["elastic"][k].weight) == pytest.approx(float(b["elastic"][k].weight), rel=1e-4)
 
 
+def test_a_frame_at_rest_does_not_dominate():
+    """A free-flight frame (|F - I| ~ 1e-7, stresses ~0.01 Pa) beside a deformed one: with the stress floor
+    its misfit counts in Pa, not relative to its own vanishing stress (which gave R_e ~ 2e3 on the paper
+    bottle's prior). R_e of [rest, deformed] ~ R_e of the deformed frame alone; without the floor the rest
+    frame weighs as much as a deformed one (a relative misfit of order 1 of pure round-off)."""
+    torch.manual_seed(0)
+    law = NeuralElasticity(NeuralLawConfig(widths=(16, 16), stress_scale=1e4))
+    rest, moved = _deformations(seed=5, amplitude=1e-7), _deformations(seed=6, amplitude=0.05)
+
+    def R_e(cfg, *frames):
+        F = torch.stack(frames)
+        return float(CPR(cfg, N, 0).residuals_frames(law, identity_plastic, F, F)[0])
+
+    floored, bare = ELASTIC_ONLY, dataclasses.replace(ELASTIC_ONLY, stress_floor=1e-12, strain_floor=1e-12)
+    assert R_e(floored, rest, moved) == pytest.approx(R_e(floored, moved), rel=1e-3)
+    assert R_e(bare, rest) > 0.5 * R_e(bare, moved) > 0
+
+
 # ---------------------------------------------------------------- plastic recovery
 def test_von_mises_yield_strain_recovered():
     mu_p, sigma_y = lame(3e5, 0.25)[0], 5e3  # NCLaw plasticine: sigma_y / (2 mu) = 0.0208

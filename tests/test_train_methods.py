@@ -276,3 +276,33 @@ def test_backtracking_settings_are_validated():
         TrainConfig(backtrack_factor=1.0)
     with pytest.raises(ValueError, match="max_rejections"):
         TrainConfig(max_rejections=-1)
+
+
+def test_capped_backward_scales_only_a_dominating_prior():
+    """g = g_data + min(1, r |g_data| / |g_prior|) g_prior: a prior 1000x the data is cut to r x; a weak one
+    passes unscaled (the objective as written)."""
+    from gca.train.loop import capped_backward
+
+    a, b = torch.tensor([3.0, 0.0, 4.0], dtype=torch.float64), torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64)
+    for weight, expect_scale in ((1000.0, 0.5 * 5.0 / (1000.0 * 2.0)), (1e-3, 1.0)):
+        p = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+        info = capped_backward([p], p @ a, weight * (p @ b), ratio=0.5)
+        assert info["grad_norm_data"] == pytest.approx(5.0) and info["grad_norm_prior"] == pytest.approx(2.0 * weight)
+        assert info["prior_scale"] == pytest.approx(expect_scale)
+        torch.testing.assert_close(p.grad, a + expect_scale * weight * b)
+
+
+def test_capped_cpr_gradient_in_a_training_step(scene):
+    """With ``max_grad_ratio`` the gca step records both norms and keeps CPR's share at most the ratio."""
+    method = get_method("gca")
+    cfg = TrainConfig(iterations=1, curriculum_start=1.0)
+    law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
+                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
+    objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
+                          CPRConfig(subset_size=16, n_groups=2, max_grad_ratio=0.1), MatchConfig())
+    result = train(tiny_solver(), law, _data(scene, method), objective, cfg)
+    rec = result.history[0]
+    assert result.status == "ok" and rec["grad_norm_data"] > 0 and rec["grad_norm_prior"] > 0
+    assert rec["prior_scale"] == pytest.approx(min(1.0, 0.1 * rec["grad_norm_data"] / rec["grad_norm_prior"]))
+    with pytest.raises(ValueError, match="max_grad_ratio"):
+        CPRConfig(max_grad_ratio=-1.0)

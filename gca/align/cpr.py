@@ -47,6 +47,10 @@ neural law. ``weighting="raw"`` keeps the paper's unnormalised sum.
 Normalisation (s_e, s_p, detached, from S): stresses are 1e3-1e5 Pa, so s_e = mean_S ||E_theta(F_e)||^2
 (the neural stress energy); plastic maps return F (~ I) but their content is the strain, so
 s_p = mean_S ||F_trial - I||^2. A relative mismatch of order 1 thus gives a residual of order 1.
+Each is floored, s_e >= ``stress_floor``^2 and s_p >= ``strain_floor``^2: a frame in free flight
+(|F - I| ~ 1e-7, stresses ~0.01 Pa) carries no constitutive information, and relative to its own
+stresses its float32 round-off read as R_e ~ 1.9e3 on the paper bottle, 4e4 x every deformed frame's
+(benchmarks/NOTES.md, session 8), so CPR's gradient was that frame's noise.
 """
 
 from __future__ import annotations
@@ -86,6 +90,10 @@ class CPRConfig:
     fallback_poisson: float = 0.2  # nu giving lam/mu for Drucker-Prager when no elastic fit exists
     grid_size: int = 16  # candidates per round of the 1-D plastic fits [count]
     refine_rounds: int = 3  # zoom rounds of the 1-D plastic fits [count]
+    stress_floor: float = 1e2  # s_e >= stress_floor^2: frames at rest weigh in absolute terms [Pa]
+    strain_floor: float = 1e-3  # s_p >= strain_floor^2 [1]
+    max_grad_ratio: float = 0.0  # > 0: the gradient of R_e + R_p is scaled to at most this multiple of the
+    #                              data terms' gradient norm (a soft prior, not the objective); 0: as written
 
     def __post_init__(self):
         object.__setattr__(self, "elastic", tuple(self.elastic))
@@ -100,6 +108,10 @@ class CPRConfig:
                              f"refit_every >= 1; got {self}")
         if self.weighting not in ("normalized", "raw"):
             raise ValueError(f"gca/align/cpr.py: weighting must be 'normalized' or 'raw', got {self.weighting!r}")
+        if not (self.stress_floor > 0 and self.strain_floor > 0):
+            raise ValueError(f"gca/align/cpr.py: stress_floor and strain_floor must be > 0, got {self}")
+        if not self.max_grad_ratio >= 0:
+            raise ValueError(f"gca/align/cpr.py: max_grad_ratio must be >= 0, got {self.max_grad_ratio}")
         if not self.eps > 0 or self.residual_on not in ("all", "subset"):
             raise ValueError(f"gca/align/cpr.py: eps must be > 0 and residual_on 'all'|'subset', got {self}")
 
@@ -522,9 +534,9 @@ class CPR:
         F_e, F_trial, tau, F_next = (t.reshape(B, N, 3, 3) for t in outs)
         S, cfg, dev = self._indices(F_e.device)[0], self.cfg, F_e.device
         idx, s_index = (S, slice(None)) if cfg.residual_on == "subset" else (slice(None), S)
-        scale_e = tau.detach()[:, S].double().square().sum((-2, -1)).mean(1).clamp(min=_TINY)  # [B]
+        scale_e = tau.detach()[:, S].double().square().sum((-2, -1)).mean(1).clamp(min=cfg.stress_floor ** 2)  # [B]
         eye = torch.eye(3, dtype=torch.float64, device=dev)
-        scale_p = (F_trial.detach()[:, S].double() - eye).square().sum((-2, -1)).mean(1).clamp(min=_TINY)
+        scale_p = (F_trial.detach()[:, S].double() - eye).square().sum((-2, -1)).mean(1).clamp(min=cfg.strain_floor ** 2)
         plan = _RefitPlan(self._calls, B, cfg.refit_every, self._fits is not None, dev)
         self._calls += B
         cached = self._fits or {"elastic": None, "plastic": None, "lam_over_mu": None}

@@ -146,7 +146,13 @@ class Objective:
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
     def loss(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
-        """Sum of the method's losses over video frames ``0 .. n_video - 1`` and their mean stats.
+        """Sum of the method's losses over video frames ``0 .. n_video - 1`` and their mean stats."""
+        data, prior, stats = self.loss_terms(traj, n_video, law)
+        return data + prior, stats
+
+    def loss_terms(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """``(data, prior, stats)``: the image terms summed over video frames ``0 .. n_video - 1``, CPR's
+        R_e + R_p (0 without CPR) and the frames' mean stats.
 
         Three passes, so the GPU is never waited on frame by frame: render every frame (all views)
         back to back; copy the frames that need feature matching to the host at once and match them
@@ -159,9 +165,8 @@ class Objective:
         for j in range(n_video):
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
             loss = loss + l_j
-        if self.cpr is not None:
-            loss = loss + self._cpr_terms(traj, n_video, law, stats)
-        return loss, stats.read()
+        prior = self._cpr_terms(traj, n_video, law, stats) if self.cpr is not None else loss.new_zeros(())
+        return loss, prior, stats.read()
 
     def _cpr_terms(self, traj: Rollout, n_video: int, law: LearnedLaw, stats: "_MeanStats") -> torch.Tensor:
         """CPR (Algorithm 2) on every ``cpr_every``-th supervised frame's state: its elastic F_e^t and the
@@ -445,17 +450,45 @@ def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
     probe.watch("particles", "x", -1, traj.x)
     probe.watch("particles", "F", -1, traj.F)
     timer.lap("simulate")
-    loss, stats = objective.loss(traj, n_video, law)
+    data_loss, prior_loss, stats = objective.loss_terms(traj, n_video, law)
+    loss = data_loss + prior_loss
     if not torch.isfinite(loss):
         raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
     _check_drift(traj, data, n_video, cfg)
     timer.lap("render_losses")
-    loss.backward()
+    ratio = objective.cpr.cfg.max_grad_ratio if objective.cpr is not None else 0.0
+    if ratio > 0 and prior_loss.requires_grad:
+        stats.update(capped_backward(law.trainable(), data_loss, prior_loss, ratio))
+    else:
+        loss.backward()
     timer.lap("backward")
     _check_gradients(law, probe)
     grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip)
     return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine, **stats,
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
+
+
+def capped_backward(params: list[torch.Tensor], data_loss: torch.Tensor, prior_loss: torch.Tensor,
+                    ratio: float) -> dict[str, float]:
+    """Accumulate into ``.grad`` the gradient of ``data_loss`` plus that of ``prior_loss`` scaled by
+    ``s = min(1, ratio * |g_data| / |g_prior|)``: the prior steers, the data lead (CPR's residuals act on
+    the law's weights directly, the image terms through a whole rollout, so their gradients differ by
+    orders of magnitude; benchmarks/NOTES.md, session 8). Norms are over all ``params``.
+
+    Returns ``{"grad_norm_data", "grad_norm_prior", "prior_scale"}``.
+    """
+    g_prior = torch.autograd.grad(prior_loss, params, retain_graph=True, allow_unused=True)
+    data_loss.backward()
+    zero = prior_loss.new_zeros((), dtype=torch.float64)
+    norm = lambda gs: torch.stack([zero] + [g.double().square().sum() for g in gs if g is not None]).sum().sqrt()  # noqa: E731
+    n_data, n_prior = norm([p.grad for p in params]), norm(g_prior)
+    scale = torch.clamp(ratio * n_data / n_prior.clamp(min=1e-300), max=1.0)
+    with torch.no_grad():
+        for p, g in zip(params, g_prior):
+            if g is not None:
+                p.grad = g * scale.to(g.dtype) if p.grad is None else p.grad + g * scale.to(g.dtype)
+    n_data, n_prior, scale = torch.stack([n_data, n_prior, scale]).tolist()
+    return {"grad_norm_data": n_data, "grad_norm_prior": n_prior, "prior_scale": scale}
 
 
 def _check_gradients(law: LearnedLaw, probe: GradProbe | None = None) -> None:

@@ -1,0 +1,154 @@
+"""Which of a method's loss terms point the law where the ground truth is: per-term gradients at one law.
+
+    python benchmarks/grad_terms.py --work /tmp/pp --scene fish --horizon 15 --json out.json
+
+``--work`` is a pipeline (or ``benchmarks/grid.py``) work directory holding the scene's data, its
+preprocessing and ``models/prior/<family>.pt`` (``--prior-dir`` elsewhere). At the prior (or a trained
+``--law``), one rollout over the first ``--horizon`` video frames is differentiated once per term:
+
+- the GCA terms (eq. 8) one at a time: ``mask`` (lambda_m L_mask), ``global`` (lambda_g lambda_1 ||P - Q||),
+  ``anchor`` (lambda_g lambda_2 sum -gamma), ``cpr`` (R_e + R_p), and their sum ``gca``;
+- ``color``: NeuMA's pixel colour L2 on the training view;
+- ``oracle``: mean squared particle error against the ground-truth trajectory, which no method may
+  see: the direction that would lower Table 1's Chamfer distance.
+
+For each term: the gradient norm over the LoRA parameters and its cosine with the oracle's. A term
+with a large norm and a cosine near 0 (or negative) steers the law away from the truth. The launch
+velocity is the scene's true (v0, w0) unless ``--velocity`` names a ``velocity.json``, so the law is
+the only unknown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gca import config  # noqa: E402
+from gca.scenes import load_trajectory, scene_config, video_config  # noqa: E402
+from gca.train.loop import simulate  # noqa: E402
+from gca.train.methods import Method, get_method  # noqa: E402
+from gca.train.run import (SceneInputs, default_device, law_for, load_law, load_train_data,  # noqa: E402
+                           objective_for, read_velocity, solver_for)
+
+_GCA = dict(mask=True, geo=True, cpr=True)
+TERMS: dict[str, Method] = {
+    "mask": Method("t_mask", mask=True),
+    "global": Method("t_global", geo=True, rdga=(("use_anchor", False), ("lambda_mask", 0.0))),
+    "anchor": Method("t_anchor", geo=True, rdga=(("use_global", False), ("lambda_mask", 0.0))),
+    "cpr": Method("t_cpr", cpr=True, rdga=(("enabled", False), ("lambda_mask", 0.0))),
+    "gca": get_method("gca"),
+    "color": get_method("neuma"),
+}
+
+
+def oracle_loss(traj, gt: torch.Tensor, video_frames: list[int], n_video: int) -> torch.Tensor:
+    """Mean squared particle distance to the ground truth over video frames 1..n_video [m^2]."""
+    pred = torch.stack([traj.x[f] for f in video_frames[:n_video]])  # [n, P, 3]
+    return (pred - gt[1:n_video + 1]).square().sum(-1).mean()
+
+
+def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
+                   law_path: Path | None, device: str, ratios: list[float] = ()) -> list[dict]:
+    """One row per term: loss, gradient norm, cosine with the oracle gradient."""
+    scene = scene_config(params, scene_name)
+    gca = get_method("gca")
+    data = load_train_data(params, inputs, gca, velocity, video_config(params).background, device)
+    law = law_for(params, gca, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
+    if law_path is not None:
+        load_law(law_path, law, scene.prior)
+    solver = solver_for(params, scene, device)
+    theta = law.trainable()
+    gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=data.body.x0.dtype, device=device)
+    scene_params = config.section(params, f"scenes.{scene_name}")
+
+    def grad_of(loss_fn) -> tuple[float, torch.Tensor]:
+        traj = simulate(solver, law, data, n_video)
+        loss = loss_fn(traj)
+        g = torch.autograd.grad(loss, theta, allow_unused=True)
+        flat = torch.cat([(torch.zeros_like(p) if gi is None else gi).reshape(-1) for p, gi in zip(theta, g)])
+        if not torch.isfinite(flat).all():
+            raise FloatingPointError(f"non-finite gradient of a term at horizon {n_video}")
+        return float(loss.detach()), flat.double()
+
+    l_oracle, g_oracle = grad_of(lambda traj: oracle_loss(traj, gt, data.video_frames, n_video))
+    rows = [{"term": "oracle", "loss": l_oracle, "grad_norm": float(g_oracle.norm()), "cos_oracle": 1.0}]
+    cos_oracle = lambda g: float(g @ g_oracle / (g.norm() * g_oracle.norm()).clamp(min=1e-300))  # noqa: E731
+    grads = {}
+    for name in terms:
+        method = TERMS[name]
+        objective = objective_for(params, method, data, scene_params)
+        stats: dict = {}
+
+        def loss_fn(traj, objective=objective, stats=stats):
+            loss, s = objective.loss(traj, n_video, law)
+            stats.update(s)
+            return loss
+
+        loss, g = grad_of(loss_fn)
+        grads[name] = g
+        cos = cos_oracle(g)
+        rows.append({"term": name, "loss": loss, "grad_norm": float(g.norm()), "cos_oracle": cos,
+                     "stats": {k: v for k, v in stats.items() if k.startswith(("rdga/l_", "R_", "color"))}})
+        print(f"  {name:7s} loss {loss:10.4g}  |grad| {float(g.norm()):10.3e}  cos(oracle) {cos:+.3f}", flush=True)
+    if {"mask", "global", "anchor", "cpr"} <= grads.keys():  # GCA with CPR's gradient capped (capped_backward)
+        g_data = grads["mask"] + grads["global"] + grads["anchor"]
+        for r in ratios:
+            scale = min(1.0, r * float(g_data.norm()) / max(float(grads["cpr"].norm()), 1e-300))
+            g = g_data + scale * grads["cpr"]
+            rows.append({"term": f"gca_cap{r:g}", "grad_norm": float(g.norm()), "cos_oracle": cos_oracle(g),
+                         "prior_scale": scale})
+            print(f"  gca, CPR capped at {r:g}x data: |grad| {float(g.norm()):10.3e}  cos(oracle) {cos_oracle(g):+.3f}")
+    return rows
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--horizon", type=int, nargs="+", default=[15], help="supervised video frames (one run each)")
+    ap.add_argument("--terms", nargs="+", default=list(TERMS), choices=list(TERMS))
+    ap.add_argument("--prior-dir", type=Path, help="default: <work>/models/prior")
+    ap.add_argument("--law", type=Path, help="a trained gca-family law.pt (default: the prior)")
+    ap.add_argument("--velocity", type=Path, help="velocity.json (default: the scene's true v0, w0)")
+    ap.add_argument("--set", action="append", default=[], help="dotted.key=yaml overrides of the params")
+    ap.add_argument("--ratio", type=float, nargs="*", default=[0.1, 0.3, 1.0],
+                    help="also GCA with CPR's gradient capped at these multiples of the data terms' (align.cpr.max_grad_ratio)")
+    ap.add_argument("--profile", help="paper | ci (default: the params file's)")
+    ap.add_argument("--device", default=default_device())
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from grid import apply_overrides
+
+    tree = apply_overrides(config.read_yaml(args.work / "params.yaml"), args.set)
+    profile = args.profile or tree.get("profile", "paper")
+    params = {**config.resolve(tree, profile), "profile": profile}
+    scene = scene_config(params, args.scene)
+    w = args.work
+    inputs = SceneInputs(w / f"data/scenes/{args.scene}", w / f"data/prep/{args.scene}",
+                         w / f"data/particles/{scene.object}.npz", w / f"data/assets/{scene.object}/gaussians.ply",
+                         (args.prior_dir or w / "models/prior") / f"{scene.prior}.pt")
+    velocity = read_velocity(args.velocity) if args.velocity else (list(scene.v0), list(scene.w0))
+    out = []
+    for n in args.horizon:
+        print(f"{args.scene}: horizon {n} video frames ({params['profile']} profile)", flush=True)
+        rows = term_gradients(params, args.scene, inputs, velocity, n, args.terms, args.law, args.device,
+                              args.ratio)
+        out.append({"scene": args.scene, "horizon": n, "profile": params["profile"], "set": args.set,
+                    "law": str(args.law) if args.law else "prior", "rows": rows})
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=1))
+    return out
+
+
+if __name__ == "__main__":
+    main()
