@@ -278,31 +278,75 @@ def test_backtracking_settings_are_validated():
         TrainConfig(max_rejections=-1)
 
 
-def test_capped_backward_scales_only_a_dominating_prior():
+def test_prior_gradient_is_capped_only_when_it_dominates():
     """g = g_data + min(1, r |g_data| / |g_prior|) g_prior: a prior 1000x the data is cut to r x; a weak one
-    passes unscaled (the objective as written)."""
-    from gca.train.loop import capped_backward
+    is added unscaled (the objective as written); r = 0 adds it unscaled whatever its size."""
+    from gca.train.loop import add_prior_gradient
 
     a, b = torch.tensor([3.0, 0.0, 4.0], dtype=torch.float64), torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64)
-    for weight, expect_scale in ((1000.0, 0.5 * 5.0 / (1000.0 * 2.0)), (1e-3, 1.0)):
+    for weight, ratio, expect_scale in ((1000.0, 0.5, 0.5 * 5.0 / (1000.0 * 2.0)), (1e-3, 0.5, 1.0), (1000.0, 0.0, 1.0)):
         p = torch.zeros(3, dtype=torch.float64, requires_grad=True)
-        info = capped_backward([p], p @ a, weight * (p @ b), ratio=0.5)
+        (p @ a).backward()
+        info = add_prior_gradient([p], [weight * b], ratio=ratio)
         assert info["grad_norm_data"] == pytest.approx(5.0) and info["grad_norm_prior"] == pytest.approx(2.0 * weight)
         assert info["prior_scale"] == pytest.approx(expect_scale)
         torch.testing.assert_close(p.grad, a + expect_scale * weight * b)
 
 
-def test_capped_cpr_gradient_in_a_training_step(scene):
-    """With ``max_grad_ratio`` the gca step records both norms and keeps CPR's share at most the ratio."""
-    method = get_method("gca")
+def _gca_step(scene, method_name="gca", **cpr_kw):
+    method = get_method(method_name)
     cfg = TrainConfig(iterations=1, curriculum_start=1.0)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
                     cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
+    before = [p.detach().clone() for p in law.trainable()]
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
-                          CPRConfig(subset_size=16, n_groups=2, max_grad_ratio=0.1), MatchConfig())
+                          CPRConfig(subset_size=16, n_groups=2, **cpr_kw), MatchConfig())
     result = train(tiny_solver(), law, _data(scene, method), objective, cfg)
+    moved = any(not torch.equal(b, p.detach()) for b, p in zip(before, law.trainable()))
+    return result, moved
+
+
+def test_capped_cpr_gradient_in_a_training_step(scene):
+    """With ``max_grad_ratio`` the gca step records both norms and keeps CPR's share at most the ratio; a
+    method with CPR only (no_rdga) is not capped to nothing."""
+    result, _ = _gca_step(scene, max_grad_ratio=0.1)
     rec = result.history[0]
     assert result.status == "ok" and rec["grad_norm_data"] > 0 and rec["grad_norm_prior"] > 0
     assert rec["prior_scale"] == pytest.approx(min(1.0, 0.1 * rec["grad_norm_data"] / rec["grad_norm_prior"]))
+    result, moved = _gca_step(scene, "no_rdga", max_grad_ratio=0.1)
+    assert result.history[0]["prior_scale"] == 1.0 and moved
     with pytest.raises(ValueError, match="max_grad_ratio"):
         CPRConfig(max_grad_ratio=-1.0)
+    with pytest.raises(ValueError, match="chunk_frames"):
+        CPRConfig(chunk_frames=-1)
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 0])
+def test_chunked_prior_gradient_equals_the_whole_graph(textured_scene, chunk):
+    """Objective.prior_gradient (CPR chunk by chunk, each graph freed) = the gradient of the one-call
+    R_e + R_p of :meth:`Objective.loss` (the reference), and the same R_e, R_p stats."""
+    from gca.sim.rollout import rollout
+
+    scene = textured_scene
+    method = get_method("no_rdga")  # CPR only: the loss is R_e + R_p
+    cfg = TrainConfig(curriculum_start=1.0, cpr_every=1)
+    data = _data(scene, method)
+    law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    params = law.trainable()
+    b = data.body
+    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
+                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
+    n_video = len(data.video_frames)
+    objective = lambda: Objective(method, data, cfg, RDGAConfig(r=5, k=5),  # noqa: E731
+                                  CPRConfig(subset_size=16, n_groups=2, chunk_frames=chunk), MatchConfig())
+    whole, stats = objective().loss(traj, n_video, law)
+    g_ref = torch.autograd.grad(whole, params, allow_unused=True)
+    value, g, chunk_stats = objective().prior_gradient(traj, n_video, law, params)
+    assert n_video >= 3 and float(whole) > 0
+    torch.testing.assert_close(value, whole.detach(), rtol=1e-5, atol=0)
+    assert chunk_stats["R_e"] == pytest.approx(stats["R_e"], rel=1e-5)
+    assert chunk_stats["R_p"] == pytest.approx(stats["R_p"], rel=1e-5)
+    for a, c in zip(g, g_ref):
+        assert (a is None) == (c is None)
+        if a is not None:
+            torch.testing.assert_close(a, c, rtol=1e-4, atol=1e-6 * float(c.abs().max()))

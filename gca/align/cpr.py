@@ -92,6 +92,8 @@ class CPRConfig:
     refine_rounds: int = 3  # zoom rounds of the 1-D plastic fits [count]
     stress_floor: float = 1e2  # s_e >= stress_floor^2: frames at rest weigh in absolute terms [Pa]
     strain_floor: float = 1e-3  # s_p >= strain_floor^2 [1]
+    chunk_frames: int = 0  # training: CPR's gradient taken this many frames at a time, each chunk's graph
+    #                        freed before the next (the neural law's activations on all particles); 0 = one call
     max_grad_ratio: float = 0.0  # > 0: the gradient of R_e + R_p is scaled to at most this multiple of the
     #                              data terms' gradient norm (a soft prior, not the objective); 0: as written
 
@@ -110,6 +112,8 @@ class CPRConfig:
             raise ValueError(f"gca/align/cpr.py: weighting must be 'normalized' or 'raw', got {self.weighting!r}")
         if not (self.stress_floor > 0 and self.strain_floor > 0):
             raise ValueError(f"gca/align/cpr.py: stress_floor and strain_floor must be > 0, got {self}")
+        if self.chunk_frames < 0:
+            raise ValueError(f"gca/align/cpr.py: chunk_frames must be >= 0, got {self.chunk_frames}")
         if not self.max_grad_ratio >= 0:
             raise ValueError(f"gca/align/cpr.py: max_grad_ratio must be >= 0, got {self.max_grad_ratio}")
         if not self.eps > 0 or self.residual_on not in ("all", "subset"):

@@ -150,9 +150,11 @@ class Objective:
         data, prior, stats = self.loss_terms(traj, n_video, law)
         return data + prior, stats
 
-    def loss_terms(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    def loss_terms(self, traj: Rollout, n_video: int, law: LearnedLaw,
+                   with_prior: bool = True) -> tuple[torch.Tensor, torch.Tensor, dict]:
         """``(data, prior, stats)``: the image terms summed over video frames ``0 .. n_video - 1``, CPR's
-        R_e + R_p (0 without CPR) and the frames' mean stats.
+        R_e + R_p (0 without CPR or ``with_prior=False``: see :meth:`prior_gradient`) and the frames'
+        mean stats.
 
         Three passes, so the GPU is never waited on frame by frame: render every frame (all views)
         back to back; copy the frames that need feature matching to the host at once and match them
@@ -165,19 +167,52 @@ class Objective:
         for j in range(n_video):
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
             loss = loss + l_j
-        prior = self._cpr_terms(traj, n_video, law, stats) if self.cpr is not None else loss.new_zeros(())
+        with_cpr = self.cpr is not None and with_prior
+        prior = self._cpr_terms(traj, n_video, law, stats) if with_cpr else loss.new_zeros(())
         return loss, prior, stats.read()
 
-    def _cpr_terms(self, traj: Rollout, n_video: int, law: LearnedLaw, stats: "_MeanStats") -> torch.Tensor:
-        """CPR (Algorithm 2) on every ``cpr_every``-th supervised frame's state: its elastic F_e^t and the
-        trial F of its last Euler step, all those frames in one batched call (frame by frame, each
-        call costs a few hundred small launches)."""
-        f = self.data.video_frames[0:n_video:self.cfg.cpr_every]
-        F_e, F_trial = torch.stack([traj.F[i] for i in f]), torch.stack([traj.F_trial[i] for i in f])  # [B, N, 3, 3]
+    def _cpr_frames(self, n_video: int) -> list[int]:
+        """Simulated frames CPR regularises: every ``cpr_every``-th supervised video frame."""
+        return self.data.video_frames[0:n_video:self.cfg.cpr_every]
+
+    def _cpr_call(self, traj: Rollout, frames: list[int], law: LearnedLaw) -> tuple[torch.Tensor, torch.Tensor]:
+        """(R_e, R_p) summed over ``frames``: their elastic F_e^t and the trial F of each one's last Euler
+        step, in one batched call (frame by frame, each call costs a few hundred small launches)."""
+        F_e = torch.stack([traj.F[i] for i in frames])  # [B, N, 3, 3]
+        F_trial = torch.stack([traj.F_trial[i] for i in frames])
         R_e, R_p, _ = self.cpr.residuals_frames(law.material.elasticity, law.material.plasticity, F_e, F_trial)
+        return R_e, R_p
+
+    def _cpr_terms(self, traj: Rollout, n_video: int, law: LearnedLaw, stats: "_MeanStats") -> torch.Tensor:
+        """CPR (Algorithm 2) on every ``cpr_every``-th supervised frame's state, all frames in one call,
+        with its graph: the reference for :meth:`prior_gradient`."""
+        R_e, R_p = self._cpr_call(traj, self._cpr_frames(n_video), law)
         stats.add("R_e", R_e)  # sums over the CPR frames; read() divides by n_video, as frame by frame
         stats.add("R_p", R_p)
         return R_e + R_p
+
+    def prior_gradient(self, traj: Rollout, n_video: int, law: LearnedLaw,
+                       params: list[torch.Tensor]) -> tuple[torch.Tensor, list, dict[str, float]]:
+        """CPR's value and gradient, ``chunk_frames`` frames at a time, each chunk's graph freed before
+        the next: the neural law evaluated on every particle of every CPR frame keeps its activations for
+        backward (127k particles x 25 frames: ~9 GiB), a chunk only its share.
+
+        Returns ``(R_e + R_p detached [], [grad of each param or None], {"R_e", "R_p"} as the stats
+        report them: divided by ``n_video``)``. Equal to differentiating :meth:`_cpr_terms` (test).
+        """
+        frames = self._cpr_frames(n_video)
+        size = self.cpr.cfg.chunk_frames or len(frames)
+        grads: list = [None] * len(params)
+        total_e = total_p = None
+        for start in range(0, len(frames), size):
+            R_e, R_p = self._cpr_call(traj, frames[start:start + size], law)
+            # without detach_F the chunk's graph reaches the rollout, which the image terms still need
+            g = torch.autograd.grad(R_e + R_p, params, allow_unused=True, retain_graph=not self.cpr.cfg.detach_F)
+            grads = [a if b is None else (b if a is None else a + b) for a, b in zip(grads, g)]
+            total_e = R_e.detach() if total_e is None else total_e + R_e.detach()
+            total_p = R_p.detach() if total_p is None else total_p + R_p.detach()
+        R_e, R_p = torch.stack([total_e, total_p]).double().tolist()
+        return total_e + total_p, grads, {"R_e": R_e / n_video, "R_p": R_p / n_video}
 
     def _render_frame(self, traj: Rollout, j: int) -> dict[str, dict]:
         """Every view's render outputs at video frame ``j`` (0-based)."""
@@ -450,39 +485,43 @@ def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
     probe.watch("particles", "x", -1, traj.x)
     probe.watch("particles", "F", -1, traj.F)
     timer.lap("simulate")
-    data_loss, prior_loss, stats = objective.loss_terms(traj, n_video, law)
-    loss = data_loss + prior_loss
+    params = law.trainable()
+    prior = objective.cpr is not None
+    # CPR first, chunk by chunk, so its activations are gone before the frames are rendered
+    prior_value, g_prior, prior_stats = objective.prior_gradient(traj, n_video, law, params) if prior else (0.0, None, {})
+    data_loss, _, stats = objective.loss_terms(traj, n_video, law, with_prior=False)
+    stats.update(prior_stats)
+    loss = data_loss.detach() + prior_value
     if not torch.isfinite(loss):
         raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
     _check_drift(traj, data, n_video, cfg)
     timer.lap("render_losses")
-    ratio = objective.cpr.cfg.max_grad_ratio if objective.cpr is not None else 0.0
-    if ratio > 0 and prior_loss.requires_grad:
-        stats.update(capped_backward(law.trainable(), data_loss, prior_loss, ratio))
-    else:
-        loss.backward()
+    if data_loss.requires_grad:
+        data_loss.backward()
+    if prior:  # a method without image terms (no_rdga) has only the prior to follow: nothing to cap it to
+        ratio = objective.cpr.cfg.max_grad_ratio if data_loss.requires_grad else 0.0
+        stats.update(add_prior_gradient(params, g_prior, ratio))
     timer.lap("backward")
     _check_gradients(law, probe)
-    grad_norm = torch.nn.utils.clip_grad_norm_(law.trainable(), cfg.grad_clip)
-    return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine, **stats,
+    grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine, **stats,
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
-def capped_backward(params: list[torch.Tensor], data_loss: torch.Tensor, prior_loss: torch.Tensor,
-                    ratio: float) -> dict[str, float]:
-    """Accumulate into ``.grad`` the gradient of ``data_loss`` plus that of ``prior_loss`` scaled by
-    ``s = min(1, ratio * |g_data| / |g_prior|)``: the prior steers, the data lead (CPR's residuals act on
-    the law's weights directly, the image terms through a whole rollout, so their gradients differ by
-    orders of magnitude; benchmarks/NOTES.md, session 8). Norms are over all ``params``.
+def add_prior_gradient(params: list[torch.Tensor], g_prior: list, ratio: float) -> dict[str, float]:
+    """Add the prior's gradient ``g_prior`` to the data terms' gradient already in ``.grad``, scaled by
+    ``s = min(1, ratio * |g_data| / |g_prior|)`` when ``ratio > 0`` (else s = 1: the loss as written): the
+    prior steers, the data lead (CPR's residuals act on the law's weights directly, the image terms
+    through a whole rollout, so their gradients differ by orders of magnitude; benchmarks/NOTES.md,
+    session 8). Norms are over all ``params``.
 
     Returns ``{"grad_norm_data", "grad_norm_prior", "prior_scale"}``.
     """
-    g_prior = torch.autograd.grad(prior_loss, params, retain_graph=True, allow_unused=True)
-    data_loss.backward()
-    zero = prior_loss.new_zeros((), dtype=torch.float64)
+    ref = next(g for g in [*g_prior, *(p.grad for p in params), params[0]] if g is not None)
+    zero = ref.new_zeros((), dtype=torch.float64)
     norm = lambda gs: torch.stack([zero] + [g.double().square().sum() for g in gs if g is not None]).sum().sqrt()  # noqa: E731
     n_data, n_prior = norm([p.grad for p in params]), norm(g_prior)
-    scale = torch.clamp(ratio * n_data / n_prior.clamp(min=1e-300), max=1.0)
+    scale = torch.clamp(ratio * n_data / n_prior.clamp(min=1e-300), max=1.0) if ratio > 0 else zero + 1.0
     with torch.no_grad():
         for p, g in zip(params, g_prior):
             if g is not None:
