@@ -98,7 +98,7 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_vid
         rows.append({"term": name, "loss": loss, "grad_norm": float(g.norm()), "cos_oracle": cos,
                      "stats": {k: v for k, v in stats.items() if k.startswith(("rdga/l_", "R_", "color"))}})
         print(f"  {name:7s} loss {loss:10.4g}  |grad| {float(g.norm()):10.3e}  cos(oracle) {cos:+.3f}", flush=True)
-    if {"mask", "global", "anchor", "cpr"} <= grads.keys():  # GCA with CPR's gradient capped (capped_backward)
+    if {"mask", "global", "anchor", "cpr"} <= grads.keys():  # GCA with CPR's gradient capped (loop.add_prior_gradient)
         g_data = grads["mask"] + grads["global"] + grads["anchor"]
         for r in ratios:
             scale = min(1.0, r * float(g_data.norm()) / max(float(grads["cpr"].norm()), 1e-300))

@@ -350,3 +350,17 @@ def test_chunked_prior_gradient_equals_the_whole_graph(textured_scene, chunk):
         assert (a is None) == (c is None)
         if a is not None:
             torch.testing.assert_close(a, c, rtol=1e-4, atol=1e-6 * float(c.abs().max()))
+
+
+def test_lora_init_is_seeded(scene):
+    """LoRA's A matrices come from ``train.seed``: the same seed builds the same law in any process and
+    whatever torch's global RNG did before; another seed another one (session 8: they were unseeded)."""
+    def adapters(seed, global_seed):
+        torch.manual_seed(global_seed)  # the global RNG must not matter
+        law = build_law(get_method("gca"), scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3,
+                        1e-2, seed=seed)
+        return [p.detach().clone() for p in law.trainable()]
+
+    same, again, other = adapters(0, 1), adapters(0, 2), adapters(1, 1)
+    assert all(torch.equal(a, b) for a, b in zip(same, again))
+    assert any(not torch.equal(a, b) for a, b in zip(same, other))

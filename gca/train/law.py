@@ -60,8 +60,12 @@ def explicit_preset(family_presets: Mapping, family: str) -> Mapping:
 
 def build_law(method: Method, prior_path: str | Path, family: str, rho: float, lora: LoRAConfig,
               lr_elasticity: float, lr_plasticity: float, lr_explicit: float,
-              family_presets: Mapping | None = None, dt: float | None = None) -> LearnedLaw:
-    """Build the law ``method`` trains, starting from the prior at ``prior_path`` (family ``family``)."""
+              family_presets: Mapping | None = None, dt: float | None = None, seed: int = 0) -> LearnedLaw:
+    """Build the law ``method`` trains, starting from the prior at ``prior_path`` (family ``family``).
+
+    LoRA's A matrices are drawn from generators seeded by ``seed`` (``train.seed``; elasticity 2 seed,
+    plasticity 2 seed + 1), so a run is reproducible; they were drawn from torch's unseeded global RNG until
+    session 8, which made every training run (Table 1 of session 8 included) one random draw of them."""
     if method.law == "explicit":
         material = material_from_preset(explicit_preset(family_presets or {}, family), dt=dt)
         params = [p for p in material.parameters() if p.requires_grad]
@@ -69,8 +73,8 @@ def build_law(method: Method, prior_path: str | Path, family: str, rho: float, l
     prior = load_prior(prior_path, family=family)
     e, p = prior.elasticity, prior.plasticity
     if method.adapt == "lora":
-        for net in (e, p):
-            apply_lora(net, lora.rank, lora.alpha)
+        for i, net in enumerate((e, p)):
+            apply_lora(net, lora.rank, lora.alpha, generator=torch.Generator().manual_seed(2 * int(seed) + i))
         pe, pp = list(lora_parameters(e)), list(lora_parameters(p))
     elif method.adapt == "full":
         pe, pp = list(full_finetune(e).parameters()), list(full_finetune(p).parameters())

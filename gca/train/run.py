@@ -98,7 +98,8 @@ def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneIn
     tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
     lora = config.build(LoRAConfig, config.section(params, "laws.lora"), "laws.lora")
     law = build_law(method, inputs.prior, scene.prior, rho, lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
-                    tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt)
+                    tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt,
+                    seed=tcfg.seed)
     law.material.to(device)
     return law
 
