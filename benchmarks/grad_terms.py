@@ -21,7 +21,6 @@ the only unknown.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -30,6 +29,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set and work layout)
 
 from gca import config  # noqa: E402
 from gca.scenes import load_trajectory, scene_config, video_config  # noqa: E402
@@ -38,7 +40,6 @@ from gca.train.methods import Method, get_method  # noqa: E402
 from gca.train.run import (SceneInputs, default_device, law_for, load_law, load_train_data,  # noqa: E402
                            objective_for, read_velocity, solver_for)
 
-_GCA = dict(mask=True, geo=True, cpr=True)
 TERMS: dict[str, Method] = {
     "mask": Method("t_mask", mask=True),
     "global": Method("t_global", geo=True, rdga=(("use_anchor", False), ("lambda_mask", 0.0))),
@@ -125,17 +126,11 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--device", default=default_device())
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from grid import apply_overrides
-
     tree = apply_overrides(config.read_yaml(args.work / "params.yaml"), args.set)
     profile = args.profile or tree.get("profile", "paper")
     params = {**config.resolve(tree, profile), "profile": profile}
     scene = scene_config(params, args.scene)
-    w = args.work
-    inputs = SceneInputs(w / f"data/scenes/{args.scene}", w / f"data/prep/{args.scene}",
-                         w / f"data/particles/{scene.object}.npz", w / f"data/assets/{scene.object}/gaussians.ply",
-                         (args.prior_dir or w / "models/prior") / f"{scene.prior}.pt")
+    inputs = scene_inputs(args.work, args.scene, params, args.prior_dir)
     velocity = read_velocity(args.velocity) if args.velocity else (list(scene.v0), list(scene.w0))
     out = []
     for n in args.horizon:

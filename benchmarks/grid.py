@@ -194,6 +194,18 @@ def apply_overrides(params: dict, overrides: list[str]) -> dict:
     return params
 
 
+def scene_inputs(work: Path, scene_name: str, params: dict, prior_dir: Path | None = None):
+    """The :class:`gca.train.run.SceneInputs` of a scene in a grid (or pipeline) work directory: its data
+    where ``dvc repro`` puts them, the prior from ``prior_dir`` (default ``<work>/models/prior``)."""
+    from gca.scenes import scene_config
+    from gca.train.run import SceneInputs
+
+    scene = scene_config(params, scene_name)
+    return SceneInputs(work / f"data/scenes/{scene_name}", work / f"data/prep/{scene_name}",
+                       work / f"data/particles/{scene.object}.npz", work / f"data/assets/{scene.object}/gaussians.ply",
+                       (prior_dir or work / "models/prior") / f"{scene.prior}.pt")
+
+
 def prepare(work: Path, params: dict) -> None:
     """The work directory as a checkout: the code linked, its own params.yaml."""
     work.mkdir(parents=True, exist_ok=True)

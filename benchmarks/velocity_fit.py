@@ -24,12 +24,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from grid import apply_overrides  # noqa: E402  (the grid runner's --set)
+from grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set)
 
 from gca import config  # noqa: E402
 from gca.scenes import scene_config  # noqa: E402
 from gca.scenes.groundtruth import scene_cameras  # noqa: E402
-from gca.train.run import SceneInputs, default_device, estimate_scene_velocity  # noqa: E402
+from gca.train.run import default_device, estimate_scene_velocity  # noqa: E402
 
 
 def errors(params, scene_name: str, fit: dict) -> dict:
@@ -52,11 +52,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     base = config.load(f"velocity_fit@{args.scene}", args.work / "params.yaml")
-    scene = scene_config(base, args.scene)
-    w = args.work
-    inputs = SceneInputs(w / f"data/scenes/{args.scene}", w / f"data/prep/{args.scene}",
-                         w / f"data/particles/{scene.object}.npz", w / f"data/assets/{scene.object}/gaussians.ply",
-                         w / f"models/prior/{scene.prior}.pt")
+    inputs = scene_inputs(args.work, args.scene, base)
     rows = []
     for text in args.variant or [""]:
         params = apply_overrides(copy.deepcopy(base), text.split())

@@ -146,15 +146,20 @@ class Objective:
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
     def loss(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
-        """Sum of the method's losses over video frames ``0 .. n_video - 1`` and their mean stats."""
-        data, prior, stats = self.loss_terms(traj, n_video, law)
-        return data + prior, stats
+        """Sum of the method's losses over video frames ``0 .. n_video - 1`` (CPR's in one call, with its
+        graph: the reference of :meth:`prior_gradient`) and their mean stats."""
+        loss, stats = self._image_terms(traj, n_video)
+        if self.cpr is not None:
+            loss = loss + self._cpr_terms(traj, n_video, law, stats)
+        return loss, stats.read()
 
-    def loss_terms(self, traj: Rollout, n_video: int, law: LearnedLaw,
-                   with_prior: bool = True) -> tuple[torch.Tensor, torch.Tensor, dict]:
-        """``(data, prior, stats)``: the image terms summed over video frames ``0 .. n_video - 1``, CPR's
-        R_e + R_p (0 without CPR or ``with_prior=False``: see :meth:`prior_gradient`) and the frames'
-        mean stats.
+    def data_loss(self, traj: Rollout, n_video: int) -> tuple[torch.Tensor, dict]:
+        """The image terms alone (training takes CPR's part from :meth:`prior_gradient`) and their stats."""
+        loss, stats = self._image_terms(traj, n_video)
+        return loss, stats.read()
+
+    def _image_terms(self, traj: Rollout, n_video: int) -> tuple[torch.Tensor, "_MeanStats"]:
+        """The image terms summed over video frames ``0 .. n_video - 1`` and their per-frame stats.
 
         Three passes, so the GPU is never waited on frame by frame: render every frame (all views)
         back to back; copy the frames that need feature matching to the host at once and match them
@@ -167,9 +172,7 @@ class Objective:
         for j in range(n_video):
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
             loss = loss + l_j
-        with_cpr = self.cpr is not None and with_prior
-        prior = self._cpr_terms(traj, n_video, law, stats) if with_cpr else loss.new_zeros(())
-        return loss, prior, stats.read()
+        return loss, stats
 
     def _cpr_frames(self, n_video: int) -> list[int]:
         """Simulated frames CPR regularises: every ``cpr_every``-th supervised video frame."""
@@ -489,7 +492,7 @@ def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
     prior = objective.cpr is not None
     # CPR first, chunk by chunk, so its activations are gone before the frames are rendered
     prior_value, g_prior, prior_stats = objective.prior_gradient(traj, n_video, law, params) if prior else (0.0, None, {})
-    data_loss, _, stats = objective.loss_terms(traj, n_video, law, with_prior=False)
+    data_loss, stats = objective.data_loss(traj, n_video)
     stats.update(prior_stats)
     loss = data_loss.detach() + prior_value
     if not torch.isfinite(loss):
@@ -517,8 +520,7 @@ def add_prior_gradient(params: list[torch.Tensor], g_prior: list, ratio: float) 
 
     Returns ``{"grad_norm_data", "grad_norm_prior", "prior_scale"}``.
     """
-    ref = next(g for g in [*g_prior, *(p.grad for p in params), params[0]] if g is not None)
-    zero = ref.new_zeros((), dtype=torch.float64)
+    zero = params[0].new_zeros((), dtype=torch.float64)
     norm = lambda gs: torch.stack([zero] + [g.double().square().sum() for g in gs if g is not None]).sum().sqrt()  # noqa: E731
     n_data, n_prior = norm([p.grad for p in params]), norm(g_prior)
     scale = torch.clamp(ratio * n_data / n_prior.clamp(min=1e-300), max=1.0) if ratio > 0 else zero + 1.0
