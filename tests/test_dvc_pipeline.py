@@ -8,6 +8,7 @@ stages that depend on it.
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -26,8 +27,20 @@ pytestmark = pytest.mark.slow
 
 def _run(args, cwd, env):
     out = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=3000)
-    assert out.returncode == 0, f"{' '.join(args)} failed:\n{out.stdout[-4000:]}\n{out.stderr[-4000:]}"
+    assert out.returncode == 0, (f"{' '.join(args)} failed:\n{_error_first(out.stderr)}\n"
+                                 f"--- stdout tail ---\n{out.stdout[-3000:]}")
     return out.stdout + out.stderr
+
+
+def _error_first(stderr: str) -> str:
+    """A failed stage's traceback first (progress bars dropped), then the rest of stderr's tail: a CI
+    log that shows only the start of the message still names the error."""
+    stderr = stderr.replace("Traceback (most recent call last):", "\nTraceback (most recent call last):")
+    lines = [ln.rsplit("\r", 1)[-1] for ln in stderr.splitlines()]
+    lines = [ln for ln in lines if not re.search(r"\d+%\|", ln)]
+    start = max((i for i, ln in enumerate(lines) if ln.startswith("Traceback")), default=None)
+    trace = "\n".join(lines[start:start + 60]) if start is not None else "(no traceback in stderr)"
+    return f"--- last traceback ---\n{trace}\n--- stderr tail ---\n" + "\n".join(lines)[-3000:]
 
 
 def _copy_repo(dest: Path) -> None:
