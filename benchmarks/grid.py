@@ -13,9 +13,11 @@ others reuse it with ``--velocity``) so one scene's methods train on several GPU
         --before "python3 -c 'from gsplat.cuda._backend import _C'"
 
 Resumable: a finished job leaves ``<work>/.grid/<job>.done`` and is not run again; training resumes
-from its checkpoint. ``--deadline`` [s] launches no job that its estimated cost would not finish in
-time, so a long grid runs as a few commands of bounded length (repeat the command until it reports
-every job done). A failed job is logged with its output's tail, its dependents are skipped, the
+from its checkpoint. ``--deadline`` [s] bounds the command: it launches no job that its estimated cost
+would not finish in time, except training jobs (resumable: launched while ``RESUMABLE_MIN_S`` remain),
+and at the deadline stops the jobs still running (SIGTERM; a training job loses at most
+``train.checkpoint_every`` iterations), so a long grid runs as a few commands of bounded length
+(repeat the command until it reports every job done). A failed job is logged with its output's tail, its dependents are skipped, the
 others go on. ``--priors DIR`` takes ``<family>.pt`` from an earlier run instead of pretraining.
 """
 
@@ -42,6 +44,8 @@ ROOT = Path(__file__).resolve().parents[1]
 COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
         "train": 0.6, "train:gca": 4.5, "train:neuma": 2.7, "train:neuma_multiview": 4.0,
         "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.3, "demo": 1.0}
+RESUMABLE_MIN_S = 120.0  # a training job is launched while this much of the deadline remains [s]
+STOP_GRACE_S = 20.0  # after SIGTERM at the deadline, SIGKILL a job still alive this long after [s]
 
 
 @dataclasses.dataclass
@@ -281,7 +285,26 @@ class Scheduler:
                 self._skip_dependents()
 
     def _fits(self, name: str) -> bool:
-        return self.deadline is None or time.monotonic() + 60 * self.jobs[name].cost * 1.3 < self.deadline
+        if self.deadline is None:
+            return True
+        need = RESUMABLE_MIN_S if name.startswith("train@") else 60 * self.jobs[name].cost * 1.3
+        return time.monotonic() + need < self.deadline
+
+    def _stop_at_deadline(self) -> None:
+        """Stop every running job (SIGTERM, SIGKILL after ``STOP_GRACE_S``); they stay to do."""
+        for proc, _, _ in self.running.values():
+            proc.terminate()
+        t_end = time.monotonic() + STOP_GRACE_S
+        for name, (proc, gpu, t0) in list(self.running.items()):
+            try:
+                proc.wait(timeout=max(0.1, t_end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            del self.running[name]
+            self.places.append(gpu)
+            self.state[name] = "todo"
+            self.log(f"stop  {name} at the deadline after {time.monotonic() - t0:.0f} s (resumes next time)")
 
     def run(self) -> dict[str, str]:
         while True:
@@ -296,6 +319,9 @@ class Scheduler:
                 self.places.remove(gpu)
                 self._launch(name, gpu)
             if not self.running:
+                return self.state
+            if self.deadline is not None and time.monotonic() >= self.deadline:
+                self._stop_at_deadline()
                 return self.state
             time.sleep(1.0)
 

@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> dict:
     bound = np.bincount(result.binding_rows, minlength=len(result.gaussian_index))
     metrics = {"n_particles": result.n, "n_gaussians": result.n_gaussians, "n_gaussians_kept": len(result.gaussian_index),
                "volume_sim_m3": float(result.vol.sum()), "mass_kg": float(result.mass.sum()),
-               "scale_sim_per_m": float(result.sim_from_world[0, 0]), "mean_particles_per_gaussian": float(bound.mean()),
+               "scale_sim_per_m": float(result.sim_from_world[0, 0]), "spacing_sim_m": result.spacing,
+               "mean_particles_per_gaussian": float(bound.mean()),
                "used_mesh": mesh is not None, "x_min": result.x.min(axis=0).tolist(), "x_max": result.x.max(axis=0).tolist()}
     with track.stage_run("particles", {"particles": params["particles"], "object": params["objects"][args.object]},
                          scene=args.object) as run:

@@ -43,6 +43,23 @@ def test_gaussians_only_path_volume(sphere):
     assert abs(p.vol.sum() / sphere_volume_sim(p) - 1) < 0.08
 
 
+@pytest.mark.parametrize("with_mesh", [True, False])
+def test_target_count_sizes_the_lattice_per_object(sphere, with_mesh):
+    """target_count N: the object's own spacing (V / N)^(1/3), ~N particles (the lattice samples the
+    volume to a few %), whatever the fixed spacing says; the spacing used is recorded."""
+    mesh, cloud = sphere
+    for n_target in (1500, 6000):
+        cfg = pa.ParticleConfig(spacing=0.025, target_count=n_target)
+        p = pa.convert(cloud, cfg, density=1000.0, mesh=mesh if with_mesh else None)
+        assert abs(p.n / n_target - 1) < (0.05 if with_mesh else 0.12), (n_target, p.n)
+        # mesh: the volume is the mesh's; no mesh: re-estimated from the field at the new spacing
+        assert p.spacing != cfg.spacing and abs(p.spacing**3 * n_target / p.vol.sum() - 1) < (1e-6 if with_mesh else 0.05)
+    fixed = pa.convert(cloud, pa.ParticleConfig(spacing=0.025), density=1000.0, mesh=mesh)
+    assert fixed.spacing == 0.025
+    with pytest.raises(ValueError, match="target_count"):
+        pa.ParticleConfig(target_count=-1)
+
+
 def test_gaussians_only_detects_unsealed_surface():
     """A sparse pure-surface scan on a fine lattice does not enclose a volume: a clear error."""
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=R_WORLD)

@@ -92,6 +92,24 @@ def test_deadline_launches_nothing_that_would_end_late(tmp_path):
     assert state == {"slow": "todo"}
 
 
+def test_deadline_stops_running_jobs_and_the_next_command_resumes(tmp_path, monkeypatch):
+    """A training job (resumable) is launched with less than its cost left, stopped at the deadline
+    and left to do; the next command runs it again, which resumes where it left off."""
+    (tmp_path / ".grid").mkdir()
+    (tmp_path / "fake_train.py").write_text(
+        "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
+        "for i in range(n, 6):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
+    job = grid.Job("train@s:gca", "python fake_train.py", [], [], cost=10.0)
+    lines = []
+    monkeypatch.setattr(grid, "RESUMABLE_MIN_S", 0.5)
+    assert grid.Scheduler({job.name: job}, tmp_path, 1, 1, deadline=1.7, log=lines.append).run() == {job.name: "todo"}
+    assert any(line.startswith(f"stop  {job.name} at the deadline") for line in lines)
+    stopped_at = int((tmp_path / "ckpt").read_text())
+    assert 1 <= stopped_at < 6 and not (tmp_path / ".grid" / f"{job.name}.done").exists()
+    assert grid.Scheduler({job.name: job}, tmp_path, 1, 1, None, lines.append).run() == {job.name: "done"}
+    assert (tmp_path / "ckpt").read_text() == "6"
+
+
 def test_collect_keeps_the_small_results(tmp_path):
     for rel in ("metrics/eval/ball/gca.json", "reports/ci/table1_synthetic_cd.md", "runs/ball/gca/train.json",
                 "runs/ball/gca/law.pt", "data/scenes/ball/meta.json", "models/prior/jelly.pt"):

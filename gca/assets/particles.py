@@ -7,7 +7,8 @@ Pipeline of :func:`convert` (facts from PhysGaussian and NeuMA, code our own):
    when there is one, else the kept Gaussian means') in the unit cube, ``margin`` from the side
    walls, resting ``floor_gap`` above the floor (``placement="floor"``) or centred;
 3. particles on a regular lattice of cell centres ``(i + 1/2) * spacing`` (sim units) inside the
-   object: ``mesh.contains`` when a mesh exists; otherwise the summed opacity field of the
+   object (with ``target_count`` N, each object's own spacing (V / N)^(1/3) from its volume V, so
+   every object gets ~N particles whatever its size): ``mesh.contains`` when a mesh exists; otherwise the summed opacity field of the
    Gaussians (covariances inflated by half a cell so thin surface sheets register) is thresholded,
    closed and hole-filled (scipy.ndimage);
 4. volumes: uniform, total = mesh volume in sim units (mesh path) or the lattice estimate that
@@ -28,7 +29,7 @@ Particles file (:func:`save_particles`, ``.npz``):
     sim_from_world   [4, 4] float64  x_sim = s * x_world + t
     gaussian_index   [G']   int64    indices of the kept Gaussians in the source .ply
     n_gaussians      []     int64    Gaussians in the source .ply
-    spacing          []     float64  lattice spacing [sim m]
+    spacing          []     float64  lattice spacing used [sim m]
 """
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ class ParticleConfig:
 
     opacity_threshold: float = 0.02  # keep Gaussians with sigmoid(opacity) > this [1]
     spacing: float = 0.008  # particle lattice spacing [sim m]; paper ~0.008, CI ~0.03
+    target_count: int = 0  # > 0: each object's own spacing, (volume / target_count)^(1/3), so every
+    # object gets ~this many particles whatever its size; 0: the lattice at ``spacing`` [count]
     margin: float = 0.25  # min gap between the object's bounding box and the side walls [sim m]
     placement: str = "floor"  # "floor": rest floor_gap above y = 0; "centre": centre in the cube
     floor_gap: float = 0.05  # lowest point's height above the floor when placement = floor [sim m]
@@ -67,7 +70,7 @@ class ParticleConfig:
 
     def __post_init__(self) -> None:
         checks = {"placement": self.placement in ("floor", "centre"), "unbound": self.unbound in ("nearest", "extra"),
-                  "spacing": self.spacing > 0, "margin": 0 <= self.margin < 0.5,
+                  "spacing": self.spacing > 0, "target_count": self.target_count >= 0, "margin": 0 <= self.margin < 0.5,
                   "max_bound": 1 <= self.max_bound <= self.n_candidates, "mahalanobis_chi2": self.mahalanobis_chi2 > 0}
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -317,11 +320,16 @@ def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None
     s = T[0, 0]
     means, R, sigmas = apply_affine(T, kept.means), quats_to_rotmats(normalized_quats(kept)), scales(kept) * s
     if mesh is not None:
-        x, volume = sample_mesh_interior(mesh, T, cfg.spacing), float(mesh.volume) * s**3
-    else:
+        volume = float(mesh.volume) * s**3
+        h = lattice_spacing(cfg, volume)
+        x = sample_mesh_interior(mesh, T, h)
+    else:  # the volume comes from the field sampled at ``spacing``; resampled at the object's own spacing
         x, volume = sample_gaussian_interior(means, R, sigmas, opacities(kept), cfg)
+        h = lattice_spacing(cfg, volume)
+        if h != cfg.spacing:
+            x, volume = sample_gaussian_interior(means, R, sigmas, opacities(kept), dataclasses.replace(cfg, spacing=h))
     if len(x) == 0:
-        raise ValueError(f"gca/assets/particles.py: no lattice point inside the object: spacing {cfg.spacing} "
+        raise ValueError(f"gca/assets/particles.py: no lattice point inside the object: spacing {h:.4g} "
                          f"is too coarse for its size {(hi - lo).max() * s:.3g} (sim m)")
     rows, cols, weights, unbound = bind_gaussians(means, R, sigmas, x, cfg)
     if cfg.unbound == "extra" and unbound.any():
@@ -331,7 +339,18 @@ def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None
     return Particles(x=x.astype(np.float32), vol=vol.astype(np.float32), mass=(density * vol).astype(np.float32),
                      binding_rows=rows.astype(np.int64), binding_cols=cols.astype(np.int64),
                      binding_weights=weights.astype(np.float32), sim_from_world=T, gaussian_index=keep.astype(np.int64),
-                     n_gaussians=cloud.n, spacing=float(cfg.spacing))
+                     n_gaussians=cloud.n, spacing=float(h))
+
+
+def lattice_spacing(cfg: ParticleConfig, volume: float) -> float:
+    """The lattice spacing [sim m] for an object of ``volume`` [sim m^3]: ``cfg.spacing``, or with a
+    ``target_count`` N the spacing whose cubic cells tile the volume N times, (volume / N)^(1/3)."""
+    if cfg.target_count <= 0:
+        return cfg.spacing
+    if not volume > 0:
+        raise ValueError(f"gca/assets/particles.py: object volume {volume} sim m^3: cannot size a lattice for "
+                         f"target_count {cfg.target_count}")
+    return float((volume / cfg.target_count) ** (1.0 / 3.0))
 
 
 # ----------------------------------------------------------------------------- files
