@@ -1,6 +1,7 @@
 """Methods registry: every paper table row has a method, and every method runs one training iteration."""
 
 import dataclasses
+import math
 import sys
 from pathlib import Path
 
@@ -65,7 +66,8 @@ def _data(scene, method) -> TrainData:
 @pytest.mark.parametrize("name", sorted(METHODS))
 def test_every_method_runs_one_iteration(scene, name):
     method = get_method(name)
-    cfg = TrainConfig(iterations=1, curriculum_start=1.0, lr_elasticity=1e-2, lr_plasticity=1e-3, lr_explicit=1e-2)
+    cfg = TrainConfig(iterations=1, curriculum_start=1.0, lr_elasticity=1e-2, lr_plasticity=1e-3, lr_explicit=1e-2,
+                      keep="last")  # the step itself is under test, not which law is kept
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
                     cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
     before = [p.detach().clone() for p in law.trainable()]
@@ -220,12 +222,59 @@ def _diverging_simulate(monkeypatch, fail_calls, error=None):
 def _neuma_run(scene, checkpoint_path=None, **cfg_kw):
     """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``)."""
     method = get_method("neuma")
-    cfg = TrainConfig(curriculum_start=1.0, **cfg_kw)
+    cfg = TrainConfig(curriculum_start=1.0, **{"keep": "last", **cfg_kw})
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())
     return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg,
                                checkpoint_path=checkpoint_path))
+
+
+def test_keep_best_returns_the_law_of_lowest_training_loss(scene):
+    """keep="best": the run returns the law whose full-video training loss was lowest among the
+    iterates and the final law (evaluated once more); its loss evaluated again is the one recorded."""
+    import gca.train.loop as loop
+    law, run = _neuma_run(scene, iterations=3, keep="best")
+    result = run()
+    sel = result.selected
+    candidates = {h["iteration"]: h["loss"] for h in result.history} | {3: sel["final_loss"]}
+    assert sel["rule"] == "best" and sel["loss"] == min(candidates.values())
+    assert candidates[sel["iteration"]] == sel["loss"]
+    data = _data(scene, get_method("neuma"))
+    objective = Objective(get_method("neuma"), data, TrainConfig(curriculum_start=1.0), RDGAConfig(r=5, k=5),
+                          CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    rec = loop._gradient(tiny_solver(), law, data, objective, TrainConfig(), len(data.video_frames))
+    assert rec["loss"] == pytest.approx(sel["loss"], rel=1e-5)
+
+
+def test_keep_best_takes_back_a_final_update_that_made_things_worse(scene, monkeypatch):
+    """The final law's loss is worse than an earlier iterate's: that earlier law is restored exactly;
+    a final rollout that diverges also falls back to it."""
+    import gca.train.loop as loop
+    for final in (1e9, "diverge"):
+        law, run = _neuma_run(scene, iterations=2, keep="best")
+        seen = []
+        real = loop._gradient
+
+        def gradient(*args, **kw):
+            rec = real(*args, **kw)
+            seen.append([p.detach().clone() for p in law.trainable()])
+            if len(seen) == 3:  # the final evaluation, after both updates
+                if final == "diverge":
+                    raise FloatingPointError("planted: the final rollout diverged")
+                rec["loss"] = final
+            return rec
+
+        monkeypatch.setattr(loop, "_gradient", gradient)
+        result = run()
+        monkeypatch.setattr(loop, "_gradient", real)
+        first, second = result.history[0]["loss"], result.history[1]["loss"]
+        expect = 0 if first <= second else 1
+        assert result.selected["iteration"] == expect and result.selected["final_loss"] == pytest.approx(
+            math.inf if final == "diverge" else final)
+        for p, saved in zip(law.trainable(), seen[expect]):
+            assert torch.equal(p.detach(), saved)
+        assert all(p.grad is None for p in law.trainable())
 
 
 @pytest.mark.parametrize("error", ["SimulationDiverged", "CFLError"])
@@ -295,7 +344,7 @@ def test_prior_gradient_is_capped_only_when_it_dominates():
 
 def _gca_step(scene, method_name="gca", **cpr_kw):
     method = get_method(method_name)
-    cfg = TrainConfig(iterations=1, curriculum_start=1.0)
+    cfg = TrainConfig(iterations=1, curriculum_start=1.0, keep="last")
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
                     cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
     before = [p.detach().clone() for p in law.trainable()]

@@ -28,6 +28,9 @@ class TrainConfig:
             smaller learning rate, in a row, before the run is declared diverged (0: the first
             divergence ends the run).
         backtrack_factor: learning-rate multiplier applied at each rejected update (for the rest of the run).
+        keep: which law the run returns: "best", the one with the lowest training loss over the whole
+            video among those evaluated (the final law is evaluated once more for it), or "last", the
+            final iterate. Selection uses the training objective only, never the ground truth.
     """
 
     iterations: int = 200
@@ -46,8 +49,11 @@ class TrainConfig:
     seed: int = 0
     max_rejections: int = 3
     backtrack_factor: float = 0.5
+    keep: str = "best"
 
     def __post_init__(self):
+        if self.keep not in ("best", "last"):
+            raise ValueError(f"train.keep must be 'best' or 'last', got {self.keep!r}")
         if self.max_rejections < 0:
             raise ValueError(f"train.max_rejections must be >= 0, got {self.max_rejections}")
         if not 0.0 < self.backtrack_factor < 1.0:

@@ -87,6 +87,7 @@ class TrainResult:
     message: str = ""
     seconds: float = 0.0
     rejected: list[dict] = dataclasses.field(default_factory=list)  # {"iteration", "message", "lr_scale"}
+    selected: dict = dataclasses.field(default_factory=dict)  # which law was kept (:class:`_Best`)
 
 
 def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
@@ -389,20 +390,22 @@ class _Undo:
         sched._apply()
 
 
-def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list) -> None:
+def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list,
+                     best: _Best) -> None:
     from gca.io import atomic_path
     with atomic_path(path) as tmp:
         torch.save({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                    "iteration": it, "history": history, "rejected": rejected}, tmp)
+                    "iteration": it, "history": history, "rejected": rejected, "best": best.state()}, tmp)
 
 
-def _resume(path: Path | None, law: LearnedLaw, opt, sched) -> tuple[int, list, list]:
+def _resume(path: Path | None, law: LearnedLaw, opt, sched, best: _Best) -> tuple[int, list, list]:
     if path is None or not path.is_file():
         return 0, [], []
     ckpt = torch.load(path, weights_only=False)
     law.load_state(ckpt["law"])
     opt.load_state_dict(ckpt["opt"])
     sched.load_state_dict(ckpt["sched"])
+    best.load(ckpt.get("best"))
     return int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", []))
 
 
@@ -413,7 +416,8 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
     if not law.trainable():
         return TrainResult("ok", 0, [], "nothing to train", 0.0)
     opt, sched = _optimizer(law, cfg)
-    it0, history, rejected = _resume(checkpoint_path, law, opt, sched)
+    best = _Best()
+    it0, history, rejected = _resume(checkpoint_path, law, opt, sched, best)
     n_video = len(data.video_frames)
     undo, in_a_row = None, 0  # the last update (none yet after a resume: it is not in the checkpoint)
     bar = tqdm(total=cfg.iterations, desc="train", unit="it", initial=it0)
@@ -437,6 +441,8 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
             bar.set_postfix(rejected=len(rejected))
             continue
         in_a_row = 0
+        if record["horizon"] == n_video:
+            best.offer(law, record["loss"], it)
         undo = _Undo(law, opt, sched)
         t0 = time.perf_counter()
         opt.step()
@@ -450,9 +456,52 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
         it += 1
         bar.update(1)
         if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations):
-            _save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected)
+            _save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best)
     bar.close()
-    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start, rejected)
+    selected = _select(best, solver, law, data, objective, cfg, n_video) if cfg.keep == "best" else {"rule": "last"}
+    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start, rejected, selected)
+
+
+class _Best:
+    """The law with the lowest training loss over the whole video so far: its trainable parameters,
+    loss and iteration (the loss of iteration ``it`` is that of the law *before* update ``it``)."""
+
+    def __init__(self):
+        self.loss, self.iteration, self.params = math.inf, None, None
+
+    def offer(self, law: LearnedLaw, loss: float, it: int) -> None:
+        if loss < self.loss:
+            self.loss, self.iteration = loss, it
+            self.params = [p.detach().clone() for p in law.trainable()]
+
+    def restore(self, law: LearnedLaw) -> None:
+        with torch.no_grad():
+            for p, saved in zip(law.trainable(), self.params):
+                p.copy_(saved)
+
+    def state(self) -> dict:
+        return {"loss": self.loss, "iteration": self.iteration, "params": self.params}
+
+    def load(self, state: dict | None) -> None:
+        if state:
+            self.loss, self.iteration, self.params = float(state["loss"]), state["iteration"], state["params"]
+
+
+def _select(best: _Best, solver, law, data, objective, cfg, n_video: int) -> dict:
+    """Keep the best law seen: the final law (never evaluated during the loop: its loss comes after the
+    last update) is evaluated once over the whole video, and replaced by the best earlier one when that
+    one's loss is lower (or the final rollout diverges)."""
+    try:
+        final = _gradient(solver, law, data, objective, cfg, n_video)["loss"]
+    except DIVERGENCE_ERRORS:
+        final = math.inf
+    for p in law.trainable():
+        p.grad = None
+    out = {"rule": "best", "final_loss": final, "best_earlier_loss": best.loss, "best_earlier_iteration": best.iteration}
+    if best.params is not None and best.loss < final:
+        best.restore(law)
+        return {**out, "iteration": best.iteration, "loss": best.loss}
+    return {**out, "iteration": cfg.iterations, "loss": final}
 
 
 class PhaseTimer:

@@ -139,7 +139,8 @@ def train_method(params: Mapping, scene_name: str, method: Method, inputs: Scene
     summary = {"scene": scene_name, "method": method.name, "status": result.status, "message": result.message,
                "iterations": result.iterations, "train_seconds": cost.wall_s, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
-               "rejected_updates": result.rejected, "last": result.history[-1] if result.history else {}}
+               "rejected_updates": result.rejected, "selected": result.selected,
+               "last": result.history[-1] if result.history else {}}
     write_json(out_dir / "train.json", summary)
     _plot_history(result.history, out_dir / "loss.png", f"{scene_name} / {method.name}")
     return summary
