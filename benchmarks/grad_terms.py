@@ -16,11 +16,19 @@ For each term: the gradient norm over the LoRA parameters and its cosine with th
 with a large norm and a cosine near 0 (or negative) steers the law away from the truth. The launch
 velocity is the scene's true (v0, w0) unless ``--velocity`` names a ``velocity.json``, so the law is
 the only unknown.
+
+``--path K`` adds each image term's *value* along the straight line in state space from the law's
+rollout (alpha = 0) to the ground-truth trajectory (alpha = 1), K + 1 points: particle positions
+x(alpha) = (1 - alpha) x_law + alpha x_gt, deformation gradients the law's (the truth's are not stored).
+A term whose value does not fall towards alpha = 1 does not have the truth at its minimum, whatever its
+gradient; one that falls there but whose gradient opposes the oracle's is misled by the rollout's
+nonlinearity, not by its definition.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -110,6 +118,37 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_vid
     return rows
 
 
+def path_values(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
+                law_path: Path | None, device: str, n_steps: int) -> list[dict]:
+    """Each image term's value at ``n_steps + 1`` states between the law's rollout and the truth."""
+    scene = scene_config(params, scene_name)
+    gca = get_method("gca")
+    data = load_train_data(params, inputs, gca, velocity, video_config(params).background, device)
+    law = law_for(params, gca, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
+    if law_path is not None:
+        load_law(law_path, law, scene.prior)
+    with torch.no_grad():
+        traj = simulate(solver_for(params, scene, device), law, data, n_video)
+    gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=traj.x.dtype, device=device)
+    frames = data.video_frames[:n_video]
+    scene_params = config.section(params, f"scenes.{scene_name}")
+    objectives = {name: objective_for(params, TERMS[name], data, scene_params) for name in terms if name != "cpr"}
+    rows = []
+    for i in range(n_steps + 1):
+        alpha = i / n_steps
+        x = traj.x.clone()
+        x[frames] = (1.0 - alpha) * traj.x[frames] + alpha * gt[1:n_video + 1]
+        state = dataclasses.replace(traj, x=x)
+        row = {"alpha": alpha, "rmse_m": float((x[frames] - gt[1:n_video + 1]).square().sum(-1).mean().sqrt())}
+        with torch.no_grad():
+            for name, objective in objectives.items():
+                row[name] = float(objective.data_loss(state, n_video)[0])
+        rows.append(row)
+        print("  alpha {alpha:.2f} rmse {rmse_m:.4f} m  ".format(**row)
+              + "  ".join(f"{k} {row[k]:.4g}" for k in objectives), flush=True)
+    return rows
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True)
@@ -124,6 +163,9 @@ def main(argv=None) -> list[dict]:
                     help="also GCA with CPR's gradient capped at these multiples of the data terms' (align.cpr.max_grad_ratio)")
     ap.add_argument("--profile", help="paper | ci (default: the params file's)")
     ap.add_argument("--device", default=default_device())
+    ap.add_argument("--path", type=int, default=0, metavar="K",
+                    help="also each image term's value at K + 1 states from the law's rollout to the truth")
+    ap.add_argument("--no-gradients", action="store_true", help="with --path: only the values along the path")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     tree = apply_overrides(config.read_yaml(args.work / "params.yaml"), args.set)
@@ -135,10 +177,14 @@ def main(argv=None) -> list[dict]:
     out = []
     for n in args.horizon:
         print(f"{args.scene}: horizon {n} video frames ({params['profile']} profile)", flush=True)
-        rows = term_gradients(params, args.scene, inputs, velocity, n, args.terms, args.law, args.device,
-                              args.ratio)
+        rows = [] if args.no_gradients else term_gradients(params, args.scene, inputs, velocity, n, args.terms,
+                                                           args.law, args.device, args.ratio)
         out.append({"scene": args.scene, "horizon": n, "profile": params["profile"], "set": args.set,
                     "law": str(args.law) if args.law else "prior", "rows": rows})
+        if args.path:
+            print(f"{args.scene}: term values from the law's rollout (alpha 0) to the truth (alpha 1)", flush=True)
+            out[-1]["path"] = path_values(params, args.scene, inputs, velocity, n, args.terms, args.law,
+                                          args.device, args.path)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=1))
