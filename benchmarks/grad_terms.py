@@ -64,15 +64,21 @@ def oracle_loss(traj, gt: torch.Tensor, video_frames: list[int], n_video: int) -
     return (pred - gt[1:n_video + 1]).square().sum(-1).mean()
 
 
-def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
-                   law_path: Path | None, device: str, ratios: list[float] = ()) -> list[dict]:
-    """One row per term: loss, gradient norm, cosine with the oracle gradient."""
+def _scene_and_law(params, scene_name: str, inputs: SceneInputs, velocity, law_path: Path | None, device: str):
+    """The scene's config, its training data (GCA's view of it) and the law: the prior or ``law_path``."""
     scene = scene_config(params, scene_name)
     gca = get_method("gca")
     data = load_train_data(params, inputs, gca, velocity, video_config(params).background, device)
     law = law_for(params, gca, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
     if law_path is not None:
         load_law(law_path, law, scene.prior)
+    return scene, data, law
+
+
+def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
+                   law_path: Path | None, device: str, ratios: list[float] = ()) -> list[dict]:
+    """One row per term: loss, gradient norm, cosine with the oracle gradient."""
+    scene, data, law = _scene_and_law(params, scene_name, inputs, velocity, law_path, device)
     solver = solver_for(params, scene, device)
     theta = law.trainable()
     gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=data.body.x0.dtype, device=device)
@@ -121,12 +127,7 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_vid
 def path_values(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
                 law_path: Path | None, device: str, n_steps: int) -> list[dict]:
     """Each image term's value at ``n_steps + 1`` states between the law's rollout and the truth."""
-    scene = scene_config(params, scene_name)
-    gca = get_method("gca")
-    data = load_train_data(params, inputs, gca, velocity, video_config(params).background, device)
-    law = law_for(params, gca, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
-    if law_path is not None:
-        load_law(law_path, law, scene.prior)
+    scene, data, law = _scene_and_law(params, scene_name, inputs, velocity, law_path, device)
     with torch.no_grad():
         traj = simulate(solver_for(params, scene, device), law, data, n_video)
     gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=traj.x.dtype, device=device)
