@@ -29,6 +29,7 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tarfile
@@ -266,12 +267,15 @@ class Scheduler:
         self.state[name] = "running"
         self.log(f"start {name} on gpu {gpu}")
 
-    def _reap(self) -> None:
+    def _reap(self, stopped: set[str] = frozenset()) -> None:
+        """Record the jobs that ended (done or failed); the ``stopped`` ones are only removed."""
         for name, (proc, gpu, t0) in list(self.running.items()):
             rc = proc.poll()
             if rc is None:
                 continue
             del self.running[name]
+            if name in stopped:
+                continue
             self.places.append(gpu)
             took = time.monotonic() - t0
             if rc == 0:
@@ -291,17 +295,21 @@ class Scheduler:
         return time.monotonic() + need < self.deadline
 
     def _stop_at_deadline(self) -> None:
-        """Stop every running job (SIGTERM, SIGKILL after ``STOP_GRACE_S``); they stay to do."""
+        """Stop every running job (SIGTERM, SIGKILL after ``STOP_GRACE_S``): a stopped job stays to do; one
+        that ended on its own meanwhile counts as done or failed by its exit status."""
+        self._reap()
         for proc, _, _ in self.running.values():
             proc.terminate()
         t_end = time.monotonic() + STOP_GRACE_S
-        for name, (proc, gpu, t0) in list(self.running.items()):
+        for name, (proc, _, _) in list(self.running.items()):
             try:
                 proc.wait(timeout=max(0.1, t_end - time.monotonic()))
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-            del self.running[name]
+        stopped = {n: r for n, r in self.running.items() if r[0].returncode in (-signal.SIGTERM, -signal.SIGKILL)}
+        self._reap(stopped=set(stopped))
+        for name, (proc, gpu, t0) in stopped.items():
             self.places.append(gpu)
             self.state[name] = "todo"
             self.log(f"stop  {name} at the deadline after {time.monotonic() - t0:.0f} s (resumes next time)")

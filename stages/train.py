@@ -6,6 +6,7 @@
 
 ``--velocity`` reuses a launch velocity estimated by an earlier run of this stage on the same scene
 (several processes training one scene's methods in parallel share one estimate: benchmarks/grid.py).
+A run resuming from a checkpoint under ``--out`` reuses ``--out``/velocity.json the same way.
 
 One MLflow run per (scene, method, seed), in the experiment of the method's first paper table.
 """
@@ -28,6 +29,9 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     params, scene, methods, inputs = scene_context("train", args)
     args.out.mkdir(parents=True, exist_ok=True)
+    resuming = any(args.out.glob("*/checkpoint.pt"))  # an interrupted run (e.g. grid.py --deadline) goes on
+    if args.velocity is None and resuming and (args.out / "velocity.json").is_file():
+        args.velocity = args.out / "velocity.json"  # with the launch velocity its first iterations used
     if args.velocity is None:
         with stage_run("train", params, scene=args.scene, method="velocity") as run:
             velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json", args.device)

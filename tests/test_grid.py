@@ -3,6 +3,7 @@
 import argparse
 import sys
 import tarfile
+import time
 from pathlib import Path
 
 import pytest
@@ -108,6 +109,24 @@ def test_deadline_stops_running_jobs_and_the_next_command_resumes(tmp_path, monk
     assert 1 <= stopped_at < 6 and not (tmp_path / ".grid" / f"{job.name}.done").exists()
     assert grid.Scheduler({job.name: job}, tmp_path, 1, 1, None, lines.append).run() == {job.name: "done"}
     assert (tmp_path / "ckpt").read_text() == "6"
+
+
+def test_deadline_counts_jobs_that_ended_on_their_own_by_exit_status(tmp_path):
+    """At the deadline a job that already exited is done (exit 0) or failed (else), never 'stopped'."""
+    (tmp_path / ".grid").mkdir()
+    jobs = {"train@s:ok": _fake("train@s:ok", "pass"), "train@s:bad": _fake("train@s:bad", "raise SystemExit(3)"),
+            "train@s:slow": _fake("train@s:slow", "import time; time.sleep(60)")}
+    lines = []
+    sched = grid.Scheduler(jobs, tmp_path, 1, 3, deadline=None, log=lines.append)
+    for name in jobs:
+        sched.places.remove(0)
+        sched._launch(name, 0)
+    time.sleep(2.0)  # the quick ones end; nothing reaped them yet
+    sched._stop_at_deadline()
+    assert sched.state == {"train@s:ok": "done", "train@s:bad": "failed", "train@s:slow": "todo"}
+    assert sched.places == [0, 0, 0] and not sched.running
+    assert (tmp_path / ".grid" / "train@s:ok.done").is_file()
+    assert sum(line.startswith("stop  ") for line in lines) == 1
 
 
 def test_collect_keeps_the_small_results(tmp_path):

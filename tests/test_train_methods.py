@@ -114,6 +114,8 @@ def test_training_resumes_from_its_checkpoint(scene, tmp_path):
     assert ckpt.is_file() and [h["iteration"] for h in first.history] == [0, 1]
     law3, resumed = run(3)
     assert [h["iteration"] for h in resumed.history] == [0, 1, 2]  # the first two came from the checkpoint
+    assert first.resumed_at == 0 and first.seconds_before == 0.0
+    assert resumed.resumed_at == 2 and 0 < resumed.seconds_before <= first.seconds  # the first run's time, carried
     assert resumed.history[:2] == first.history
     moved = [not torch.equal(a, b) for a, b in zip(law2.state().values(), law3.state().values())]
     assert any(moved), "the resumed run should have taken one more optimiser step"
@@ -310,6 +312,20 @@ def test_divergence_after_max_rejections_ends_the_run_with_the_last_finite_law(s
     assert [h["iteration"] for h in result.history] == [0]
     for p, p0 in zip(law.trainable(), seen[0]):  # the law whose rollout was finite, not the last attempt
         torch.testing.assert_close(p.detach(), p0, rtol=0, atol=0)
+
+
+def test_a_diverged_run_keeps_its_best_law(scene, monkeypatch):
+    """keep="best" and the run diverges at iteration 2 for good: the law of lowest loss among the
+    iterates 0 and 1 is returned, not merely the last finite one."""
+    law, run = _neuma_run(scene, iterations=4, max_rejections=0, keep="best")
+    seen = _diverging_simulate(monkeypatch, fail_calls={2})
+    result = run()
+    assert result.status == "diverged" and [h["iteration"] for h in result.history] == [0, 1]
+    losses = [h["loss"] for h in result.history]
+    expect = losses.index(min(losses))
+    assert result.selected == {"rule": "best", "iteration": expect, "loss": losses[expect]}
+    for p, saved in zip(law.trainable(), seen[expect]):
+        assert torch.equal(p.detach(), saved)
 
 
 def test_divergence_of_the_prior_itself_is_not_retried(scene, monkeypatch):

@@ -88,6 +88,8 @@ class TrainResult:
     seconds: float = 0.0
     rejected: list[dict] = dataclasses.field(default_factory=list)  # {"iteration", "message", "lr_scale"}
     selected: dict = dataclasses.field(default_factory=dict)  # which law was kept (:class:`_Best`)
+    resumed_at: int = 0  # the iteration this process resumed from (0: a fresh run)
+    seconds_before: float = 0.0  # training time of the earlier processes of a resumed run [s]
 
 
 def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
@@ -391,22 +393,25 @@ class _Undo:
 
 
 def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list,
-                     best: _Best) -> None:
+                     best: _Best, seconds: float) -> None:
     from gca.io import atomic_path
     with atomic_path(path) as tmp:
-        torch.save({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                    "iteration": it, "history": history, "rejected": rejected, "best": best.state()}, tmp)
+        torch.save({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(), "iteration": it,
+                    "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds}, tmp)
 
 
-def _resume(path: Path | None, law: LearnedLaw, opt, sched, best: _Best) -> tuple[int, list, list]:
+def _resume(path: Path | None, law: LearnedLaw, opt, sched, best: _Best) -> tuple[int, list, list, float]:
+    """Load a checkpoint into the law, optimiser, schedule and best-law tracker; returns
+    ``(iteration, history, rejected updates, training seconds spent before it)``."""
     if path is None or not path.is_file():
-        return 0, [], []
-    ckpt = torch.load(path, weights_only=False)
+        return 0, [], [], 0.0
+    ckpt = torch.load(path, weights_only=False, map_location=law.trainable()[0].device)
     law.load_state(ckpt["law"])
     opt.load_state_dict(ckpt["opt"])
     sched.load_state_dict(ckpt["sched"])
     best.load(ckpt.get("best"))
-    return int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", []))
+    return (int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", [])),
+            float(ckpt.get("seconds", 0.0)))
 
 
 def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
@@ -417,7 +422,8 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
         return TrainResult("ok", 0, [], "nothing to train", 0.0)
     opt, sched = _optimizer(law, cfg)
     best = _Best()
-    it0, history, rejected = _resume(checkpoint_path, law, opt, sched, best)
+    it0, history, rejected, seconds_before = _resume(checkpoint_path, law, opt, sched, best)
+    resumed = {"resumed_at": it0, "seconds_before": seconds_before}
     n_video = len(data.video_frames)
     undo, in_a_row = None, 0  # the last update (none yet after a resume: it is not in the checkpoint)
     bar = tqdm(total=cfg.iterations, desc="train", unit="it", initial=it0)
@@ -431,9 +437,13 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
                 why = "before any update" if undo is None else f"after {in_a_row} rejected updates in a row"
                 if undo is not None:  # keep the last law whose rollout was finite
                     undo.restore(law, opt)
+                selected = {"rule": "last finite"}
+                if cfg.keep == "best" and best.params is not None:  # its loss is <= the last finite law's
+                    best.restore(law)
+                    selected = {"rule": "best", "iteration": best.iteration, "loss": best.loss}
                 bar.close()
                 return TrainResult("diverged", it, history, f"{message} ({why})", time.perf_counter() - start,
-                                   rejected)
+                                   rejected, selected, **resumed)
             sched.shrink()
             undo.retake(law, opt, sched)
             in_a_row += 1
@@ -456,10 +466,12 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
         it += 1
         bar.update(1)
         if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations):
-            _save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best)
+            _save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
+                             seconds_before + time.perf_counter() - start)
     bar.close()
-    selected = _select(best, solver, law, data, objective, cfg, n_video) if cfg.keep == "best" else {"rule": "last"}
-    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start, rejected, selected)
+    selected = (_select(best, undo, solver, law, data, objective, cfg, n_video, history, opt) if cfg.keep == "best"
+                else {"rule": "last"})
+    return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start, rejected, selected, **resumed)
 
 
 class _Best:
@@ -475,8 +487,12 @@ class _Best:
             self.params = [p.detach().clone() for p in law.trainable()]
 
     def restore(self, law: LearnedLaw) -> None:
+        params = law.trainable()
+        if len(params) != len(self.params):
+            raise ValueError(f"gca/train/loop.py: the best law has {len(self.params)} parameter tensors, "
+                             f"the law {len(params)} (a checkpoint of another method?)")
         with torch.no_grad():
-            for p, saved in zip(law.trainable(), self.params):
+            for p, saved in zip(params, self.params):
                 p.copy_(saved)
 
     def state(self) -> dict:
@@ -487,10 +503,11 @@ class _Best:
             self.loss, self.iteration, self.params = float(state["loss"]), state["iteration"], state["params"]
 
 
-def _select(best: _Best, solver, law, data, objective, cfg, n_video: int) -> dict:
+def _select(best: _Best, undo, solver, law, data, objective, cfg, n_video: int, history: list, opt) -> dict:
     """Keep the best law seen: the final law (never evaluated during the loop: its loss comes after the
     last update) is evaluated once over the whole video, and replaced by the best earlier one when that
-    one's loss is lower (or the final rollout diverges)."""
+    one's loss is lower or the final rollout diverges (with no earlier full-video loss to compare with,
+    a diverging final law is replaced by the law before the last update)."""
     try:
         final = _gradient(solver, law, data, objective, cfg, n_video)["loss"]
     except DIVERGENCE_ERRORS:
@@ -501,6 +518,12 @@ def _select(best: _Best, solver, law, data, objective, cfg, n_video: int) -> dic
     if best.params is not None and best.loss < final:
         best.restore(law)
         return {**out, "iteration": best.iteration, "loss": best.loss}
+    if math.isinf(final) and undo is not None:
+        undo.restore(law, opt)
+        for p in law.trainable():
+            p.grad = None
+        return {**out, "iteration": cfg.iterations - 1, "loss": history[-1]["loss"],
+                "note": "the final law diverged; the law before the last update is kept"}
     return {**out, "iteration": cfg.iterations, "loss": final}
 
 

@@ -136,8 +136,10 @@ def train_method(params: Mapping, scene_name: str, method: Method, inputs: Scene
     save_law(out_dir / "law.pt", law, scene.prior, {"method": method.name, "scene": scene_name})
     write_json(out_dir / "history.json", {"history": result.history})
     (out_dir / "checkpoint.pt").unlink(missing_ok=True)
+    # a resumed run's time includes its earlier processes' (from the checkpoint); its peak is this process's
     summary = {"scene": scene_name, "method": method.name, "status": result.status, "message": result.message,
-               "iterations": result.iterations, "train_seconds": cost.wall_s, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
+               "iterations": result.iterations, "train_seconds": cost.wall_s + result.seconds_before,
+               "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
                "rejected_updates": result.rejected, "selected": result.selected,
                "last": result.history[-1] if result.history else {}}
