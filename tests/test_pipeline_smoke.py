@@ -122,3 +122,34 @@ def test_training_wrote_history_and_adapters(pipeline):
         train = json.loads((run / method / "train.json").read_text())
         assert train["status"] in ("ok", "diverged")
         assert (run / method / "law.pt").is_file() and not (run / method / "checkpoint.pt").exists()
+
+
+def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch):
+    """A train stage re-run where a method left a checkpoint (stopped by grid.py's deadline) does not
+    estimate the launch velocity again: its first iterations used the one in velocity.json."""
+    import shutil
+    import train
+
+    out = tmp_path / "runs"
+    shutil.copytree(pipeline / "runs" / SCENE, out)
+    (out / "neuma" / "checkpoint.pt").write_bytes(b"")  # the marker of an interrupted run (train_method is stubbed)
+    saved = json.loads((out / "velocity.json").read_text())
+
+    def no_estimate(*a, **k):
+        raise AssertionError("the launch velocity was estimated again")
+
+    used = []
+    monkeypatch.setattr(train, "estimate_scene_velocity", no_estimate)
+    monkeypatch.setattr(train, "train_method", lambda params, scene, method, inputs, velocity, *a: used.append(velocity)
+                        or {"status": "ok", "train_seconds": 0.0})
+    params = str(pipeline / "params.yaml")
+    d = lambda *p: str(pipeline.joinpath(*p))  # noqa: E731
+    train.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
+                "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
+                "--params", params, "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
+    assert used and [list(v) for v in used[0]] == [saved["v0"], saved["w0"]]
+    (out / "neuma" / "checkpoint.pt").unlink()  # no checkpoint: a fresh run estimates it
+    with pytest.raises(AssertionError, match="estimated again"):
+        train.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
+                    "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
+                    "--params", params, "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
