@@ -412,7 +412,10 @@ def main(argv=None) -> dict[str, str]:
     t0 = time.monotonic()
     state = scheduler.run()
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
-    log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("" if counts["todo"] else "; nothing left to run"))
+    log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
+                                                            else "; nothing left to run"))
+    if counts["todo"] and args.deadline is not None and args.deadline < RESUMABLE_MIN_S:
+        log(f"--deadline {args.deadline:g} s is under {RESUMABLE_MIN_S:g} s: no training job will ever be launched")
     for name in sorted(state):
         if state[name] != "done":
             log(f"  {state[name]:>8}  {name}")
