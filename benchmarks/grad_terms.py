@@ -75,10 +75,11 @@ def _scene_and_law(params, scene_name: str, inputs: SceneInputs, velocity, law_p
     return scene, data, law
 
 
-def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
-                   law_path: Path | None, device: str, ratios: list[float] = ()) -> list[dict]:
-    """One row per term: loss, gradient norm, cosine with the oracle gradient."""
-    scene, data, law = _scene_and_law(params, scene_name, inputs, velocity, law_path, device)
+def term_gradients(params, scene_name: str, inputs: SceneInputs, loaded, n_video: int, terms: list[str],
+                   device: str, ratios: list[float] = ()) -> list[dict]:
+    """One row per term: loss, gradient norm, cosine with the oracle gradient. ``loaded``: the
+    ``(scene, data, law)`` of :func:`_scene_and_law`."""
+    scene, data, law = loaded
     solver = solver_for(params, scene, device)
     theta = law.trainable()
     gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=data.body.x0.dtype, device=device)
@@ -124,10 +125,11 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, velocity, n_vid
     return rows
 
 
-def path_values(params, scene_name: str, inputs: SceneInputs, velocity, n_video: int, terms: list[str],
-                law_path: Path | None, device: str, n_steps: int) -> list[dict]:
-    """Each image term's value at ``n_steps + 1`` states between the law's rollout and the truth."""
-    scene, data, law = _scene_and_law(params, scene_name, inputs, velocity, law_path, device)
+def path_values(params, scene_name: str, inputs: SceneInputs, loaded, n_video: int, terms: list[str],
+                device: str, n_steps: int) -> list[dict]:
+    """Each image term's value at ``n_steps + 1`` states between the law's rollout and the truth.
+    ``loaded``: the ``(scene, data, law)`` of :func:`_scene_and_law`."""
+    scene, data, law = loaded
     with torch.no_grad():
         traj = simulate(solver_for(params, scene, device), law, data, n_video)
     gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=traj.x.dtype, device=device)
@@ -175,17 +177,17 @@ def main(argv=None) -> list[dict]:
     scene = scene_config(params, args.scene)
     inputs = scene_inputs(args.work, args.scene, params, args.prior_dir)
     velocity = read_velocity(args.velocity) if args.velocity else (list(scene.v0), list(scene.w0))
+    loaded = _scene_and_law(params, args.scene, inputs, velocity, args.law, args.device)
     out = []
     for n in args.horizon:
         print(f"{args.scene}: horizon {n} video frames ({params['profile']} profile)", flush=True)
-        rows = [] if args.no_gradients else term_gradients(params, args.scene, inputs, velocity, n, args.terms,
-                                                           args.law, args.device, args.ratio)
+        rows = [] if args.no_gradients else term_gradients(params, args.scene, inputs, loaded, n, args.terms,
+                                                           args.device, args.ratio)
         out.append({"scene": args.scene, "horizon": n, "profile": params["profile"], "set": args.set,
                     "law": str(args.law) if args.law else "prior", "rows": rows})
         if args.path:
             print(f"{args.scene}: term values from the law's rollout (alpha 0) to the truth (alpha 1)", flush=True)
-            out[-1]["path"] = path_values(params, args.scene, inputs, velocity, n, args.terms, args.law,
-                                          args.device, args.path)
+            out[-1]["path"] = path_values(params, args.scene, inputs, loaded, n, args.terms, args.device, args.path)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=1))

@@ -268,17 +268,18 @@ class Scheduler:
         self.log(f"start {name} on gpu {gpu}")
 
     def _reap(self, stopped: set[str] = frozenset()) -> None:
-        """Record the jobs that ended (done or failed); the ``stopped`` ones are only removed."""
+        """Record the jobs that ended: done, failed, or (``stopped`` at the deadline) to do again."""
         for name, (proc, gpu, t0) in list(self.running.items()):
             rc = proc.poll()
             if rc is None:
                 continue
             del self.running[name]
-            if name in stopped:
-                continue
             self.places.append(gpu)
             took = time.monotonic() - t0
-            if rc == 0:
+            if name in stopped:
+                self.state[name] = "todo"
+                self.log(f"stop  {name} at the deadline after {took:.0f} s (resumes next time)")
+            elif rc == 0:
                 self.state[name] = "done"
                 self._marker(name).write_text(f"{took:.1f}\n")
                 self.log(f"done  {name} in {took:.0f} s")
@@ -307,12 +308,8 @@ class Scheduler:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-        stopped = {n: r for n, r in self.running.items() if r[0].returncode in (-signal.SIGTERM, -signal.SIGKILL)}
-        self._reap(stopped=set(stopped))
-        for name, (proc, gpu, t0) in stopped.items():
-            self.places.append(gpu)
-            self.state[name] = "todo"
-            self.log(f"stop  {name} at the deadline after {time.monotonic() - t0:.0f} s (resumes next time)")
+        self._reap(stopped={n for n, (proc, _, _) in self.running.items()
+                            if proc.returncode in (-signal.SIGTERM, -signal.SIGKILL)})
 
     def run(self) -> dict[str, str]:
         while True:

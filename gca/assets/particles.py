@@ -8,9 +8,9 @@ Pipeline of :func:`convert` (facts from PhysGaussian and NeuMA, code our own):
    walls, resting ``floor_gap`` above the floor (``placement="floor"``) or centred;
 3. particles on a regular lattice of cell centres ``(i + 1/2) * spacing`` (sim units) inside the
    object (with ``target_count`` N, each object's own spacing (V / N)^(1/3) from its volume V, so
-   every object gets ~N particles whatever its size): ``mesh.contains`` when a mesh exists; otherwise the summed opacity field of the
-   Gaussians (covariances inflated by half a cell so thin surface sheets register) is thresholded,
-   closed and hole-filled (scipy.ndimage);
+   every object gets ~N particles whatever its size): ``mesh.contains`` when a mesh exists;
+   otherwise the summed opacity field of the Gaussians (covariances inflated by half a cell so thin
+   surface sheets register) is thresholded, closed and hole-filled (scipy.ndimage);
 4. volumes: uniform, total = mesh volume in sim units (mesh path) or the lattice estimate that
    counts the boundary layer by half (Gaussians-only path); masses = density * volume;
 5. binding (NeuMA's Particle-GS): Gaussian k binds to the particles p with Mahalanobis distance
@@ -324,10 +324,11 @@ def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None
         h = lattice_spacing(cfg, volume)
         x = sample_mesh_interior(mesh, T, h)
     else:  # the volume comes from the field sampled at ``spacing``; resampled at the object's own spacing
-        x, volume = sample_gaussian_interior(means, R, sigmas, opacities(kept), cfg)
+        alphas = opacities(kept)
+        x, volume = sample_gaussian_interior(means, R, sigmas, alphas, cfg)
         h = lattice_spacing(cfg, volume)
         if h != cfg.spacing:
-            x, volume = sample_gaussian_interior(means, R, sigmas, opacities(kept), dataclasses.replace(cfg, spacing=h))
+            x, volume = sample_gaussian_interior(means, R, sigmas, alphas, dataclasses.replace(cfg, spacing=h))
     if len(x) == 0:
         raise ValueError(f"gca/assets/particles.py: no lattice point inside the object: spacing {h:.4g} "
                          f"is too coarse for its size {(hi - lo).max() * s:.3g} (sim m)")

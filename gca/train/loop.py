@@ -512,19 +512,19 @@ def _select(best: _Best, undo, solver, law, data, objective, cfg, n_video: int, 
         final = _gradient(solver, law, data, objective, cfg, n_video)["loss"]
     except DIVERGENCE_ERRORS:
         final = math.inf
-    for p in law.trainable():
-        p.grad = None
-    out = {"rule": "best", "final_loss": final, "best_earlier_loss": best.loss, "best_earlier_iteration": best.iteration}
     if best.params is not None and best.loss < final:
         best.restore(law)
-        return {**out, "iteration": best.iteration, "loss": best.loss}
-    if math.isinf(final) and undo is not None:
+        kept = {"iteration": best.iteration, "loss": best.loss}
+    elif math.isinf(final) and undo is not None:
         undo.restore(law, opt)
-        for p in law.trainable():
-            p.grad = None
-        return {**out, "iteration": cfg.iterations - 1, "loss": history[-1]["loss"],
+        kept = {"iteration": cfg.iterations - 1, "loss": history[-1]["loss"],
                 "note": "the final law diverged; the law before the last update is kept"}
-    return {**out, "iteration": cfg.iterations, "loss": final}
+    else:
+        kept = {"iteration": cfg.iterations, "loss": final}
+    for p in law.trainable():  # the evaluation's (or the undone update's) gradient is not the kept law's
+        p.grad = None
+    return {"rule": "best", "final_loss": final, "best_earlier_loss": best.loss,
+            "best_earlier_iteration": best.iteration, **kept}
 
 
 class PhaseTimer:
