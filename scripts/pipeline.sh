@@ -11,6 +11,18 @@ if [ -z "${PROFILE:-}" ]; then
 fi
 # dvc exp run needs a git identity; use a local one when none is configured
 git config user.email >/dev/null || export GIT_AUTHOR_NAME=gca GIT_AUTHOR_EMAIL=gca@localhost GIT_COMMITTER_NAME=gca GIT_COMMITTER_EMAIL=gca@localhost
+# dvc exp run detaches HEAD while it runs and re-attaches it at the end; if it is interrupted (Ctrl-C, a
+# killed job) HEAD stays detached and later commits miss the branch. Re-attach it on any exit.
+branch=$(git symbolic-ref -q HEAD || true)
+start=$(git rev-parse -q --verify HEAD || true)
+reattach() {
+  if [ -n "$branch" ] && ! git symbolic-ref -q HEAD >/dev/null \
+     && [ "$(git rev-parse -q --verify HEAD)" = "$start" ] && [ "$(git rev-parse -q --verify "$branch")" = "$start" ]; then
+    git symbolic-ref HEAD "$branch"
+    echo "pipeline: HEAD was left detached by an interrupted dvc exp run: re-attached to ${branch#refs/heads/}" >&2
+  fi
+}
+trap reattach EXIT
 echo "pipeline: profile=$PROFILE"
 dvc exp run -S "profile=$PROFILE"
 echo "pipeline: done. Tables and figures: reports/$PROFILE/README.md; runs: mlflow ui --backend-store-uri sqlite:///mlflow.db"
