@@ -18,7 +18,7 @@ import yaml
 from gca.assets.objects import gaussians_from_mesh, make_object
 from gca.assets.particles import ParticleConfig, convert, save_particles
 from gca.assets.ply import write_ply
-from gca.config import load
+from gca.config import ConfigError, load
 from gca.eval.demos import DemoInputs, load_demo_law
 from gca.laws.checkpoint import save_prior
 from gca.laws.lora import LoRAConfig
@@ -146,5 +146,5 @@ def test_proposed_section_builds_in_both_profiles():
     assert (paper.n_frames, paper.resolution, paper.render_every) == (200, 256, 1)
     assert (ci.n_frames, ci.resolution, ci.render_every) == (6, 32, 2)
     assert paper.interaction.b.scene == "cat" and paper.interaction.v0_b == (-2.0, 0.5, 0.0)
-    with pytest.raises(Exception, match="unknown keys"):
+    with pytest.raises(ConfigError, match="unknown keys"):
         demo_config({"demo": {**resolve(DEMO, "ci"), "fps": 25}})

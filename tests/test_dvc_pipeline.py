@@ -7,6 +7,7 @@ stages that depend on it.
 """
 
 import json
+import math
 import os
 import re
 import shutil
@@ -97,7 +98,10 @@ def test_repro_runs_every_stage_and_writes_every_report(repo):
         methods = yaml.safe_load((dest / "params.yaml").read_text())["scenes"][scene]["methods"]
         for method in methods:
             record = json.loads((dest / "metrics/eval" / scene / f"{method}.json").read_text())
-            assert record["status"] in ("ok", "diverged") and record["profile"] == "ci"
+            # every method trains without diverging at the CI profile (73 of 73 in reports/ci): a divergence
+            # here is a regression, not noise
+            assert record["status"] == "ok" and record["profile"] == "ci", (scene, method, record["status"])
+            assert all(map(math.isfinite, record["chamfer_per_frame"]))
 
 
 def test_second_repro_reruns_nothing(repo):

@@ -104,10 +104,9 @@ def test_every_method_has_metrics_and_reports_exist(pipeline):
     for method in METHODS:
         m = json.loads((pipeline / "metrics/eval" / SCENE / f"{method}.json").read_text())
         assert m["method"] == method and m["profile"] == "ci"
-        assert m["status"] in ("ok", "diverged")
-        if m["status"] == "ok":
-            assert np.isfinite(m["chamfer_mean"]) and len(m["chamfer_per_frame"]) > 1
-            assert 0 < m["psnr_train"] < 100
+        assert m["status"] == "ok", (method, m["status"])  # no method diverges at the CI profile
+        assert np.isfinite(m["chamfer_mean"]) and len(m["chamfer_per_frame"]) > 1
+        assert 0 < m["psnr_train"] < 100
     gca = json.loads((pipeline / "metrics/eval" / SCENE / "gca.json").read_text())
     assert "law_error_uniaxial_pct" in gca and "law_curves" in gca
     assert (pipeline / "reports/README.md").is_file()
@@ -120,7 +119,7 @@ def test_training_wrote_history_and_adapters(pipeline):
     assert len(v0) == 3 and all(np.isfinite(v0))
     for method in ("gca", "neuma"):
         train = json.loads((run / method / "train.json").read_text())
-        assert train["status"] in ("ok", "diverged")
+        assert train["status"] == "ok", (method, train["status"])
         assert (run / method / "law.pt").is_file() and not (run / method / "checkpoint.pt").exists()
 
 

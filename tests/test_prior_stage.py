@@ -89,7 +89,7 @@ def test_prior_beats_the_untrained_network_on_heldout_trajectories(run):
 def test_prior_elastic_response_tracks_the_analytic_law(run):
     # Uniaxial and simple-shear sweeps to +-10 % strain; measured 3.8 % (warm start alone 0.7 %, untrained 99 %).
     response = run[1]["response_error_pct"]
-    assert response["trained"]["mean"] < 25.0, response
+    assert response["trained"]["mean"] < 10.0, response  # 2.5x the measured error: a stiffness 15 % off fails
     assert response["untrained"]["mean"] > 90.0, response
 
 

@@ -198,6 +198,7 @@ def test_stage_main_end_to_end(metrics, tmp_path, repo_root):
     params = tmp_path / "params.yaml"
     params.write_text("profile: ci\nreport:\n  dpi: {paper: 120, ci: 60}\n")
     stage = _load_stage(repo_root)
+    runs_before = load_runs(metrics)
     written = stage.main(["--metrics", str(metrics), "--out", str(tmp_path / "reports"),
                           "--summary", str(metrics / "report.json"), "--params", str(params)])
     assert (tmp_path / "reports" / "README.md") in written
@@ -205,7 +206,7 @@ def test_stage_main_end_to_end(metrics, tmp_path, repo_root):
     assert headline["table1_average_cd"]["nclaw"]["mean_cd"] == pytest.approx(3.5)
     assert headline["table1_average_cd"]["gca"]["status"] == "diverged"
     assert headline["status_counts"] == {"diverged": 1, "failed": 1, "ok": 11}
-    assert load_runs(metrics) == load_runs(metrics)  # report.json at the top level is not read as a run
+    assert load_runs(metrics) == runs_before  # report.json, now at the top level, is not read as a run
     import mlflow
     found = mlflow.search_runs(experiment_names=["gca/report"], output_format="list")
     assert len(found) == 1 and found[0].data.tags["stage"] == "report"
