@@ -117,7 +117,13 @@ def expand(dvc: dict, params: dict, stages: list[str] | None = None) -> dict[str
 
 
 def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
-    """``train@<scene>`` -> one job per method; the first (cheapest) estimates the velocity."""
+    """``train@<scene>`` -> one job per (method, seed of ``train.seeds``): ``train@<scene>:<run>`` with the run's
+    name (``gca``, ``gca@seed1``; a method that does not train runs the first seed only); the first (the cheapest
+    method's first seed) estimates the velocity."""
+    from gca.train.config import TrainConfig, run_dir_name
+    from gca.train.methods import get_method
+
+    seeds = TrainConfig(seeds=params["train"].get("seeds", (0,))).seeds
     out = {}
     for name, job in jobs.items():
         if not name.startswith("train@"):
@@ -127,11 +133,13 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
         methods = sorted(params["scenes"][scene]["methods"], key=lambda m: COST.get(f"train:{m}", COST["train"]))
         run_dir = re.search(r"--out (\S+)", job.cmd).group(1)
         first = None
-        for m in methods:
-            cmd = f"{job.cmd} --methods {m}"
+        runs = [(m, s) for s in seeds for m in methods if s == seeds[0] or get_method(m).trains]
+        for m, s in runs:
+            run = run_dir_name(m, s)
+            cmd = f"{job.cmd} --methods {m}" + (f" --seeds {s}" if len(seeds) > 1 else "")
             if first is not None:
                 cmd += f" --velocity {run_dir}/velocity.json"
-            j = Job(f"{name}:{m}", cmd, list(job.deps), [f"{run_dir}/{m}"] + ([] if first else [f"{run_dir}/velocity.json"]),
+            j = Job(f"{name}:{run}", cmd, list(job.deps), [f"{run_dir}/{run}"] + ([] if first else [f"{run_dir}/velocity.json"]),
                     COST.get(f"train:{m}", COST["train"]))
             if first is not None:
                 j.after.add(first)

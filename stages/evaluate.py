@@ -2,7 +2,10 @@
 
     python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --runs runs/duck \
         --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
-        --prior-dir models/prior --out metrics/eval/duck
+        --prior-dir models/prior --out metrics/eval/duck [--methods gca] [--seeds 0 1]
+
+One JSON per (method, seed) trained (``metrics/eval/duck/gca.json``, ``gca@seed1.json``, ...), added to the
+training run's MLflow run.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from gca.io import read_json, write_json
 from gca.scenes.world import load_scene_body
 from gca.track import stage_run
 
-from common import scene_context, scene_parser  # stages/common.py
+from common import scene_context, scene_parser, scene_runs  # stages/common.py
 
 
 def main(argv=None) -> dict:
@@ -23,18 +26,18 @@ def main(argv=None) -> dict:
     params, scene, methods, inputs = scene_context("evaluate", args)
     body = load_scene_body(params, args.particles, args.gaussians, args.device)
     out = {}
-    for method in methods:
-        run_id = read_json(args.runs / method.name / "train.json").get("mlflow_run_id")
+    for method, seed, name in scene_runs(params, methods, args):
+        run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
         with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
-                       experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables)},
-                       resume_run_id=run_id) as run:
-            out[method.name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out, args.device)
-            write_json(args.out / f"{method.name}.json", out[method.name])
-            run.log_metrics({k: v for k, v in out[method.name].items() if k != "chamfer_per_frame"})
-            for name in ("strip.png", "rollout.gif", "cd_time.png"):
-                run.log_artifact(args.out / method.name / name)
-        print(f"evaluate {args.scene}/{method.name}: {out[method.name]['status']} "
-              f"CD={out[method.name].get('chamfer_mean', float('nan')):.4g}")
+                       experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
+                       tags={"tables": ",".join(method.tables), "seed": str(seed)}, resume_run_id=run_id) as run:
+            out[name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out, args.device,
+                                         seed)
+            write_json(args.out / f"{name}.json", out[name])
+            run.log_metrics({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})
+            for media in ("strip.png", "rollout.gif", "cd_time.png"):
+                run.log_artifact(args.out / name / media)
+        print(f"evaluate {args.scene}/{name}: {out[name]['status']} CD={out[name].get('chamfer_mean', float('nan')):.4g}")
     return out
 
 

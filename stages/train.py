@@ -2,13 +2,15 @@
 
     python stages/train.py --scene duck --scene-dir data/scenes/duck --prep data/prep/duck \
         --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
-        --prior-dir models/prior --out runs/duck [--methods gca neuma] [--velocity runs/duck/velocity.json]
+        --prior-dir models/prior --out runs/duck [--methods gca neuma] [--seeds 0 1] [--velocity runs/duck/velocity.json]
 
 ``--velocity`` reuses a launch velocity estimated by an earlier run of this stage on the same scene
 (several processes training one scene's methods in parallel share one estimate: benchmarks/grid.py).
 A run resuming from a checkpoint under ``--out`` reuses ``--out``/velocity.json the same way.
 
-One MLflow run per (scene, method, seed), in the experiment of the method's first paper table.
+One training run per (method, seed) of ``train.seeds`` (``runs/duck/gca``, ``runs/duck/gca@seed1``, ...;
+``--seeds`` picks a subset), seeds outermost. One MLflow run per (scene, method, seed), in the experiment of
+the method's first paper table.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 from gca.track import stage_run
 
-from common import scene_context, scene_parser  # stages/common.py
+from common import scene_context, scene_parser, scene_runs  # stages/common.py
 from gca.train.run import estimate_scene_velocity, read_velocity, train_method
 
 
@@ -38,15 +40,14 @@ def main(argv=None) -> dict:
             run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
     velocity = read_velocity(args.velocity or args.out / "velocity.json")
     results = {}
-    for method in methods:
+    for method, seed, name in scene_runs(params, methods, args):
         with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],
-                       experiment=f"gca/{method.tables[0]}", tags={"tables": ",".join(method.tables),
-                                                                    "material": scene.material}) as run:
-            results[method.name] = train_method(params, args.scene, method, inputs, velocity, args.out / method.name, run,
-                                                   args.device)
-            run.log_artifact(args.out / method.name / "loss.png")
-        print(f"train {args.scene}/{method.name}: {results[method.name]['status']} "
-              f"in {results[method.name]['train_seconds']:.1f} s")
+                       experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
+                       tags={"tables": ",".join(method.tables), "material": scene.material, "seed": str(seed)}) as run:
+            results[name] = train_method(params, args.scene, method, inputs, velocity, args.out / name, run,
+                                         args.device, seed)
+            run.log_artifact(args.out / name / "loss.png")
+        print(f"train {args.scene}/{name}: {results[name]['status']} in {results[name]['train_seconds']:.1f} s")
     return results
 
 

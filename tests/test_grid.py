@@ -43,6 +43,18 @@ def test_stage_commands_are_dvc_yaml_expanded(jobs):
     assert jobs["train@ball:nclaw"].cmd.endswith("--methods nclaw")  # the cheap one estimates the velocity
 
 
+def test_seeds_split_training_into_one_job_per_run():
+    params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,2]"])
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    jobs = grid.link(grid.split_train(grid.expand(dvc, params, ["train", "evaluate"]), params))
+    train = {n: j for n, j in jobs.items() if n.startswith("train@")}
+    assert set(train) == {"train@ball:nclaw", "train@ball:gca", "train@ball:gca@seed2"}  # nclaw: one seed
+    assert train["train@ball:gca@seed2"].cmd.endswith("--methods gca --seeds 2 --velocity runs/ball/velocity.json")
+    assert train["train@ball:gca@seed2"].outs == ["runs/ball/gca@seed2"]
+    assert train["train@ball:nclaw"].cmd.endswith("--methods nclaw --seeds 0")  # it estimates the velocity
+    assert set(train) <= jobs["evaluate@ball"].after
+
+
 def test_order_follows_deps_and_outs(jobs):
     _, jobs = jobs
     assert {"train@ball:nclaw", "prior@jelly", "ground_truth@ball", "preprocess@ball", "particles@ball",

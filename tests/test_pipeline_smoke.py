@@ -152,3 +152,63 @@ def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, t
         train.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
                     "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
                     "--params", params, "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
+
+
+def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
+    """``train.seeds: [0, 3]``: a trained method runs once per seed (``gca``, ``gca@seed3``), one that does not
+    train once; evaluation writes one record per run and the report reduces them to mean and std."""
+    import shutil
+
+    import evaluate
+    import torch
+    import train
+
+    from gca.config import ConfigError
+    from gca.report.runs import load_runs, reduce_seeds
+
+    raw = yaml.safe_load((pipeline / "params.yaml").read_text())
+    raw["train"]["seeds"] = [0, 3]
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump(raw, sort_keys=False))
+    d = lambda *p: str(pipeline.joinpath(*p))  # noqa: E731
+    common = ["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
+              "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
+              "--params", str(params), "--methods", "gca", "nclaw"]
+    runs, metrics = tmp_path / "runs", tmp_path / "eval" / SCENE
+    runs.mkdir()
+    shutil.copyfile(pipeline / "runs" / SCENE / "velocity.json", runs / "velocity.json")  # the scene's, reused
+    trained = train.main(common + ["--prep", d("data/prep", SCENE), "--out", str(runs),
+                                   "--velocity", str(runs / "velocity.json")])
+    assert list(trained) == ["gca", "nclaw", "gca@seed3"]  # seeds outermost
+    assert {p.name for p in runs.iterdir() if p.is_dir()} == {"gca", "gca@seed3", "nclaw"}
+    assert [json.loads((runs / n / "train.json").read_text())["seed"] for n in ("gca", "gca@seed3")] == [0, 3]
+    laws = [torch.load(runs / n / "law.pt", weights_only=False) for n in ("gca", "gca@seed3")]
+    flat = [torch.cat([t.flatten() for t in _tensors(law)]) for law in laws]
+    assert flat[0].shape == flat[1].shape and not torch.equal(flat[0], flat[1])  # another seed, another LoRA init
+
+    evaluated = evaluate.main(common + ["--runs", str(runs), "--out", str(metrics)])
+    assert list(evaluated) == ["gca", "nclaw", "gca@seed3"]
+    assert {p.name for p in metrics.glob("*.json")} == {"gca.json", "gca@seed3.json", "nclaw.json"}
+    assert (metrics / "gca@seed3" / "strip.png").is_file()
+    read = load_runs(metrics.parent)
+    assert [r["seed"] for r in read[SCENE, "gca"]] == [0, 3] and [r["seed"] for r in read[SCENE, "nclaw"]] == [0]
+    cell = reduce_seeds(read[SCENE, "gca"], "chamfer_mean")
+    cds = [json.loads((metrics / f"{n}.json").read_text())["chamfer_mean"] for n in ("gca", "gca@seed3")]
+    assert cell.n == 2 and cell.mean == pytest.approx(np.mean(cds)) and cell.std == pytest.approx(np.std(cds, ddof=1))
+
+    assert list(evaluate.main(common + ["--runs", str(runs), "--out", str(metrics), "--seeds", "3"])) == ["gca@seed3"]
+    with pytest.raises(ConfigError, match=r"seeds \[5\] are not in train.seeds \[0, 3\]"):
+        evaluate.main(common + ["--runs", str(runs), "--out", str(metrics), "--seeds", "5"])
+
+
+def _tensors(tree):
+    """Every tensor in a nested dict/list (a saved law)."""
+    import torch
+
+    if isinstance(tree, torch.Tensor):
+        return [tree.detach().double()]
+    if isinstance(tree, dict):
+        return [t for v in tree.values() for t in _tensors(v)]
+    if isinstance(tree, (list, tuple)):
+        return [t for v in tree for t in _tensors(v)]
+    return []

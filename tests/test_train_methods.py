@@ -343,6 +343,35 @@ def test_backtracking_settings_are_validated():
         TrainConfig(max_rejections=-1)
 
 
+def test_seeds_name_the_runs():
+    """``train.seeds`` lists the runs; each run's ``seed`` is one of them (the first by default), and its folder
+    is the method's name for seed 0 and ``<method>@seed<k>`` otherwise: the names the report parses back."""
+    from gca.config import ConfigError
+    from gca.report.runs import _NAME
+    from gca.train.config import run_dir_name
+    from gca.train.run import run_seeds
+
+    cfg = TrainConfig(seeds=[2, 0, 5])
+    assert cfg.seeds == (2, 0, 5) and cfg.seed == 2 and TrainConfig().seed == 0
+    assert dataclasses.replace(cfg, seed=5).seed == 5
+    for bad in ([], [1, 1], [-1], [0.5], [True]):
+        with pytest.raises(ValueError, match="train.seeds"):
+            TrainConfig(seeds=bad)
+    with pytest.raises(ValueError, match="is not one of train.seeds"):
+        TrainConfig(seeds=(0, 1), seed=3)  # e.g. an old `train.seed: 3` beside the default seeds
+    assert [run_dir_name("gca", s) for s in (0, 4)] == ["gca", "gca@seed4"]
+    for s in (0, 4):
+        parsed = _NAME.match(run_dir_name("neuma", s) + ".json")
+        assert parsed["method"] == "neuma" and int(parsed["seed"] or 0) == s
+
+    params = {"train": {"seeds": [0, 1, 2]}}
+    assert run_seeds(params, get_method("gca")) == [0, 1, 2]
+    assert run_seeds(params, get_method("nclaw")) == [0]  # the prior does not depend on the seed
+    assert run_seeds(params, get_method("gca"), [2, 1]) == [1, 2] and run_seeds(params, get_method("nclaw"), [1]) == []
+    with pytest.raises(ConfigError, match=r"seeds \[7\] are not in train.seeds"):
+        run_seeds(params, get_method("gca"), [7])
+
+
 def test_prior_gradient_is_capped_only_when_it_dominates():
     """g = g_data + min(1, r |g_data| / |g_prior|) g_prior: a prior 1000x the data is cut to r x; a weak one
     is added unscaled (the objective as written); r = 0 adds it unscaled whatever its size."""

@@ -482,7 +482,8 @@ class DemoInputs:
 
 def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, rho: float,
                   missing_law: str = "prior") -> tuple[Material, str]:
-    """The law ``method`` learned on ``scene`` (``runs/<scene>/<method>/law.pt``), with density ``rho``.
+    """The law ``method`` learned on ``scene`` with the first of ``train.seeds`` (``runs/<scene>/<method>/law.pt``
+    for seed 0, ``<method>@seed<k>`` otherwise), with density ``rho``.
 
     Args:
         params: resolved params (scenes, sim, laws, train sections).
@@ -496,12 +497,14 @@ def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, 
     Returns:
         ``(material, source)`` with ``source`` saying which law file was used.
     """
+    from gca.train.config import run_dir_name
     from gca.train.methods import get_method
-    from gca.train.run import SceneInputs, load_learned_law
+    from gca.train.run import SceneInputs, load_learned_law, train_config
 
     family = scene_config(params, scene).prior
     scene_inputs = SceneInputs(None, None, None, None, Path(inputs.prior_dir) / f"{family}.pt")
-    run_dir = Path(inputs.runs) / scene / method
+    seed = train_config(params).seed
+    run_dir = Path(inputs.runs) / scene / run_dir_name(method, seed)
     chosen = get_method(method)
     source = str(run_dir / "law.pt") if chosen.trains else f"prior {scene_inputs.prior} ({method} does not train)"
     if chosen.trains and not (run_dir / "law.pt").is_file():

@@ -23,7 +23,10 @@ class TrainConfig:
         checkpoint_every: save a resumable checkpoint every n iterations.
         max_spread_growth: a rollout whose particles spread further from their centre of mass than
             at rest by more than this [m] is treated as diverged (particles flying away).
-        seed: base seed of the run (matches, CPR subset).
+        seeds: one training run per seed and method (params ``train.seeds``); the report averages a
+            (scene, method) over its seeds (mean and sample std).
+        seed: the seed of this run, one of ``seeds`` (LoRA's A matrices, CPR's particle subset); set per
+            run by the train stage (default: the first of ``seeds``).
         max_rejections: updates after which the rollout diverged that are taken back and retaken with a
             smaller learning rate, in a row, before the run is declared diverged (0: the first
             divergence ends the run).
@@ -46,18 +49,35 @@ class TrainConfig:
     cpr_every: int = 2
     checkpoint_every: int = 10
     max_spread_growth: float = 0.5
-    seed: int = 0
+    seeds: tuple[int, ...] = (0,)
+    seed: int | None = None
     max_rejections: int = 3
     backtrack_factor: float = 0.5
     keep: str = "best"
 
     def __post_init__(self):
+        seeds = tuple(self.seeds) if isinstance(self.seeds, (list, tuple)) else (self.seeds,)
+        if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) \
+                or len(set(seeds)) != len(seeds):
+            raise ValueError(f"train.seeds must be a non-empty list of distinct integers >= 0, got {self.seeds!r}")
+        object.__setattr__(self, "seeds", seeds)
+        if self.seed is None:
+            object.__setattr__(self, "seed", seeds[0])
+        elif self.seed not in seeds:
+            raise ValueError(f"train.seed {self.seed!r} is not one of train.seeds {list(seeds)} "
+                             "(params name the seeds; each run takes one)")
         if self.keep not in ("best", "last"):
             raise ValueError(f"train.keep must be 'best' or 'last', got {self.keep!r}")
         if self.max_rejections < 0:
             raise ValueError(f"train.max_rejections must be >= 0, got {self.max_rejections}")
         if not 0.0 < self.backtrack_factor < 1.0:
             raise ValueError(f"train.backtrack_factor must be in (0, 1), got {self.backtrack_factor}")
+
+
+def run_dir_name(method: str, seed: int) -> str:
+    """The folder and metrics-file name of one (method, seed) run: ``gca`` for seed 0, ``gca@seed2`` otherwise
+    (``runs/<scene>/<name>/``, ``metrics/eval/<scene>/<name>.json``: what the report stage reads back)."""
+    return method if seed == 0 else f"{method}@seed{seed}"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,18 +1,21 @@
 """Assemble a scene's training data from the pipeline's files and train one method on it.
 
     runs/<scene>/velocity.json           the shared initial velocity estimate (prior law, first frames)
-    runs/<scene>/<method>/law.pt         what training changed (adapter / full weights / explicit params)
-    runs/<scene>/<method>/checkpoint.pt  resumable optimiser state (removed when the run completes)
-    runs/<scene>/<method>/train.json     status, seconds, peak memory, MLflow run id, last losses
-    runs/<scene>/<method>/history.json   per-iteration losses
-    runs/<scene>/<method>/loss.png       loss curve
+    runs/<scene>/<run>/law.pt            what training changed (adapter / full weights / explicit params)
+    runs/<scene>/<run>/checkpoint.pt     resumable optimiser state (removed when the run completes)
+    runs/<scene>/<run>/train.json        status, seconds, peak memory, MLflow run id, last losses
+    runs/<scene>/<run>/history.json      per-iteration losses
+    runs/<scene>/<run>/loss.png          loss curve
+
+``<run>`` is the method's name for seed 0 and ``<method>@seed<k>`` for seed k (``train.seeds``,
+:func:`gca.train.config.run_dir_name`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -93,9 +96,26 @@ def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInput
     return result
 
 
-def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
-            device="cpu") -> LearnedLaw:
+def train_config(params: Mapping, seed: int | None = None) -> TrainConfig:
+    """params ``train`` for the run of ``seed`` (one of ``train.seeds``; None: the first)."""
     tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    return tcfg if seed is None else dataclasses.replace(tcfg, seed=seed)
+
+
+def run_seeds(params: Mapping, method: Method, chosen: Sequence[int] | None = None) -> list[int]:
+    """The seeds ``method`` runs with: ``chosen`` (checked against ``train.seeds``) or all of ``train.seeds``;
+    only the first for a method that does not train (its law, the prior, does not depend on the seed)."""
+    seeds = list(train_config(params).seeds)
+    unknown = sorted(set(chosen or ()) - set(seeds))
+    if unknown:
+        raise config.ConfigError(f"seeds {unknown} are not in train.seeds {seeds}")
+    runs = seeds if method.trains else seeds[:1]
+    return [s for s in runs if s in chosen] if chosen else runs
+
+
+def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
+            device="cpu", seed: int | None = None) -> LearnedLaw:
+    tcfg = train_config(params, seed)
     lora = config.build(LoRAConfig, config.section(params, "laws.lora"), "laws.lora")
     law = build_law(method, inputs.prior, scene.prior, rho, lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
                     tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt,
@@ -104,8 +124,9 @@ def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneIn
     return law
 
 
-def objective_for(params: Mapping, method: Method, data: TrainData, scene_params: Mapping) -> Objective:
-    tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
+def objective_for(params: Mapping, method: Method, data: TrainData, scene_params: Mapping,
+                  seed: int | None = None) -> Objective:
+    tcfg = train_config(params, seed)
     rdga = config.build(RDGAConfig, config.section(params, "align.rdga"), "align.rdga")
     cpr = config.build(CPRConfig, config.section(params, "align.cpr"), "align.cpr")
     match = config.build(MatchConfig, config.section(params, "vision.matching"), "vision.matching")
@@ -120,14 +141,15 @@ def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
 
 
 def train_method(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
-                 out_dir: Path, run=None, device="cpu") -> dict:
-    """Train ``method`` on a scene; write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
+                 out_dir: Path, run=None, device="cpu", seed: int | None = None) -> dict:
+    """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
+    (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
     scene = scene_config(params, scene_name)
     video = video_config(params)
-    tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    tcfg = train_config(params, seed)
     data = load_train_data(params, inputs, method, velocity, video.background, device)
-    law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
-    objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"))
+    law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed)
+    objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"), tcfg.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
     with measure(device) as cost:
@@ -137,7 +159,7 @@ def train_method(params: Mapping, scene_name: str, method: Method, inputs: Scene
     write_json(out_dir / "history.json", {"history": result.history})
     (out_dir / "checkpoint.pt").unlink(missing_ok=True)
     # a resumed run's time includes its earlier processes' (from the checkpoint); its peak is this process's
-    summary = {"scene": scene_name, "method": method.name, "status": result.status, "message": result.message,
+    summary = {"scene": scene_name, "method": method.name, "seed": tcfg.seed, "status": result.status, "message": result.message,
                "iterations": result.iterations, "train_seconds": cost.wall_s + result.seconds_before,
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
@@ -165,10 +187,10 @@ def _plot_history(history: list[dict], path: Path, title: str) -> None:
 
 
 def load_learned_law(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, run_dir: Path,
-                     rho: float, device="cpu") -> LearnedLaw:
-    """Rebuild a trained method's law from ``law.pt`` (the prior + what training changed)."""
+                     rho: float, device="cpu", seed: int | None = None) -> LearnedLaw:
+    """Rebuild a trained method's law from ``run_dir/law.pt`` (the prior + what training changed)."""
     scene = scene_config(params, scene_name)
-    law = law_for(params, method, scene, inputs, rho, device)
+    law = law_for(params, method, scene, inputs, rho, device, seed)
     path = run_dir / "law.pt"
     if path.is_file():
         load_law(path, law, scene.prior)
