@@ -120,10 +120,11 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     """``train@<scene>`` -> one job per (method, seed of ``train.seeds``): ``train@<scene>:<run>`` with the run's
     name (``gca``, ``gca@seed1``; a method that does not train runs the first seed only); the first (the cheapest
     method's first seed) estimates the velocity."""
+    from gca.config import resolve
     from gca.train.config import TrainConfig, run_dir_name
     from gca.train.methods import get_method
 
-    seeds = TrainConfig(seeds=params["train"].get("seeds", (0,))).seeds
+    seeds = TrainConfig(seeds=resolve(params["train"], params["profile"]).get("seeds", (0,))).seeds
     out = {}
     for name, job in jobs.items():
         if not name.startswith("train@"):

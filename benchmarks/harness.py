@@ -41,7 +41,8 @@ def make_params(scene: str, methods: list[str], profile: str, overrides: list[st
 
 
 def result_name(profile: str, scene: str, method: str, device: str, tag: str = "") -> str:
-    """File name of one (scene, method) JSON under ``--out``."""
+    """File name of one (scene, run) JSON under ``--out`` (``method``: the run's name, ``gca@seed1`` for a
+    seed other than 0)."""
     return f"harness_{profile}_{scene}_{method}_{device}{tag}.json"
 
 
@@ -98,10 +99,17 @@ def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, ski
 def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict, overrides: list[str]) -> list[dict]:
     rows = []
     gt = json.loads((work / "m/gt.json").read_text())
-    for method in raw["scenes"][scene]["methods"]:
-        train = json.loads((work / "runs" / method / "train.json").read_text())
-        metrics = json.loads((work / "eval" / f"{method}.json").read_text())
-        history = json.loads((work / "runs" / method / "history.json").read_text())["history"]
+    from gca.config import resolve
+    from gca.train.config import run_dir_name
+    from gca.train.methods import get_method
+    from gca.train.run import run_seeds
+
+    resolved = resolve(raw, raw["profile"])
+    for method, seed in [(m, s) for m in raw["scenes"][scene]["methods"] for s in run_seeds(resolved, get_method(m))]:
+        name = run_dir_name(method, seed)
+        train = json.loads((work / "runs" / name / "train.json").read_text())
+        metrics = json.loads((work / "eval" / f"{name}.json").read_text())
+        history = json.loads((work / "runs" / name / "history.json").read_text())["history"]
         phases = {}
         for rec in history:
             for k, v in rec.items():
@@ -110,7 +118,7 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
         rows.append({
             "device": torch.cuda.get_device_name(0) if device == "cuda" else platform.processor() or "cpu",
             "versions": versions(), "profile": raw["profile"], "overrides": overrides, "scene": scene,
-            "method": method, "n_particles": gt["n_particles"], "n_gaussians": gt["n_gaussians"],
+            "method": name, "seed": seed, "n_particles": gt["n_particles"], "n_gaussians": gt["n_gaussians"],
             "iterations": train["iterations"], "status": metrics["status"], "message": train.get("message", ""),
             "train_seconds": train["train_seconds"], "rollout_seconds": metrics.get("rollout_seconds"),
             "rollout_render_seconds": metrics.get("rollout_render_seconds"), "rejected_updates": len(train.get("rejected_updates", [])),

@@ -9,7 +9,8 @@
 # The work directory lives on the GPU machine: every call of one series must reach the same machine
 # (the device tool keeps it between calls for a while; a fresh machine starts the series again). On the
 # device tool, name .wpb, .whl_render and .priors in `carry` on EVERY call (benchmarks/NOTES.md).
-# Extra grid options in GRID_ARGS (e.g. GRID_ARGS="--set train.seeds=[0,1,2]": one training job per seed); BEFORE replaces the gsplat compile step.
+# Extra grid options in GRID_ARGS (e.g. GRID_ARGS="--set train.seeds=[0,1,2]": one training job per seed; keep
+# the seed list of a work directory: its evaluate jobs, once done, are not run again for new seeds); BEFORE replaces the gsplat compile step.
 set -eu
 W=$1; SCENES=$2; DEADLINE=${3:-540}; SLOTS=${4:-6}; PROFILE=${5:-paper}
 mkdir -p "$W"

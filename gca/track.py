@@ -4,7 +4,7 @@ Tracking never breaks a stage: every MLflow failure is turned into a warning and
 (its metrics JSON is written by the stage regardless, before or after the tracking context).
 
 Defaults: ``MLFLOW_TRACKING_URI`` when set, else ``sqlite:///mlflow.db`` in the working directory.
-Tags: stage, scene, method, table, git commit and ``DVC_EXP_NAME`` (set by ``dvc exp run``).
+Tags: stage, scene, method, table, seed (training runs), git commit and ``DVC_EXP_NAME`` (set by ``dvc exp run``).
 """
 
 from __future__ import annotations

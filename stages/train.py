@@ -30,8 +30,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--velocity", type=Path, help="reuse this velocity.json instead of estimating it")
     args = ap.parse_args(argv)
     params, scene, methods, inputs = scene_context("train", args)
+    runs = scene_runs(params, methods, args)
     args.out.mkdir(parents=True, exist_ok=True)
-    resuming = any(args.out.glob("*/checkpoint.pt"))  # an interrupted run (e.g. grid.py --deadline) goes on
+    # an interrupted run of this call (e.g. stopped by grid.py --deadline) goes on from its checkpoint
+    resuming = any((args.out / name / "checkpoint.pt").is_file() for _, _, name in runs)
     if args.velocity is None and resuming and (args.out / "velocity.json").is_file():
         args.velocity = args.out / "velocity.json"  # with the launch velocity its first iterations used
     if args.velocity is None:
@@ -40,7 +42,7 @@ def main(argv=None) -> dict:
             run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
     velocity = read_velocity(args.velocity or args.out / "velocity.json")
     results = {}
-    for method, seed, name in scene_runs(params, methods, args):
+    for method, seed, name in runs:
         with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
                        tags={"tables": ",".join(method.tables), "material": scene.material, "seed": str(seed)}) as run:

@@ -187,6 +187,16 @@ def test_duplicate_seed_is_ignored_with_a_warning(metrics):
     assert [r["chamfer_mean"] for r in runs["ball", "gca"]] == [0.5]
 
 
+def test_the_file_name_says_the_seed(metrics):
+    """``gca.json`` is seed 0 whatever its record says (records before ``train.seeds`` stored the global data
+    seed): a stale record cannot take the place of ``gca@seed1.json``."""
+    _write(metrics, _record("cat", "gca", seed=1, chamfer_mean=2.0), "gca.json")
+    _write(metrics, _record("cat", "gca", seed=1, chamfer_mean=3.0), "gca@seed1.json")
+    with pytest.warns(RuntimeWarning, match="the record says seed 1, its name seed 0"):
+        runs = load_runs(metrics)
+    assert [(r["seed"], r["chamfer_mean"]) for r in runs["cat", "gca"]] == [(0, 2.0), (1, 3.0)]
+
+
 def _load_stage(repo_root: Path):
     spec = importlib.util.spec_from_file_location("stage_report", repo_root / "stages" / "report.py")
     module = importlib.util.module_from_spec(spec)

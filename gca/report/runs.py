@@ -48,7 +48,10 @@ def _read_scene(scene_dir: Path, runs: Runs) -> None:
             continue
         method, scene = match["method"], scene_dir.name
         _check_record(path, record, scene, method)
-        seed = int(match["seed"]) if match["seed"] is not None else int(record.get("seed") or 0)
+        seed = int(match["seed"] or 0)  # the file name says the run (gca.train.config.run_dir_name)
+        if record.get("seed", seed) != seed:
+            warnings.warn(f"{path}: the record says seed {record['seed']}, its name seed {seed}: read as seed {seed} "
+                          "(records before train.seeds stored the global data seed)", RuntimeWarning, stacklevel=2)
         if (method, seed) in seen:
             warnings.warn(f"{path}: seed {seed} of {scene}/{method} already read from {seen[method, seed]}; "
                           "ignoring this duplicate", RuntimeWarning, stacklevel=2)
