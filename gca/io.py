@@ -74,6 +74,21 @@ def write_json(path: str | os.PathLike, data: Mapping) -> Path:
     return path
 
 
+def save_torch(obj: Any, path: str | os.PathLike) -> Path:
+    """Atomically ``torch.save`` ``obj`` to ``path``, byte-stable for the same object.
+
+    ``torch.save`` to a file *name* puts that name inside the archive, and the atomic write's temporary
+    name is random: the same weights then hash differently every run, and DVC's run cache misses every
+    stage downstream. Written through a file object, the archive's inner name is fixed.
+    """
+    import torch
+
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        torch.save(obj, handle)
+    return path
+
+
 def read_json(path: str | os.PathLike) -> Any:
     """Read JSON, naming the file in the error."""
     path = Path(path)

@@ -110,6 +110,20 @@ def test_second_repro_reruns_nothing(repo):
     assert "Running stage" not in log, log
 
 
+def test_run_cache_restores_deleted_outputs_without_running(repo):
+    """What another DVC queue worker computed is restored, not recomputed: the prior and the evaluation
+    are run-cached (no plain `cache: false` out) and their files are byte-stable, so nothing after them
+    runs again either."""
+    dest, env, _ = repo
+    (dest / "models/prior/jelly.pt").unlink()
+    shutil.rmtree(dest / "metrics/eval/ball")
+    log = _run([sys.executable, "-m", "dvc", "repro"], dest, env)
+    assert "Stage 'prior@jelly' is cached - skipping run" in log, log
+    assert "Stage 'evaluate@ball' is cached - skipping run" in log, log
+    assert "Running stage" not in log, log
+    assert (dest / "metrics/eval/ball/gca.json").is_file()
+
+
 def test_one_object_param_invalidates_only_its_stages(repo):
     dest, env, _ = repo
     params = dest / "params.yaml"

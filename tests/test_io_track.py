@@ -35,6 +35,21 @@ def test_write_json_is_byte_stable_and_maps_nonfinite_to_null(tmp_path):
     assert json.loads(a.read_text()) == {"x": [1.0, None], "y": None}
 
 
+def test_save_torch_is_byte_stable_and_atomic(tmp_path):
+    """The same object saved twice gives the same bytes (torch.save to a *name* embeds the random temporary
+    name in the archive: DVC's run cache then missed every stage after the prior); a failure keeps the old file."""
+    import torch
+
+    obj = {"w": torch.arange(6.0).reshape(2, 3), "meta": {"family": "jelly"}}
+    a, b = io.save_torch(obj, tmp_path / "a.pt"), io.save_torch(obj, tmp_path / "sub" / "b.pt")
+    assert a.read_bytes() == b.read_bytes()
+    assert torch.equal(torch.load(a, weights_only=True)["w"], obj["w"])
+    with pytest.raises(AttributeError, match="Can't pickle"):
+        io.save_torch({"bad": lambda: 0}, a)  # not picklable: the write fails ...
+    assert a.read_bytes() == b.read_bytes()  # ... and leaves the old file as it was
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pt", "sub"]
+
+
 def test_stage_run_logs_params_metrics_and_tags(tmp_path, monkeypatch):
     import mlflow
 

@@ -11,7 +11,7 @@ is never silently applied to a different prior.
 
 Loading refuses, with a message naming the file and the mismatch: a wrong kind or version, another
 architecture (widths, activation) or output scaling, another LoRA rank/alpha, another prior family or
-other prior weights. Writes are atomic (``gca.io.atomic_path``); reads use ``weights_only=True``.
+other prior weights. Writes are atomic and byte-stable (``gca.io.save_torch``); reads use ``weights_only=True``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from typing import Any, Mapping
 import torch
 from torch import nn
 
-from gca.io import atomic_path
+from gca.io import save_torch
 from gca.laws.lora import lora_layers, lora_state_dict
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 
@@ -80,10 +80,7 @@ def prior_digest(elasticity: nn.Module, plasticity: nn.Module) -> str:
 
 
 def _save(path: str | os.PathLike, payload: dict) -> Path:
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-    return path
+    return save_torch(payload, path)
 
 
 def _read(path: str | os.PathLike, kind: str) -> dict:

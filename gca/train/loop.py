@@ -394,10 +394,9 @@ class _Undo:
 
 def _save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list,
                      best: _Best, seconds: float) -> None:
-    from gca.io import atomic_path
-    with atomic_path(path) as tmp:
-        torch.save({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(), "iteration": it,
-                    "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds}, tmp)
+    from gca.io import save_torch
+    save_torch({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(), "iteration": it,
+                "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds}, path)
 
 
 def _resume(path: Path | None, law: LearnedLaw, opt, sched, best: _Best) -> tuple[int, list, list, float]:

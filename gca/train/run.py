@@ -24,7 +24,7 @@ from gca import config
 from gca.align.cpr import CPRConfig
 from gca.align.rdga import RDGAConfig
 from gca.eval.efficiency import measure
-from gca.io import atomic_path, read_json, write_json
+from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
 from gca.laws.lora import LoRAConfig
@@ -208,8 +208,7 @@ def save_law(path: Path, law: LearnedLaw, family: str, metadata: Mapping) -> Non
     elif law.kind == "full":
         save_prior(path, e, p, family, metadata=dict(metadata))
     elif law.kind == "explicit":
-        with atomic_path(path) as tmp:
-            torch.save({"kind": "explicit", "state": law.state(), "metadata": dict(metadata)}, tmp)
+        save_torch({"kind": "explicit", "state": law.state(), "metadata": dict(metadata)}, path)
 
 
 def load_law(path: Path, law: LearnedLaw, family: str) -> None:
