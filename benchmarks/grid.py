@@ -121,10 +121,11 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     name (``gca``, ``gca@seed1``; a method that does not train runs the first seed only); the first (the cheapest
     method's first seed) estimates the velocity."""
     from gca.config import resolve
-    from gca.train.config import TrainConfig, run_dir_name
     from gca.train.methods import get_method
+    from gca.train.run import seed_runs, train_config
 
-    seeds = TrainConfig(seeds=resolve(params["train"], params["profile"]).get("seeds", (0,))).seeds
+    resolved = resolve(params, params["profile"])
+    several = len(train_config(resolved).seeds) > 1
     out = {}
     for name, job in jobs.items():
         if not name.startswith("train@"):
@@ -134,10 +135,9 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
         methods = sorted(params["scenes"][scene]["methods"], key=lambda m: COST.get(f"train:{m}", COST["train"]))
         run_dir = re.search(r"--out (\S+)", job.cmd).group(1)
         first = None
-        runs = [(m, s) for s in seeds for m in methods if s == seeds[0] or get_method(m).trains]
-        for m, s in runs:
-            run = run_dir_name(m, s)
-            cmd = f"{job.cmd} --methods {m}" + (f" --seeds {s}" if len(seeds) > 1 else "")
+        for method, s, run in seed_runs(resolved, [get_method(m) for m in methods]):
+            m = method.name
+            cmd = f"{job.cmd} --methods {m}" + (f" --seeds {s}" if several else "")
             if first is not None:
                 cmd += f" --velocity {run_dir}/velocity.json"
             j = Job(f"{name}:{run}", cmd, list(job.deps), [f"{run_dir}/{run}"] + ([] if first else [f"{run_dir}/velocity.json"]),

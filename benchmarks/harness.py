@@ -100,13 +100,11 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
     rows = []
     gt = json.loads((work / "m/gt.json").read_text())
     from gca.config import resolve
-    from gca.train.config import run_dir_name
     from gca.train.methods import get_method
-    from gca.train.run import run_seeds
+    from gca.train.run import seed_runs
 
-    resolved = resolve(raw, raw["profile"])
-    for method, seed in [(m, s) for m in raw["scenes"][scene]["methods"] for s in run_seeds(resolved, get_method(m))]:
-        name = run_dir_name(method, seed)
+    methods = [get_method(m) for m in raw["scenes"][scene]["methods"]]
+    for _, seed, name in seed_runs(resolve(raw, raw["profile"]), methods):
         train = json.loads((work / "runs" / name / "train.json").read_text())
         metrics = json.loads((work / "eval" / f"{name}.json").read_text())
         history = json.loads((work / "runs" / name / "history.json").read_text())["history"]

@@ -8,8 +8,7 @@ from pathlib import Path
 from gca import config
 from gca.scenes import scene_config
 from gca.train.methods import get_method
-from gca.train.config import run_dir_name
-from gca.train.run import SceneInputs, default_device, run_seeds, train_config
+from gca.train.run import SceneInputs, default_device
 
 
 def scene_parser(description: str, paths: tuple[str, ...]) -> argparse.ArgumentParser:
@@ -34,10 +33,3 @@ def scene_context(stage: str, args: argparse.Namespace):
                          args.prior_dir / f"{scene.prior}.pt")
     return params, scene, methods, inputs
 
-
-def scene_runs(params, methods, args) -> list[tuple]:
-    """Every ``(method, seed, run name)`` the stage handles: ``train.seeds`` (or ``--seeds``) per method, seeds
-    outermost (in their params order), so that a whole table's first seed is done before the second starts."""
-    per_method = {m.name: run_seeds(params, m, args.seeds) for m in methods}
-    return [(m, s, run_dir_name(m.name, s)) for s in train_config(params).seeds for m in methods
-            if s in per_method[m.name]]

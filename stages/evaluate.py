@@ -15,9 +15,10 @@ import sys
 from gca.eval.evaluate import evaluate_trained
 from gca.io import read_json, write_json
 from gca.scenes.world import load_scene_body
+from gca.train.run import seed_runs
 from gca.track import stage_run
 
-from common import scene_context, scene_parser, scene_runs  # stages/common.py
+from common import scene_context, scene_parser  # stages/common.py
 
 
 def main(argv=None) -> dict:
@@ -26,7 +27,7 @@ def main(argv=None) -> dict:
     params, scene, methods, inputs = scene_context("evaluate", args)
     body = load_scene_body(params, args.particles, args.gaussians, args.device)
     out = {}
-    for method, seed, name in scene_runs(params, methods, args):
+    for method, seed, name in seed_runs(params, methods, args.seeds):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
         with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",

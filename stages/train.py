@@ -20,8 +20,8 @@ from pathlib import Path
 
 from gca.track import stage_run
 
-from common import scene_context, scene_parser, scene_runs  # stages/common.py
-from gca.train.run import estimate_scene_velocity, read_velocity, train_method
+from common import scene_context, scene_parser  # stages/common.py
+from gca.train.run import estimate_scene_velocity, read_velocity, seed_runs, train_method
 
 
 def main(argv=None) -> dict:
@@ -30,7 +30,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--velocity", type=Path, help="reuse this velocity.json instead of estimating it")
     args = ap.parse_args(argv)
     params, scene, methods, inputs = scene_context("train", args)
-    runs = scene_runs(params, methods, args)
+    runs = seed_runs(params, methods, args.seeds)
     args.out.mkdir(parents=True, exist_ok=True)
     # an interrupted run of this call (e.g. stopped by grid.py --deadline) goes on from its checkpoint
     resuming = any((args.out / name / "checkpoint.pt").is_file() for _, _, name in runs)

@@ -32,7 +32,7 @@ from gca.scenes import SceneConfig, read_meta, load_views, scene_config, video_c
 from gca.scenes.prep import load_prep
 from gca.scenes.world import Body, initial_velocity, load_scene_body
 from gca.sim.solver import MPMSolver, SimConfig
-from gca.train.config import TrainConfig, VelocityConfig
+from gca.train.config import TrainConfig, VelocityConfig, run_dir_name
 from gca.train.law import LearnedLaw, build_law
 from gca.train.loop import Objective, TrainData, TrainResult, train
 from gca.train.methods import Method
@@ -111,6 +111,15 @@ def run_seeds(params: Mapping, method: Method, chosen: Sequence[int] | None = No
         raise config.ConfigError(f"seeds {unknown} are not in train.seeds {seeds}")
     runs = seeds if method.trains else seeds[:1]
     return [s for s in runs if s in chosen] if chosen else runs
+
+
+def seed_runs(params: Mapping, methods: Sequence[Method], chosen: Sequence[int] | None = None
+              ) -> list[tuple[Method, int, str]]:
+    """Every ``(method, seed, run name)`` of ``methods`` (:func:`run_seeds` each), seeds outermost in their
+    params order, methods in the given order within a seed: a whole table's first seed comes first."""
+    per_method = {m.name: run_seeds(params, m, chosen) for m in methods}
+    return [(m, s, run_dir_name(m.name, s)) for s in train_config(params).seeds for m in methods
+            if s in per_method[m.name]]
 
 
 def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
