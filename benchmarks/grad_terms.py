@@ -2,7 +2,7 @@
 
     python benchmarks/grad_terms.py --work /tmp/pp --scene fish --horizon 15 --json out.json
 
-``--work`` is a pipeline (or ``benchmarks/grid.py``) work directory holding the scene's data, its
+``--work`` is a pipeline (or ``gca/pipeline/grid.py``) work directory holding the scene's data, its
 preprocessing and ``models/prior/<family>.pt`` (``--prior-dir`` elsewhere). At the prior (or a trained
 ``--law``), one rollout over the first ``--horizon`` video frames is differentiated once per term:
 
@@ -37,15 +37,14 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set and work layout)
+from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set and work layout)
 
 from gca import config  # noqa: E402
 from gca.scenes import load_trajectory, scene_config, video_config  # noqa: E402
 from gca.train.loop import simulate  # noqa: E402
 from gca.train.methods import Method, get_method  # noqa: E402
-from gca.train.run import (SceneInputs, default_device, law_for, load_law, load_train_data,  # noqa: E402
+from gca.pipeline.train import (SceneInputs, default_device, law_for, load_law, load_train_data,  # noqa: E402
                            objective_for, read_velocity, solver_for)
 
 TERMS: dict[str, Method] = {

@@ -29,8 +29,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "stages"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from grid import grid_params  # noqa: E402  (the same params restriction as the grid runner)
+from gca.pipeline.grid import grid_params  # noqa: E402  (the same params restriction as the grid runner)
 
 
 def make_params(scene: str, methods: list[str], profile: str, overrides: list[str], out: Path) -> dict:
@@ -101,7 +100,7 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
     gt = json.loads((work / "m/gt.json").read_text())
     from gca.config import resolve
     from gca.train.methods import get_method
-    from gca.train.run import seed_runs
+    from gca.pipeline.train import seed_runs
 
     methods = [get_method(m) for m in raw["scenes"][scene]["methods"]]
     for _, seed, name in seed_runs(resolve(raw, raw["profile"]), methods):

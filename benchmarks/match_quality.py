@@ -4,7 +4,7 @@ training renders (unlit), matched to the lit ground-truth frames of the training
     python benchmarks/match_quality.py --work /tmp/pp --scene duck \
         --config geometry=fundamental,ransac_px=1.0 --config geometry=homography,ransac_px=3.0
 
-``--work`` is a pipeline (or ``benchmarks/grid.py``) work directory holding the scene's
+``--work`` is a pipeline (or ``gca/pipeline/grid.py``) work directory holding the scene's
 ``data/assets``, ``data/particles`` and ``data/prep``. The render shows the *exact* ground-truth
 state, so a correct match has ``|p - q| ~ 0``: the distances measure the matcher alone (lighting
 interference, repeated texture, the RANSAC model), i.e. the noise floor of the global term.

@@ -31,7 +31,7 @@ def build(work: Path, scene: str, method_name: str, device: str):
     from gca.train import loop
     from gca.train.config import TrainConfig
     from gca.train.methods import get_method
-    from gca.train.run import (SceneInputs, law_for, load_train_data, objective_for, read_velocity,
+    from gca.pipeline.train import (SceneInputs, law_for, load_train_data, objective_for, read_velocity,
                                solver_for)
     params = config.load(path=work / "params.yaml", via_dvc=False)
     spec = params["scenes"][scene]

@@ -16,19 +16,19 @@ set -eu
 W=$1; G=$2; SCENES=$3; METHODS_A=$4; B_SET=$5; PROFILE=${6:-paper}
 COMMON="--profile $PROFILE --gpus $G --priors .priors"
 # shellcheck disable=SC2086
-python3 benchmarks/grid.py --work "$W/a" --scenes $SCENES --methods nclaw $COMMON --slots 4 \
+python3 -m gca.pipeline.grid --work "$W/a" --scenes $SCENES --methods nclaw $COMMON --slots 4 \
     --stages assets particles ground_truth preprocess train \
     --before "${BEFORE:-python3 -c 'from gsplat.cuda._backend import _C'}"
 [ -d "$W/b" ] || cp -r "$W/a" "$W/b"
 # shellcheck disable=SC2086
-python3 benchmarks/grid.py --work "$W/a" --scenes $SCENES --methods nclaw $METHODS_A $COMMON --slots 3 \
+python3 -m gca.pipeline.grid --work "$W/a" --scenes $SCENES --methods nclaw $METHODS_A $COMMON --slots 3 \
     --stages train evaluate > "$W/a.log" 2>&1 &
 # shellcheck disable=SC2086
-python3 benchmarks/grid.py --work "$W/b" --scenes $SCENES --methods nclaw gca $COMMON --slots 2 $B_SET \
+python3 -m gca.pipeline.grid --work "$W/b" --scenes $SCENES --methods nclaw gca $COMMON --slots 2 $B_SET \
     --stages train evaluate > "$W/b.log" 2>&1 &
 wait
 tail -n 15 "$W/a.log" "$W/b.log"
 if [ -n "${OUT:-}" ]; then
-    python3 benchmarks/grid.py --work "$W/a" --scenes $SCENES --collect "$OUT/a" --collect-only
-    python3 benchmarks/grid.py --work "$W/b" --scenes $SCENES --collect "$OUT/b" --collect-only
+    python3 -m gca.pipeline.grid --work "$W/a" --scenes $SCENES --collect "$OUT/a" --collect-only
+    python3 -m gca.pipeline.grid --work "$W/b" --scenes $SCENES --collect "$OUT/b" --collect-only
 fi

@@ -15,10 +15,10 @@ set -eu
 W=$1; SCENES=$2; DEADLINE=${3:-540}; SLOTS=${4:-6}; PROFILE=${5:-paper}
 mkdir -p "$W"
 # shellcheck disable=SC2086
-python3 benchmarks/grid.py --work "$W" --scenes $SCENES --methods nclaw neuma gca --profile "$PROFILE" \
+python3 -m gca.pipeline.grid --work "$W" --scenes $SCENES --methods nclaw neuma gca --profile "$PROFILE" \
     --gpus 1 --slots "$SLOTS" --priors .priors --deadline "$DEADLINE" \
     --stages assets particles ground_truth preprocess train evaluate \
     --before "${BEFORE:-python3 -c 'from gsplat.cuda._backend import _C'}" ${GRID_ARGS:-} \
     > "$W/call.log" 2>&1 || echo "grid exited $?"
 grep -E "done|stop|FAIL|after|left" "$W/call.log" | tail -n 40
-[ -z "${OUT:-}" ] || python3 benchmarks/grid.py --work "$W" --scenes $SCENES --collect "$OUT" --collect-only
+[ -z "${OUT:-}" ] || python3 -m gca.pipeline.grid --work "$W" --scenes $SCENES --collect "$OUT" --collect-only

@@ -14,7 +14,7 @@
 # later call while it runs under nohup:   sh benchmarks/table1_solo.sh collect WORK "SCENES"
 set -eu
 collect() {  # WORK "SCENES"
-    python3 benchmarks/grid.py --work "$1/a" --scenes $2 --collect "$OUT/a" --collect-only
+    python3 -m gca.pipeline.grid --work "$1/a" --scenes $2 --collect "$OUT/a" --collect-only
     mkdir -p "$OUT/solo"
     (cd "$1" && tar czf "$OUT/solo/solo.tar.gz" solo.log $(ls -d solo/out solo/runs/*/history.json solo/runs/*/train.json 2>/dev/null))
 }
@@ -30,7 +30,7 @@ cp ".priors/$FAMILY.pt" "$W/solo/prior/"
 CUDA_VISIBLE_DEVICES=$((G - 1)) OMP_NUM_THREADS=4 python3 benchmarks/harness.py --scene "$SOLO" --methods $METHODS \
     --profile "$PROFILE" --work "$W/solo" --reuse-prior --out "$W/solo/out" > "$W/solo.log" 2>&1 &
 # shellcheck disable=SC2086
-python3 benchmarks/grid.py --work "$W/a" --scenes $SCENES --methods $METHODS --profile "$PROFILE" --gpus "$IDS," \
+python3 -m gca.pipeline.grid --work "$W/a" --scenes $SCENES --methods $METHODS --profile "$PROFILE" --gpus "$IDS," \
     --slots "$SLOTS" --priors .priors --stages assets particles ground_truth preprocess train evaluate \
     ${GRID_ARGS:-} > "$W/a.log" 2>&1 || echo "grid exited $?"
 wait || echo "harness exited $?"

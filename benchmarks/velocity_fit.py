@@ -3,7 +3,7 @@
     python benchmarks/velocity_fit.py --work /tmp/pp --scene duck \
         --variant "" --variant "velocity.reg_view_axis=0 velocity.n_video_frames=12"
 
-``--work`` is a pipeline (or ``benchmarks/grid.py``) work directory holding the scene's data, its
+``--work`` is a pipeline (or ``gca/pipeline/grid.py``) work directory holding the scene's data, its
 preprocessing and ``models/prior/<family>.pt``. Each variant (space-separated ``dotted.key=yaml``
 overrides of its ``params.yaml``) fits (v0, w0) as the ``train`` stage does; the table gives the error
 of v0 along the viewing ray (weakly observable from one view) and in the image plane [m/s], and of w0.
@@ -22,14 +22,13 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set)
+from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set)
 
 from gca import config  # noqa: E402
 from gca.scenes import scene_config  # noqa: E402
 from gca.scenes.groundtruth import scene_cameras  # noqa: E402
-from gca.train.run import default_device, estimate_scene_velocity  # noqa: E402
+from gca.pipeline.train import default_device, estimate_scene_velocity  # noqa: E402
 
 
 def errors(params, scene_name: str, fit: dict) -> dict:

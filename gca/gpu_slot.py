@@ -5,7 +5,7 @@ GPUs from outside, and every stage would land on GPU 0. With ``GCA_GPU_PER_PROCE
 environment, importing :mod:`gca` makes each stage process claim a GPU that no other gca process
 holds (an exclusive lock on one file per GPU, released when the process exits) and narrow
 ``CUDA_VISIBLE_DEVICES`` to it before CUDA starts; while every GPU is held, it waits for one. A process
-whose ``CUDA_VISIBLE_DEVICES`` is already set (``benchmarks/grid.py`` pins its jobs) is left alone.
+whose ``CUDA_VISIBLE_DEVICES`` is already set (``gca/pipeline/grid.py`` pins its jobs) is left alone.
 
 Standard library only: this runs at ``import gca``, before torch or warp touch CUDA.
 """

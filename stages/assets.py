@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from gca import config, io, track
+from gca import config, io
+from gca.pipeline import track
 from gca.assets import objects, ply
 from gca.assets.preview import write_preview
 

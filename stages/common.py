@@ -8,7 +8,7 @@ from pathlib import Path
 from gca import config
 from gca.scenes import scene_config
 from gca.train.methods import get_method
-from gca.train.run import SceneInputs, default_device
+from gca.pipeline.train import SceneInputs, default_device
 
 
 def scene_parser(description: str, paths: tuple[str, ...]) -> argparse.ArgumentParser:

@@ -15,11 +15,11 @@ import sys
 from pathlib import Path
 
 from gca import config
-from gca.eval.demos import DemoInputs, demo_config, interaction_demo, new_shape_demo
+from gca.pipeline.demo import DemoInputs, demo_config, interaction_demo, new_shape_demo
 from gca.io import atomic_path, write_json
 from gca.scenes import video_config
-from gca.track import stage_run
-from gca.train.run import default_device
+from gca.pipeline.track import stage_run
+from gca.pipeline.train import default_device
 
 
 def parse_args(argv):

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import sys
 
-from gca.eval.evaluate import evaluate_trained
+from gca.pipeline.evaluate import evaluate_trained
 from gca.io import read_json, write_json
 from gca.scenes.world import load_scene_body
-from gca.train.run import seed_runs
-from gca.track import stage_run
+from gca.pipeline.train import seed_runs
+from gca.pipeline.track import stage_run
 
 from common import scene_context, scene_parser  # stages/common.py
 

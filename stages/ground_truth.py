@@ -19,7 +19,7 @@ from gca.scenes import scene_config, video_config
 from gca.scenes.groundtruth import generate
 from gca.scenes.world import load_scene_body
 from gca.sim.solver import SimConfig
-from gca.track import stage_run
+from gca.pipeline.track import stage_run
 
 
 def parse_args(argv):

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from gca import config, io, track
+from gca import config, io
+from gca.pipeline import track
 from gca.assets import objects, particles, ply
 
 

@@ -16,7 +16,7 @@ from gca import config
 from gca.io import atomic_path, write_json
 from gca.scenes import TRAIN_VIEW, load_view
 from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
-from gca.track import stage_run
+from gca.pipeline.track import stage_run
 from gca.vision import VisionConfig
 
 

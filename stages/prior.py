@@ -16,8 +16,9 @@ from tqdm import tqdm
 from gca import config
 from gca.io import write_json
 from gca.laws.checkpoint import save_prior
-from gca.track import stage_run
-from gca.train.prior import plot_prior, pretrain_prior, prior_configs
+from gca.pipeline.track import stage_run
+from gca.pipeline.prior import prior_configs
+from gca.train.prior import plot_prior, pretrain_prior
 
 
 def parse_args(argv):

@@ -13,7 +13,7 @@ from gca import config
 from gca.io import write_json
 from gca.report import ReportConfig, build_reports, summary
 from gca.report.runs import load_runs
-from gca.track import stage_run
+from gca.pipeline.track import stage_run
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -5,7 +5,7 @@
         --prior-dir models/prior --out runs/duck [--methods gca neuma] [--seeds 0 1] [--velocity runs/duck/velocity.json]
 
 ``--velocity`` reuses a launch velocity estimated by an earlier run of this stage on the same scene
-(several processes training one scene's methods in parallel share one estimate: benchmarks/grid.py).
+(several processes training one scene's methods in parallel share one estimate: gca/pipeline/grid.py).
 A run resuming from a checkpoint under ``--out`` reuses ``--out``/velocity.json the same way.
 
 One training run per (method, seed) of ``train.seeds`` (``runs/duck/gca``, ``runs/duck/gca@seed1``, ...;
@@ -18,10 +18,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from gca.track import stage_run
+from gca.pipeline.track import stage_run
 
 from common import scene_context, scene_parser  # stages/common.py
-from gca.train.run import estimate_scene_velocity, read_velocity, seed_runs, train_method
+from gca.pipeline.train import estimate_scene_velocity, read_velocity, seed_runs, train_method
 
 
 def main(argv=None) -> dict:

@@ -93,7 +93,7 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
     from gca.assets.objects import ObjectConfig
     from gca.assets.particles import ParticleConfig
     from gca.eval.config import MetricsConfig
-    from gca.eval.demos import demo_config
+    from gca.pipeline.demo import demo_config
     from gca.laws.lora import LoRAConfig
     from gca.laws.neural import NeuralLawConfig
     from gca.laws.presets import material_from_preset
@@ -104,7 +104,7 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
     from gca.sim.solver import SimConfig
     from gca.train.config import TrainConfig, VelocityConfig
     from gca.train.methods import get_method
-    from gca.train.prior import prior_configs
+    from gca.pipeline.prior import prior_configs
     from gca.vision import VisionConfig
 
     raw = config.read_yaml(repo_root / "params.yaml")

@@ -19,12 +19,12 @@ from gca.assets.objects import gaussians_from_mesh, make_object
 from gca.assets.particles import ParticleConfig, convert, save_particles
 from gca.assets.ply import write_ply
 from gca.config import ConfigError, load
-from gca.eval.demos import DemoInputs, load_demo_law
+from gca.pipeline.demo import DemoInputs, load_demo_law
 from gca.laws.checkpoint import save_prior
 from gca.laws.lora import LoRAConfig
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 from gca.train.law import build_law
-from gca.train.run import save_law
+from gca.pipeline.train import save_law
 from gca.train.methods import get_method
 
 wp.config.quiet = True
@@ -139,7 +139,7 @@ def test_demo_stage_writes_animations_and_metrics(layout):
 
 def test_proposed_section_builds_in_both_profiles():
     from gca.config import resolve
-    from gca.eval.demos import demo_config
+    from gca.pipeline.demo import demo_config
 
     paper = demo_config({"demo": resolve(DEMO, "paper")})
     ci = demo_config({"demo": resolve(DEMO, "ci")})

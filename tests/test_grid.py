@@ -1,7 +1,6 @@
-"""benchmarks/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs, scheduled."""
+"""gca/pipeline/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs, scheduled."""
 
 import argparse
-import sys
 import tarfile
 import time
 from pathlib import Path
@@ -9,9 +8,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from gca.pipeline import grid
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-import grid  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -1,10 +1,11 @@
-"""gca.io atomic writes and gca.track: tracking failures warn, never fail a stage."""
+"""gca.io atomic writes and gca.pipeline.track: tracking failures warn, never fail a stage."""
 
 import json
 
 import pytest
 
-from gca import io, track
+from gca import io
+from gca.pipeline import track
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):

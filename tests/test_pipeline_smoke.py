@@ -167,7 +167,7 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
     from gca.config import ConfigError
     from gca.report.runs import load_runs, reduce_seeds
     from gca.train.methods import get_method
-    from gca.train.run import SceneInputs, load_learned_law
+    from gca.pipeline.train import SceneInputs, load_learned_law
 
     raw = yaml.safe_load((pipeline / "params.yaml").read_text())
     raw["train"]["seeds"] = [0, 3]

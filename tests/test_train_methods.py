@@ -349,7 +349,7 @@ def test_seeds_name_the_runs():
     from gca.config import ConfigError
     from gca.report.runs import _NAME
     from gca.train.config import run_dir_name
-    from gca.train.run import run_seeds
+    from gca.pipeline.train import run_seeds
 
     cfg = TrainConfig(seeds=[2, 0, 5])
     assert cfg.seeds == (2, 0, 5) and cfg.seed == 2 and TrainConfig().seed == 0

@@ -1,7 +1,7 @@
 """gca.eval: evaluation metrics (geometry, images, law responses, efficiency). No I/O, no stage logic."""
 
 from gca.eval.config import MetricsConfig
-from gca.eval.efficiency import Usage, count_parameters, measure
+from gca.efficiency import Usage, count_parameters, measure
 from gca.eval.geometry import (CHAMFER_DEFINITION, CHAMFER_DEFINITION_SQUARED, chamfer,
                                chamfer_over_time, nearest_distance)
 from gca.eval.image import SSIM_WINDOW, lpips_or_reason, lpips_unavailable_reason, psnr, ssim

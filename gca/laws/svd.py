@@ -39,6 +39,7 @@ import warp as wp
 from torch.autograd.function import once_differentiable
 
 from gca.laws.svd_kernel import WARP_FLOATS, svd3
+from gca.linalg import bmm3, det3  # noqa: F401  (the laws import them from here)
 
 
 def check_F(F: torch.Tensor, where: str) -> None:
@@ -48,31 +49,6 @@ def check_F(F: torch.Tensor, where: str) -> None:
         raise ValueError(f"gca/laws: {where}: F must be a [N, 3, 3] tensor, got {shape}")
     if not F.dtype.is_floating_point:
         raise TypeError(f"gca/laws: {where}: F must be floating point, got {F.dtype}")
-
-
-def det3(F: torch.Tensor) -> torch.Tensor:
-    """Determinant by cofactor expansion (a polynomial: smooth, exact 1 at F = I).
-
-    Args:
-        F: [N, 3, 3].
-
-    Returns:
-        J [N].
-    """
-    return (F[:, 0, 0] * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
-            - F[:, 0, 1] * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
-            + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
-
-
-def bmm3(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
-    """Batched 3x3 product A B by broadcasting, for [..., 3, 3] operands (any broadcastable batch).
-
-    ``A @ B`` on [N, 3, 3] batches goes to cuBLAS batched GEMM, whose smallest tiles waste ~30x the
-    work: ~0.1 ms per product for N = 1e5 on an H100, the largest cost of a neural-law MPM step
-    (benchmarks/NOTES.md). Multiply-and-sum over the shared index is two memory-bound elementwise
-    kernels (a few microseconds), forward and backward. Same values as ``A @ B`` up to summation order.
-    """
-    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
 
 
 def default_eps(dtype: torch.dtype) -> float:

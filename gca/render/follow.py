@@ -17,7 +17,7 @@ import dataclasses
 
 import torch
 
-from gca.laws.svd import bmm3
+from gca.linalg import bmm3
 
 _WHERE = "gca/render/follow.py"
 

@@ -31,6 +31,8 @@ import warnings
 import torch
 from torch import nn
 
+from gca.sim.frame import simulate_frame_trial
+
 _WHERE = "gca/sim/graph.py"
 _STATE = ("x", "v", "C", "F")
 
@@ -48,8 +50,6 @@ class _Frame(nn.Module):
         self.solver, self.material, self.n_steps = solver, material, n_steps
 
     def forward(self, x, v, C, F, vol, mass):
-        from gca.sim.rollout import simulate_frame_trial  # circular import at module level
-
         return simulate_frame_trial(self.solver, self.material, self.n_steps, x, v, C, F, vol, mass)
 
 

@@ -23,6 +23,7 @@ import torch
 from torch.utils.checkpoint import checkpoint as torch_checkpoint
 
 from gca.sim.cfl import refinement
+from gca.sim.frame import law_name, simulate_frame_trial
 from gca.sim.graph import graphed_frame
 from gca.sim.solver import MPMSolver
 
@@ -55,31 +56,6 @@ class Rollout:
     clamped: list
     F_trial: torch.Tensor | None = None
     refine: int = 1  # each step was taken as this many steps of dt / refine (CFL refinement)
-
-
-def law_name(material) -> str:
-    """Readable name of a material and its laws, for diagnostics."""
-    parts = [type(getattr(material, a)).__name__ for a in ("elasticity", "plasticity") if hasattr(material, a)]
-    return f"{type(material).__name__}({', '.join(parts)})" if parts else type(material).__name__
-
-
-def simulate_frame(solver: MPMSolver, material, n_steps: int, x, v, C, F, vol, mass):
-    """Run ``n_steps`` steps of ``material`` from state ``(x [N,3], v [N,3], C [N,3,3], F [N,3,3])``.
-
-    Returns:
-        The new ``(x, v, C, F)`` with F the projected elastic deformation gradient.
-    """
-    return simulate_frame_trial(solver, material, n_steps, x, v, C, F, vol, mass)[:4]
-
-
-def simulate_frame_trial(solver: MPMSolver, material, n_steps: int, x, v, C, F, vol, mass):
-    """:func:`simulate_frame` that also returns the last step's trial F [N,3,3] (before plasticity)."""
-    F_trial = F
-    for _ in range(n_steps):
-        tau = material.stress(F)
-        x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
-        F = material.project(F_trial)
-    return x, v, C, F, F_trial
 
 
 def check_state(solver: MPMSolver, x, v, F, step: int, law: str) -> int:

@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from gca.align.cpr import CPR, CPRConfig
 from gca.align.rdga import RDGAConfig, position_colors, position_image, rdga_loss
-from gca.eval.efficiency import synced_clock
+from gca.efficiency import synced_clock
 from gca.render.camera import Camera
 from gca.scenes.store import ViewData
 from gca.scenes.world import Body, gaussians_at, render_gaussians

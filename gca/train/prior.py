@@ -30,7 +30,6 @@ from typing import Callable, Mapping, Sequence
 
 import torch
 
-from gca.config import ConfigError, build, section
 from gca.io import atomic_path
 from gca.laws.base import Material
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
@@ -38,7 +37,8 @@ from gca.laws.pretrain import (DeformationSampling, PretrainConfig, fit_elastici
                                sweep_deformations)
 from gca.laws.presets import material_from_preset
 from gca.sim import MPMSolver, SimConfig, SimulationDiverged
-from gca.sim.rollout import check_state, simulate_frame
+from gca.sim.frame import simulate_frame
+from gca.sim.rollout import check_state
 from gca.train.prior_data import PriorDataConfig, Trajectory, make_trajectories, trajectory_seed
 
 _WHERE = "gca/train/prior.py"
@@ -374,15 +374,6 @@ def _metrics(evaluation: dict, fit: dict, history: list, data: dict, cfg: PriorT
                  "n_particles": [t.x.shape[1] for t in trajectories],
                  "shapes": [t.info["shape"] for t in trajectories]},
     }
-
-
-def prior_configs(params: Mapping, family: str) -> tuple[dict, NeuralLawConfig, PriorTrainConfig]:
-    """(family preset, network config, stage config) from resolved params (``prior.*``, ``laws.neural``)."""
-    families = section(params, "prior.families")
-    if family not in families:
-        raise ConfigError(f"params: prior.families has no family {family!r}; have {sorted(families)}")
-    law_cfg = build(NeuralLawConfig, section(params, "laws.neural"), "laws.neural")
-    return dict(families[family]), law_cfg, build(PriorTrainConfig, section(params, "prior.train"), "prior.train")
 
 
 def plot_prior(result: PriorResult, path, family: str = "") -> None:

@@ -23,7 +23,8 @@ import torch
 from gca.laws.base import Material
 from gca.laws.pretrain import random_rotations
 from gca.sim import MPMSolver, check_cfl
-from gca.sim.rollout import check_state, law_name, simulate_frame
+from gca.sim.frame import law_name, simulate_frame
+from gca.sim.rollout import check_state
 
 _WHERE = "gca/train/prior_data.py"
 SHAPES = ("cube", "sphere", "ellipsoid", "capsule")

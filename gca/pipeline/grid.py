@@ -8,7 +8,7 @@ where ``dvc repro`` puts them, inside ``--work``, so the ``report`` stage reads 
 A scene's ``train`` stage is split per method (the first method estimates the launch velocity, the
 others reuse it with ``--velocity``) so one scene's methods train on several GPUs at once.
 
-    python benchmarks/grid.py --work /tmp/t1 --scenes ball duck pawn cat fish bottle \
+    python -m gca.pipeline.grid --work /tmp/t1 --scenes ball duck pawn cat fish bottle \
         --methods gca neuma nclaw --profile paper --gpus 4 --slots 2 --deadline 540 \
         --before "python3 -c 'from gsplat.cuda._backend import _C'"
 
@@ -38,7 +38,7 @@ from pathlib import Path
 
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 
 # Estimated cost of a job [GPU-minutes, paper profile, one H100, alone]: for priorities (longest path
 # first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid.
@@ -122,7 +122,7 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     method's first seed) estimates the velocity."""
     from gca.config import resolve
     from gca.train.methods import get_method
-    from gca.train.run import seed_runs, train_config
+    from gca.pipeline.train import seed_runs, train_config
 
     resolved = resolve(params, params["profile"])
     several = len(train_config(resolved).seeds) > 1
@@ -209,10 +209,10 @@ def apply_overrides(params: dict, overrides: list[str]) -> dict:
 
 
 def scene_inputs(work: Path, scene_name: str, params: dict, prior_dir: Path | None = None):
-    """The :class:`gca.train.run.SceneInputs` of a scene in a grid (or pipeline) work directory: its data
+    """The :class:`gca.pipeline.train.SceneInputs` of a scene in a grid (or pipeline) work directory: its data
     where ``dvc repro`` puts them, the prior from ``prior_dir`` (default ``<work>/models/prior``)."""
     from gca.scenes import scene_config
-    from gca.train.run import SceneInputs
+    from gca.pipeline.train import SceneInputs
 
     scene = scene_config(params, scene_name)
     return SceneInputs(work / f"data/scenes/{scene_name}", work / f"data/prep/{scene_name}",

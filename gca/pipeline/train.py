@@ -23,7 +23,7 @@ import torch
 from gca import config
 from gca.align.cpr import CPRConfig
 from gca.align.rdga import RDGAConfig
-from gca.eval.efficiency import measure
+from gca.efficiency import measure
 from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior

@@ -1,0 +1,115 @@
+"""The demo stage's glue: the demos' config, solver and learned laws from params and the pipeline's folders.
+
+The demos themselves (simulate, render, combine bodies) are ``gca.eval.demos``; this module turns params
+into their typed inputs and loads the trained laws the train stage left.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import torch
+
+from gca import config
+from gca.eval.demos import (MISSING_LAW, DemoConfig, density, run_interaction, run_new_shape)
+from gca.laws.base import Material
+from gca.pipeline.train import SceneInputs, load_learned_law, train_config
+from gca.scenes.config import scene_config
+from gca.scenes.world import Body, load_body
+from gca.sim.solver import MPMSolver, SimConfig
+from gca.train.config import run_dir_name
+from gca.train.methods import get_method
+
+_WHERE = "gca/pipeline/demo.py"
+
+
+def demo_config(params: Mapping) -> DemoConfig:
+    """Build the :class:`DemoConfig` from resolved params (section ``demo``)."""
+    return config.build(DemoConfig, config.section(params, "demo"), "demo")
+
+
+def demo_solver(params: Mapping, scenes: Sequence[str], device: str | torch.device = "cpu") -> MPMSolver:
+    """The ``sim`` section's solver with the smallest ``dt`` of the given scenes (stable for all laws)."""
+    sim = config.build(SimConfig, config.section(params, "sim"), "sim")
+    dt = min(scene_config(params, s).dt for s in scenes)
+    return MPMSolver(dataclasses.replace(sim, dt=dt), device)
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoInputs:
+    """Where the pipeline keeps what the demos read."""
+
+    runs: Path  # runs/<scene>/<method>/law.pt
+    data: Path  # data/particles/<object>.npz, data/assets/<object>/gaussians.ply
+    prior_dir: Path  # models/prior/<family>.pt
+    device: str = "cpu"  # torch device of bodies, laws and the solver
+
+    def body(self, obj: str) -> Body:
+        """The object's body (particles + Gaussians, sim frame) on ``device``."""
+        return load_body(Path(self.data) / "particles" / f"{obj}.npz",
+                         Path(self.data) / "assets" / obj / "gaussians.ply", self.device)
+
+
+def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, rho: float,
+                  missing_law: str = "prior") -> tuple[Material, str]:
+    """The law ``method`` learned on ``scene`` with the first of ``train.seeds`` (``runs/<scene>/<method>/law.pt``
+    for seed 0, ``<method>@seed<k>`` otherwise), with density ``rho``.
+
+    Args:
+        params: resolved params (scenes, sim, laws, train sections).
+        scene: the scene the law was trained on (gives its prior family).
+        method: method name (``gca``, ``neuma``, ...).
+        inputs: pipeline folders.
+        rho: density of the object it will drive [kg/m^3].
+        missing_law: what to do without ``law.pt``: ``prior`` (warn, return the scene's prior law
+            as is, i.e. the ``nclaw`` row) or ``error`` (raise ``FileNotFoundError``).
+
+    Returns:
+        ``(material, source)`` with ``source`` saying which law file was used.
+    """
+    family = scene_config(params, scene).prior
+    scene_inputs = SceneInputs(None, None, None, None, Path(inputs.prior_dir) / f"{family}.pt")
+    seed = train_config(params).seed
+    run_dir = Path(inputs.runs) / scene / run_dir_name(method, seed)
+    chosen = get_method(method)
+    source = str(run_dir / "law.pt") if chosen.trains else f"prior {scene_inputs.prior} ({method} does not train)"
+    if chosen.trains and not (run_dir / "law.pt").is_file():
+        message = f"{_WHERE}: {run_dir / 'law.pt'}: no trained {method} law for scene {scene!r}"
+        if missing_law == "error":
+            raise FileNotFoundError(f"{message} (run the train stage, or set demo.missing_law: prior)")
+        if missing_law != "prior":
+            raise ValueError(f"{_WHERE}: missing_law must be one of {MISSING_LAW}, got {missing_law!r}")
+        warnings.warn(f"{message}; falling back to the scene's {family!r} prior {scene_inputs.prior}",
+                      RuntimeWarning, stacklevel=2)
+        chosen, source = get_method("nclaw"), f"prior {scene_inputs.prior} (fallback: no {method} law.pt)"
+    return load_learned_law(params, scene, chosen, scene_inputs, run_dir, rho, inputs.device).material, source
+
+
+def new_shape_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
+                   background=(1.0, 1.0, 1.0)) -> dict:
+    """Load the target object and the borrowed law from the pipeline's files; run :func:`run_new_shape`."""
+    ns = cfg.new_shape
+    body = inputs.body(ns.object)
+    material, source = load_demo_law(params, ns.law_scene, ns.method, inputs, density(body), cfg.missing_law)
+    solver = demo_solver(params, [ns.law_scene], inputs.device)
+    metrics = run_new_shape(solver, material, body, cfg, out_dir, background)
+    return {**metrics, "law_scene": ns.law_scene, "method": ns.method, "object": ns.object, "law_source": source,
+            "v0": list(ns.v0), "w0": list(ns.w0)}
+
+
+def interaction_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
+                     background=(1.0, 1.0, 1.0)) -> dict:
+    """Load both objects and their laws from the pipeline's files; run :func:`run_interaction`."""
+    refs = (cfg.interaction.a, cfg.interaction.b)
+    objects = [r.object or scene_config(params, r.scene).object for r in refs]
+    bodies = [inputs.body(o) for o in objects]
+    laws = [load_demo_law(params, r.scene, r.method, inputs, density(b), cfg.missing_law) for r, b in zip(refs, bodies)]
+    solver = demo_solver(params, [r.scene for r in refs], inputs.device)
+    metrics = run_interaction(solver, [m for m, _ in laws], bodies, cfg, out_dir, background)
+    for key, ref, obj, (_, source) in zip(("a", "b"), refs, objects, laws):
+        metrics.setdefault(key, {}).update(scene=ref.scene, method=ref.method, object=obj, law_source=source)
+    metrics.update(v0_a=list(cfg.interaction.v0_a), v0_b=list(cfg.interaction.v0_b))
+    return metrics

@@ -1,0 +1,34 @@
+"""One frame of simulation: ``n_steps`` steps of a material on the MPM solver, no autograd policy.
+
+Per step (``docs/architecture.md``): ``tau = material.stress(F)``,
+``x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)``, ``F = material.project(F_trial)``.
+The lowest module of ``gca.sim`` above the kernels: ``graph`` replays these steps from CUDA graphs and
+``rollout`` strings frames together, so both import it and it imports neither.
+"""
+
+from __future__ import annotations
+
+
+def law_name(material) -> str:
+    """Readable name of a material and its laws, for diagnostics."""
+    parts = [type(getattr(material, a)).__name__ for a in ("elasticity", "plasticity") if hasattr(material, a)]
+    return f"{type(material).__name__}({', '.join(parts)})" if parts else type(material).__name__
+
+
+def simulate_frame(solver, material, n_steps: int, x, v, C, F, vol, mass):
+    """Run ``n_steps`` steps of ``material`` from state ``(x [N,3], v [N,3], C [N,3,3], F [N,3,3])``.
+
+    Returns:
+        The new ``(x, v, C, F)`` with F the projected elastic deformation gradient.
+    """
+    return simulate_frame_trial(solver, material, n_steps, x, v, C, F, vol, mass)[:4]
+
+
+def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
+    """:func:`simulate_frame` that also returns the last step's trial F [N,3,3] (before plasticity)."""
+    F_trial = F
+    for _ in range(n_steps):
+        tau = material.stress(F)
+        x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
+        F = material.project(F_trial)
+    return x, v, C, F, F_trial
