@@ -48,10 +48,10 @@ from gca.pipeline.train import (SceneInputs, default_device, law_for, load_law, 
                            objective_for, read_velocity, solver_for)
 
 TERMS: dict[str, Method] = {
-    "mask": Method("t_mask", mask=True),
-    "global": Method("t_global", geo=True, rdga=(("use_anchor", False), ("lambda_mask", 0.0))),
-    "anchor": Method("t_anchor", geo=True, rdga=(("use_global", False), ("lambda_mask", 0.0))),
-    "cpr": Method("t_cpr", cpr=True, rdga=(("enabled", False), ("lambda_mask", 0.0))),
+    "mask": Method("t_mask", terms=("silhouette",)),
+    "global": Method("t_global", terms=("global",)),
+    "anchor": Method("t_anchor", terms=("anchor",)),
+    "cpr": Method("t_cpr", terms=("cpr",)),
     "gca": get_method("gca"),
     "color": get_method("neuma"),
 }
@@ -113,7 +113,7 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, loaded, n_video
         rows.append({"term": name, "loss": loss, "grad_norm": float(g.norm()), "cos_oracle": cos,
                      "stats": {k: v for k, v in stats.items() if k.startswith(("rdga/l_", "R_", "color"))}})
         print(f"  {name:7s} loss {loss:10.4g}  |grad| {float(g.norm()):10.3e}  cos(oracle) {cos:+.3f}", flush=True)
-    if {"mask", "global", "anchor", "cpr"} <= grads.keys():  # GCA with CPR's gradient capped (loop.add_prior_gradient)
+    if {"mask", "global", "anchor", "cpr"} <= grads.keys():  # GCA with CPR's gradient capped (objective.add_prior_gradient)
         g_data = grads["mask"] + grads["global"] + grads["anchor"]
         for r in ratios:
             scale = min(1.0, r * float(g_data.norm()) / max(float(grads["cpr"].norm()), 1e-300))

@@ -28,7 +28,7 @@ def build(work: Path, scene: str, method_name: str, device: str):
     """(solver, law, data, objective, cfg, opt) of ``method`` as the train stage would build them."""
     from gca import config
     from gca.scenes import scene_config, video_config
-    from gca.train import loop
+    from gca.train import state
     from gca.train.config import TrainConfig
     from gca.train.methods import get_method
     from gca.pipeline.train import (SceneInputs, law_for, load_train_data, objective_for, read_velocity,
@@ -46,7 +46,7 @@ def build(work: Path, scene: str, method_name: str, device: str):
                   float(data.body.mass.sum() / data.body.vol.sum()), device)
     objective = objective_for(params, method, data, spec)
     cfg = config.build(TrainConfig, config.section(params, "train"), "train")
-    opt, _ = loop._optimizer(law, cfg)
+    opt, _ = state.make_optimizer(law, cfg)
     return solver_for(params, scene_config(params, scene), device), law, data, objective, cfg, opt
 
 

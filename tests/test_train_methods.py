@@ -20,7 +20,8 @@ from gca.report import paper  # noqa: E402
 from gca.scenes.store import ViewData  # noqa: E402
 from gca.train.config import TrainConfig  # noqa: E402
 from gca.train.law import build_law  # noqa: E402
-from gca.train.loop import Objective, TrainData, horizon, train  # noqa: E402
+from gca.train.loop import horizon, train  # noqa: E402
+from gca.train.objective import Objective, TrainData  # noqa: E402
 from gca.train.methods import METHODS, UnknownMethodError, get_method  # noqa: E402
 from gca.vision import MatchConfig  # noqa: E402
 
@@ -124,7 +125,7 @@ def test_training_resumes_from_its_checkpoint(scene, tmp_path):
 @pytest.mark.parametrize("gradient", ["material", "full"])
 def test_fused_position_render_matches_two_passes(scene, gradient):
     """RGB + positions composited in one pass equal the separate renders (forward and gradient)."""
-    from gca.train.loop import position_image_ref
+    from gca.train.objective import position_image_ref
     from gca.scenes.world import gaussians_at, render_gaussians
 
     body, view = scene[0], scene[1]
@@ -159,7 +160,7 @@ def test_batched_objective_equals_frame_by_frame(textured_scene):
     read-back) equals the serial reference: each frame rendered, matched on the calling thread, scored
     and given its own CPR call in turn."""
     from gca.sim.rollout import rollout
-    from gca.train.loop import _MeanStats
+    from gca.train.objective import _MeanStats
     from gca.vision.matching import match_cached
 
     scene = textured_scene
@@ -375,7 +376,7 @@ def test_seeds_name_the_runs():
 def test_prior_gradient_is_capped_only_when_it_dominates():
     """g = g_data + min(1, r |g_data| / |g_prior|) g_prior: a prior 1000x the data is cut to r x; a weak one
     is added unscaled (the objective as written); r = 0 adds it unscaled whatever its size."""
-    from gca.train.loop import add_prior_gradient
+    from gca.train.objective import add_prior_gradient
 
     a, b = torch.tensor([3.0, 0.0, 4.0], dtype=torch.float64), torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64)
     for weight, ratio, expect_scale in ((1000.0, 0.5, 0.5 * 5.0 / (1000.0 * 2.0)), (1e-3, 0.5, 1.0), (1000.0, 0.0, 1.0)):
@@ -458,3 +459,63 @@ def test_lora_init_is_seeded(scene):
     same, again, other = adapters(0, 1), adapters(0, 2), adapters(1, 1)
     assert all(torch.equal(a, b) for a, b in zip(same, again))
     assert any(not torch.equal(a, b) for a, b in zip(same, other))
+
+
+@pytest.mark.parametrize("name", ["gca", "neuma", "no_rdga"])
+def test_objective_gradient_equals_its_reference_loss(textured_scene, name):
+    """Objective.gradient (what training differentiates: CPR chunked, image terms backward separately) =
+    the autograd gradient of Objective.loss (every term with its graph, one call) when CPR's gradient is not
+    rescaled (max_grad_ratio = 0: eq. 8 as written), same loss value; with a ratio the CPR share is scaled."""
+    from gca.sim.rollout import rollout
+
+    scene, method = textured_scene, get_method(name)
+    cfg = TrainConfig(curriculum_start=1.0, cpr_every=1)
+    data = _data(scene, method)
+    law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    params = law.trainable()
+    b, n_video = data.body, len(data.video_frames)
+    objective = lambda ratio: Objective(method, data, cfg, RDGAConfig(r=5, k=5),  # noqa: E731
+                                        CPRConfig(subset_size=16, n_groups=2, chunk_frames=1, max_grad_ratio=ratio),
+                                        MatchConfig())
+
+    def traj():
+        return rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
+                       n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+
+    whole, _ = objective(0.0).loss(traj(), n_video, law)
+    g_ref = torch.autograd.grad(whole, params, allow_unused=True)
+    phases = []
+    value, stats = objective(0.0).gradient(traj(), n_video, law, phases.append)
+    assert phases == ["render_losses", "backward"] and float(whole.detach()) > 0
+    torch.testing.assert_close(value, whole.detach(), rtol=1e-5, atol=0)
+    for p, r in zip(params, g_ref):
+        ref = torch.zeros_like(p) if r is None else r
+        torch.testing.assert_close(p.grad if p.grad is not None else torch.zeros_like(p), ref, rtol=1e-4, atol=1e-9)
+    if name == "gca":  # negative control: a ratio that binds changes the gradient, not the loss
+        for p in params:
+            p.grad = None
+        value2, stats2 = objective(1e-3).gradient(traj(), n_video, law)
+        assert stats2["prior_scale"] < 1 and float(value2) == pytest.approx(float(value), rel=1e-5)
+        assert any(not torch.allclose(p.grad, r) for p, r in zip(params, g_ref) if r is not None)
+
+
+def test_methods_declare_their_terms():
+    """Every registry method's terms are known; the RDGA switches follow from them alone, and bad declarations fail."""
+    from gca.train.methods import TERMS, Method
+
+    assert all(set(m.terms) <= TERMS.keys() for m in METHODS.values())
+    assert get_method("gca").rdga_switches() == {"enabled": True, "use_global": True, "use_anchor": True,
+                                                 "depth_term": "rank"}
+    assert get_method("no_global").rdga_switches()["use_global"] is False
+    assert get_method("rank_to_l1").rdga_switches()["depth_term"] == "l1"
+    assert get_method("neuma").rdga_switches() is None and get_method("no_rdga").rdga_switches() is None
+    assert Method("t", terms=("global",)).rdga_switches()["lambda_mask"] == 0.0  # alignment without L_mask
+    assert get_method("no_cpr").uses("silhouette") and not get_method("no_cpr").uses("cpr")
+    with pytest.raises(ValueError, match="unknown loss terms"):
+        Method("bad", terms=("mask",))
+    with pytest.raises(ValueError, match="two forms"):
+        Method("bad", terms=("anchor", "anchor_l1"))
+    with pytest.raises(ValueError, match="cpr_remove_target"):
+        Method("bad", terms=("silhouette",), cpr_remove_target=True)
+    with pytest.raises(KeyError):
+        get_method("gca").uses("mask")

@@ -34,7 +34,8 @@ from gca.scenes.world import Body, initial_velocity, load_scene_body
 from gca.sim.solver import MPMSolver, SimConfig
 from gca.train.config import TrainConfig, VelocityConfig, run_dir_name
 from gca.train.law import LearnedLaw, build_law
-from gca.train.loop import Objective, TrainData, TrainResult, train
+from gca.train.loop import TrainResult, train
+from gca.train.objective import Objective, TrainData
 from gca.train.methods import Method
 from gca.train.velocity import estimate_velocity
 from gca.vision import MatchConfig
