@@ -41,7 +41,8 @@ sys.path.insert(0, str(ROOT))
 from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set and work layout)
 
 from gca import config  # noqa: E402
-from gca.scenes import load_trajectory, scene_config, video_config  # noqa: E402
+from gca.pipeline.settings import Settings  # noqa: E402
+from gca.scenes import load_trajectory  # noqa: E402
 from gca.train.loop import simulate  # noqa: E402
 from gca.train.methods import Method, get_method  # noqa: E402
 from gca.pipeline.train import (SceneInputs, default_device, law_for, load_law, load_train_data,  # noqa: E402
@@ -65,9 +66,9 @@ def oracle_loss(traj, gt: torch.Tensor, video_frames: list[int], n_video: int) -
 
 def _scene_and_law(params, scene_name: str, inputs: SceneInputs, velocity, law_path: Path | None, device: str):
     """The scene's config, its training data (GCA's view of it) and the law: the prior or ``law_path``."""
-    scene = scene_config(params, scene_name)
+    scene = params.scene(scene_name)
     gca = get_method("gca")
-    data = load_train_data(params, inputs, gca, velocity, video_config(params).background, device)
+    data = load_train_data(params, inputs, gca, velocity, params.video.background, device)
     law = law_for(params, gca, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
     if law_path is not None:
         load_law(law_path, law, scene.prior)
@@ -82,7 +83,6 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, loaded, n_video
     solver = solver_for(params, scene, device)
     theta = law.trainable()
     gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=data.body.x0.dtype, device=device)
-    scene_params = config.section(params, f"scenes.{scene_name}")
 
     def grad_of(loss_fn) -> tuple[float, torch.Tensor]:
         traj = simulate(solver, law, data, n_video)
@@ -99,7 +99,7 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, loaded, n_video
     grads = {}
     for name in terms:
         method = TERMS[name]
-        objective = objective_for(params, method, data, scene_params)
+        objective = objective_for(params, method, data, scene)
         stats: dict = {}
 
         def loss_fn(traj, objective=objective, stats=stats):
@@ -133,8 +133,7 @@ def path_values(params, scene_name: str, inputs: SceneInputs, loaded, n_video: i
         traj = simulate(solver_for(params, scene, device), law, data, n_video)
     gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=traj.x.dtype, device=device)
     frames = data.video_frames[:n_video]
-    scene_params = config.section(params, f"scenes.{scene_name}")
-    objectives = {name: objective_for(params, TERMS[name], data, scene_params) for name in terms if name != "cpr"}
+    objectives = {name: objective_for(params, TERMS[name], data, scene) for name in terms if name != "cpr"}
     rows = []
     for i in range(n_steps + 1):
         alpha = i / n_steps
@@ -172,17 +171,17 @@ def main(argv=None) -> list[dict]:
     args = ap.parse_args(argv)
     tree = apply_overrides(config.read_yaml(args.work / "params.yaml"), args.set)
     profile = args.profile or tree.get("profile", "paper")
-    params = {**config.resolve(tree, profile), "profile": profile}
-    scene = scene_config(params, args.scene)
-    inputs = scene_inputs(args.work, args.scene, params, args.prior_dir)
+    params = Settings({**config.resolve(tree, profile), "profile": profile})
+    scene = params.scene(args.scene)
+    inputs = scene_inputs(args.work, args.scene, params.params, args.prior_dir)
     velocity = read_velocity(args.velocity) if args.velocity else (list(scene.v0), list(scene.w0))
     loaded = _scene_and_law(params, args.scene, inputs, velocity, args.law, args.device)
     out = []
     for n in args.horizon:
-        print(f"{args.scene}: horizon {n} video frames ({params['profile']} profile)", flush=True)
+        print(f"{args.scene}: horizon {n} video frames ({params.profile} profile)", flush=True)
         rows = [] if args.no_gradients else term_gradients(params, args.scene, inputs, loaded, n, args.terms,
                                                            args.device, args.ratio)
-        out.append({"scene": args.scene, "horizon": n, "profile": params["profile"], "set": args.set,
+        out.append({"scene": args.scene, "horizon": n, "profile": params.profile, "set": args.set,
                     "law": str(args.law) if args.law else "prior", "rows": rows})
         if args.path:
             print(f"{args.scene}: term values from the law's rollout (alpha 0) to the truth (alpha 1)", flush=True)

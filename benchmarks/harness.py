@@ -99,11 +99,12 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
     rows = []
     gt = json.loads((work / "m/gt.json").read_text())
     from gca.config import resolve
-    from gca.train.methods import get_method
+    from gca.pipeline.settings import Settings
     from gca.pipeline.train import seed_runs
+    from gca.train.methods import get_method
 
     methods = [get_method(m) for m in raw["scenes"][scene]["methods"]]
-    for _, seed, name in seed_runs(resolve(raw, raw["profile"]), methods):
+    for _, seed, name in seed_runs(Settings(resolve(raw, raw["profile"])), methods):
         train = json.loads((work / "runs" / name / "train.json").read_text())
         metrics = json.loads((work / "eval" / f"{name}.json").read_text())
         history = json.loads((work / "runs" / name / "history.json").read_text())["history"]

@@ -27,13 +27,11 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gca import config  # noqa: E402
-from gca.scenes import scene_config, video_config  # noqa: E402
+from gca.pipeline.settings import Settings  # noqa: E402
 from gca.scenes.groundtruth import scene_cameras, simulate_scene  # noqa: E402
 from gca.scenes.prep import load_prep  # noqa: E402
-from gca.scenes.world import load_scene_body, render_body  # noqa: E402
+from gca.scenes.world import render_body  # noqa: E402
 from gca.laws import material_from_preset  # noqa: E402
-from gca.sim.solver import SimConfig  # noqa: E402
 from gca.vision import MatchConfig  # noqa: E402
 from gca.vision.matching import match_cached  # noqa: E402
 
@@ -70,13 +68,11 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--config", action="append", default=[], help="comma-separated MatchConfig fields")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
-    params = config.load(f"match_quality@{args.scene}", args.work / "params.yaml")
-    scene, video = scene_config(params, args.scene), video_config(params)
-    sim = config.build(SimConfig, config.section(params, "sim"), "sim")
-    base = config.build(MatchConfig, config.section(params, "vision.matching"), "vision.matching")
-    body = load_scene_body(params, args.work / f"data/particles/{scene.object}.npz",
+    settings = Settings.load(f"match_quality@{args.scene}", args.work / "params.yaml")
+    scene, video, sim, base = settings.scene(args.scene), settings.video, settings.sim, settings.match
+    body = settings.load_body(args.work / f"data/particles/{scene.object}.npz",
                            args.work / f"data/assets/{scene.object}/gaussians.ply", "cpu")
-    preset = config.section(params, f"materials.{scene.material}")
+    preset = settings.material(scene.material)
     material = material_from_preset(preset, dt=scene.dt, n_particles=body.n_particles).to(dtype=body.x0.dtype)
     traj = simulate_scene(body, material, scene, video, sim, "cpu")
     camera = scene_cameras(scene, video.resolution)[args.view]

@@ -27,27 +27,25 @@ ROOT = Path(__file__).resolve().parents[1]
 def build(work: Path, scene: str, method_name: str, device: str):
     """(solver, law, data, objective, cfg, opt) of ``method`` as the train stage would build them."""
     from gca import config
-    from gca.scenes import scene_config, video_config
+    from gca.pipeline.settings import Settings
     from gca.train import state
-    from gca.train.config import TrainConfig
     from gca.train.methods import get_method
     from gca.pipeline.train import (SceneInputs, law_for, load_train_data, objective_for, read_velocity,
                                solver_for)
-    params = config.load(path=work / "params.yaml", via_dvc=False)
-    spec = params["scenes"][scene]
+    params = Settings(config.load(path=work / "params.yaml", via_dvc=False))
+    spec = params.params["scenes"][scene]
     inputs = SceneInputs(scene_dir=work / "scene", prep_dir=work / "prep", particles=work / "particles.npz",
                          gaussians=work / "assets" / spec["object"] / "gaussians.ply",
                          prior=work / "prior" / f"{spec['prior']}.pt")
     method = get_method(method_name)
-    video = video_config(params)
     data = load_train_data(params, inputs, method, read_velocity(work / "runs" / "velocity.json"),
-                           video.background, device)
-    law = law_for(params, method, scene_config(params, scene), inputs,
+                           params.video.background, device)
+    law = law_for(params, method, params.scene(scene), inputs,
                   float(data.body.mass.sum() / data.body.vol.sum()), device)
-    objective = objective_for(params, method, data, spec)
-    cfg = config.build(TrainConfig, config.section(params, "train"), "train")
+    objective = objective_for(params, method, data, params.scene(scene))
+    cfg = params.train
     opt, _ = state.make_optimizer(law, cfg)
-    return solver_for(params, scene_config(params, scene), device), law, data, objective, cfg, opt
+    return solver_for(params, params.scene(scene), device), law, data, objective, cfg, opt
 
 
 def main(argv=None) -> None:

@@ -26,14 +26,14 @@ sys.path.insert(0, str(ROOT))
 from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the grid runner's --set)
 
 from gca import config  # noqa: E402
-from gca.scenes import scene_config  # noqa: E402
+from gca.pipeline.settings import Settings  # noqa: E402
 from gca.scenes.groundtruth import scene_cameras  # noqa: E402
 from gca.pipeline.train import default_device, estimate_scene_velocity  # noqa: E402
 
 
 def errors(params, scene_name: str, fit: dict) -> dict:
     """v0 error along the train0 viewing ray and in the image plane [m/s], w0 error [rad/s]."""
-    scene = scene_config(params, scene_name)
+    scene = Settings(params).scene(scene_name)
     axis = np.array(scene_cameras(scene, 8)["train0"].w2c)[2, :3]
     err = np.array(fit["v0"]) - np.array(scene.v0)
     along = float(err @ axis)
@@ -56,7 +56,7 @@ def main(argv=None) -> list[dict]:
     for text in args.variant or [""]:
         params = apply_overrides(copy.deepcopy(base), text.split())
         with tempfile.TemporaryDirectory() as tmp:
-            fit = estimate_scene_velocity(params, args.scene, inputs, Path(tmp) / "velocity.json", args.device)
+            fit = estimate_scene_velocity(Settings(params), args.scene, inputs, Path(tmp) / "velocity.json", args.device)
         rows.append({"variant": text or "params.yaml", **fit, **errors(params, args.scene, fit)})
     print(f"{'variant':50s} {'gt along':>8s} {'err along':>9s} {'in-plane':>8s} {'w0 err':>7s} {'loss':>8s}")
     for r in rows:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gca import config
-from gca.scenes import scene_config
-from gca.train.methods import get_method
+from gca.config import section
+from gca.pipeline.settings import Settings
 from gca.pipeline.train import SceneInputs, default_device
+from gca.train.methods import get_method
 
 
 def scene_parser(description: str, paths: tuple[str, ...]) -> argparse.ArgumentParser:
@@ -25,11 +25,11 @@ def scene_parser(description: str, paths: tuple[str, ...]) -> argparse.ArgumentP
 
 
 def scene_context(stage: str, args: argparse.Namespace):
-    """(params, scene config, methods, inputs) of ``<stage>@<scene>``."""
-    params = config.load(f"{stage}@{args.scene}", args.params)
-    scene = scene_config(params, args.scene)
-    methods = [get_method(m) for m in (args.methods or config.section(params, f"scenes.{args.scene}.methods"))]
+    """(settings, scene config, methods, inputs) of ``<stage>@<scene>``."""
+    settings = Settings.load(f"{stage}@{args.scene}", args.params)
+    scene = settings.scene(args.scene)
+    methods = [get_method(m) for m in (args.methods or section(settings.params, f"scenes.{args.scene}.methods"))]
     inputs = SceneInputs(args.scene_dir, getattr(args, "prep", None), args.particles, args.gaussians,
                          args.prior_dir / f"{scene.prior}.pt")
-    return params, scene, methods, inputs
+    return settings, scene, methods, inputs
 

@@ -14,10 +14,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from gca import config
-from gca.pipeline.demo import DemoInputs, demo_config, interaction_demo, new_shape_demo
 from gca.io import atomic_path, write_json
-from gca.scenes import video_config
+from gca.pipeline.demo import DemoInputs, demo_config, interaction_demo, new_shape_demo
+from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
 from gca.pipeline.train import default_device
 
@@ -33,19 +32,19 @@ def parse_args(argv):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    params = config.load("demo", args.params)
-    cfg = demo_config(params)
+    settings = Settings.load("demo", args.params)
+    cfg = demo_config(settings)
     inputs = DemoInputs(args.runs, args.data, args.prior_dir, args.device)
-    background = video_config(params).background
-    with stage_run("demo", params) as run:
+    background = settings.video.background
+    with stage_run("demo", settings.params) as run:
         with atomic_path(args.out, is_dir=True) as tmp:
-            out = {"new_shape": new_shape_demo(params, cfg, inputs, tmp / "new_shape", background),
-                   "interaction": interaction_demo(params, cfg, inputs, tmp / "interaction", background)}
+            out = {"new_shape": new_shape_demo(settings, cfg, inputs, tmp / "new_shape", background),
+                   "interaction": interaction_demo(settings, cfg, inputs, tmp / "interaction", background)}
         for demo in out.values():  # point at the final folder, not the temporary one
             for key in ("gif", "strip_png"):
                 if key in demo:
                     demo[key] = str(args.out / Path(demo[key]).relative_to(tmp))
-        out.update(profile=params["profile"], seed=int(params["seed"]))
+        out.update(profile=settings.profile, seed=settings.seed)
         write_json(args.metrics, out)
         run.log_metrics(out)
         run.log_artifact(args.out)

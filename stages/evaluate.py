@@ -14,7 +14,6 @@ import sys
 
 from gca.pipeline.evaluate import evaluate_trained
 from gca.io import read_json, write_json
-from gca.scenes.world import load_scene_body
 from gca.pipeline.train import seed_runs
 from gca.pipeline.track import stage_run
 
@@ -24,15 +23,15 @@ from common import scene_context, scene_parser  # stages/common.py
 def main(argv=None) -> dict:
     paths = ("scene-dir", "runs", "particles", "gaussians", "prior-dir", "out")
     args = scene_parser(__doc__.splitlines()[0], paths).parse_args(argv)
-    params, scene, methods, inputs = scene_context("evaluate", args)
-    body = load_scene_body(params, args.particles, args.gaussians, args.device)
+    settings, scene, methods, inputs = scene_context("evaluate", args)
+    body = settings.load_body(args.particles, args.gaussians, args.device)
     out = {}
-    for method, seed, name in seed_runs(params, methods, args.seeds):
+    for method, seed, name in seed_runs(settings, methods, args.seeds):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
-        with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
+        with stage_run("evaluate", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
                        tags={"tables": ",".join(method.tables), "seed": str(seed)}, resume_run_id=run_id) as run:
-            out[name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out, args.device,
+            out[name] = evaluate_trained(settings, args.scene, method, inputs, body, args.runs, args.out, args.device,
                                          seed)
             write_json(args.out / f"{name}.json", out[name])
             run.log_metrics({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})

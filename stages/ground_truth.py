@@ -12,14 +12,10 @@ from pathlib import Path
 
 import torch
 
-from gca import config
 from gca.io import atomic_path, write_json
-from gca.render.shading import LightingConfig
-from gca.scenes import scene_config, video_config
-from gca.scenes.groundtruth import generate
-from gca.scenes.world import load_scene_body
-from gca.sim.solver import SimConfig
+from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
+from gca.scenes.groundtruth import generate
 
 
 def parse_args(argv):
@@ -36,15 +32,13 @@ def parse_args(argv):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    params = config.load(f"ground_truth@{args.scene}", args.params)
-    scene, video = scene_config(params, args.scene), video_config(params)
-    sim = config.build(SimConfig, config.section(params, "sim"), "sim")
-    lighting = config.build(LightingConfig, config.section(params, "render.lighting"), "render.lighting")
-    body = load_scene_body(params, args.particles, args.assets / "gaussians.ply", args.device)
-    preset = config.section(params, f"materials.{scene.material}")
-    with stage_run("ground_truth", params, scene=args.scene) as run:
+    settings = Settings.load(f"ground_truth@{args.scene}", args.params)
+    scene = settings.scene(args.scene)
+    body = settings.load_body(args.particles, args.assets / "gaussians.ply", args.device)
+    with stage_run("ground_truth", settings.params, scene=args.scene) as run:
         with atomic_path(args.out, is_dir=True) as tmp:
-            metrics = generate(tmp, body, args.scene, scene, video, sim, preset, lighting, args.device)
+            metrics = generate(tmp, body, args.scene, scene, settings.video, settings.sim,
+                               settings.material(scene.material), settings.lighting, args.device)
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)
         run.log_artifact(args.out / "preview.gif")

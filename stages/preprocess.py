@@ -12,12 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gca import config
 from gca.io import atomic_path, write_json
+from gca.pipeline.settings import Settings
+from gca.pipeline.track import stage_run
 from gca.scenes import TRAIN_VIEW, load_view
 from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
-from gca.pipeline.track import stage_run
-from gca.vision import VisionConfig
 
 
 def parse_args(argv):
@@ -32,17 +31,17 @@ def parse_args(argv):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    params = config.load(f"preprocess@{args.scene}", args.params)
-    cfg = config.build(VisionConfig, config.section(params, "vision"), "vision")
+    settings = Settings.load(f"preprocess@{args.scene}", args.params)
+    cfg = settings.vision
     view = load_view(args.scene_dir, TRAIN_VIEW)
-    with stage_run("preprocess", params, scene=args.scene) as run:
-        prep = preprocess_view(view, cfg, seed=int(params["seed"]))
+    with stage_run("preprocess", settings.params, scene=args.scene) as run:
+        prep = preprocess_view(view, cfg, seed=settings.seed)
         with atomic_path(args.out, is_dir=True) as tmp:
             write_prep(tmp, prep)
         n_kpts = np.diff(prep["keypoints"]["offsets"])
         metrics = {"n_frames": int(len(prep["depth"])), "keypoints_per_frame": float(n_kpts.mean()),
                    "mask_coverage": float(prep["masks"].mean()),
-                   **synthetic_pair_precision(view.rgb[0], cfg, seed=int(params["seed"]))}
+                   **synthetic_pair_precision(view.rgb[0], cfg, seed=settings.seed)}
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)
     return metrics

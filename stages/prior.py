@@ -13,11 +13,11 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from gca import config
 from gca.io import write_json
 from gca.laws.checkpoint import save_prior
-from gca.pipeline.track import stage_run
 from gca.pipeline.prior import prior_configs
+from gca.pipeline.settings import Settings
+from gca.pipeline.track import stage_run
 from gca.train.prior import plot_prior, pretrain_prior
 
 
@@ -33,10 +33,10 @@ def parse_args(argv):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    params = config.load(f"prior@{args.family}", args.params)
-    preset, law_cfg, cfg = prior_configs(params, args.family)
+    settings = Settings.load(f"prior@{args.family}", args.params)
+    preset, law_cfg, cfg = prior_configs(settings, args.family)
     device = args.device
-    with stage_run("prior", params, tags={"family": args.family}) as run, \
+    with stage_run("prior", settings.params, tags={"family": args.family}) as run, \
             tqdm(desc=f"prior {args.family}", unit="step", leave=False) as bar:
         def progress(phase, i, n, **values):
             bar.set_description(f"prior {args.family}: {phase}")
@@ -45,9 +45,9 @@ def main(argv=None) -> dict:
             if phase == "train" and (i % cfg.log_every == 0 or i == n):
                 run.log_metrics({"train_loss_cells2": values["loss"]}, step=i)
 
-        result = pretrain_prior(preset, law_cfg, cfg, int(params["seed"]), device, progress)
+        result = pretrain_prior(preset, law_cfg, cfg, settings.seed, device, progress)
         save_prior(args.out, result.elasticity, result.plasticity, args.family,
-                   metadata={"preset": preset, "seed": int(params["seed"]), "profile": params["profile"],
+                   metadata={"preset": preset, "seed": settings.seed, "profile": settings.profile,
                              "heldout_ratio": result.metrics["heldout_ratio"]})
         metrics = {"family": args.family, "device": device, **result.metrics}
         write_json(args.metrics, metrics)

@@ -29,24 +29,24 @@ def main(argv=None) -> dict:
     ap = scene_parser(__doc__.splitlines()[0], paths)
     ap.add_argument("--velocity", type=Path, help="reuse this velocity.json instead of estimating it")
     args = ap.parse_args(argv)
-    params, scene, methods, inputs = scene_context("train", args)
-    runs = seed_runs(params, methods, args.seeds)
+    settings, scene, methods, inputs = scene_context("train", args)
+    runs = seed_runs(settings, methods, args.seeds)
     args.out.mkdir(parents=True, exist_ok=True)
     # an interrupted run of this call (e.g. stopped by grid.py --deadline) goes on from its checkpoint
     resuming = any((args.out / name / "checkpoint.pt").is_file() for _, _, name in runs)
     if args.velocity is None and resuming and (args.out / "velocity.json").is_file():
         args.velocity = args.out / "velocity.json"  # with the launch velocity its first iterations used
     if args.velocity is None:
-        with stage_run("train", params, scene=args.scene, method="velocity") as run:
-            velocity = estimate_scene_velocity(params, args.scene, inputs, args.out / "velocity.json", args.device)
+        with stage_run("train", settings.params, scene=args.scene, method="velocity") as run:
+            velocity = estimate_scene_velocity(settings, args.scene, inputs, args.out / "velocity.json", args.device)
             run.log_metrics({k: v for k, v in velocity.items() if k not in ("v0", "w0")})
     velocity = read_velocity(args.velocity or args.out / "velocity.json")
     results = {}
     for method, seed, name in runs:
-        with stage_run("train", params, scene=args.scene, method=method.name, table=method.tables[0],
+        with stage_run("train", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
                        tags={"tables": ",".join(method.tables), "material": scene.material, "seed": str(seed)}) as run:
-            results[name] = train_method(params, args.scene, method, inputs, velocity, args.out / name, run,
+            results[name] = train_method(settings, args.scene, method, inputs, velocity, args.out / name, run,
                                          args.device, seed)
             run.log_artifact(args.out / name / "loss.png")
         print(f"train {args.scene}/{name}: {results[name]['status']} in {results[name]['train_seconds']:.1f} s")

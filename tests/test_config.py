@@ -99,8 +99,7 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
     from gca.laws.presets import material_from_preset
     from gca.render.shading import LightingConfig
     from gca.report import ReportConfig
-    from gca.scenes import scene_config, video_config
-    from gca.scenes.world import raster_settings
+    from gca.pipeline.settings import Settings
     from gca.sim.solver import SimConfig
     from gca.train.config import TrainConfig, VelocityConfig
     from gca.train.methods import get_method
@@ -115,16 +114,18 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
                       (LoRAConfig, "laws.lora"), (TrainConfig, "train"), (VelocityConfig, "velocity"),
                       (ParticleConfig, "particles"), (ReportConfig, "report"), (MetricsConfig, "eval.metrics")):
         config.build(cls, config.section(p, name), name)
-    raster_settings(p)
-    video_config(p)
-    demo_config(p)
+    settings = Settings(p)
+    settings.load_body  # noqa: B018  (bound: the body's rasterizer settings build)
+    assert settings.backend in ("auto", "torch", "gsplat") and settings.raster is not None
+    settings.video
+    demo_config(settings)
     for name in p["objects"]:
         config.build(ObjectConfig, p["objects"][name], f"objects.{name}")
     for family in p["prior"]["families"]:
-        prior_configs(p, family)
+        prior_configs(settings, family)
         material_from_preset(p["prior"]["families"][family])
     for name in p["scenes"]:
-        scene = scene_config(p, name)
+        scene = settings.scene(name)
         assert scene.object in p["objects"] and scene.material in p["materials"] and scene.prior in p["prior"]["families"]
         for m in scene.methods:
             get_method(m)
@@ -138,13 +139,27 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
 
 
 def test_render_backend_auto_resolves_per_device():
-    from gca.scenes.world import raster_settings
+    from gca.scenes.world import resolve_backend
 
-    assert raster_settings({"render": {"backend": "auto"}}, "cpu")[0] == "torch"
+    assert resolve_backend("auto", "cpu") == "torch"
     with pytest.warns(RuntimeWarning, match="needs CUDA"):
-        assert raster_settings({"render": {"backend": "gsplat"}}, "cpu")[0] == "torch"
+        assert resolve_backend("gsplat", "cpu") == "torch"
     with pytest.raises(ValueError, match="render.backend='opengl'"):
-        raster_settings({"render": {"backend": "opengl"}}, "cpu")
+        resolve_backend("opengl", "cpu")
+
+
+def test_settings_build_each_section_once_and_name_missing_keys(repo_root):
+    """Settings (the pipeline's typed params) builds a section on first use and keeps it; a section the stage
+    did not declare is a ConfigError naming the key; an unknown scene names the known ones."""
+    from gca.pipeline.settings import Settings
+
+    settings = Settings(config.resolve(config.read_yaml(repo_root / "params.yaml"), "ci"))
+    assert settings.train is settings.train and settings.scene("duck") is settings.scene("duck")
+    assert settings.train_for(None) is settings.train and settings.train_for(0).seed == 0
+    with pytest.raises(config.ConfigError, match="unknown scene 'nosuch'"):
+        settings.scene("nosuch")
+    with pytest.raises(config.ConfigError, match="missing key 'align'"):
+        Settings({"profile": "ci"}).rdga
 
 
 def _own_prior_scenes(raw: dict) -> list[str]:

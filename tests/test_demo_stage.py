@@ -20,6 +20,7 @@ from gca.assets.particles import ParticleConfig, convert, save_particles
 from gca.assets.ply import write_ply
 from gca.config import ConfigError, load
 from gca.pipeline.demo import DemoInputs, load_demo_law
+from gca.pipeline.settings import Settings
 from gca.laws.checkpoint import save_prior
 from gca.laws.lora import LoRAConfig
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
@@ -101,7 +102,7 @@ def _inputs(tmp: Path) -> DemoInputs:
 
 
 def test_trained_law_is_used_and_a_missing_one_follows_missing_law(layout):
-    params = load("demo", layout / "params.yaml")
+    params = Settings(load("demo", layout / "params.yaml"))
     F = torch.eye(3) + 0.05 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(0))
     trained, source = load_demo_law(params, "duck", "gca", _inputs(layout), 1000.0)
     assert source.endswith("runs/duck/gca/law.pt")
@@ -141,10 +142,10 @@ def test_proposed_section_builds_in_both_profiles():
     from gca.config import resolve
     from gca.pipeline.demo import demo_config
 
-    paper = demo_config({"demo": resolve(DEMO, "paper")})
-    ci = demo_config({"demo": resolve(DEMO, "ci")})
+    paper = demo_config(Settings({"demo": resolve(DEMO, "paper")}))
+    ci = demo_config(Settings({"demo": resolve(DEMO, "ci")}))
     assert (paper.n_frames, paper.resolution, paper.render_every) == (200, 256, 1)
     assert (ci.n_frames, ci.resolution, ci.render_every) == (6, 32, 2)
     assert paper.interaction.b.scene == "cat" and paper.interaction.v0_b == (-2.0, 0.5, 0.0)
     with pytest.raises(ConfigError, match="unknown keys"):
-        demo_config({"demo": {**resolve(DEMO, "ci"), "fps": 25}})
+        demo_config(Settings({"demo": {**resolve(DEMO, "ci"), "fps": 25}}))

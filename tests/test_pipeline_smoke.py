@@ -80,17 +80,17 @@ def test_mask_matches_the_rendered_alpha(pipeline):
 
     from gca import config
     from gca.laws.presets import material_from_preset
-    from gca.scenes import load_view, read_meta, scene_config, video_config
+    from gca.pipeline.settings import Settings
+    from gca.scenes import load_view, read_meta
     from gca.scenes.groundtruth import simulate_scene
-    from gca.scenes.world import gaussians_at, load_scene_body, render_gaussians
-    from gca.sim.solver import SimConfig
+    from gca.scenes.world import gaussians_at, render_gaussians
 
-    params = config.load(path=pipeline / "params.yaml", via_dvc=False)
-    scene, video = scene_config(params, SCENE), video_config(params)
+    settings = Settings(config.load(path=pipeline / "params.yaml", via_dvc=False))
+    scene, video = settings.scene(SCENE), settings.video
     scene_dir = pipeline / "data/scenes" / SCENE
-    body = load_scene_body(params, pipeline / "data/particles/duck.npz", pipeline / "data/assets" / OBJECT / "gaussians.ply")
-    material = material_from_preset(params["materials"][scene.material], dt=scene.dt, n_particles=body.n_particles)
-    traj = simulate_scene(body, material, scene, video, config.build(SimConfig, params["sim"]))
+    body = settings.load_body(pipeline / "data/particles/duck.npz", pipeline / "data/assets" / OBJECT / "gaussians.ply")
+    material = material_from_preset(settings.material(scene.material), dt=scene.dt, n_particles=body.n_particles)
+    traj = simulate_scene(body, material, scene, video, settings.sim)
     view, meta = load_view(scene_dir, "train0"), read_meta(scene_dir)
     j, f = len(meta["video_frames"]) - 1, meta["video_frames"][-1]
     means, covs = gaussians_at(body, traj.x[f], traj.F[f])
@@ -167,6 +167,7 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
     from gca.config import ConfigError
     from gca.report.runs import load_runs, reduce_seeds
     from gca.train.methods import get_method
+    from gca.pipeline.settings import Settings
     from gca.pipeline.train import SceneInputs, load_learned_law
 
     raw = yaml.safe_load((pipeline / "params.yaml").read_text())
@@ -186,7 +187,7 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
     assert {p.name for p in runs.iterdir() if p.is_dir()} == {"gca", "gca@seed3", "nclaw"}
     assert [json.loads((runs / n / "train.json").read_text())["seed"] for n in ("gca", "gca@seed3")] == [0, 3]
     # both laws rebuilt the same way (seed 0's init), so only their law.pt files can make them differ
-    loaded = config.load(path=params, via_dvc=False)
+    loaded = Settings(config.load(path=params, via_dvc=False))
     prior = SceneInputs(None, None, None, None, pipeline / "models/prior" / f"{FAMILY}.pt")
     flat = [torch.cat([t.detach().flatten() for t in load_learned_law(loaded, SCENE, get_method("gca"), prior,
                                                                       runs / n, 1000.0).trainable()])

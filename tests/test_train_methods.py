@@ -350,6 +350,7 @@ def test_seeds_name_the_runs():
     from gca.config import ConfigError
     from gca.report.runs import _NAME
     from gca.train.config import run_dir_name
+    from gca.pipeline.settings import Settings
     from gca.pipeline.train import run_seeds
 
     cfg = TrainConfig(seeds=[2, 0, 5])
@@ -365,7 +366,7 @@ def test_seeds_name_the_runs():
         parsed = _NAME.match(run_dir_name("neuma", s) + ".json")
         assert parsed["method"] == "neuma" and int(parsed["seed"] or 0) == s
 
-    params = {"train": {"seeds": [0, 1, 2]}}
+    params = Settings({"train": {"seeds": [0, 1, 2]}})
     assert run_seeds(params, get_method("gca")) == [0, 1, 2]
     assert run_seeds(params, get_method("nclaw")) == [0]  # the prior does not depend on the seed
     assert run_seeds(params, get_method("gca"), [2, 1]) == [1, 2] and run_seeds(params, get_method("nclaw"), [1]) == []

@@ -9,33 +9,31 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import torch
 
-from gca import config
 from gca.eval.demos import (MISSING_LAW, DemoConfig, density, run_interaction, run_new_shape)
 from gca.laws.base import Material
-from gca.pipeline.train import SceneInputs, load_learned_law, train_config
-from gca.scenes.config import scene_config
+from gca.pipeline.settings import Settings
+from gca.pipeline.train import SceneInputs, load_learned_law
 from gca.scenes.world import Body, load_body
-from gca.sim.solver import MPMSolver, SimConfig
+from gca.sim.solver import MPMSolver
 from gca.train.config import run_dir_name
 from gca.train.methods import get_method
 
 _WHERE = "gca/pipeline/demo.py"
 
 
-def demo_config(params: Mapping) -> DemoConfig:
-    """Build the :class:`DemoConfig` from resolved params (section ``demo``)."""
-    return config.build(DemoConfig, config.section(params, "demo"), "demo")
+def demo_config(settings: Settings) -> DemoConfig:
+    """The :class:`DemoConfig` of params section ``demo``."""
+    return settings.section_as(DemoConfig, "demo")
 
 
-def demo_solver(params: Mapping, scenes: Sequence[str], device: str | torch.device = "cpu") -> MPMSolver:
+def demo_solver(settings: Settings, scenes: Sequence[str], device: str | torch.device = "cpu") -> MPMSolver:
     """The ``sim`` section's solver with the smallest ``dt`` of the given scenes (stable for all laws)."""
-    sim = config.build(SimConfig, config.section(params, "sim"), "sim")
-    dt = min(scene_config(params, s).dt for s in scenes)
-    return MPMSolver(dataclasses.replace(sim, dt=dt), device)
+    dt = min(settings.scene(s).dt for s in scenes)
+    return MPMSolver(dataclasses.replace(settings.sim, dt=dt), device)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,13 +51,13 @@ class DemoInputs:
                          Path(self.data) / "assets" / obj / "gaussians.ply", self.device)
 
 
-def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, rho: float,
+def load_demo_law(settings: Settings, scene: str, method: str, inputs: DemoInputs, rho: float,
                   missing_law: str = "prior") -> tuple[Material, str]:
     """The law ``method`` learned on ``scene`` with the first of ``train.seeds`` (``runs/<scene>/<method>/law.pt``
     for seed 0, ``<method>@seed<k>`` otherwise), with density ``rho``.
 
     Args:
-        params: resolved params (scenes, sim, laws, train sections).
+        settings: the stage's typed params (scenes, sim, laws, train sections).
         scene: the scene the law was trained on (gives its prior family).
         method: method name (``gca``, ``neuma``, ...).
         inputs: pipeline folders.
@@ -70,9 +68,9 @@ def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, 
     Returns:
         ``(material, source)`` with ``source`` saying which law file was used.
     """
-    family = scene_config(params, scene).prior
+    family = settings.scene(scene).prior
     scene_inputs = SceneInputs(None, None, None, None, Path(inputs.prior_dir) / f"{family}.pt")
-    seed = train_config(params).seed
+    seed = settings.train.seed
     run_dir = Path(inputs.runs) / scene / run_dir_name(method, seed)
     chosen = get_method(method)
     source = str(run_dir / "law.pt") if chosen.trains else f"prior {scene_inputs.prior} ({method} does not train)"
@@ -85,29 +83,29 @@ def load_demo_law(params: Mapping, scene: str, method: str, inputs: DemoInputs, 
         warnings.warn(f"{message}; falling back to the scene's {family!r} prior {scene_inputs.prior}",
                       RuntimeWarning, stacklevel=2)
         chosen, source = get_method("nclaw"), f"prior {scene_inputs.prior} (fallback: no {method} law.pt)"
-    return load_learned_law(params, scene, chosen, scene_inputs, run_dir, rho, inputs.device).material, source
+    return load_learned_law(settings, scene, chosen, scene_inputs, run_dir, rho, inputs.device).material, source
 
 
-def new_shape_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
+def new_shape_demo(settings: Settings, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
                    background=(1.0, 1.0, 1.0)) -> dict:
     """Load the target object and the borrowed law from the pipeline's files; run :func:`run_new_shape`."""
     ns = cfg.new_shape
     body = inputs.body(ns.object)
-    material, source = load_demo_law(params, ns.law_scene, ns.method, inputs, density(body), cfg.missing_law)
-    solver = demo_solver(params, [ns.law_scene], inputs.device)
+    material, source = load_demo_law(settings, ns.law_scene, ns.method, inputs, density(body), cfg.missing_law)
+    solver = demo_solver(settings, [ns.law_scene], inputs.device)
     metrics = run_new_shape(solver, material, body, cfg, out_dir, background)
     return {**metrics, "law_scene": ns.law_scene, "method": ns.method, "object": ns.object, "law_source": source,
             "v0": list(ns.v0), "w0": list(ns.w0)}
 
 
-def interaction_demo(params: Mapping, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
+def interaction_demo(settings: Settings, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
                      background=(1.0, 1.0, 1.0)) -> dict:
     """Load both objects and their laws from the pipeline's files; run :func:`run_interaction`."""
     refs = (cfg.interaction.a, cfg.interaction.b)
-    objects = [r.object or scene_config(params, r.scene).object for r in refs]
+    objects = [r.object or settings.scene(r.scene).object for r in refs]
     bodies = [inputs.body(o) for o in objects]
-    laws = [load_demo_law(params, r.scene, r.method, inputs, density(b), cfg.missing_law) for r, b in zip(refs, bodies)]
-    solver = demo_solver(params, [r.scene for r in refs], inputs.device)
+    laws = [load_demo_law(settings, r.scene, r.method, inputs, density(b), cfg.missing_law) for r, b in zip(refs, bodies)]
+    solver = demo_solver(settings, [r.scene for r in refs], inputs.device)
     metrics = run_interaction(solver, [m for m, _ in laws], bodies, cfg, out_dir, background)
     for key, ref, obj, (_, source) in zip(("a", "b"), refs, objects, laws):
         metrics.setdefault(key, {}).update(scene=ref.scene, method=ref.method, object=obj, law_source=source)

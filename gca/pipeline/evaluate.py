@@ -3,25 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Mapping
 
-from gca import config
-from gca.eval.config import MetricsConfig
 from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json
-from gca.pipeline.train import load_learned_law, read_velocity, solver_for, train_config
-from gca.scenes import scene_config, video_config
+from gca.pipeline.settings import Settings
+from gca.pipeline.train import load_learned_law, read_velocity, solver_for
 from gca.scenes.world import Body
 from gca.train.config import run_dir_name
 
 
-def evaluate_trained(params: Mapping, scene_name: str, method, inputs, body: Body, runs_dir: Path, out_dir: Path,
+def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path, out_dir: Path,
                      device: str = "cpu", seed: int | None = None) -> dict:
     """The metrics JSON of one trained run (``runs_dir/<run>``: ``method`` with ``seed``) on its scene, as the
     report reads it.
 
     Args:
-        params: resolved params; scene_name: key of ``scenes``; method: a registry :class:`Method`.
+        settings: the stage's typed params; scene_name: key of ``scenes``; method: a registry :class:`Method`.
         inputs: the scene's :class:`gca.pipeline.train.SceneInputs` (the prior checkpoint).
         body: the scene's particles and Gaussians on ``device``.
         runs_dir: ``runs/<scene>`` (velocity.json and the method's trained law).
@@ -29,20 +26,19 @@ def evaluate_trained(params: Mapping, scene_name: str, method, inputs, body: Bod
         seed: one of ``train.seeds`` (None: the first); ``<run>`` is
             :func:`gca.train.config.run_dir_name` of (method, seed).
     """
-    scene = scene_config(params, scene_name)
-    seed = train_config(params, seed).seed
+    scene = settings.scene(scene_name)
+    seed = settings.train_for(seed).seed
     name = run_dir_name(method.name, seed)
     train = read_json(runs_dir / name / "train.json")
-    law = load_learned_law(params, scene_name, method, inputs, runs_dir / name,
+    law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
                            float(body.mass.sum() / body.vol.sum()), device, seed)
-    cfg = config.build(MetricsConfig, config.section(params, "eval.metrics"), "eval.metrics")
-    metrics = evaluate_run(solver_for(params, scene, device), law.material, body, read_velocity(runs_dir / "velocity.json"),
-                           inputs.scene_dir,
-                           video_config(params).background, out_dir / name, cfg)
+    cfg = settings.metrics
+    metrics = evaluate_run(solver_for(settings, scene, device), law.material, body, read_velocity(runs_dir / "velocity.json"),
+                           inputs.scene_dir, settings.video.background, out_dir / name, cfg)
     if train["status"] != "ok":
         metrics["status"] = train["status"]
     if scene.law_level:
-        metrics.update(law_metrics(law.material, config.section(params, f"materials.{scene.material}"), scene.dt, cfg))
+        metrics.update(law_metrics(law.material, settings.material(scene.material), scene.dt, cfg))
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "material": scene.material,
-            "seed": seed, "profile": params["profile"], "device": device_name(body.x0.device),
+            "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}

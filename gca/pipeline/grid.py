@@ -122,10 +122,11 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     method's first seed) estimates the velocity."""
     from gca.config import resolve
     from gca.train.methods import get_method
-    from gca.pipeline.train import seed_runs, train_config
+    from gca.pipeline.settings import Settings
+    from gca.pipeline.train import seed_runs
 
-    resolved = resolve(params, params["profile"])
-    several = len(train_config(resolved).seeds) > 1
+    resolved = Settings(resolve(params, params["profile"]))
+    several = len(resolved.train.seeds) > 1
     out = {}
     for name, job in jobs.items():
         if not name.startswith("train@"):
@@ -211,10 +212,10 @@ def apply_overrides(params: dict, overrides: list[str]) -> dict:
 def scene_inputs(work: Path, scene_name: str, params: dict, prior_dir: Path | None = None):
     """The :class:`gca.pipeline.train.SceneInputs` of a scene in a grid (or pipeline) work directory: its data
     where ``dvc repro`` puts them, the prior from ``prior_dir`` (default ``<work>/models/prior``)."""
-    from gca.scenes import scene_config
+    from gca.pipeline.settings import Settings
     from gca.pipeline.train import SceneInputs
 
-    scene = scene_config(params, scene_name)
+    scene = Settings(params).scene(scene_name)
     return SceneInputs(work / f"data/scenes/{scene_name}", work / f"data/prep/{scene_name}",
                        work / f"data/particles/{scene.object}.npz", work / f"data/assets/{scene.object}/gaussians.ply",
                        (prior_dir or work / "models/prior") / f"{scene.prior}.pt")

@@ -21,24 +21,21 @@ import numpy as np
 import torch
 
 from gca import config
-from gca.align.cpr import CPRConfig
-from gca.align.rdga import RDGAConfig
 from gca.efficiency import measure
 from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
-from gca.laws.lora import LoRAConfig
-from gca.scenes import SceneConfig, read_meta, load_views, scene_config, video_config
+from gca.pipeline.settings import Settings
+from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.prep import load_prep
-from gca.scenes.world import Body, initial_velocity, load_scene_body
-from gca.sim.solver import MPMSolver, SimConfig
-from gca.train.config import TrainConfig, VelocityConfig, run_dir_name
+from gca.scenes.world import Body, initial_velocity
+from gca.sim.solver import MPMSolver
+from gca.train.config import run_dir_name
 from gca.train.law import LearnedLaw, build_law
 from gca.train.loop import TrainResult, train
 from gca.train.objective import Objective, TrainData
 from gca.train.methods import Method
 from gca.train.velocity import estimate_velocity
-from gca.vision import MatchConfig
 
 MULTI_VIEWS = ("train0", "train1", "train2")
 
@@ -59,12 +56,12 @@ def default_device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
-def solver_for(params: Mapping, scene: SceneConfig, device="cpu") -> MPMSolver:
-    sim = config.build(SimConfig, config.section(params, "sim"), "sim")
-    return MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
+def solver_for(settings: Settings, scene: SceneConfig, device="cpu") -> MPMSolver:
+    """The ``sim`` section's solver at the scene's ``dt``."""
+    return MPMSolver(dataclasses.replace(settings.sim, dt=scene.dt), device)
 
 
-def load_train_data(params: Mapping, inputs: SceneInputs, method: Method, velocity: tuple[list, list], background,
+def load_train_data(settings: Settings, inputs: SceneInputs, method: Method, velocity: tuple[list, list], background,
                     device="cpu") -> TrainData:
     """Everything the method may observe: training views, preprocessed depth/masks/keypoints."""
     meta = read_meta(inputs.scene_dir)
@@ -72,41 +69,33 @@ def load_train_data(params: Mapping, inputs: SceneInputs, method: Method, veloci
     views = load_views(inputs.scene_dir, [n for n in names if n in meta["views"]["train"]])
     depth, masks, keypoints = load_prep(inputs.prep_dir, len(meta["video_frames"]))
     views["train0"].mask = masks  # a monocular method sees its own masks, not the renderer's alpha
-    body = load_scene_body(params, inputs.particles, inputs.gaussians, device)
+    body = settings.load_body(inputs.particles, inputs.gaussians, device)
     return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=int(meta["substeps"]),
                      est_depth=depth, keypoints=keypoints, v_init=velocity_field(body, velocity),
                      background=tuple(background))
 
 
-def estimate_scene_velocity(params: Mapping, scene_name: str, inputs: SceneInputs, out: Path, device="cpu") -> dict:
+def estimate_scene_velocity(settings: Settings, scene_name: str, inputs: SceneInputs, out: Path, device="cpu") -> dict:
     """Fit the launch velocity with the prior law; write ``velocity.json``."""
-    scene = scene_config(params, scene_name)
-    video = video_config(params)
-    vcfg = config.build(VelocityConfig, config.section(params, "velocity"), "velocity")
+    scene = settings.scene(scene_name)
     meta = read_meta(inputs.scene_dir)
     view = load_views(inputs.scene_dir, ["train0"])["train0"]
     view.mask = load_prep(inputs.prep_dir, len(meta["video_frames"]))[1]
-    body = load_scene_body(params, inputs.particles, inputs.gaussians, device)
+    body = settings.load_body(inputs.particles, inputs.gaussians, device)
     prior = load_prior(inputs.prior, family=scene.prior)
     material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum())).to(device)
-    v0, w0, history = estimate_velocity(solver_for(params, scene, device), material, body, view, meta["video_frames"],
-                                        int(meta["substeps"]), vcfg, video.background)
+    v0, w0, history = estimate_velocity(solver_for(settings, scene, device), material, body, view, meta["video_frames"],
+                                        int(meta["substeps"]), settings.velocity, settings.video.background)
     result = {"v0": v0.tolist(), "w0": w0.tolist(), "loss_first": history[0] if history else None,
               "loss_last": history[-1] if history else None, "iterations": len(history)}
     write_json(out, result)
     return result
 
 
-def train_config(params: Mapping, seed: int | None = None) -> TrainConfig:
-    """params ``train`` for the run of ``seed`` (one of ``train.seeds``; None: the first)."""
-    tcfg = config.build(TrainConfig, config.section(params, "train"), "train")
-    return tcfg if seed is None else dataclasses.replace(tcfg, seed=seed)
-
-
-def run_seeds(params: Mapping, method: Method, chosen: Sequence[int] | None = None) -> list[int]:
+def run_seeds(settings: Settings, method: Method, chosen: Sequence[int] | None = None) -> list[int]:
     """The seeds ``method`` runs with: ``chosen`` (checked against ``train.seeds``) or all of ``train.seeds``;
     only the first for a method that does not train (its law, the prior, does not depend on the seed)."""
-    seeds = list(train_config(params).seeds)
+    seeds = list(settings.train.seeds)
     unknown = sorted(set(chosen or ()) - set(seeds))
     if unknown:
         raise config.ConfigError(f"seeds {unknown} are not in train.seeds {seeds}")
@@ -114,34 +103,31 @@ def run_seeds(params: Mapping, method: Method, chosen: Sequence[int] | None = No
     return [s for s in runs if s in chosen] if chosen else runs
 
 
-def seed_runs(params: Mapping, methods: Sequence[Method], chosen: Sequence[int] | None = None
+def seed_runs(settings: Settings, methods: Sequence[Method], chosen: Sequence[int] | None = None
               ) -> list[tuple[Method, int, str]]:
     """Every ``(method, seed, run name)`` of ``methods`` (:func:`run_seeds` each), seeds outermost in their
     params order, methods in the given order within a seed: a whole table's first seed comes first."""
-    per_method = {m.name: run_seeds(params, m, chosen) for m in methods}
-    return [(m, s, run_dir_name(m.name, s)) for s in train_config(params).seeds for m in methods
+    per_method = {m.name: run_seeds(settings, m, chosen) for m in methods}
+    return [(m, s, run_dir_name(m.name, s)) for s in settings.train.seeds for m in methods
             if s in per_method[m.name]]
 
 
-def law_for(params: Mapping, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
+def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
             device="cpu", seed: int | None = None) -> LearnedLaw:
-    tcfg = train_config(params, seed)
-    lora = config.build(LoRAConfig, config.section(params, "laws.lora"), "laws.lora")
-    law = build_law(method, inputs.prior, scene.prior, rho, lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
-                    tcfg.lr_explicit, family_presets=params.get("prior", {}).get("families"), dt=scene.dt,
+    """The method's law to train (or its trained law's skeleton) for the run of ``seed``, density ``rho`` [kg/m^3]."""
+    tcfg = settings.train_for(seed)
+    law = build_law(method, inputs.prior, scene.prior, rho, settings.lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
+                    tcfg.lr_explicit, family_presets=settings.prior_families, dt=scene.dt,
                     seed=tcfg.seed)
     law.material.to(device)
     return law
 
 
-def objective_for(params: Mapping, method: Method, data: TrainData, scene_params: Mapping,
+def objective_for(settings: Settings, method: Method, data: TrainData, scene: SceneConfig,
                   seed: int | None = None) -> Objective:
-    tcfg = train_config(params, seed)
-    rdga = config.build(RDGAConfig, config.section(params, "align.rdga"), "align.rdga")
-    cpr = config.build(CPRConfig, config.section(params, "align.cpr"), "align.cpr")
-    match = config.build(MatchConfig, config.section(params, "vision.matching"), "vision.matching")
-    target = tuple(scene_params.get("cpr_target", ("", "")))
-    return Objective(method, data, tcfg, rdga, cpr, match, cpr_target=target)
+    """The method's training objective on ``data`` for the run of ``seed``."""
+    return Objective(method, data, settings.train_for(seed), settings.rdga, settings.cpr, settings.match,
+                     cpr_target=scene.cpr_target)
 
 
 def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
@@ -150,20 +136,19 @@ def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
     return initial_velocity(body.x0, v0, w0)
 
 
-def train_method(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
+def train_method(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
                  out_dir: Path, run=None, device="cpu", seed: int | None = None) -> dict:
     """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
     (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
-    scene = scene_config(params, scene_name)
-    video = video_config(params)
-    tcfg = train_config(params, seed)
-    data = load_train_data(params, inputs, method, velocity, video.background, device)
-    law = law_for(params, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed)
-    objective = objective_for(params, method, data, config.section(params, f"scenes.{scene_name}"), tcfg.seed)
+    scene = settings.scene(scene_name)
+    tcfg = settings.train_for(seed)
+    data = load_train_data(settings, inputs, method, velocity, settings.video.background, device)
+    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed)
+    objective = objective_for(settings, method, data, scene, tcfg.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
     with measure(device) as cost:
-        result: TrainResult = train(solver_for(params, scene, device), law, data, objective, tcfg,
+        result: TrainResult = train(solver_for(settings, scene, device), law, data, objective, tcfg,
                                     checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
     save_law(out_dir / "law.pt", law, scene.prior, {"method": method.name, "scene": scene_name})
     write_json(out_dir / "history.json", {"history": result.history})
@@ -196,11 +181,11 @@ def _plot_history(history: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def load_learned_law(params: Mapping, scene_name: str, method: Method, inputs: SceneInputs, run_dir: Path,
+def load_learned_law(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, run_dir: Path,
                      rho: float, device="cpu", seed: int | None = None) -> LearnedLaw:
     """Rebuild a trained method's law from ``run_dir/law.pt`` (the prior + what training changed)."""
-    scene = scene_config(params, scene_name)
-    law = law_for(params, method, scene, inputs, rho, device, seed)
+    scene = settings.scene(scene_name)
+    law = law_for(settings, method, scene, inputs, rho, device, seed)
     path = run_dir / "law.pt"
     if path.is_file():
         load_law(path, law, scene.prior)

@@ -10,11 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Mapping, Sequence
 
 import numpy as np
 
-from gca.config import ConfigError, build
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,33 +104,3 @@ class SceneConfig:
     methods: tuple[str, ...] = ("gca", "neuma", "nclaw")
     cpr_target: tuple[str, str] = ("corotated", "identity")
     law_level: bool = False
-
-
-def _cameras(items: Sequence[Mapping] | None, where: str) -> tuple[OrbitCamera, ...]:
-    return tuple(build(OrbitCamera, dict(c), f"{where}[{i}]") for i, c in enumerate(items or ()))
-
-
-def scene_config(params: Mapping, scene: str) -> SceneConfig:
-    """Build the :class:`SceneConfig` of ``scene`` from resolved params (``scenes.<scene>``)."""
-    scenes = params.get("scenes", {})
-    if scene not in scenes:
-        raise ConfigError(f"params: unknown scene {scene!r}; known scenes: {sorted(scenes)}")
-    raw = dict(scenes[scene])
-    where = f"scenes.{scene}"
-    raw["camera"] = build(OrbitCamera, dict(raw.get("camera", {})), f"{where}.camera")
-    raw["extra_train_cameras"] = _cameras(raw.get("extra_train_cameras"), f"{where}.extra_train_cameras")
-    raw["eval_cameras"] = _cameras(raw.get("eval_cameras"), f"{where}.eval_cameras")
-    for key in ("v0", "w0"):
-        if key in raw:
-            raw[key] = tuple(float(x) for x in raw[key])
-    for key in ("methods", "cpr_target"):
-        if key in raw:
-            raw[key] = tuple(raw[key])
-    return build(SceneConfig, raw, where)
-
-
-def video_config(params: Mapping) -> VideoConfig:
-    raw = dict(params.get("video", {}))
-    if "background" in raw:
-        raw["background"] = tuple(raw["background"])
-    return build(VideoConfig, raw, "video")

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import torch
@@ -21,7 +20,6 @@ import torch
 from gca.assets.particles import Particles, load_particles
 from gca.assets.ply import GaussianCloud, covariances, opacities, read_ply, sh0_to_rgb
 from gca.render.follow import Binding, follow
-from gca.config import build
 from gca.render.camera import Camera
 from gca.render.rasterize import RasterConfig, render
 
@@ -93,36 +91,27 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
 BACKEND_CHOICES = ("auto", "torch", "gsplat")
 
 
-def raster_settings(params: Mapping, device: str | torch.device | None = None) -> tuple[str, RasterConfig]:
-    """(backend, RasterConfig) from params ``render.backend`` / ``render.raster`` for rendering on
-    ``device`` (default: cuda when available).
+def resolve_backend(requested: str, device: str | torch.device | None = None) -> str:
+    """The rasterizer that runs for ``render.backend = requested`` on ``device`` (default: cuda when available).
 
     ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise;
     an explicit ``gsplat`` off CUDA falls back to torch with a warning.
     """
-    backend = params.get("render", {}).get("backend", "torch")
-    if backend not in BACKEND_CHOICES:
-        raise ValueError(f"params: render.backend={backend!r} is not one of {BACKEND_CHOICES}")
-    raster = build(RasterConfig, params.get("render", {}).get("raster", {}), "render.raster")
+    if requested not in BACKEND_CHOICES:
+        raise ValueError(f"params: render.backend={requested!r} is not one of {BACKEND_CHOICES}")
     on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
-    if backend == "auto":
-        return ("gsplat" if on_cuda and gsplat_available() else "torch"), raster
-    if backend == "gsplat" and not on_cuda:
+    if requested == "auto":
+        return "gsplat" if on_cuda and gsplat_available() else "torch"
+    if requested == "gsplat" and not on_cuda:
         warnings.warn("render.backend=gsplat needs CUDA: using the torch rasterizer", RuntimeWarning, stacklevel=2)
-        backend = "torch"
-    return backend, raster
+        return "torch"
+    return requested
 
 
 def gsplat_available() -> bool:
     """Whether the optional gsplat package can be imported (not imported here: it JIT-compiles CUDA)."""
     import importlib.util
     return importlib.util.find_spec("gsplat") is not None
-
-
-def load_scene_body(params: Mapping, particles_path, gaussians_path, device="cpu") -> Body:
-    """:func:`load_body` with the rasterizer settings of ``params``."""
-    backend, raster = raster_settings(params, device)
-    return load_body(particles_path, gaussians_path, device, backend=backend, raster=raster)
 
 
 def initial_velocity(x0: torch.Tensor, v0: torch.Tensor, w0: torch.Tensor | None = None) -> torch.Tensor:
