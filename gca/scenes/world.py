@@ -11,7 +11,6 @@ gradients to the law's parameters and the initial velocity.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from pathlib import Path
 from typing import Mapping
 
@@ -24,6 +23,7 @@ from gca.render.follow import Binding, follow
 from gca.config import build
 from gca.render.camera import Camera
 from gca.render.rasterize import RasterConfig, render
+from gca.render.backend import CHOICES, choose, gsplat_version
 
 
 @dataclasses.dataclass
@@ -90,33 +90,28 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                 opacities=as_t(opacities(kept)), backend=backend, raster=raster)
 
 
-BACKEND_CHOICES = ("auto", "torch", "gsplat")
+BACKEND_CHOICES = CHOICES
 
 
 def raster_settings(params: Mapping, device: str | torch.device | None = None) -> tuple[str, RasterConfig]:
     """(backend, RasterConfig) from params ``render.backend`` / ``render.raster`` for rendering on
     ``device`` (default: cuda when available).
 
-    ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise;
-    an explicit ``gsplat`` off CUDA falls back to torch with a warning.
+    ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise,
+    and says which and why once per process (:func:`gca.render.backend.choose`); an explicit
+    ``gsplat`` off CUDA falls back to torch with a warning.
     """
-    backend = params.get("render", {}).get("backend", "torch")
-    if backend not in BACKEND_CHOICES:
-        raise ValueError(f"params: render.backend={backend!r} is not one of {BACKEND_CHOICES}")
+    requested = params.get("render", {}).get("backend", "torch")
+    if requested not in BACKEND_CHOICES:
+        raise ValueError(f"params: render.backend={requested!r} is not one of {BACKEND_CHOICES}")
     raster = build(RasterConfig, params.get("render", {}).get("raster", {}), "render.raster")
     on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
-    if backend == "auto":
-        return ("gsplat" if on_cuda and gsplat_available() else "torch"), raster
-    if backend == "gsplat" and not on_cuda:
-        warnings.warn("render.backend=gsplat needs CUDA: using the torch rasterizer", RuntimeWarning, stacklevel=2)
-        backend = "torch"
-    return backend, raster
+    return choose(requested, on_cuda)[0], raster
 
 
 def gsplat_available() -> bool:
     """Whether the optional gsplat package can be imported (not imported here: it JIT-compiles CUDA)."""
-    import importlib.util
-    return importlib.util.find_spec("gsplat") is not None
+    return gsplat_version() is not None
 
 
 def load_scene_body(params: Mapping, particles_path, gaussians_path, device="cpu") -> Body:
