@@ -3,6 +3,9 @@
 # - CPU machine: torch is installed pinned first (torch==2.13.0 is the local CPU build; an unpinned
 #   torch would pull several GB of CUDA wheels).
 # - Machine with a CUDA torch already installed system-wide: the venv sees it and it is left alone.
+# - Machine with CUDA: the `gpu` extra (gsplat, the CUDA rasterizer) is installed too and its CUDA
+#   extension compiled once here (~100 s), before any pipeline stage imports it (concurrent first
+#   builds corrupt gsplat's build directory). SKIP_GSPLAT=1 leaves it out.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -20,5 +23,12 @@ if ! python -c "import torch" 2>/dev/null; then
   echo "setup: installing torch==2.13.0 (CPU build) first"
   python -m pip install -q "torch==2.13.0"
 fi
-python -m pip install -q -e ".[dev]"
+if [ -z "${SKIP_GSPLAT:-}" ] && python -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" 2>/dev/null; then
+  echo "setup: CUDA device found: installing gca with the gpu extra (gsplat, the CUDA rasterizer)"
+  python -m pip install -q -e ".[dev,gpu]"
+  echo "setup: compiling gsplat's CUDA extension once, before the pipeline starts"
+  python -m gca.render.backend --build || echo "setup: gsplat's extension did not build: render.backend=auto will use the torch rasterizer and say so" >&2
+else
+  python -m pip install -q -e ".[dev]"
+fi
 python -c "import torch, warp, gca; print(f'setup: torch {torch.__version__} (cuda={torch.cuda.is_available()}), warp {warp.__version__}, gca {gca.__version__}')"

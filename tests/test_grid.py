@@ -157,3 +157,65 @@ def test_before_runs_once_ahead_of_the_jobs(tmp_path):
                        "--before", "python -c \"open('before.txt','w').write('x')\""])
     assert (work / "before.txt").read_text() == "x" and (work / "params.yaml").is_file()
     assert set(state) == {"report"}
+
+
+STUB_MPS = """#!/usr/bin/env bash
+echo "args=$* stdin=$(if [ -z "$*" ]; then cat; fi)" >> "{log}"
+exit {code}
+"""
+
+
+def _mps_stub(tmp_path, monkeypatch, code=0, root=True):
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    log = tmp_path / "mps.log"
+    (bin_ / grid.MPS_CONTROL).write_text(STUB_MPS.format(log=log, code=code))
+    (bin_ / grid.MPS_CONTROL).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_}:/usr/bin:/bin")
+    monkeypatch.setattr(grid.os, "geteuid", lambda: 0 if root else 1000)
+    return log
+
+
+def test_mps_started_for_the_jobs_and_stopped_after(tmp_path, monkeypatch):
+    calls = _mps_stub(tmp_path, monkeypatch)
+    lines = []
+    with grid.mps_daemon(True, lines.append) as on:
+        assert on and calls.read_text().splitlines() == ["args=-d stdin="]  # started before the jobs
+    assert calls.read_text().splitlines() == ["args=-d stdin=", "args= stdin=quit"]  # stopped after
+    assert "daemon started" in lines[0] and "daemon stopped" in lines[1]
+
+
+def test_mps_stopped_even_when_the_jobs_fail(tmp_path, monkeypatch):
+    calls = _mps_stub(tmp_path, monkeypatch)
+    with pytest.raises(KeyboardInterrupt), grid.mps_daemon(True, lambda m: None):
+        raise KeyboardInterrupt
+    assert calls.read_text().splitlines()[-1] == "args= stdin=quit"
+
+
+@pytest.mark.parametrize("case", ["not root", "no binary", "start fails", "off"])
+def test_mps_says_why_it_does_not_run(tmp_path, monkeypatch, case):
+    calls = _mps_stub(tmp_path, monkeypatch, code=1 if case == "start fails" else 0, root=case != "not root")
+    if case == "no binary":
+        monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    lines = []
+    with grid.mps_daemon(case != "off", lines.append) as on:
+        assert not on
+    expected = {"not root": "not root", "no binary": "not on PATH", "start fails": "failed", "off": None}[case]
+    if expected is None:
+        assert lines == [] and not calls.exists()
+    else:
+        assert len(lines) == 1 and expected in lines[0] and "time-slice" in lines[0]
+        assert ("quit" not in calls.read_text()) if calls.exists() else True  # nothing to stop
+
+
+def test_grid_main_runs_jobs_under_mps(tmp_path, monkeypatch):
+    calls = _mps_stub(tmp_path, monkeypatch)
+    seen = []
+
+    def fake_run(self):
+        seen.append(calls.read_text())
+        return {}
+    monkeypatch.setattr(grid.Scheduler, "run", fake_run)
+    grid.main(["--work", str(tmp_path / "w"), "--scenes", "ball", "--methods", "gca", "--profile", "ci",
+               "--stages", "assets", "--mps"])
+    assert seen == ["args=-d stdin=\n"] and calls.read_text().endswith("args= stdin=quit\n")

@@ -16,7 +16,10 @@ from torch import nn
 
 
 def lame(E, nu):
-    """Lame parameters from Young's modulus and Poisson's ratio (floats or tensors).
+    """Lame parameters from Young's modulus and Poisson's ratio (floats or tensors), validated.
+
+    Validation reads ``nu`` on the host (a sync for a CUDA tensor): call it where a law is built, not
+    per step; the laws' per-step path uses :func:`lame_unchecked` (``nu`` was validated at construction).
 
     Args:
         E: Young's modulus [Pa], > 0.
@@ -28,6 +31,11 @@ def lame(E, nu):
     nu_t = torch.as_tensor(nu)
     if not bool(((nu_t > -1) & (nu_t < 0.5)).all()):
         raise ValueError(f"gca/laws/base.py: lame: Poisson's ratio must lie in (-1, 0.5), got {nu}")
+    return lame_unchecked(E, nu)
+
+
+def lame_unchecked(E, nu):
+    """:func:`lame` without the host-side check of ``nu`` (no host sync: safe inside a CUDA graph)."""
     return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
 
 
@@ -90,13 +98,13 @@ class YoungPoisson:
 
     @property
     def mu(self) -> torch.Tensor:
-        """Shear modulus [Pa]."""
-        return lame(self.E, self.nu)[0]
+        """Shear modulus [Pa] (``nu`` validated at construction: no host sync per step)."""
+        return lame_unchecked(self.E, self.nu)[0]
 
     @property
     def lam(self) -> torch.Tensor:
-        """First Lame parameter [Pa]."""
-        return lame(self.E, self.nu)[1]
+        """First Lame parameter [Pa] (no host sync per step)."""
+        return lame_unchecked(self.E, self.nu)[1]
 
     def wave_speed(self, rho) -> float:
         """Largest P-wave speed sqrt((lam + 2 mu) / rho) [m/s]."""

@@ -24,6 +24,7 @@ others go on. ``--priors DIR`` takes ``<family>.pt`` from an earlier run instead
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import re
@@ -35,6 +36,7 @@ import sys
 import tarfile
 import time
 from pathlib import Path
+from typing import Callable
 
 import yaml
 
@@ -365,6 +367,51 @@ def gpu_ids(text: str) -> int | list[int]:
         raise argparse.ArgumentTypeError(f"--gpus {text!r}: a count or comma-separated GPU ids") from None
 
 
+MPS_CONTROL = "nvidia-cuda-mps-control"
+
+
+@contextlib.contextmanager
+def mps_daemon(enable: bool, log: Callable[[str], None]):
+    """CUDA MPS for the jobs of one grid command: started where it may be (root, the control binary on
+    PATH), stopped at the end; otherwise the grid says why and runs without it. Yields whether MPS runs.
+
+    MPS lets several processes' kernels share the GPU at once instead of time-slicing (measured on an
+    H100, four ball trainings: 1.6x the throughput of one without MPS, 2.9x with it; issue 20). A daemon
+    that was already running is used and left running.
+    """
+    if not enable:
+        yield False
+        return
+    binary = shutil.which(MPS_CONTROL)
+    if binary is None:
+        log(f"--mps: {MPS_CONTROL} is not on PATH: no CUDA MPS, the jobs time-slice the GPU")
+        yield False
+        return
+    if os.geteuid() != 0:
+        log(f"--mps: not root, so the MPS daemon cannot be started here (an administrator runs `{MPS_CONTROL} -d`); "
+            "the jobs time-slice the GPU")
+        yield False
+        return
+    started = subprocess.run([binary, "-d"], capture_output=True, text=True)
+    if started.returncode != 0:
+        why = (started.stderr or started.stdout).strip() or f"exit status {started.returncode}"
+        if "already running" in why.lower():
+            log(f"--mps: an MPS daemon is already running: the jobs use it and it is left running ({why})")
+            yield True
+        else:
+            log(f"--mps: `{MPS_CONTROL} -d` failed ({why}): the jobs time-slice the GPU")
+            yield False
+        return
+    log(f"--mps: CUDA MPS daemon started (`{MPS_CONTROL} -d`)")
+    try:
+        yield True
+    finally:
+        stopped = subprocess.run([binary], input="quit\n", capture_output=True, text=True)
+        log("--mps: MPS daemon stopped (`echo quit | " + MPS_CONTROL + "`)" if stopped.returncode == 0 else
+            f"--mps: stopping the MPS daemon failed (exit status {stopped.returncode}): stop it with "
+            f"`echo quit | {MPS_CONTROL}`")
+
+
 def main(argv=None) -> dict[str, str]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True)
@@ -382,6 +429,8 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--collect-only", action="store_true", help="only --collect what --work holds")
     ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
                                      "jobs share: concurrent first builds can corrupt its cache)")
+    ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
+                                                        "allowed (root), stop it at the end; says so where not")
     args = ap.parse_args(argv)
     if args.collect_only:
         print(f"[grid] results: {collect(args.work, args.collect)}")
@@ -417,7 +466,8 @@ def main(argv=None) -> dict[str, str]:
     todo = sum(1 for s in scheduler.state.values() if s == "todo")
     log(f"{len(jobs)} jobs ({todo} to run) on GPU(s) {args.gpus} x {args.slots} slots, profile {args.profile}")
     t0 = time.monotonic()
-    state = scheduler.run()
+    with mps_daemon(args.mps, log):
+        state = scheduler.run()
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))

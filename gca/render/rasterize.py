@@ -49,6 +49,9 @@ class RasterConfig:
     slab: int = 32                 # Gaussians per tile composited per step (early-stop granularity;
                                    # best: 32 on CPU, 128 on CUDA where the loop is launch-bound)
     max_elems: int = 4_000_000     # pixel x Gaussian pairs per batched step (memory bound)
+    checkpoint: bool = True        # torch backend under autograd: keep only a frame's inputs for backward and
+                                   # recompute its per-pixel tensors there (same gradients; memory no longer
+                                   # grows with every rendered frame's slabs)
 
 
 class RenderError(ValueError):
@@ -354,4 +357,27 @@ def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacit
     if backend not in _BACKENDS:
         raise RenderError(f"{_WHERE}: unknown backend {backend!r}; expected one of {sorted(_BACKENDS)}")
     _check_inputs(means, covs, colors, opacities, bg)
+    if backend == "torch" and cfg.checkpoint and torch.is_grad_enabled() \
+            and any(t.requires_grad for t in (means, covs, colors, opacities, bg)):
+        return _render_torch_checkpointed(means, covs, colors, opacities, camera, bg, cfg)
     return _BACKENDS[backend](means, covs, colors, opacities, camera, bg, cfg)
+
+
+_KEYS = ("rgb", "alpha", "depth", "depth_expected")
+
+
+def _render_torch_checkpointed(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterConfig) -> dict:
+    """:func:`_render_torch` whose backward recomputes the frame from its inputs (torch.utils.checkpoint).
+
+    Without it, every rendered frame keeps its per-slab [tiles, pixels, Gaussians] activations until the
+    loss's single backward (21.7 GiB on the ball at the paper profile, issue 20); with it a frame keeps
+    its inputs, and one frame's activations live at a time, during that frame's recompute.
+    """
+    from torch.utils.checkpoint import checkpoint
+
+    def run(m, cv, c, o, b):
+        out = _render_torch(m, cv, c, o, camera, b, cfg)
+        return tuple(out[k] for k in _KEYS)
+
+    outs = checkpoint(run, means, covs, colors, opacities, bg, use_reentrant=False, preserve_rng_state=False)
+    return dict(zip(_KEYS, outs))

@@ -11,7 +11,6 @@ gradients to the law's parameters and the initial velocity.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ from gca.assets.ply import GaussianCloud, covariances, opacities, read_ply, sh0_
 from gca.render.follow import Binding, follow
 from gca.render.camera import Camera
 from gca.render.rasterize import RasterConfig, render
+from gca.render.backend import CHOICES, choose, gsplat_version
 
 
 @dataclasses.dataclass
@@ -88,30 +88,23 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                 opacities=as_t(opacities(kept)), backend=backend, raster=raster)
 
 
-BACKEND_CHOICES = ("auto", "torch", "gsplat")
+BACKEND_CHOICES = CHOICES
 
 
 def resolve_backend(requested: str, device: str | torch.device | None = None) -> str:
     """The rasterizer that runs for ``render.backend = requested`` on ``device`` (default: cuda when available).
 
-    ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise;
-    an explicit ``gsplat`` off CUDA falls back to torch with a warning.
+    ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise,
+    and says which and why once per process (:func:`gca.render.backend.choose`); an explicit
+    ``gsplat`` off CUDA falls back to torch with a warning.
     """
-    if requested not in BACKEND_CHOICES:
-        raise ValueError(f"params: render.backend={requested!r} is not one of {BACKEND_CHOICES}")
     on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
-    if requested == "auto":
-        return "gsplat" if on_cuda and gsplat_available() else "torch"
-    if requested == "gsplat" and not on_cuda:
-        warnings.warn("render.backend=gsplat needs CUDA: using the torch rasterizer", RuntimeWarning, stacklevel=2)
-        return "torch"
-    return requested
+    return choose(requested, on_cuda)[0]
 
 
 def gsplat_available() -> bool:
     """Whether the optional gsplat package can be imported (not imported here: it JIT-compiles CUDA)."""
-    import importlib.util
-    return importlib.util.find_spec("gsplat") is not None
+    return gsplat_version() is not None
 
 
 def initial_velocity(x0: torch.Tensor, v0: torch.Tensor, w0: torch.Tensor | None = None) -> torch.Tensor:

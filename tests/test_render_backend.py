@@ -1,0 +1,107 @@
+"""The rasterizer choice is said, never silent; `make setup` installs and compiles gsplat on CUDA.
+
+- :func:`gca.render.backend.choose` for each (request, CUDA, gsplat installed): the backend, its
+  reason, one stderr line per distinct choice (not one per call).
+- scripts/setup.sh with a stub python: with CUDA it installs ``.[dev,gpu]`` and builds gsplat's
+  extension before anything else can import it; without CUDA (or SKIP_GSPLAT=1) it does neither.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from gca.render import backend as rb
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def fresh(monkeypatch):
+    monkeypatch.setattr(rb, "_said", set())
+    return rb
+
+
+def _installed(monkeypatch, version):
+    monkeypatch.setattr(rb, "gsplat_version", lambda: version)
+
+
+def test_auto_without_cuda_says_torch_once(fresh, capsys, monkeypatch):
+    _installed(monkeypatch, "1.5.3")
+    assert fresh.choose("auto", on_cuda=False) == ("torch", "auto: no CUDA device")
+    fresh.choose("auto", on_cuda=False)
+    err = capsys.readouterr().err
+    assert err.count("gca.render: rasterizer torch (auto: no CUDA device)") == 1
+
+
+def test_auto_on_cuda_without_gsplat_is_not_silent(fresh, capsys, monkeypatch):
+    _installed(monkeypatch, None)
+    backend, reason = fresh.choose("auto", on_cuda=True)
+    assert backend == "torch" and "gsplat not installed" in reason and "gca[gpu]" in reason
+    assert "rasterizer torch (auto: gsplat not installed" in capsys.readouterr().err
+
+
+def test_auto_on_cuda_with_gsplat(fresh, capsys, monkeypatch):
+    _installed(monkeypatch, "1.5.3")
+    assert fresh.choose("auto", on_cuda=True) == ("gsplat", "auto: CUDA device and gsplat 1.5.3 installed")
+    assert "rasterizer gsplat" in capsys.readouterr().err
+
+
+def test_explicit_choices(fresh, monkeypatch):
+    _installed(monkeypatch, None)
+    assert fresh.choose("torch", on_cuda=True)[0] == "torch"
+    with pytest.warns(RuntimeWarning, match="needs CUDA"):
+        assert fresh.choose("gsplat", on_cuda=False)[0] == "torch"
+    assert fresh.choose("gsplat", on_cuda=True) == ("gsplat", f"render.backend=gsplat, gsplat NOT installed: {rb.INSTALL_HINT}")
+    with pytest.raises(ValueError, match="opengl"):
+        fresh.choose("opengl", on_cuda=True)
+
+
+def test_build_without_gsplat_fails_loudly(fresh, capsys, monkeypatch):
+    _installed(monkeypatch, None)
+    assert fresh.build_gsplat() == 1
+    assert "gsplat is not installed" in capsys.readouterr().err
+
+
+STUB_PY = """#!/usr/bin/env bash
+echo "python $*" >> "$STUB_LOG"
+case "$*" in
+  *"sys.exit(0 if torch.cuda.is_available()"*) exit "$STUB_CUDA" ;;
+esac
+exit 0
+"""
+
+
+def _setup(tmp_path: Path, cuda: bool, **env) -> list[str]:
+    repo = tmp_path / "repo"
+    (repo / "scripts").mkdir(parents=True)
+    shutil.copy2(ROOT / "scripts/setup.sh", repo / "scripts/setup.sh")
+    bin_ = repo / ".venv/bin"
+    bin_.mkdir(parents=True)
+    (bin_ / "python").write_text(STUB_PY)
+    (bin_ / "python").chmod(0o755)
+    (bin_ / "activate").write_text(f'export PATH="{bin_}:$PATH"\n')
+    log = tmp_path / "calls.log"
+    out = subprocess.run(["bash", "scripts/setup.sh"], cwd=repo, capture_output=True, text=True,
+                         env={**os.environ, "STUB_LOG": str(log), "STUB_CUDA": "0" if cuda else "1", **env})
+    assert out.returncode == 0, out.stderr
+    return log.read_text().splitlines() + ["STDOUT " + out.stdout]
+
+
+def test_setup_installs_and_builds_gsplat_on_cuda(tmp_path):
+    calls = _setup(tmp_path, cuda=True)
+    install = calls.index('python -m pip install -q -e .[dev,gpu]')
+    build = calls.index("python -m gca.render.backend --build")
+    assert install < build
+    assert "compiling gsplat's CUDA extension once" in calls[-1]
+
+
+@pytest.mark.parametrize("cuda,env", [(False, {}), (True, {"SKIP_GSPLAT": "1"})])
+def test_setup_without_cuda_skips_gsplat(tmp_path, cuda, env):
+    calls = _setup(tmp_path, cuda=cuda, **env)
+    assert 'python -m pip install -q -e .[dev]' in calls
+    assert not any("gpu]" in c or "--build" in c for c in calls)
