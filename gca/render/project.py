@@ -125,7 +125,7 @@ def covariance_health(means: torch.Tensor, covs: torch.Tensor, K: torch.Tensor, 
         m64, c64 = means.detach().double(), covs.detach().double()
         sym = 0.5 * (c64 + c64.transpose(-1, -2))
         finite = torch.isfinite(sym).flatten(1).all(1)
-        eig = torch.linalg.eigvalsh(torch.where(finite[:, None, None], sym, torch.eye(3, dtype=sym.dtype)))
+        eig = torch.linalg.eigvalsh(torch.where(finite[:, None, None], sym, torch.eye(3, dtype=sym.dtype, device=sym.device)))
         scale = eig.abs().sum(-1).clamp_min(torch.finfo(torch.float64).tiny)
         not_spd = ~finite | (eig[:, 0] < -rel_tol * scale)
         singular = finite & (eig[:, 0] <= rel_tol * scale)
