@@ -1,6 +1,6 @@
-"""gca/pipeline/dispatch.py: the grid's jobs through submitit (its local executor here; SLURM's sbatch faked),
-failures reported with their log, requeue at the time limit with the job's checkpoint, resume, deadline,
-and a DVC repository assembled by `dvc commit` from what the jobs wrote."""
+"""gca/pipeline/dispatch.py (and grid.py's command line on it): the grid's jobs through submitit (its local
+executor here; SLURM's sbatch faked), failures reported with their log, requeue at the time limit with the
+job's checkpoint, resume, deadline, and a DVC repository assembled by `dvc commit` from what the jobs wrote."""
 
 import json
 import os
@@ -63,14 +63,15 @@ def test_time_limit_checkpoints_requeues_and_the_job_resumes(tmp_path):
     (tmp_path / "fake_train.py").write_text(
         "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
         "open('starts', 'a').write(f'{n}\\n')\n"
-        "for i in range(n, 8):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
+        "for i in range(n, 10):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
     jobs = {"train@s:gca": grid.Job("train@s:gca", "python fake_train.py", [], [], 1.0)}
     lines = []
-    engine = _local(tmp_path, timeout_min=0.05, signal_delay_s=1)  # a 3 s limit, signalled 1 s before it
+    # a 6 s limit, signalled 2 s before it: 5 s of work take two jobs or more; up to 10 requeues (a busy CPU)
+    engine = dispatch.local_engine(tmp_path / ".grid" / "submitit" / "%j", 0, 1, 0.1, 10, signal_delay_s=2)
     assert dispatch.run(jobs, engine, tmp_path, lines.append, poll_s=0.1) == {"train@s:gca": "done"}
     starts = [int(x) for x in (tmp_path / "starts").read_text().split()]
     assert len(starts) >= 2 and starts[0] == 0 and starts == sorted(starts) and starts[-1] > 0, starts
-    assert (tmp_path / "ckpt").read_text() == "8"
+    assert (tmp_path / "ckpt").read_text() == "10"
     text = "".join(p.read_text() for p in (tmp_path / ".grid" / "submitit").rglob("*_log.out"))
     assert "stopped for a requeue" in text
 
@@ -83,20 +84,20 @@ def test_deadline_submits_nothing_that_would_end_late(tmp_path):
 def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):
     (tmp_path / "fake_train.py").write_text(
         "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
-        "for i in range(n, 6):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
+        "for i in range(n, 12):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
     job = grid.Job("train@s:gca", "python fake_train.py", [], [], cost=10.0)
-    monkeypatch.setattr(grid, "RESUMABLE_MIN_S", 0.5)
+    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
     lines = []
-    assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=2.5,
+    assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=4.0,
                         poll_s=0.1) == {job.name: "todo"}
     assert any(ln.startswith(f"stop  {job.name} at the deadline") for ln in lines)
     time.sleep(1.5)  # the cancelled job's processes are gone: its checkpoint no longer moves
     stopped_at = int((tmp_path / "ckpt").read_text())
     time.sleep(1.0)
-    assert int((tmp_path / "ckpt").read_text()) == stopped_at and 1 <= stopped_at < 6
+    assert int((tmp_path / "ckpt").read_text()) == stopped_at and 1 <= stopped_at < 12
     assert not dispatch.marker(tmp_path, job.name).exists()
     assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, poll_s=0.1) == {job.name: "done"}
-    assert (tmp_path / "ckpt").read_text() == "6"
+    assert (tmp_path / "ckpt").read_text() == "12"
 
 
 class _Recorder(dispatch.Engine):
@@ -214,7 +215,7 @@ def test_dvc_commit_assembles_what_the_jobs_wrote_and_repro_runs_nothing(tmp_pat
     twin = tmp_path / "twin"
     shutil.copytree(repo, twin)
 
-    state = dispatch.main(["--repo", str(repo), "--engine", "local", "--gpus", "0", "--slots", "2", "--commit"])
+    state = grid.main(["--repo", str(repo), "--engine", "local", "--gpus", "0", "--slots", "2", "--commit"])
     assert state == {"make@x": "done", "make@y": "done", "total": "done"}
     assert json.loads((repo / "out/total.json").read_text()) == 5
     assert json.loads(run(sys.executable, "-m", "dvc", "status", "--json")) == {}
@@ -229,3 +230,19 @@ def test_dvc_commit_assembles_what_the_jobs_wrote_and_repro_runs_nothing(tmp_pat
     status = json.loads(subprocess.run([sys.executable, "-m", "dvc", "status", "--json"], cwd=twin, env=env,
                                        capture_output=True, text=True, check=True).stdout)
     assert {"make@x", "make@y", "total"} <= set(status)
+
+
+def test_runs_of_a_scene_batched_after_the_velocity_job():
+    params = grid.grid_params("ci", ["ball"], ["nclaw", "gca", "neuma", "no_cpr"], ["train.seeds=[0,1]"])
+    import yaml
+
+    jobs = grid.split_train(grid.expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, ["train"]), params)
+    batched = grid.link(grid.batch_runs(dict(jobs), 2))
+    # split_train's order: cheapest first (nclaw estimates the velocity), seeds outermost
+    assert set(batched) == {"train@ball:nclaw", "train@ball:no_cpr+neuma", "train@ball:gca",
+                            "train@ball:no_cpr@seed1+neuma@seed1", "train@ball:gca@seed1"}
+    both = batched["train@ball:no_cpr@seed1+neuma@seed1"]
+    assert both.cmd.endswith("--methods no_cpr neuma --seeds 1 --velocity runs/ball/velocity.json")
+    assert both.outs == ["runs/ball/no_cpr@seed1", "runs/ball/neuma@seed1"] and both.after == {"train@ball:nclaw"}
+    assert set(batched) - {"train@ball:nclaw"} <= {n for n, j in batched.items() if "train@ball:nclaw" in j.after}
+    assert grid.batch_runs(dict(jobs), 1) == jobs

@@ -1,16 +1,11 @@
 """The pipeline's stage jobs dispatched through an existing job engine: SLURM through submitit, or
 submitit's local executor on one machine.
 
-One job is one stage command of ``dvc.yaml`` (``gca.pipeline.grid`` expands them; a scene's ``train``
-stage is split into one job per (method, seed) run), sized to one GPU. The command runs in the work
-directory where ``dvc repro`` runs it, so its outputs land where ``dvc repro`` puts them; in a DVC
-repository ``--commit`` ends with ``dvc commit -f <every finished stage>``, which records them in
-``dvc.lock`` and DVC's cache: a ``dvc repro`` afterwards restores or skips them and computes nothing again.
-
-    # a cluster: one SLURM job per stage command, ordered by SLURM's afterok dependencies
-    python -m gca.pipeline.dispatch --engine slurm --partition gpu --timeout-min 120 --commit
-    # one machine: submitit's local executor, one process per GPU slot
-    python -m gca.pipeline.dispatch --engine local --gpus 2 --slots 2 --commit
+One job is one stage command of ``dvc.yaml`` (``gca.pipeline.grid`` expands them and is the command
+line; a scene's ``train`` stage is split into one job per (method, seed) run), sized to one GPU. The
+command runs in the work directory where ``dvc repro`` runs it, so its outputs land where ``dvc repro``
+puts them; in a DVC repository ``dvc commit -f <every finished stage>`` then records them in ``dvc.lock``
+and DVC's cache (``grid --repo . --commit``): a ``dvc repro`` afterwards computes nothing again.
 
 What the engine gives: queuing and placement (SLURM), the time limit and preemption signals, the requeue
 of a job with the submission its ``checkpoint()`` returns (training goes on from
@@ -41,6 +36,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
+RESUMABLE_MIN_S = 120.0  # --deadline: a training job is submitted while this much of the deadline remains [s]
 DONE, FAILED, RUNNING = "done", "failed", "running"
 
 
@@ -82,7 +78,8 @@ class StageCommand:
 
     def environment(self) -> dict[str, str]:
         env = {**os.environ, **self.env, "PYTHONUNBUFFERED": "1"}
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+        # the work directory's own gca first (a checkout, or a grid work directory linking this one's)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (self.work, str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
         return env
 
     def __call__(self) -> float:
@@ -251,6 +248,22 @@ def slurm_engine(folder: Path, timeout_min: float, max_requeue: int, partition: 
     return SubmititEngine(executor, None, params)
 
 
+def critical_path(jobs: dict) -> dict[str, float]:
+    """Longest cost from each job to the end of the grid (list-scheduling priority)."""
+    children = {n: [] for n in jobs}
+    for j in jobs.values():
+        for a in j.after:
+            if a in children:
+                children[a].append(j.name)
+    memo: dict[str, float] = {}
+
+    def walk(n: str) -> float:
+        if n not in memo:
+            memo[n] = jobs[n].cost + max((walk(c) for c in children[n]), default=0.0)
+        return memo[n]
+    return {n: walk(n) for n in jobs}
+
+
 def _dependents(jobs: dict, name: str) -> set[str]:
     """Every job that (transitively) runs after ``name``."""
     out, frontier = set(), {name}
@@ -262,7 +275,7 @@ def _dependents(jobs: dict, name: str) -> set[str]:
 
 def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = None, poll_s: float = 1.0,
         job_env=None) -> dict[str, str]:
-    """Run ``jobs`` (``gca.pipeline.grid.Job``, their ``after`` sets linked) through ``engine`` in ``work``.
+    """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
 
     A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
     log path; the jobs after it are skipped (cancelled where already submitted); the others go on.
@@ -271,8 +284,6 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     ``job_env(job, place)``: extra environment of a job's stage process. Returns each job's state:
     done, failed, skipped or todo.
     """
-    from gca.pipeline.grid import RESUMABLE_MIN_S, critical_path
-
     work = Path(work)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
     state = {n: DONE if marker(work, n).is_file() else "todo" for n in jobs}
@@ -375,17 +386,6 @@ def dvc_stages(done: dict[str, str]) -> list[str]:
     return sorted(k for k, ok in stages.items() if ok)
 
 
-def repo_jobs(repo: Path, stages: list[str] | None) -> dict:
-    """The jobs of a DVC repository's ``dvc.yaml`` with its own ``params.yaml`` (nothing rewritten)."""
-    import yaml
-
-    from gca.pipeline.grid import expand, link, split_train
-
-    params = yaml.safe_load((repo / "params.yaml").read_text())
-    jobs = expand(yaml.safe_load((repo / "dvc.yaml").read_text()), params, stages)
-    return link(split_train(jobs, params) if any(n.startswith("train@") for n in jobs) else jobs)
-
-
 def engine_from_args(args, folder: Path) -> Engine:
     if args.engine == "slurm":
         extra = dict(kv.split("=", 1) for kv in args.sbatch)
@@ -393,13 +393,22 @@ def engine_from_args(args, folder: Path) -> Engine:
     return local_engine(folder, args.gpus, args.slots, args.timeout_min, args.max_requeue)
 
 
-def add_engine_args(ap: argparse.ArgumentParser) -> None:
-    from gca.pipeline.grid import gpu_ids
+def gpu_ids(text: str) -> int | list[int]:
+    """``--gpus``: ``4`` -> 4 (GPUs 0..3); ``1,2,3`` -> [1, 2, 3] (leaves GPU 0 to something else);
+    ``3,`` -> [3] (one id)."""
+    try:
+        return [int(g) for g in text.split(",") if g] if "," in text else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--gpus {text!r}: a count or comma-separated GPU ids") from None
 
+
+def add_engine_args(ap: argparse.ArgumentParser, slots: int = 1) -> None:
+    """The engine's options: ``--engine``, ``--gpus``/``--slots`` (local), the time limit and requeues,
+    ``--partition``/``--cpus-per-task``/``--sbatch`` (SLURM), ``--deadline``."""
     ap.add_argument("--engine", choices=("local", "slurm"), default="local",
                     help="local: submitit's local executor on this machine; slurm: one SLURM job per stage command")
     ap.add_argument("--gpus", type=gpu_ids, default=1, help="local: a count (GPUs 0 .. N-1; 0: CPU) or ids 0,1,2")
-    ap.add_argument("--slots", type=int, default=1, help="local: concurrent jobs per GPU (per machine without GPU)")
+    ap.add_argument("--slots", type=int, default=slots, help="local: concurrent jobs per GPU (per machine without GPU)")
     ap.add_argument("--timeout-min", type=float, default=24 * 60.0,
                     help="a job's time limit [min]: then it is checkpointed and requeued")
     ap.add_argument("--max-requeue", type=int, default=20, help="requeues at the time limit per job (preemptions: no limit)")
@@ -408,42 +417,3 @@ def add_engine_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--sbatch", action="append", default=[], metavar="KEY=VALUE",
                     help="slurm: another sbatch option, e.g. --sbatch account=lab --sbatch qos=high")
     ap.add_argument("--deadline", type=float, help="seconds: submit nothing that would end later; stop what runs then")
-
-
-def main(argv=None) -> dict[str, str]:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repo", type=Path, default=Path("."), help="the DVC repository (its dvc.yaml and params.yaml)")
-    ap.add_argument("--stages", nargs="+", help="dvc.yaml stage names to run (default: all)")
-    ap.add_argument("--commit", action="store_true", help="then `dvc commit -f` every stage whose jobs all finished")
-    add_engine_args(ap)
-    args = ap.parse_args(argv)
-    repo = args.repo.resolve()
-    jobs = repo_jobs(repo, args.stages)
-    (repo / ".grid").mkdir(exist_ok=True)
-    logfile = open(repo / ".grid" / "dispatch.log", "a")
-
-    def log(msg: str) -> None:
-        line = f"[dispatch {time.strftime('%H:%M:%S')}] {msg}"
-        print(line, flush=True)
-        logfile.write(line + "\n")
-        logfile.flush()
-
-    engine = engine_from_args(args, repo / ".grid" / "submitit" / "%j")
-    threads = max(1, (os.cpu_count() or 1) // len(engine.places)) if engine.places else None
-    log(f"{len(jobs)} jobs through {args.engine}" + (f" on {len(engine.places)} slot(s)" if engine.places else ""))
-    t0 = time.monotonic()
-    state = run(jobs, engine, repo, log, args.deadline,
-                job_env=(lambda job, place: {"OMP_NUM_THREADS": str(threads)}) if threads else None)
-    counts = {s: sum(v == s for v in state.values()) for s in (DONE, FAILED, "skipped", "todo")}
-    log(f"after {time.monotonic() - t0:.0f} s: {counts}")
-    if args.commit:
-        stages = dvc_stages(state)
-        if stages:
-            log(f"dvc commit -f {' '.join(stages)}")
-            subprocess.run([sys.executable, "-m", "dvc", "commit", "-f", *stages], cwd=repo, check=True)
-    return state
-
-
-if __name__ == "__main__":
-    state = main(sys.argv[1:])
-    sys.exit(1 if any(s in (FAILED, "skipped") for s in state.values()) else 0)
