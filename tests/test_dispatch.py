@@ -76,6 +76,15 @@ def test_time_limit_checkpoints_requeues_and_the_job_resumes(tmp_path):
     assert "stopped for a requeue" in text
 
 
+def test_the_stage_process_leaves_the_requeue_signal_to_the_job(tmp_path):
+    """SLURM's --signal reaches every process of a job: the stage ignores it (the job stops it itself)."""
+    code = "import os, signal, time; os.kill(os.getpid(), signal.SIGUSR2); time.sleep(0.2); open('alive', 'w')"
+    cmd = dispatch.StageCommand("s", f"python -c {code!r}", tmp_path)
+    assert cmd() >= 0 and (tmp_path / "alive").is_file() and dispatch.marker(tmp_path, "s").is_file()
+    with pytest.raises(dispatch.StageFailed, match="s: exit 3"):
+        dispatch.StageCommand("s", "python -c 'raise SystemExit(3)'", tmp_path)()
+
+
 def test_deadline_submits_nothing_that_would_end_late(tmp_path):
     slow = _fake("slow", "pass", cost=10.0)  # 10 estimated minutes
     assert dispatch.run({"slow": slow}, _local(tmp_path), tmp_path, lambda m: None, deadline=60.0) == {"slow": "todo"}

@@ -47,6 +47,14 @@ def marker(work: Path, name: str, suffix: str = ".done") -> Path:
     return Path(work) / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + suffix)
 
 
+def _ignore_usr_signal() -> None:
+    """In the stage process: ignore submitit's time-limit/preemption signal (SLURM's ``--signal`` reaches
+    every process of the job): the job process handles it and stops the stage itself (``checkpoint``)."""
+    import signal
+
+    signal.signal(getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")), signal.SIG_IGN)
+
+
 class StageFailed(RuntimeError):
     """A stage command exited non-zero."""
 
@@ -86,7 +94,7 @@ class StageCommand:
         t0 = time.monotonic()
         print(f"[gca job {self.name}] {self.cmd}  (cwd {self.work}, CUDA_VISIBLE_DEVICES="
               f"{os.environ.get('CUDA_VISIBLE_DEVICES', '')!r})", flush=True)
-        self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment())
+        self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment(), preexec_fn=_ignore_usr_signal)
         try:
             rc = self._proc.wait()
         finally:
