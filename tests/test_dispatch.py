@@ -134,6 +134,17 @@ class _Recorder(dispatch.Engine):
         self.ended[handle] = "cancelled"
 
 
+def test_a_job_still_queued_from_an_earlier_call_is_attached_not_submitted(tmp_path):
+    jobs = {"a": _fake("a", ""), "b": _fake("b", "", ["a"])}
+    engine = _Recorder()
+    engine.attach = lambda job: f"old-{job.name}" if job.name == "a" else None
+    engine.ended = {"old-a": dispatch.DONE, "b": dispatch.DONE}
+    lines = []
+    assert dispatch.run(jobs, engine, tmp_path, lines.append, poll_s=0.01) == {"a": "done", "b": "done"}
+    assert engine.submitted == [("b", ["old-a"])]  # b after the attached a
+    assert any(ln.startswith("attach a") for ln in lines)
+
+
 def test_an_engine_with_dependencies_gets_the_whole_grid_at_once(tmp_path):
     jobs = {"a": _fake("a", ""), "b": _fake("b", "", ["a"]), "c": _fake("c", "", ["b"]), "x": _fake("x", "")}
     engine = _Recorder()
@@ -174,6 +185,15 @@ def test_slurm_jobs_carry_afterok_dependencies_one_gpu_and_the_requeue_signal(tm
     assert "dependency" not in first and "#SBATCH --job-name=prior@jelly" in first
     assert "#SBATCH --dependency=afterok:100" in second and "#SBATCH --kill-on-invalid-dep=yes" in second
     assert engine.log(b).name == "101_0_log.out"
+
+    # a later call attaches to a job sacct still lists as queued or running, and resubmits one that ended
+    (bin_dir / "sacct").write_text("#!/bin/sh\nprintf 'JobID|State|NodeList\\n100|RUNNING|n1\\n101|FAILED|n2\\n'\n")
+    (bin_dir / "sacct").chmod(0o755)
+    again = dispatch.slurm_engine(tmp_path / "sub" / "%j", timeout_min=120, max_requeue=7)
+    attached = again.attach(dispatch.StageCommand("prior@jelly", "python stages/prior.py", tmp_path))
+    assert attached is not None and attached.job_id == "100"
+    assert again.attach(dispatch.StageCommand("train@ball:gca", "python stages/train.py", tmp_path)) is None
+    assert again.attach(dispatch.StageCommand("never@submitted", "python x.py", tmp_path)) is None
 
 
 def test_finished_stages_are_the_ones_all_of_whose_jobs_are_done():

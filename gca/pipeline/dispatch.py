@@ -171,6 +171,11 @@ class Engine(abc.ABC):
     def cancel(self, handle) -> None:
         """Stop the job (queued or running)."""
 
+    def attach(self, job: StageCommand):
+        """The handle of ``job`` submitted by an earlier call and still queued or running, else None
+        (then it is submitted again)."""
+        return None
+
 
 class SubmititEngine(Engine):
     """A submitit executor: ``submitit.LocalExecutor`` (``places``: one GPU id or None per slot) or
@@ -197,7 +202,25 @@ class SubmititEngine(Engine):
         else:
             params.update(gpus_per_node=0 if place is None else 1, visible_gpus=() if place is None else (place,))
         self.executor.update_parameters(**params)
-        return self.executor.submit(job)
+        handle = self.executor.submit(job)
+        if self.slurm:
+            path = marker(Path(job.work), job.name, ".jobid")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(f"{handle.job_id}\n")
+        return handle
+
+    ACTIVE = ("PENDING", "RUNNING", "REQUEUED", "CONFIGURING", "COMPLETING", "SUSPENDED", "RESIZING")
+
+    def attach(self, job: StageCommand):
+        """SLURM: the job this grid submitted before (``.grid/<job>.jobid``) while ``sacct`` says it is
+        queued or running (the command was interrupted, or its login session ended)."""
+        import submitit
+
+        path = marker(Path(job.work), job.name, ".jobid")
+        if not self.slurm or not path.is_file():
+            return None
+        handle = submitit.SlurmJob(folder=self.executor.folder, job_id=path.read_text().strip())
+        return handle if handle.state.split()[0] in self.ACTIVE else None
 
     def state(self, handle) -> str:
         if not handle.done():
@@ -366,12 +389,14 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             env = dict(job_env(jobs[n], place)) if job_env else {}
             cmd = StageCommand(n, jobs[n].cmd, work, env)
             after = [handles[a] for a in jobs[n].after if a in handles]
-            handles[n] = engine.submit(cmd, after, place)
+            attached = engine.attach(cmd)
+            handles[n] = attached if attached is not None else engine.submit(cmd, after, place)
             if free is not None:
                 free.remove(place)
                 place_of[n] = place
             state[n], started[n] = RUNNING, time.monotonic()
-            log(f"start {n}" + ("" if free is None else f" on {'cpu' if place is None else f'gpu {place}'}")
+            log(("attach" if attached is not None else "start ") + f" {n}"
+                + ("" if free is None else f" on {'cpu' if place is None else f'gpu {place}'}")
                 + f" (log {engine.log(handles[n])})")
         if not handles:
             return state
