@@ -231,7 +231,7 @@ def test_dvc_commit_assembles_what_the_jobs_wrote_and_repro_runs_nothing(tmp_pat
     (repo / "make.py").write_text("import sys, pathlib\np = pathlib.Path(sys.argv[3]); p.parent.mkdir(exist_ok=True)\n"
                                   "p.write_text(sys.argv[1] * int(sys.argv[2]))\n")
     (repo / "total.py").write_text("import sys, json, pathlib\nout = pathlib.Path(sys.argv[2]); out.parent.mkdir(exist_ok=True)\n"
-                                   "out.write_text(json.dumps(sum(len(p.read_text()) for p in pathlib.Path(sys.argv[1]).iterdir())))\n")
+                                   "out.write_text(json.dumps(sum(len(p.read_text()) for p in pathlib.Path(sys.argv[1]).glob('*.txt'))))\n")
     (repo / ".gitignore").write_text(".grid/\n")
     env = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@localhost",
            "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@localhost",
@@ -252,6 +252,14 @@ def test_dvc_commit_assembles_what_the_jobs_wrote_and_repro_runs_nothing(tmp_pat
     (repo / "data/x.txt").unlink()  # a lost output comes back from DVC's cache, not rerun
     log = run(sys.executable, "-m", "dvc", "repro")
     assert "Running stage" not in log and (repo / "data/x.txt").read_text() == "xx", log
+
+    # a changed param: only what DVC finds out of date runs again (make@y is up to date; make@x's .done
+    # marker is from other params), then the commit leaves nothing to do
+    (repo / "params.yaml").write_text("items:\n  x: {n: 4}\n  y: {n: 3}\n")
+    state = grid.main(["--repo", str(repo), "--engine", "local", "--gpus", "0", "--commit"])
+    assert state == {"make@x": "done", "total": "done"}
+    assert (repo / "data/x.txt").read_text() == "xxxx" and json.loads((repo / "out/total.json").read_text()) == 7
+    assert json.loads(run(sys.executable, "-m", "dvc", "status", "--json")) == {}
 
     # negative control: the same outputs without the commit are not known to DVC
     shutil.copytree(repo / "data", twin / "data")

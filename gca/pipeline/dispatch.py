@@ -11,7 +11,8 @@ What the engine gives: queuing and placement (SLURM), the time limit and preempt
 of a job with the submission its ``checkpoint()`` returns (training goes on from
 ``runs/<scene>/<run>/checkpoint.pt``), a log per job. What stays here: the order of the jobs (SLURM
 dependencies, or for the local executor: submit a job once the jobs it reads from are done), one job per
-GPU slot on one machine (the local executor starts every job it is given at once), a failed job reported
+GPU slot on one machine (the local executor starts every job it is given at once), attaching to the
+SLURM jobs an interrupted call left queued, a failed job reported
 with its log path and its dependents skipped while the others go on, resume (a finished job leaves
 ``.grid/<job>.done`` and is not submitted again) and ``--deadline`` (stop what runs at the deadline).
 
@@ -19,7 +20,7 @@ Why submitit (and not Ray): SLURM is the scheduler labs' GPU clusters run; submi
 with no service to operate (sbatch/sacct/scontrol) and has a local executor with the same requeue path
 for one machine and for tests. Ray needs a Ray cluster running (on SLURM: started inside an allocation).
 Another engine is one :class:`Engine` subclass: ``submit`` (a picklable callable, after some jobs, on a
-place), ``state``, ``log``, ``cancel``; a Ray one would wrap :class:`StageCommand` in
+place), ``state``, ``error``, ``log``, ``cancel`` (``attach``: optional); a Ray one would wrap :class:`StageCommand` in
 ``ray.remote(num_gpus=1)`` and poll its ``ObjectRef`` with ``ray.wait``.
 """
 
@@ -55,6 +56,13 @@ def _ignore_usr_signal() -> None:
     signal.signal(getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")), signal.SIG_IGN)
 
 
+def is_done(work: Path, name: str, stamp: str = "") -> bool:
+    """The job left its ``.done`` marker, with ``stamp`` in it when one is given (a marker of a run with
+    other inputs does not count)."""
+    path = marker(work, name)
+    return path.is_file() and (not stamp or stamp in path.read_text().split())
+
+
 class StageFailed(RuntimeError):
     """A stage command exited non-zero."""
 
@@ -67,8 +75,9 @@ class StageCommand:
     again resumes from its checkpoint, any other stage starts over.
     """
 
-    def __init__(self, name: str, cmd: str, work: str | Path, env: dict[str, str] | None = None):
-        self.name, self.cmd, self.work, self.env = name, cmd, str(work), dict(env or {})
+    def __init__(self, name: str, cmd: str, work: str | Path, env: dict[str, str] | None = None, stamp: str = ""):
+        """``stamp``: written into the job's ``.done`` marker (the inputs it was run with: :func:`is_done`)."""
+        self.name, self.cmd, self.work, self.env, self.stamp = name, cmd, str(work), dict(env or {}), stamp
         self._proc: subprocess.Popen | None = None
 
     def __getstate__(self):
@@ -104,7 +113,7 @@ class StageCommand:
         took = time.monotonic() - t0
         done = marker(Path(self.work), self.name)
         done.parent.mkdir(parents=True, exist_ok=True)
-        done.write_text(f"{took:.1f}\n")
+        done.write_text(f"{took:.1f}\n{self.stamp}\n")
         return took
 
     def stop(self) -> None:
@@ -136,7 +145,7 @@ class StageCommand:
 
         self.stop()
         print(f"[gca job {self.name}] stopped for a requeue (a training run resumes from its checkpoint)", flush=True)
-        return submitit.helpers.DelayedSubmission(StageCommand(self.name, self.cmd, self.work, self.env))
+        return submitit.helpers.DelayedSubmission(StageCommand(self.name, self.cmd, self.work, self.env, self.stamp))
 
 
 class Engine(abc.ABC):
@@ -295,7 +304,7 @@ def critical_path(jobs: dict) -> dict[str, float]:
     return {n: walk(n) for n in jobs}
 
 
-def _dependents(jobs: dict, name: str) -> set[str]:
+def dependents(jobs: dict, name: str) -> set[str]:
     """Every job that (transitively) runs after ``name``."""
     out, frontier = set(), {name}
     while frontier:
@@ -305,19 +314,20 @@ def _dependents(jobs: dict, name: str) -> set[str]:
 
 
 def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = None, poll_s: float = 1.0,
-        job_env=None) -> dict[str, str]:
+        job_env=None, stamp: str = "") -> dict[str, str]:
     """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
 
     A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
     log path; the jobs after it are skipped (cancelled where already submitted); the others go on.
     ``deadline`` [s]: submit nothing that its estimated cost would not finish in time (training: resumable,
     submitted while ``grid.RESUMABLE_MIN_S`` remain) and stop what still runs then (to do next time).
-    ``job_env(job, place)``: extra environment of a job's stage process. Returns each job's state:
+    ``job_env(job, place)``: extra environment of a job's stage process; ``stamp``: what a job's ``.done``
+    marker must hold to count (the digest of the inputs, :func:`is_done`). Returns each job's state:
     done, failed, skipped or todo.
     """
     work = Path(work)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
-    state = {n: DONE if marker(work, n).is_file() else "todo" for n in jobs}
+    state = {n: DONE if is_done(work, n, stamp) else "todo" for n in jobs}
     priority = critical_path(jobs)
     handles: dict[str, object] = {}
     place_of: dict[str, object] = {}
@@ -332,7 +342,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         return time.monotonic() + need < end
 
     def skip_after(name: str) -> None:
-        for n in sorted(_dependents(jobs, name)):
+        for n in sorted(dependents(jobs, name)):
             if state[n] in ("todo", RUNNING):
                 if n in handles:
                     engine.cancel(handles.pop(n))
@@ -387,7 +397,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 continue
             place = None if free is None else min(free, key=lambda p: sum(q == p for q in place_of.values()))
             env = dict(job_env(jobs[n], place)) if job_env else {}
-            cmd = StageCommand(n, jobs[n].cmd, work, env)
+            cmd = StageCommand(n, jobs[n].cmd, work, env, stamp)
             after = [handles[a] for a in jobs[n].after if a in handles]
             attached = engine.attach(cmd)
             handles[n] = attached if attached is not None else engine.submit(cmd, after, place)
@@ -395,7 +405,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 free.remove(place)
                 place_of[n] = place
             state[n], started[n] = RUNNING, time.monotonic()
-            log(("attach" if attached is not None else "start ") + f" {n}"
+            log(("attach" if attached is not None else "start") + f" {n}"
                 + ("" if free is None else f" on {'cpu' if place is None else f'gpu {place}'}")
                 + f" (log {engine.log(handles[n])})")
         if not handles:

@@ -200,13 +200,38 @@ def batch_runs(jobs: dict, runs_per_job: int) -> dict:
     return out
 
 
-def repo_jobs(repo: Path, stages: list[str] | None, runs_per_job: int = 1) -> dict:
-    """The jobs of a DVC repository's ``dvc.yaml`` with its own ``params.yaml`` (nothing rewritten)."""
+def repo_jobs(repo: Path, stages: list[str] | None, runs_per_job: int = 1, changed: set[str] | None = None) -> dict:
+    """The jobs of a DVC repository's ``dvc.yaml`` with its own ``params.yaml`` (nothing rewritten);
+    ``changed``: keep only the jobs of these stages (what ``dvc status`` lists) and the jobs after them; the
+    others are up to date."""
     params = yaml.safe_load((repo / "params.yaml").read_text())
     jobs = expand(yaml.safe_load((repo / "dvc.yaml").read_text()), params, stages)
     if any(n.startswith("train@") for n in jobs):
         jobs = batch_runs(split_train(jobs, params), runs_per_job)
-    return link(jobs)
+    jobs = link(jobs)
+    if changed is None:
+        return jobs
+    keep = {n for n in jobs if n.split(":", 1)[0] in changed}
+    for n in list(keep):
+        keep |= dispatch.dependents(jobs, n)
+    return {n: j for n, j in jobs.items() if n in keep}
+
+
+def dvc_changed(repo: Path) -> set[str] | None:
+    """The stages ``dvc status`` lists in ``repo`` (changed or never run); None without dvc."""
+    import json
+
+    out = subprocess.run([sys.executable, "-m", "dvc", "status", "--json"], cwd=repo, capture_output=True, text=True)
+    if out.returncode != 0:
+        return None
+    return set(json.loads(out.stdout.strip().splitlines()[-1] if out.stdout.strip() else "{}"))
+
+
+def inputs_stamp(repo: Path) -> str:
+    """Digest of ``params.yaml`` and ``dvc.yaml``: a job finished under other params is not done."""
+    import hashlib
+
+    return hashlib.sha256(b"".join((repo / f).read_bytes() for f in ("params.yaml", "dvc.yaml"))).hexdigest()[:16]
 
 
 def grid_params(profile: str, scenes: list[str], methods: list[str] | None, overrides: list[str]) -> dict:
@@ -304,8 +329,10 @@ def main(argv=None) -> dict[str, str]:
     if args.collect_only:
         print(f"[grid] results: {collect(work, args.collect)}")
         return {}
-    if args.repo is not None:
-        jobs = repo_jobs(work, args.stages, args.runs_per_job)
+    stamp = ""
+    if args.repo is not None:  # what DVC finds up to date is not run; a job done under other params counts as not done
+        changed = dvc_changed(work)
+        jobs, stamp = repo_jobs(work, args.stages, args.runs_per_job, changed), inputs_stamp(work)
     else:
         if not args.scenes:
             ap.error("--work needs --scenes")
@@ -342,12 +369,12 @@ def main(argv=None) -> dict[str, str]:
     env = {} if os.environ.get("MLFLOW_TRACKING_URI") else {"MLFLOW_TRACKING_URI": f"sqlite:///{work / 'mlflow.db'}"}
     if engine.places:  # one machine: its cores shared by the slots (SLURM: --cpus-per-task)
         env["OMP_NUM_THREADS"] = os.environ.get("OMP_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // len(engine.places)))
-    todo = sum(not dispatch.marker(work, n).is_file() for n in jobs)
+    todo = sum(not dispatch.is_done(work, n, stamp) for n in jobs)
     where = (f"GPU(s) {args.gpus} x {args.slots} slots" if args.engine == "local" else "SLURM")
     log(f"{len(jobs)} jobs ({todo} to run) through {args.engine} on {where}"
         + (f", profile {args.profile}" if args.repo is None else f", in place in {work}"))
     t0 = time.monotonic()
-    state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env)
+    state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp)
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))
