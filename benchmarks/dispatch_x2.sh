@@ -24,7 +24,8 @@ case $MODE in
   one) W=/tmp/dispatch_one; GPUS=0, ;;
   *) echo "usage: $0 two|one" >&2; exit 2 ;;
 esac
-python3 -m pip install -q --no-deps --no-index --target /tmp/gca-warp/site .whl/*.whl
+python3 -c "import submitit, gsplat" 2>/dev/null ||
+    python3 -m pip install -q --no-deps --no-index --target /tmp/gca-warp/site .whl/*.whl
 export PYTHONPATH=".:${PYTHONPATH:-}" PYTHONUNBUFFERED=1
 # shellcheck disable=SC2086
 python3 -m gca.pipeline.grid --work "$W" --scenes $SCENES --methods nclaw neuma gca --profile paper \
