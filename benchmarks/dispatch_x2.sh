@@ -7,7 +7,7 @@
 #
 # On the device tool, nvidia-h200-x2, one machine for the whole series (it stays warm between calls):
 #   call 1, carry [".wpa"]:                              sh .wpa/stage.sh
-#   call 2.., carry [".wpb", ".whl", ".priors"] on EVERY call:
+#   call 2.., carry [".wpb", ".whl", ".priors"] (and ".whl_render" where gsplat or shapely are there) on EVERY call:
 #       . .wpb/activate.sh && sh benchmarks/dispatch_x2.sh two    # repeat until "nothing left to run"
 #       . .wpb/activate.sh && sh benchmarks/dispatch_x2.sh one    # repeat until "nothing left to run"
 # .whl holds the gsplat wheel (shared/gpu/README.md) and the engine's two pure-Python wheels, made here with
@@ -24,8 +24,12 @@ case $MODE in
   one) W=/tmp/dispatch_one; GPUS=0, ;;
   *) echo "usage: $0 two|one" >&2; exit 2 ;;
 esac
-python3 -c "import submitit, gsplat" 2>/dev/null ||
-    python3 -m pip install -q --no-deps --no-index --target /tmp/gca-warp/site .whl/*.whl
+if [ ! -f /tmp/gca-warp/.dispatch_wheels ]; then  # once per machine: the carried wheels beside warp
+  for d in .whl .whl_render; do
+    if [ -d "$d" ]; then python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl; fi
+  done
+  touch /tmp/gca-warp/.dispatch_wheels
+fi
 export PYTHONPATH=".:${PYTHONPATH:-}" PYTHONUNBUFFERED=1
 # shellcheck disable=SC2086
 python3 -m gca.pipeline.grid --work "$W" --scenes $SCENES --methods nclaw neuma gca --profile paper \
