@@ -1,9 +1,12 @@
-"""The CI smoke pipeline: `dvc repro` at the CI profile, in a fresh copy of the repository.
+"""The CI smoke pipeline at the CI profile, in a fresh copy of the repository: every stage command of
+`dvc.yaml` run through the job engine (`python -m gca.pipeline.grid --repo`: submitit's local executor, two jobs at
+once, training split into jobs of a scene's runs), then `dvc commit` of what the jobs wrote.
 
 The copy keeps two scenes (the elastomer ball and the plasticine cat: together they have every method
 of every table, so every stage and every method runs) and the objects and priors they need.
-Then: a second `dvc repro` re-runs nothing, and changing one object's param invalidates only the
-stages that depend on it.
+Then: the assembling `dvc repro` runs nothing (the jobs wrote where `dvc repro` puts its outputs), DVC's
+run cache restores deleted outputs, and changing one object's param invalidates only the stages that
+depend on it.
 """
 
 import json
@@ -81,15 +84,19 @@ def repo(tmp_path_factory):
     _run(["git", "init", "-q"], dest, env)
     _run(["git", "add", "-A"], dest, env)
     _run(["git", "commit", "-qm", "snapshot"], dest, env)
-    log = _run([sys.executable, "-m", "dvc", "repro"], dest, env)
-    return dest, env, log
+    # 2 CPU cores: two jobs at once; a scene's 13 training runs in 3 jobs (the velocity one, then 7 + 5)
+    log = _run([sys.executable, "-m", "gca.pipeline.grid", "--repo", str(dest), "--engine", "local",
+                "--gpus", "0", "--slots", "2", "--runs-per-job", "7", "--commit"], dest, env)
+    assembled = _run([sys.executable, "-m", "dvc", "repro"], dest, env)
+    return dest, env, log, assembled
 
 
-def test_repro_runs_every_stage_and_writes_every_report(repo):
-    dest, _, log = repo
-    for stage in ["assets@ball", "particles@cat", "prior@jelly", "ground_truth@ball", "preprocess@cat",
-                  "train@ball", "evaluate@cat", "demo", "report"]:
-        assert f"Running stage '{stage}'" in log
+def test_engine_runs_every_stage_and_writes_every_report(repo):
+    dest, _, log, _ = repo
+    for job in ["assets@ball", "particles@cat", "prior@jelly", "ground_truth@ball", "preprocess@cat",
+                "train@ball:nclaw", "train@cat:no_global+", "evaluate@cat", "demo", "report"]:
+        assert f"done  {job}" in log, log
+    assert "FAIL" not in log and "dvc commit -f " in log
     for name in REPORTS:
         assert (dest / "reports/ci" / f"{name}.md").is_file() and (dest / "reports/ci" / f"{name}.csv").is_file()
     assert (dest / "reports/ci" / "README.md").is_file()
@@ -104,17 +111,19 @@ def test_repro_runs_every_stage_and_writes_every_report(repo):
             assert all(map(math.isfinite, record["chamfer_per_frame"]))
 
 
-def test_second_repro_reruns_nothing(repo):
-    dest, env, _ = repo
-    log = _run([sys.executable, "-m", "dvc", "repro"], dest, env)
-    assert "Running stage" not in log, log
+def test_assembling_repro_recomputes_nothing(repo):
+    """What the engine's jobs wrote, committed, is what `dvc repro` would have made: it runs no stage."""
+    dest, env, _, assembled = repo
+    assert "Running stage" not in assembled, assembled
+    status = json.loads(_run([sys.executable, "-m", "dvc", "status", "--json"], dest, env).splitlines()[-1])
+    assert status == {}, status
 
 
 def test_run_cache_restores_deleted_outputs_without_running(repo):
-    """What another DVC queue worker computed is restored, not recomputed: the prior and the evaluation
-    are run-cached (no plain `cache: false` out) and their files are byte-stable, so nothing after them
-    runs again either."""
-    dest, env, _ = repo
+    """What another DVC queue worker computed (or `dvc commit` recorded) is restored, not recomputed: the
+    prior and the evaluation are run-cached (no plain `cache: false` out) and their files are byte-stable,
+    so nothing after them runs again either."""
+    dest, env, _, _ = repo
     (dest / "models/prior/jelly.pt").unlink()
     shutil.rmtree(dest / "metrics/eval/ball")
     log = _run([sys.executable, "-m", "dvc", "repro"], dest, env)
@@ -125,7 +134,7 @@ def test_run_cache_restores_deleted_outputs_without_running(repo):
 
 
 def test_one_object_param_invalidates_only_its_stages(repo):
-    dest, env, _ = repo
+    dest, env, _, _ = repo
     params = dest / "params.yaml"
     raw = yaml.safe_load(params.read_text())
     raw["objects"]["ball"]["seed"] += 100

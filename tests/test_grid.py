@@ -1,8 +1,9 @@
-"""gca/pipeline/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs, scheduled."""
+"""gca/pipeline/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs; its command line
+through the engine's local executor. Running the jobs (failures, GPU slots, requeue, deadline, resume):
+tests/test_dispatch.py."""
 
 import argparse
 import tarfile
-import time
 from pathlib import Path
 
 import pytest
@@ -61,83 +62,8 @@ def test_order_follows_deps_and_outs(jobs):
     assert "prior@plasticine" not in jobs["train@ball:gca"].after
     assert {"train@cat:gca", "train@cat:nclaw"} <= jobs["evaluate@cat"].after
     assert {"evaluate@ball", "evaluate@cat"} <= jobs["report"].after
-    prio = grid.critical_path(jobs)
+    prio = grid.critical_path(jobs)  # gca.pipeline.dispatch's
     assert prio["prior@jelly"] > prio["train@ball:gca"] > prio["evaluate@ball"] > prio["report"] > 0
-
-
-def _fake(name, code, after=()):
-    return grid.Job(name, f"python -c {code!r}", [], [], 0.01, set(after))
-
-
-def test_scheduler_skips_dependents_of_a_failure_and_resumes(tmp_path):
-    (tmp_path / ".grid").mkdir()
-    jobs = {"a": _fake("a", "open('a.txt','w').write('1')"), "bad": _fake("bad", "raise SystemExit(3)"),
-            "b": _fake("b", "open('b.txt','w').write(open('a.txt').read())", ["a"]),
-            "c": _fake("c", "print('never')", ["bad"]), "d": _fake("d", "print('never')", ["c", "b"])}
-    lines = []
-    state = grid.Scheduler(jobs, tmp_path, gpus=2, slots=1, deadline=None, log=lines.append).run()
-    assert state == {"a": "done", "bad": "failed", "b": "done", "c": "skipped", "d": "skipped"}
-    assert (tmp_path / "b.txt").read_text() == "1"
-    assert any("FAIL  bad (exit 3)" in line for line in lines)
-    (tmp_path / "a.txt").unlink()
-    again = grid.Scheduler({k: v for k, v in jobs.items() if k in "ab"}, tmp_path, 1, 1, None, lines.append)
-    assert again.state == {"a": "done", "b": "done"} and again.run() == {"a": "done", "b": "done"}
-    assert not (tmp_path / "a.txt").exists()  # a finished job is not run again
-
-
-def test_gpus_by_id_pins_jobs_to_those_gpus_only(tmp_path):
-    (tmp_path / ".grid").mkdir()
-    code = "import os; open({!r}, 'w').write(os.environ['CUDA_VISIBLE_DEVICES'])"
-    jobs = {n: grid.Job(n, f"python -c {code.format(n + '.gpu')!r}", [], [], 0.01) for n in "abcd"}
-    assert grid.gpu_ids("2,3") == [2, 3] and grid.gpu_ids("4") == 4 and grid.gpu_ids("0,") == [0]
-    with pytest.raises(argparse.ArgumentTypeError, match="comma-separated"):
-        grid.gpu_ids("1;2")
-    state = grid.Scheduler(jobs, tmp_path, gpus=[2, 3], slots=1, deadline=None, log=lambda m: None).run()
-    assert set(state.values()) == {"done"}
-    assert {(tmp_path / f"{n}.gpu").read_text() for n in "abcd"} == {"2", "3"}
-
-
-def test_deadline_launches_nothing_that_would_end_late(tmp_path):
-    (tmp_path / ".grid").mkdir()
-    slow = grid.Job("slow", "python -c pass", [], [], cost=10.0)  # 10 estimated minutes
-    state = grid.Scheduler({"slow": slow}, tmp_path, 1, 1, deadline=60.0, log=lambda m: None).run()
-    assert state == {"slow": "todo"}
-
-
-def test_deadline_stops_running_jobs_and_the_next_command_resumes(tmp_path, monkeypatch):
-    """A training job (resumable) is launched with less than its cost left, stopped at the deadline
-    and left to do; the next command runs it again, which resumes where it left off."""
-    (tmp_path / ".grid").mkdir()
-    (tmp_path / "fake_train.py").write_text(
-        "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
-        "for i in range(n, 6):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
-    job = grid.Job("train@s:gca", "python fake_train.py", [], [], cost=10.0)
-    lines = []
-    monkeypatch.setattr(grid, "RESUMABLE_MIN_S", 0.5)
-    assert grid.Scheduler({job.name: job}, tmp_path, 1, 1, deadline=1.7, log=lines.append).run() == {job.name: "todo"}
-    assert any(line.startswith(f"stop  {job.name} at the deadline") for line in lines)
-    stopped_at = int((tmp_path / "ckpt").read_text())
-    assert 1 <= stopped_at < 6 and not (tmp_path / ".grid" / f"{job.name}.done").exists()
-    assert grid.Scheduler({job.name: job}, tmp_path, 1, 1, None, lines.append).run() == {job.name: "done"}
-    assert (tmp_path / "ckpt").read_text() == "6"
-
-
-def test_deadline_counts_jobs_that_ended_on_their_own_by_exit_status(tmp_path):
-    """At the deadline a job that already exited is done (exit 0) or failed (else), never 'stopped'."""
-    (tmp_path / ".grid").mkdir()
-    jobs = {"train@s:ok": _fake("train@s:ok", "pass"), "train@s:bad": _fake("train@s:bad", "raise SystemExit(3)"),
-            "train@s:slow": _fake("train@s:slow", "import time; time.sleep(60)")}
-    lines = []
-    sched = grid.Scheduler(jobs, tmp_path, 1, 3, deadline=None, log=lines.append)
-    for name in jobs:
-        sched.places.remove(0)
-        sched._launch(name, 0)
-    time.sleep(2.0)  # the quick ones end; nothing reaped them yet
-    sched._stop_at_deadline()
-    assert sched.state == {"train@s:ok": "done", "train@s:bad": "failed", "train@s:slow": "todo"}
-    assert sched.places == [0, 0, 0] and not sched.running
-    assert (tmp_path / ".grid" / "train@s:ok.done").is_file()
-    assert sum(line.startswith("stop  ") for line in lines) == 1
 
 
 def test_collect_keeps_the_small_results(tmp_path):
@@ -212,10 +138,16 @@ def test_grid_main_runs_jobs_under_mps(tmp_path, monkeypatch):
     calls = _mps_stub(tmp_path, monkeypatch)
     seen = []
 
-    def fake_run(self):
+    def fake_run(*args, **kwargs):
         seen.append(calls.read_text())
         return {}
-    monkeypatch.setattr(grid.Scheduler, "run", fake_run)
+    monkeypatch.setattr(grid.dispatch, "run", fake_run)
     grid.main(["--work", str(tmp_path / "w"), "--scenes", "ball", "--methods", "gca", "--profile", "ci",
                "--stages", "assets", "--mps"])
     assert seen == ["args=-d stdin=\n"] and calls.read_text().endswith("args= stdin=quit\n")
+
+
+def test_gpu_ids():
+    assert grid.gpu_ids("2,3") == [2, 3] and grid.gpu_ids("4") == 4 and grid.gpu_ids("0,") == [0]
+    with pytest.raises(argparse.ArgumentTypeError, match="comma-separated"):
+        grid.gpu_ids("1;2")

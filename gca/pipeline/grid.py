@@ -1,24 +1,34 @@
-"""The pipeline's stage commands for a scene x method grid, scheduled over the GPUs of one machine.
+"""The pipeline's stage commands for a scene x method grid, run through a job engine (``gca.pipeline.dispatch``).
 
-What ``dvc repro`` runs, without dvc (the GPU machine has none): the stage commands are read from
-``dvc.yaml`` and expanded for the chosen scenes, their objects and prior families; the order comes
-from the stages' deps and outs; each job runs as its own process pinned to one GPU
-(``CUDA_VISIBLE_DEVICES``), ``--slots`` jobs per GPU at once (packing, ``pack.py``). The outputs land
-where ``dvc repro`` puts them, inside ``--work``, so the ``report`` stage reads them as it always does.
-A scene's ``train`` stage is split per method (the first method estimates the launch velocity, the
-others reuse it with ``--velocity``) so one scene's methods train on several GPUs at once.
+What ``dvc repro`` runs, as separate jobs: the stage commands are read from ``dvc.yaml`` and expanded for
+the scenes, their objects and prior families; the order comes from the stages' deps and outs. A scene's
+``train`` stage is split into one job per (method, seed) run (the first estimates the launch velocity, the
+others reuse it with ``--velocity``; ``--runs-per-job N`` puts N runs in one job), so one scene's runs
+train on several GPUs at once. Each job runs through the engine (``--engine``): ``local`` (submitit's local
+executor: one process per GPU slot, ``--slots`` jobs per GPU, pinned with ``CUDA_VISIBLE_DEVICES``) or
+``slurm`` (one SLURM job of one GPU per stage command, ordered by ``afterok`` dependencies). The outputs
+land where ``dvc repro`` puts them:
 
-    python -m gca.pipeline.grid --work /tmp/t1 --scenes ball duck pawn cat fish bottle \
-        --methods gca neuma nclaw --profile paper --gpus 4 --slots 2 --deadline 540 \
-        --before "python3 -c 'from gsplat.cuda._backend import _C'"
+- ``--work DIR``: a work directory made here (no dvc needed: a GPU machine), params.yaml restricted to
+  ``--scenes``, the code linked; the ``report`` stage reads the results as it always does.
 
-Resumable: a finished job leaves ``<work>/.grid/<job>.done`` and is not run again; training resumes
-from its checkpoint. ``--deadline`` [s] bounds the command: it launches no job that its estimated cost
-would not finish in time, except training jobs (resumable: launched while ``RESUMABLE_MIN_S`` remain),
-and at the deadline stops the jobs still running (SIGTERM; a training job loses at most
-``train.checkpoint_every`` iterations), so a long grid runs as a few commands of bounded length
-(repeat the command until it reports every job done). A failed job is logged with its output's tail, its dependents are skipped, the
-others go on. ``--priors DIR`` takes ``<family>.pt`` from an earlier run instead of pretraining.
+      python -m gca.pipeline.grid --work /tmp/t1 --scenes ball duck pawn cat fish bottle \
+          --methods gca neuma nclaw --profile paper --gpus 4 --slots 2 --deadline 540 \
+          --before "python3 -c 'from gsplat.cuda._backend import _C'"
+
+- ``--repo DIR``: in place in a DVC repository with its own params.yaml; ``--commit`` ends with
+  ``dvc commit -f`` of every finished stage, so ``dvc repro`` afterwards restores them and computes nothing.
+
+      python -m gca.pipeline.grid --repo . --engine slurm --partition gpu --timeout-min 240 --commit
+
+Resumable: a finished job leaves ``<work>/.grid/<job>.done`` and is not run again; training resumes from
+its checkpoint (also after the engine's requeue at a time limit or a preemption). ``--deadline`` [s]
+bounds the command: it submits no job that its estimated cost would not finish in time, except training
+jobs (resumable: submitted while ``dispatch.RESUMABLE_MIN_S`` remain), and at the deadline stops the jobs
+still running (a training job loses at most ``train.checkpoint_every`` iterations), so a long grid runs
+as a few commands of bounded length (repeat the command until it reports every job done). A failed job
+is logged with its log path, its dependents are skipped, the others go on. ``--priors DIR`` takes
+``<family>.pt`` from an earlier run instead of pretraining.
 """
 
 from __future__ import annotations
@@ -28,9 +38,7 @@ import contextlib
 import dataclasses
 import os
 import re
-import shlex
 import shutil
-import signal
 import subprocess
 import sys
 import tarfile
@@ -40,6 +48,9 @@ from typing import Callable
 
 import yaml
 
+from gca.pipeline import dispatch
+from gca.pipeline.dispatch import critical_path, gpu_ids  # noqa: F401 (this module's API before the engine)
+
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 
 # Estimated cost of a job [GPU-minutes, paper profile, one H100, alone]: for priorities (longest path
@@ -47,8 +58,6 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yam
 COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
         "train": 0.6, "train:gca": 4.5, "train:neuma": 2.7, "train:neuma_multiview": 4.0,
         "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.3, "demo": 1.0}
-RESUMABLE_MIN_S = 120.0  # a training job is launched while this much of the deadline remains [s]
-STOP_GRACE_S = 20.0  # after SIGTERM at the deadline, SIGKILL a job still alive this long after [s]
 
 
 @dataclasses.dataclass
@@ -165,20 +174,67 @@ def link(jobs: dict[str, Job]) -> dict[str, Job]:
     return jobs
 
 
-def critical_path(jobs: dict[str, Job]) -> dict[str, float]:
-    """Longest cost from each job to the end of the grid (list-scheduling priority)."""
-    children = {n: [] for n in jobs}
-    for j in jobs.values():
-        for a in j.after:
-            if a in children:
-                children[a].append(j.name)
-    memo: dict[str, float] = {}
+def batch_runs(jobs: dict, runs_per_job: int) -> dict:
+    """Training jobs of :func:`split_train` (one per run) put together ``runs_per_job`` at a time: the runs
+    of one scene and one seed after the first (which estimates the launch velocity), in their order, as one
+    ``--methods a b ...`` command (where starting a process costs more than the parallelism gains: a
+    CPU). Jobs not unlinked yet (``after``: only the velocity job)."""
+    if runs_per_job <= 1:
+        return jobs
+    out, groups = {}, {}
+    for name, job in jobs.items():
+        m = re.search(r"--methods (\S+)", job.cmd)
+        if not name.startswith("train@") or not job.after or m is None:
+            out[name] = job
+            continue
+        seed = re.search(r"--seeds (\S+)", job.cmd)
+        key = (name.split(":", 1)[0], seed.group(1) if seed else None)
+        group = groups.setdefault(key, [])
+        if not group or len(group[-1]) == runs_per_job:
+            group.append([])
+        group[-1].append(job)
+    for batches in groups.values():
+        for batch in batches:
+            first = batch[0]
+            methods = " ".join(re.search(r"--methods (\S+)", j.cmd).group(1) for j in batch)
+            name = "+".join([first.name] + [j.name.split(":", 1)[1] for j in batch[1:]])
+            out[name] = type(first)(name, re.sub(r"--methods \S+", f"--methods {methods}", first.cmd), list(first.deps),
+                                    [o for j in batch for o in j.outs], sum(j.cost for j in batch), set(first.after))
+    return out
 
-    def walk(n: str) -> float:
-        if n not in memo:
-            memo[n] = jobs[n].cost + max((walk(c) for c in children[n]), default=0.0)
-        return memo[n]
-    return {n: walk(n) for n in jobs}
+
+def repo_jobs(repo: Path, stages: list[str] | None, runs_per_job: int = 1, changed: set[str] | None = None) -> dict:
+    """The jobs of a DVC repository's ``dvc.yaml`` with its own ``params.yaml`` (nothing rewritten);
+    ``changed``: keep only the jobs of these stages (what ``dvc status`` lists) and the jobs after them; the
+    others are up to date."""
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    jobs = expand(yaml.safe_load((repo / "dvc.yaml").read_text()), params, stages)
+    if any(n.startswith("train@") for n in jobs):
+        jobs = batch_runs(split_train(jobs, params), runs_per_job)
+    jobs = link(jobs)
+    if changed is None:
+        return jobs
+    keep = {n for n in jobs if n.split(":", 1)[0] in changed}
+    for n in list(keep):
+        keep |= dispatch.dependents(jobs, n)
+    return {n: j for n, j in jobs.items() if n in keep}
+
+
+def dvc_changed(repo: Path) -> set[str] | None:
+    """The stages ``dvc status`` lists in ``repo`` (changed or never run); None without dvc."""
+    import json
+
+    out = subprocess.run([sys.executable, "-m", "dvc", "status", "--json"], cwd=repo, capture_output=True, text=True)
+    if out.returncode != 0:
+        return None
+    return set(json.loads(out.stdout.strip().splitlines()[-1] if out.stdout.strip() else "{}"))
+
+
+def inputs_stamp(repo: Path) -> str:
+    """Digest of ``params.yaml`` and ``dvc.yaml``: a job finished under other params is not done."""
+    import hashlib
+
+    return hashlib.sha256(b"".join((repo / f).read_bytes() for f in ("params.yaml", "dvc.yaml"))).hexdigest()[:16]
 
 
 def grid_params(profile: str, scenes: list[str], methods: list[str] | None, overrides: list[str]) -> dict:
@@ -234,115 +290,6 @@ def prepare(work: Path, params: dict) -> None:
     (work / ".grid").mkdir(exist_ok=True)
 
 
-class Scheduler:
-    """List scheduling of jobs over ``gpus x slots`` places, longest remaining path first."""
-
-    def __init__(self, jobs: dict[str, Job], work: Path, gpus: int | list[int], slots: int, deadline: float | None, log):
-        """``gpus``: a count (GPUs 0 .. gpus-1) or the GPU ids to use."""
-        self.jobs, self.work, self.log = jobs, work, log
-        ids = list(range(gpus)) if isinstance(gpus, int) else list(gpus)
-        self.places = [g for g in ids for _ in range(slots)]  # free places (a GPU per slot)
-        self.threads = max(1, (os.cpu_count() or 1) // len(self.places))  # CPU threads per job
-        self.priority = critical_path(jobs)
-        self.deadline = None if deadline is None else time.monotonic() + deadline
-        self.state = {n: ("done" if self._marker(n).is_file() else "todo") for n in jobs}
-        self.running: dict[str, tuple[subprocess.Popen, int, float]] = {}
-
-    def _marker(self, name: str, suffix: str = ".done") -> Path:
-        """``.grid/<job>.done`` (finished) or, with ``suffix=".log"``, the job's output."""
-        return self.work / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + suffix)
-
-    def _ready(self) -> list[str]:
-        return [n for n, s in self.state.items() if s == "todo" and all(self.state.get(a) == "done" for a in self.jobs[n].after)]
-
-    def _skip_dependents(self) -> None:
-        changed = True
-        while changed:
-            changed = False
-            for n, s in self.state.items():
-                if s == "todo" and any(self.state.get(a) in ("failed", "skipped") for a in self.jobs[n].after):
-                    self.state[n] = "skipped"
-                    self.log(f"skip {n}: an upstream job failed")
-                    changed = True
-
-    def _launch(self, name: str, gpu: int) -> None:
-        job = self.jobs[name]
-        argv = shlex.split(job.cmd)
-        if argv[0] == "python":
-            argv[0] = sys.executable
-        env = {"OMP_NUM_THREADS": str(self.threads), **os.environ, "CUDA_VISIBLE_DEVICES": str(gpu), "PYTHONUNBUFFERED": "1",
-               "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
-               "MLFLOW_TRACKING_URI": os.environ.get("MLFLOW_TRACKING_URI", f"sqlite:///{self.work / 'mlflow.db'}")}
-        logf = open(self._marker(name, ".log"), "w")
-        proc = subprocess.Popen(argv, cwd=self.work, env=env, stdout=logf, stderr=subprocess.STDOUT)
-        self.running[name] = (proc, gpu, time.monotonic())
-        self.state[name] = "running"
-        self.log(f"start {name} on gpu {gpu}")
-
-    def _reap(self, stopped: set[str] = frozenset()) -> None:
-        """Record the jobs that ended: done, failed, or (``stopped`` at the deadline) to do again."""
-        for name, (proc, gpu, t0) in list(self.running.items()):
-            rc = proc.poll()
-            if rc is None:
-                continue
-            del self.running[name]
-            self.places.append(gpu)
-            took = time.monotonic() - t0
-            if name in stopped:
-                self.state[name] = "todo"
-                self.log(f"stop  {name} at the deadline after {took:.0f} s (resumes next time)")
-            elif rc == 0:
-                self.state[name] = "done"
-                self._marker(name).write_text(f"{took:.1f}\n")
-                self.log(f"done  {name} in {took:.0f} s")
-            else:
-                self.state[name] = "failed"
-                tail = self._marker(name, ".log").read_text()[-1500:]
-                self.log(f"FAIL  {name} (exit {rc}) after {took:.0f} s:\n{tail}")
-                self._skip_dependents()
-
-    def _fits(self, name: str) -> bool:
-        if self.deadline is None:
-            return True
-        need = RESUMABLE_MIN_S if name.startswith("train@") else 60 * self.jobs[name].cost * 1.3
-        return time.monotonic() + need < self.deadline
-
-    def _stop_at_deadline(self) -> None:
-        """Stop every running job (SIGTERM, SIGKILL after ``STOP_GRACE_S``): a stopped job stays to do; one
-        that ended on its own meanwhile counts as done or failed by its exit status."""
-        self._reap()
-        for proc, _, _ in self.running.values():
-            proc.terminate()
-        t_end = time.monotonic() + STOP_GRACE_S
-        for name, (proc, _, _) in list(self.running.items()):
-            try:
-                proc.wait(timeout=max(0.1, t_end - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        self._reap(stopped={n for n, (proc, _, _) in self.running.items()
-                            if proc.returncode in (-signal.SIGTERM, -signal.SIGKILL)})
-
-    def run(self) -> dict[str, str]:
-        while True:
-            self._reap()
-            ready = sorted(self._ready(), key=lambda n: -self.priority[n])
-            for name in ready:
-                if not self.places:
-                    break
-                if not self._fits(name):
-                    continue
-                gpu = min(self.places, key=lambda g: sum(1 for _, (_, gg, _) in self.running.items() if gg == g))
-                self.places.remove(gpu)
-                self._launch(name, gpu)
-            if not self.running:
-                return self.state
-            if self.deadline is not None and time.monotonic() >= self.deadline:
-                self._stop_at_deadline()
-                return self.state
-            time.sleep(1.0)
-
-
 def collect(work: Path, out: Path) -> Path:
     """The small results of a grid in one archive: metrics, reports, train/eval summaries, the learned laws
     (~40 kB each: a run can be evaluated again elsewhere), priors, logs."""
@@ -356,15 +303,6 @@ def collect(work: Path, out: Path) -> Path:
             if f.is_file() and not f.is_symlink() and keep.match(rel) and f.stat().st_size < 8 * 2 ** 20:
                 tar.add(f, arcname=rel)
     return path
-
-
-def gpu_ids(text: str) -> int | list[int]:
-    """``--gpus``: ``4`` -> 4 (GPUs 0..3); ``1,2,3`` -> [1, 2, 3] (leaves GPU 0 to something else);
-    ``3,`` -> [3] (one id)."""
-    try:
-        return [int(g) for g in text.split(",") if g] if "," in text else int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--gpus {text!r}: a count or comma-separated GPU ids") from None
 
 
 MPS_CONTROL = "nvidia-cuda-mps-control"
@@ -414,43 +352,58 @@ def mps_daemon(enable: bool, log: Callable[[str], None]):
 
 def main(argv=None) -> dict[str, str]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--scenes", nargs="+", required=True)
-    ap.add_argument("--methods", nargs="+", help="default: each scene's methods in params.yaml")
-    ap.add_argument("--profile", default="paper")
-    ap.add_argument("--set", dest="overrides", action="append", default=[], help="dotted.key=yaml_value")
-    ap.add_argument("--gpus", type=gpu_ids, default=1, help="a count (GPUs 0 .. N-1) or ids: 0,1,2 (one id: 3,)")
-    ap.add_argument("--slots", type=int, default=2, help="concurrent jobs per GPU")
-    ap.add_argument("--deadline", type=float, default=None, help="seconds: launch nothing that would end later")
-    ap.add_argument("--stages", nargs="+", default=["assets", "particles", "prior", "ground_truth", "preprocess",
-                                                   "train", "evaluate", "report"])
-    ap.add_argument("--priors", type=Path, help="folder of <family>.pt from an earlier run (no prior jobs)")
+    where = ap.add_mutually_exclusive_group(required=True)
+    where.add_argument("--work", type=Path, help="a work directory made here for --scenes (params.yaml restricted to "
+                                                 "them, the code linked; no dvc needed)")
+    where.add_argument("--repo", type=Path, help="run in place in this DVC repository with its own params.yaml "
+                                                 "(then --commit)")
+    ap.add_argument("--scenes", nargs="+", help="--work: the scenes")
+    ap.add_argument("--methods", nargs="+", help="--work: default each scene's methods in params.yaml")
+    ap.add_argument("--profile", default="paper", help="--work: the profile")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="--work: dotted.key=yaml_value")
+    ap.add_argument("--stages", nargs="+", help="dvc.yaml stages (default --work: all but demo; --repo: all)")
+    ap.add_argument("--priors", type=Path, help="--work: folder of <family>.pt from an earlier run (no prior jobs)")
+    ap.add_argument("--runs-per-job", type=int, default=1,
+                    help="training runs of a scene per job after its first (default 1: one job per run)")
+    ap.add_argument("--commit", action="store_true", help="--repo: then `dvc commit -f` every stage whose jobs all "
+                                                          "finished, so `dvc repro` recomputes none of them")
     ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
     ap.add_argument("--collect-only", action="store_true", help="only --collect what --work holds")
     ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
                                      "jobs share: concurrent first builds can corrupt its cache)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
                                                         "allowed (root), stop it at the end; says so where not")
+    dispatch.add_engine_args(ap, slots=2)
     args = ap.parse_args(argv)
+    work = (args.work or args.repo).resolve()
     if args.collect_only:
-        print(f"[grid] results: {collect(args.work, args.collect)}")
+        print(f"[grid] results: {collect(work, args.collect)}")
         return {}
-    params = grid_params(args.profile, args.scenes, args.methods, args.overrides)
-    prepare(args.work, params)
-    jobs = expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, args.stages)
-    if args.priors is not None:
-        for family in params["prior"]["families"]:
-            src = args.priors / f"{family}.pt"
-            if not src.is_file():
-                raise SystemExit(f"{src}: no prior for family {family!r} (--priors)")
-            dst = args.work / "models" / "prior" / f"{family}.pt"
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(src, dst)
-            jobs.pop(f"prior@{family}", None)
-    jobs = link(split_train(jobs, params))
-    if "report" in jobs:  # report reads metrics/demo only when it exists: run without the demo stage
-        jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
-    logfile = open(args.work / ".grid" / "grid.log", "a")
+    stamp = ""
+    if args.repo is not None:  # what DVC finds up to date is not run; a job done under other params counts as not done
+        changed = dvc_changed(work)
+        jobs, stamp = repo_jobs(work, args.stages, args.runs_per_job, changed), inputs_stamp(work)
+    else:
+        if not args.scenes:
+            ap.error("--work needs --scenes")
+        params = grid_params(args.profile, args.scenes, args.methods, args.overrides)
+        prepare(work, params)
+        stages = args.stages or ["assets", "particles", "prior", "ground_truth", "preprocess", "train", "evaluate", "report"]
+        jobs = expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, stages)
+        if args.priors is not None:
+            for family in params["prior"]["families"]:
+                src = args.priors / f"{family}.pt"
+                if not src.is_file():
+                    raise SystemExit(f"{src}: no prior for family {family!r} (--priors)")
+                dst = work / "models" / "prior" / f"{family}.pt"
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(src, dst)
+                jobs.pop(f"prior@{family}", None)
+        jobs = link(batch_runs(split_train(jobs, params), args.runs_per_job))
+        if "report" in jobs:  # report reads metrics/demo only when it exists: run without the demo stage
+            jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
+    (work / ".grid").mkdir(parents=True, exist_ok=True)
+    logfile = open(work / ".grid" / "grid.log", "a")
 
     def log(msg: str) -> None:
         line = f"[grid {time.strftime('%H:%M:%S')}] {msg}"
@@ -460,26 +413,36 @@ def main(argv=None) -> dict[str, str]:
 
     if args.before:
         log(f"before: {args.before}")
-        subprocess.run(args.before, shell=True, check=True, cwd=args.work,
+        subprocess.run(args.before, shell=True, check=True, cwd=work,
                        env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"})
-    scheduler = Scheduler(jobs, args.work, args.gpus, args.slots, args.deadline, log)
-    todo = sum(1 for s in scheduler.state.values() if s == "todo")
-    log(f"{len(jobs)} jobs ({todo} to run) on GPU(s) {args.gpus} x {args.slots} slots, profile {args.profile}")
+    engine = dispatch.engine_from_args(args, work / ".grid" / "submitit" / "%j")
+    env = {} if os.environ.get("MLFLOW_TRACKING_URI") else {"MLFLOW_TRACKING_URI": f"sqlite:///{work / 'mlflow.db'}"}
+    if engine.places:  # one machine: its cores shared by the slots (SLURM: --cpus-per-task)
+        env["OMP_NUM_THREADS"] = os.environ.get("OMP_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // len(engine.places)))
+    todo = sum(not dispatch.is_done(work, n, stamp) for n in jobs)
+    where = (f"GPU(s) {args.gpus} x {args.slots} slots" if args.engine == "local" else "SLURM")
+    log(f"{len(jobs)} jobs ({todo} to run) through {args.engine} on {where}"
+        + (f", profile {args.profile}" if args.repo is None else f", in place in {work}"))
     t0 = time.monotonic()
     with mps_daemon(args.mps, log):
-        state = scheduler.run()
+        state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp)
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))
-    if counts["todo"] and args.deadline is not None and args.deadline < RESUMABLE_MIN_S:
-        log(f"--deadline {args.deadline:g} s is under {RESUMABLE_MIN_S:g} s: no training job will ever be launched")
+    if counts["todo"] and args.deadline is not None and args.deadline < dispatch.RESUMABLE_MIN_S:
+        log(f"--deadline {args.deadline:g} s is under {dispatch.RESUMABLE_MIN_S:g} s: no training job will ever be launched")
     for name in sorted(state):
         if state[name] != "done":
             log(f"  {state[name]:>8}  {name}")
+    if args.commit and args.repo is not None:
+        finished = dispatch.dvc_stages(state)
+        if finished:
+            log(f"dvc commit -f {' '.join(finished)}")
+            subprocess.run([sys.executable, "-m", "dvc", "commit", "-f", *finished], cwd=work, check=True)
     if args.collect:
-        log(f"results: {collect(args.work, args.collect)}")
+        log(f"results: {collect(work, args.collect)}")
     return state
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(1 if {"failed", "skipped"} & set(main(sys.argv[1:]).values()) else 0)

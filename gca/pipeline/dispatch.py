@@ -1,0 +1,462 @@
+"""The pipeline's stage jobs dispatched through an existing job engine: SLURM through submitit, or
+submitit's local executor on one machine.
+
+One job is one stage command of ``dvc.yaml`` (``gca.pipeline.grid`` expands them and is the command
+line; a scene's ``train`` stage is split into one job per (method, seed) run), sized to one GPU. The
+command runs in the work directory where ``dvc repro`` runs it, so its outputs land where ``dvc repro``
+puts them; in a DVC repository ``dvc commit -f <every finished stage>`` then records them in ``dvc.lock``
+and DVC's cache (``grid --repo . --commit``): a ``dvc repro`` afterwards computes nothing again.
+
+What the engine gives: queuing and placement (SLURM), the time limit and preemption signals, the requeue
+of a job with the submission its ``checkpoint()`` returns (training goes on from
+``runs/<scene>/<run>/checkpoint.pt``), a log per job. What stays here: the order of the jobs (SLURM
+dependencies, or for the local executor: submit a job once the jobs it reads from are done), one job per
+GPU slot on one machine (the local executor starts every job it is given at once), attaching to the
+SLURM jobs an interrupted call left queued, a failed job reported
+with its log path and its dependents skipped while the others go on, resume (a finished job leaves
+``.grid/<job>.done`` and is not submitted again) and ``--deadline`` (stop what runs at the deadline).
+
+Why submitit (and not Ray): SLURM is the scheduler labs' GPU clusters run; submitit drives it from Python
+with no service to operate (sbatch/sacct/scontrol) and has a local executor with the same requeue path
+for one machine and for tests. Ray needs a Ray cluster running (on SLURM: started inside an allocation).
+Another engine is one :class:`Engine` subclass: ``submit`` (a picklable callable, after some jobs, on a
+place), ``state``, ``error``, ``log``, ``cancel`` (``attach``: optional); a Ray one would wrap :class:`StageCommand` in
+``ray.remote(num_gpus=1)`` and poll its ``ObjectRef`` with ``ray.wait``.
+"""
+
+from __future__ import annotations
+
+import abc
+import argparse
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
+STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
+RESUMABLE_MIN_S = 120.0  # --deadline: a training job is submitted while this much of the deadline remains [s]
+DONE, FAILED, RUNNING = "done", "failed", "running"
+
+
+def marker(work: Path, name: str, suffix: str = ".done") -> Path:
+    """``<work>/.grid/<job>.done``: the job finished (its seconds inside)."""
+    import re
+
+    return Path(work) / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + suffix)
+
+
+def _ignore_usr_signal() -> None:
+    """In the stage process: ignore submitit's time-limit/preemption signal (SLURM's ``--signal`` reaches
+    every process of the job): the job process handles it and stops the stage itself (``checkpoint``)."""
+    import signal
+
+    signal.signal(getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")), signal.SIG_IGN)
+
+
+def is_done(work: Path, name: str, stamp: str = "") -> bool:
+    """The job left its ``.done`` marker, with ``stamp`` in it when one is given (a marker of a run with
+    other inputs does not count)."""
+    path = marker(work, name)
+    return path.is_file() and (not stamp or stamp in path.read_text().split())
+
+
+class StageFailed(RuntimeError):
+    """A stage command exited non-zero."""
+
+
+class StageCommand:
+    """One job: a stage command run in ``work`` as its own process (its output goes to the job's log).
+
+    A picklable callable for the engine. ``checkpoint()`` is submitit's hook at a time limit or a
+    preemption: it stops the stage process and returns the same command to requeue; a training stage run
+    again resumes from its checkpoint, any other stage starts over.
+    """
+
+    def __init__(self, name: str, cmd: str, work: str | Path, env: dict[str, str] | None = None, stamp: str = ""):
+        """``stamp``: written into the job's ``.done`` marker (the inputs it was run with: :func:`is_done`)."""
+        self.name, self.cmd, self.work, self.env, self.stamp = name, cmd, str(work), dict(env or {}), stamp
+        self._proc: subprocess.Popen | None = None
+
+    def __getstate__(self):
+        return {k: v for k, v in self.__dict__.items() if k != "_proc"}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._proc = None
+
+    def argv(self) -> list[str]:
+        argv = shlex.split(self.cmd)
+        if argv and argv[0] in ("python", "python3"):
+            argv[0] = sys.executable  # the job's interpreter: the one the engine started
+        return argv
+
+    def environment(self) -> dict[str, str]:
+        env = {**os.environ, **self.env, "PYTHONUNBUFFERED": "1"}
+        # the work directory's own gca first (a checkout, or a grid work directory linking this one's)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (self.work, str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+        return env
+
+    def __call__(self) -> float:
+        t0 = time.monotonic()
+        print(f"[gca job {self.name}] {self.cmd}  (cwd {self.work}, CUDA_VISIBLE_DEVICES="
+              f"{os.environ.get('CUDA_VISIBLE_DEVICES', '')!r})", flush=True)
+        self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment(), preexec_fn=_ignore_usr_signal)
+        try:
+            rc = self._proc.wait()
+        finally:
+            self.stop()  # an exception (a requeue's SystemExit, Ctrl-C) never leaves the stage running
+        if rc != 0:
+            raise StageFailed(f"{self.name}: exit {rc}")
+        took = time.monotonic() - t0
+        done = marker(Path(self.work), self.name)
+        done.parent.mkdir(parents=True, exist_ok=True)
+        done.write_text(f"{took:.1f}\n{self.stamp}\n")
+        return took
+
+    def stop(self) -> None:
+        """Stop the stage process (SIGTERM, SIGKILL after ``STOP_GRACE_S``) if it still runs.
+
+        Reaps it with ``os.waitpid`` itself: called from submitit's signal handler, it interrupts
+        ``Popen.wait`` in ``__call__``, which holds the lock that another ``Popen.wait`` would wait for."""
+        proc = self._proc
+        if proc is None or proc.returncode is not None:
+            return
+        proc.terminate()
+        t_end = time.monotonic() + STOP_GRACE_S
+        while True:
+            try:
+                pid, status = os.waitpid(proc.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped already
+                return
+            if pid:
+                proc.returncode = os.waitstatus_to_exitcode(status)
+                return
+            if time.monotonic() > t_end:
+                proc.kill()
+                t_end = float("inf")
+            time.sleep(0.05)
+
+    def checkpoint(self, *args, **kwargs):
+        """submitit: the job hit its time limit or was preempted; requeue the same command."""
+        import submitit
+
+        self.stop()
+        print(f"[gca job {self.name}] stopped for a requeue (a training run resumes from its checkpoint)", flush=True)
+        return submitit.helpers.DelayedSubmission(StageCommand(self.name, self.cmd, self.work, self.env, self.stamp))
+
+
+class Engine(abc.ABC):
+    """What the driver needs from a job engine.
+
+    ``places``: the places a job can be given (the local executor: one GPU id per slot, ``None`` for no
+    GPU); ``None`` when the engine places jobs itself (SLURM). ``dependencies``: the engine holds a job
+    until the jobs it is submitted ``after`` succeeded (and drops it when one fails), so the whole grid is
+    submitted at once; otherwise the driver submits a job once its inputs are done.
+    """
+
+    places: list | None = None
+    dependencies: bool = False
+
+    @abc.abstractmethod
+    def submit(self, job: StageCommand, after: list, place=None):
+        """Submit ``job`` to run after the (handles) ``after``, on ``place``; returns a handle."""
+
+    @abc.abstractmethod
+    def state(self, handle) -> str:
+        """``RUNNING`` (queued or running), ``DONE`` or ``FAILED``."""
+
+    @abc.abstractmethod
+    def error(self, handle) -> str:
+        """A failed job's error, one line."""
+
+    @abc.abstractmethod
+    def log(self, handle) -> Path:
+        """The job's log file (the stage command's output)."""
+
+    @abc.abstractmethod
+    def cancel(self, handle) -> None:
+        """Stop the job (queued or running)."""
+
+    def attach(self, job: StageCommand):
+        """The handle of ``job`` submitted by an earlier call and still queued or running, else None
+        (then it is submitted again)."""
+        return None
+
+
+class SubmititEngine(Engine):
+    """A submitit executor: ``submitit.LocalExecutor`` (``places``: one GPU id or None per slot) or
+    ``submitit.SlurmExecutor`` (SLURM places jobs; ``afterok`` dependencies)."""
+
+    def __init__(self, executor, places: list | None = None, parameters: dict | None = None):
+        import submitit
+
+        self.executor = executor
+        self.slurm = isinstance(executor, submitit.SlurmExecutor)
+        self.dependencies = self.slurm
+        self.places = None if self.slurm else list(places or [None])
+        self.parameters = dict(parameters or {})
+
+    def submit(self, job: StageCommand, after: list, place=None):
+        params = dict(self.parameters)
+        if self.slurm:
+            params["job_name"] = job.name
+            if after:
+                params["dependency"] = "afterok:" + ":".join(str(h.job_id) for h in after)
+                extra = dict(params.get("additional_parameters") or {})
+                extra.setdefault("kill-on-invalid-dep", "yes")  # a failed input cancels the job, not pends it
+                params["additional_parameters"] = extra
+        else:
+            params.update(gpus_per_node=0 if place is None else 1, visible_gpus=() if place is None else (place,))
+        self.executor.update_parameters(**params)
+        handle = self.executor.submit(job)
+        if self.slurm:
+            path = marker(Path(job.work), job.name, ".jobid")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(f"{handle.job_id}\n")
+        return handle
+
+    ACTIVE = ("PENDING", "RUNNING", "REQUEUED", "CONFIGURING", "COMPLETING", "SUSPENDED", "RESIZING")
+
+    def attach(self, job: StageCommand):
+        """SLURM: the job this grid submitted before (``.grid/<job>.jobid``) while ``sacct`` says it is
+        queued or running (the command was interrupted, or its login session ended)."""
+        import submitit
+
+        path = marker(Path(job.work), job.name, ".jobid")
+        if not self.slurm or not path.is_file():
+            return None
+        handle = submitit.SlurmJob(folder=self.executor.folder, job_id=path.read_text().strip())
+        return handle if handle.state.split()[0] in self.ACTIVE else None
+
+    def state(self, handle) -> str:
+        if not handle.done():
+            return RUNNING
+        try:
+            return FAILED if handle.exception() is not None else DONE
+        except Exception:  # noqa: BLE001 - a job with no result (killed, cancelled) counts as failed
+            return FAILED
+
+    def error(self, handle) -> str:
+        try:
+            exc = handle.exception()
+        except Exception as e:  # noqa: BLE001
+            exc = e
+        lines = [ln for ln in str(exc).strip().splitlines() if ln.strip()]
+        stage = [ln for ln in lines if "StageFailed" in ln or ": exit " in ln]
+        return (stage or lines or ["no result"])[-1].strip()
+
+    def log(self, handle) -> Path:
+        return handle.paths.stdout
+
+    def cancel(self, handle) -> None:
+        try:
+            handle.cancel(check=False)
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
+
+def local_engine(folder: Path, gpus: int | list[int], slots: int, timeout_min: float, max_requeue: int,
+                 signal_delay_s: int = 60) -> SubmititEngine:
+    """submitit's local executor: ``slots`` jobs per GPU (``gpus``: a count, GPUs 0 .. n-1, or ids; 0: no
+    GPU, ``slots`` jobs on the CPU), each with a time limit of ``timeout_min``: ``signal_delay_s`` before it
+    the job is checkpointed and requeued (at most ``max_requeue`` times)."""
+    import submitit
+
+    ids = list(range(gpus)) if isinstance(gpus, int) else list(gpus)
+    places = [g for g in ids for _ in range(slots)] or [None] * slots
+    executor = submitit.LocalExecutor(folder=folder, max_num_timeout=max_requeue)
+    return SubmititEngine(executor, places, {"timeout_min": timeout_min, "signal_delay_s": signal_delay_s,
+                                             "stderr_to_stdout": True})
+
+
+def slurm_engine(folder: Path, timeout_min: float, max_requeue: int, partition: str | None = None,
+                 cpus_per_task: int | None = None, extra: dict | None = None) -> SubmititEngine:
+    """SLURM through submitit: one GPU per job, USR2 90 s before ``timeout_min`` (submitit requeues the
+    job with its checkpoint), ``extra``: more sbatch options (``{"account": "x", "qos": "y"}``)."""
+    import submitit
+
+    executor = submitit.SlurmExecutor(folder=folder, max_num_timeout=max_requeue)
+    params = {"time": int(timeout_min), "gpus_per_node": 1, "ntasks_per_node": 1, "stderr_to_stdout": True,
+              "additional_parameters": dict(extra or {})}
+    if partition:
+        params["partition"] = partition
+    if cpus_per_task:
+        params["cpus_per_task"] = cpus_per_task
+    return SubmititEngine(executor, None, params)
+
+
+def critical_path(jobs: dict) -> dict[str, float]:
+    """Longest cost from each job to the end of the grid (list-scheduling priority)."""
+    children = {n: [] for n in jobs}
+    for j in jobs.values():
+        for a in j.after:
+            if a in children:
+                children[a].append(j.name)
+    memo: dict[str, float] = {}
+
+    def walk(n: str) -> float:
+        if n not in memo:
+            memo[n] = jobs[n].cost + max((walk(c) for c in children[n]), default=0.0)
+        return memo[n]
+    return {n: walk(n) for n in jobs}
+
+
+def dependents(jobs: dict, name: str) -> set[str]:
+    """Every job that (transitively) runs after ``name``."""
+    out, frontier = set(), {name}
+    while frontier:
+        frontier = {n for n, j in jobs.items() if j.after & frontier and n not in out}
+        out |= frontier
+    return out
+
+
+def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = None, poll_s: float = 1.0,
+        job_env=None, stamp: str = "") -> dict[str, str]:
+    """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
+
+    A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
+    log path; the jobs after it are skipped (cancelled where already submitted); the others go on.
+    ``deadline`` [s]: submit nothing that its estimated cost would not finish in time (training: resumable,
+    submitted while ``grid.RESUMABLE_MIN_S`` remain) and stop what still runs then (to do next time).
+    ``job_env(job, place)``: extra environment of a job's stage process; ``stamp``: what a job's ``.done``
+    marker must hold to count (the digest of the inputs, :func:`is_done`). Returns each job's state:
+    done, failed, skipped or todo.
+    """
+    work = Path(work)
+    (work / ".grid").mkdir(parents=True, exist_ok=True)
+    state = {n: DONE if is_done(work, n, stamp) else "todo" for n in jobs}
+    priority = critical_path(jobs)
+    handles: dict[str, object] = {}
+    place_of: dict[str, object] = {}
+    started: dict[str, float] = {}
+    free = None if engine.places is None else list(engine.places)
+    end = None if deadline is None else time.monotonic() + deadline
+
+    def fits(name: str) -> bool:
+        if end is None:
+            return True
+        need = RESUMABLE_MIN_S if name.startswith("train@") else 60 * jobs[name].cost * 1.3
+        return time.monotonic() + need < end
+
+    def skip_after(name: str) -> None:
+        for n in sorted(dependents(jobs, name)):
+            if state[n] in ("todo", RUNNING):
+                if n in handles:
+                    engine.cancel(handles.pop(n))
+                    if free is not None:
+                        free.append(place_of.pop(n))
+                state[n] = "skipped"
+                log(f"skip  {n}: {name} failed")
+
+    def reap() -> None:
+        for n in list(handles):
+            if n not in handles:  # cancelled meanwhile: a job before it failed
+                continue
+            s = engine.state(handles[n])
+            if s == RUNNING:
+                continue
+            h = handles.pop(n)
+            if free is not None:
+                free.append(place_of.pop(n))
+            took = time.monotonic() - started[n]
+            if s == DONE:
+                state[n] = DONE
+                log(f"done  {n} in {took:.0f} s")
+            else:
+                state[n] = FAILED
+                path = engine.log(h)
+                tail = Path(path).read_text(errors="replace")[-1500:] if Path(path).is_file() else ""
+                log(f"FAIL  {n} ({engine.error(h)}) after {took:.0f} s; log: {path}\n{tail}")
+                skip_after(n)
+
+    def ready_jobs():
+        """Jobs whose inputs are done (an engine with dependencies: done or submitted), longest path first;
+        with dependencies, what becomes ready by submitting one comes next in the same pass."""
+        ok = (DONE, RUNNING) if engine.dependencies else (DONE,)
+        seen: set[str] = set()
+        while True:
+            ready = sorted((n for n, s in state.items() if s == "todo" and n not in seen
+                            and all(state.get(a, DONE) in ok for a in jobs[n].after)), key=lambda n: -priority[n])
+            if not ready:
+                return
+            for n in ready:
+                seen.add(n)
+                yield n
+            if not engine.dependencies:
+                return
+
+    while True:
+        reap()
+        for n in ready_jobs():
+            if free is not None and not free:
+                break
+            if not fits(n):
+                continue
+            place = None if free is None else min(free, key=lambda p: sum(q == p for q in place_of.values()))
+            env = dict(job_env(jobs[n], place)) if job_env else {}
+            cmd = StageCommand(n, jobs[n].cmd, work, env, stamp)
+            after = [handles[a] for a in jobs[n].after if a in handles]
+            attached = engine.attach(cmd)
+            handles[n] = attached if attached is not None else engine.submit(cmd, after, place)
+            if free is not None:
+                free.remove(place)
+                place_of[n] = place
+            state[n], started[n] = RUNNING, time.monotonic()
+            log(("attach" if attached is not None else "start") + f" {n}"
+                + ("" if free is None else f" on {'cpu' if place is None else f'gpu {place}'}")
+                + f" (log {engine.log(handles[n])})")
+        if not handles:
+            return state
+        if end is not None and time.monotonic() >= end:
+            reap()
+            for n in list(handles):
+                engine.cancel(handles.pop(n))
+                state[n] = "todo"
+                log(f"stop  {n} at the deadline (resumes next time)")
+            return state
+        time.sleep(poll_s)
+
+
+def dvc_stages(done: dict[str, str]) -> list[str]:
+    """The dvc.yaml stages all of whose jobs are done (``train@ball:gca`` is a job of ``train@ball``)."""
+    stages: dict[str, bool] = {}
+    for name, s in done.items():
+        stage = name.split(":", 1)[0]
+        stages[stage] = stages.get(stage, True) and s == DONE
+    return sorted(k for k, ok in stages.items() if ok)
+
+
+def engine_from_args(args, folder: Path) -> Engine:
+    if args.engine == "slurm":
+        extra = dict(kv.split("=", 1) for kv in args.sbatch)
+        return slurm_engine(folder, args.timeout_min, args.max_requeue, args.partition, args.cpus_per_task, extra)
+    return local_engine(folder, args.gpus, args.slots, args.timeout_min, args.max_requeue)
+
+
+def gpu_ids(text: str) -> int | list[int]:
+    """``--gpus``: ``4`` -> 4 (GPUs 0..3); ``1,2,3`` -> [1, 2, 3] (leaves GPU 0 to something else);
+    ``3,`` -> [3] (one id)."""
+    try:
+        return [int(g) for g in text.split(",") if g] if "," in text else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--gpus {text!r}: a count or comma-separated GPU ids") from None
+
+
+def add_engine_args(ap: argparse.ArgumentParser, slots: int = 1) -> None:
+    """The engine's options: ``--engine``, ``--gpus``/``--slots`` (local), the time limit and requeues,
+    ``--partition``/``--cpus-per-task``/``--sbatch`` (SLURM), ``--deadline``."""
+    ap.add_argument("--engine", choices=("local", "slurm"), default="local",
+                    help="local: submitit's local executor on this machine; slurm: one SLURM job per stage command")
+    ap.add_argument("--gpus", type=gpu_ids, default=1, help="local: a count (GPUs 0 .. N-1; 0: CPU) or ids 0,1,2")
+    ap.add_argument("--slots", type=int, default=slots, help="local: concurrent jobs per GPU (per machine without GPU)")
+    ap.add_argument("--timeout-min", type=float, default=24 * 60.0,
+                    help="a job's time limit [min]: then it is checkpointed and requeued")
+    ap.add_argument("--max-requeue", type=int, default=20, help="requeues at the time limit per job (preemptions: no limit)")
+    ap.add_argument("--partition", help="slurm: the partition")
+    ap.add_argument("--cpus-per-task", type=int, help="slurm: CPU cores per job")
+    ap.add_argument("--sbatch", action="append", default=[], metavar="KEY=VALUE",
+                    help="slurm: another sbatch option, e.g. --sbatch account=lab --sbatch qos=high")
+    ap.add_argument("--deadline", type=float, help="seconds: submit nothing that would end later; stop what runs then")

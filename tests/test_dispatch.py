@@ -1,0 +1,285 @@
+"""gca/pipeline/dispatch.py (and grid.py's command line on it): the grid's jobs through submitit (its local
+executor here; SLURM's sbatch faked), failures reported with their log, requeue at the time limit with the
+job's checkpoint, resume, deadline, and a DVC repository assembled by `dvc commit` from what the jobs wrote."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from gca.pipeline import dispatch, grid
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _fake(name, code, after=(), cost=0.01):
+    return grid.Job(name, f"python -c {code!r}", [], [], cost, set(after))
+
+
+def _local(work: Path, gpus=0, slots=1, timeout_min=5.0, **kw):
+    return dispatch.local_engine(work / ".grid" / "submitit" / "%j", gpus, slots, timeout_min, 5, **kw)
+
+
+def test_a_failure_is_reported_with_its_log_and_the_others_go_on_then_resume(tmp_path):
+    jobs = {"a": _fake("a", "open('a.txt','w').write('1')"),
+            "bad": _fake("bad", "import sys; print('the stage says why'); sys.exit(3)"),
+            "b": _fake("b", "open('b.txt','w').write(open('a.txt').read())", ["a"]),
+            "c": _fake("c", "open('c.txt','w').write('ran')", ["bad"]), "d": _fake("d", "pass", ["c", "b"])}
+    lines = []
+    state = dispatch.run(jobs, _local(tmp_path, slots=2), tmp_path, lines.append, poll_s=0.1)
+    assert state == {"a": "done", "bad": "failed", "b": "done", "c": "skipped", "d": "skipped"}
+    assert (tmp_path / "b.txt").read_text() == "1" and not (tmp_path / "c.txt").exists()
+    fail = [ln for ln in lines if ln.startswith("FAIL  bad")]
+    assert len(fail) == 1 and "bad: exit 3" in fail[0]
+    log_path = Path(fail[0].split("log: ")[1].splitlines()[0])
+    assert log_path.is_file() and "the stage says why" in log_path.read_text()
+    # a second call submits only what is not done: a and b are not run again
+    (tmp_path / "a.txt").unlink()
+    again = dispatch.run({k: v for k, v in jobs.items() if k in "ab"}, _local(tmp_path), tmp_path, lines.append, poll_s=0.1)
+    assert again == {"a": "done", "b": "done"} and not (tmp_path / "a.txt").exists()
+
+
+def test_one_job_per_gpu_slot_pinned_to_the_given_gpus(tmp_path):
+    code = ("import os, time; t = time.time(); time.sleep(0.6); "
+            "open({!r}, 'w').write(os.environ['CUDA_VISIBLE_DEVICES'] + ' %f %f' % (t, time.time()))")
+    jobs = {n: grid.Job(n, f"python -c {code.format(n + '.gpu')!r}", [], [], 0.01) for n in "abcd"}
+    state = dispatch.run(jobs, _local(tmp_path, gpus=[2, 3], slots=1), tmp_path, lambda m: None, poll_s=0.1)
+    assert set(state.values()) == {"done"}
+    rows = [(tmp_path / f"{n}.gpu").read_text().split() for n in "abcd"]
+    assert {r[0] for r in rows} == {"2", "3"}
+    for gpu in ("2", "3"):  # never two jobs at once on one GPU slot
+        spans = sorted((float(t0), float(t1)) for g, t0, t1 in rows if g == gpu)
+        assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:])), spans
+
+
+def test_time_limit_checkpoints_requeues_and_the_job_resumes(tmp_path):
+    """The engine signals the job before its time limit; the stage is stopped and the job requeued
+    (submitit's checkpoint()); the stage run again goes on from its checkpoint file."""
+    (tmp_path / "fake_train.py").write_text(
+        "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
+        "open('starts', 'a').write(f'{n}\\n')\n"
+        "for i in range(n, 10):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
+    jobs = {"train@s:gca": grid.Job("train@s:gca", "python fake_train.py", [], [], 1.0)}
+    lines = []
+    # a 6 s limit, signalled 2 s before it: 5 s of work take two jobs or more; up to 10 requeues (a busy CPU)
+    engine = dispatch.local_engine(tmp_path / ".grid" / "submitit" / "%j", 0, 1, 0.1, 10, signal_delay_s=2)
+    assert dispatch.run(jobs, engine, tmp_path, lines.append, poll_s=0.1) == {"train@s:gca": "done"}
+    starts = [int(x) for x in (tmp_path / "starts").read_text().split()]
+    assert len(starts) >= 2 and starts[0] == 0 and starts == sorted(starts) and starts[-1] > 0, starts
+    assert (tmp_path / "ckpt").read_text() == "10"
+    text = "".join(p.read_text() for p in (tmp_path / ".grid" / "submitit").rglob("*_log.out"))
+    assert "stopped for a requeue" in text
+
+
+def test_the_stage_process_leaves_the_requeue_signal_to_the_job(tmp_path):
+    """SLURM's --signal reaches every process of a job: the stage ignores it (the job stops it itself)."""
+    code = "import os, signal, time; os.kill(os.getpid(), signal.SIGUSR2); time.sleep(0.2); open('alive', 'w')"
+    cmd = dispatch.StageCommand("s", f"python -c {code!r}", tmp_path)
+    assert cmd() >= 0 and (tmp_path / "alive").is_file() and dispatch.marker(tmp_path, "s").is_file()
+    with pytest.raises(dispatch.StageFailed, match="s: exit 3"):
+        dispatch.StageCommand("s", "python -c 'raise SystemExit(3)'", tmp_path)()
+
+
+def test_deadline_submits_nothing_that_would_end_late(tmp_path):
+    slow = _fake("slow", "pass", cost=10.0)  # 10 estimated minutes
+    assert dispatch.run({"slow": slow}, _local(tmp_path), tmp_path, lambda m: None, deadline=60.0) == {"slow": "todo"}
+
+
+def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):
+    (tmp_path / "fake_train.py").write_text(
+        "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
+        "for i in range(n, 12):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
+    job = grid.Job("train@s:gca", "python fake_train.py", [], [], cost=10.0)
+    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
+    lines = []
+    assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=4.0,
+                        poll_s=0.1) == {job.name: "todo"}
+    assert any(ln.startswith(f"stop  {job.name} at the deadline") for ln in lines)
+    time.sleep(1.5)  # the cancelled job's processes are gone: its checkpoint no longer moves
+    stopped_at = int((tmp_path / "ckpt").read_text())
+    time.sleep(1.0)
+    assert int((tmp_path / "ckpt").read_text()) == stopped_at and 1 <= stopped_at < 12
+    assert not dispatch.marker(tmp_path, job.name).exists()
+    assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, poll_s=0.1) == {job.name: "done"}
+    assert (tmp_path / "ckpt").read_text() == "12"
+
+
+class _Recorder(dispatch.Engine):
+    """An engine with dependencies (as SLURM): records what was submitted after what; jobs end when told."""
+
+    dependencies = True
+
+    def __init__(self):
+        self.submitted, self.ended = [], {}
+
+    def submit(self, job, after, place=None):
+        self.submitted.append((job.name, sorted(after)))
+        return job.name
+
+    def state(self, handle):
+        return self.ended.get(handle, dispatch.RUNNING)
+
+    def error(self, handle):
+        return "exit 1"
+
+    def log(self, handle):
+        return Path(f"/logs/{handle}.out")
+
+    def cancel(self, handle):
+        self.ended[handle] = "cancelled"
+
+
+def test_a_job_still_queued_from_an_earlier_call_is_attached_not_submitted(tmp_path):
+    jobs = {"a": _fake("a", ""), "b": _fake("b", "", ["a"])}
+    engine = _Recorder()
+    engine.attach = lambda job: f"old-{job.name}" if job.name == "a" else None
+    engine.ended = {"old-a": dispatch.DONE, "b": dispatch.DONE}
+    lines = []
+    assert dispatch.run(jobs, engine, tmp_path, lines.append, poll_s=0.01) == {"a": "done", "b": "done"}
+    assert engine.submitted == [("b", ["old-a"])]  # b after the attached a
+    assert any(ln.startswith("attach a") for ln in lines)
+
+
+def test_an_engine_with_dependencies_gets_the_whole_grid_at_once(tmp_path):
+    jobs = {"a": _fake("a", ""), "b": _fake("b", "", ["a"]), "c": _fake("c", "", ["b"]), "x": _fake("x", "")}
+    engine = _Recorder()
+    engine.ended = {"a": dispatch.DONE, "b": dispatch.FAILED, "x": dispatch.DONE}
+    lines = []
+    state = dispatch.run(jobs, engine, tmp_path, lines.append, poll_s=0.01)
+    assert dict(engine.submitted) == {"a": [], "b": ["a"], "c": ["b"], "x": []}  # all in the first pass
+    assert state == {"a": "done", "b": "failed", "c": "skipped", "x": "done"}
+    assert engine.ended["c"] == "cancelled"
+    assert any("FAIL  b (exit 1)" in ln and "log: /logs/b.out" in ln for ln in lines)
+
+
+def test_slurm_jobs_carry_afterok_dependencies_one_gpu_and_the_requeue_signal(tmp_path, monkeypatch):
+    """submitit's SLURM executor against a fake sbatch that keeps each submitted script."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "sbatch").write_text(
+        "#!/bin/sh\nn=$(ls \"$SBATCH_KEEP\" | wc -l)\ncp \"$1\" \"$SBATCH_KEEP/$((n + 100)).sh\"\n"
+        "echo \"Submitted batch job $((n + 100))\"\n")
+    (bin_dir / "sbatch").chmod(0o755)
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 1\n")  # submitit looks for it; never called here
+    (bin_dir / "srun").chmod(0o755)
+    keep = tmp_path / "scripts"
+    keep.mkdir()
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("SBATCH_KEEP", str(keep))
+    engine = dispatch.slurm_engine(tmp_path / "sub" / "%j", timeout_min=120, max_requeue=7, partition="gpu",
+                                   extra={"account": "lab"})
+    assert engine.dependencies and engine.places is None
+    a = engine.submit(dispatch.StageCommand("prior@jelly", "python stages/prior.py --family jelly", tmp_path), [])
+    b = engine.submit(dispatch.StageCommand("train@ball:gca", "python stages/train.py --methods gca", tmp_path), [a])
+    assert (a.job_id, b.job_id) == ("100", "101")
+    first, second = (keep / "100.sh").read_text(), (keep / "101.sh").read_text()
+    for script in (first, second):
+        assert "#SBATCH --gpus-per-node=1" in script and "#SBATCH --signal=USR2@90" in script
+        assert "#SBATCH --time=120" in script and "#SBATCH --partition=gpu" in script
+        assert "#SBATCH --account=lab" in script
+    assert "dependency" not in first and "#SBATCH --job-name=prior@jelly" in first
+    assert "#SBATCH --dependency=afterok:100" in second and "#SBATCH --kill-on-invalid-dep=yes" in second
+    assert engine.log(b).name == "101_0_log.out"
+
+    # a later call attaches to a job sacct still lists as queued or running, and resubmits one that ended
+    (bin_dir / "sacct").write_text("#!/bin/sh\nprintf 'JobID|State|NodeList\\n100|RUNNING|n1\\n101|FAILED|n2\\n'\n")
+    (bin_dir / "sacct").chmod(0o755)
+    again = dispatch.slurm_engine(tmp_path / "sub" / "%j", timeout_min=120, max_requeue=7)
+    attached = again.attach(dispatch.StageCommand("prior@jelly", "python stages/prior.py", tmp_path))
+    assert attached is not None and attached.job_id == "100"
+    assert again.attach(dispatch.StageCommand("train@ball:gca", "python stages/train.py", tmp_path)) is None
+    assert again.attach(dispatch.StageCommand("never@submitted", "python x.py", tmp_path)) is None
+
+
+def test_finished_stages_are_the_ones_all_of_whose_jobs_are_done():
+    state = {"assets@ball": "done", "train@ball:nclaw": "done", "train@ball:gca": "failed",
+             "train@cat:gca": "done", "train@cat:nclaw": "done", "evaluate@cat": "todo"}
+    assert dispatch.dvc_stages(state) == ["assets@ball", "train@cat"]
+
+
+DVC_YAML = """
+stages:
+  make:
+    foreach: ${items}
+    do:
+      cmd: python make.py ${key} ${item.n} data/${key}.txt
+      deps: [make.py]
+      params:
+        - items.${key}
+      outs:
+        - data/${key}.txt
+  total:
+    cmd: python total.py data out/total.json
+    deps: [total.py, data]
+    outs: [out/total.json]
+"""
+
+
+@pytest.mark.slow
+def test_dvc_commit_assembles_what_the_jobs_wrote_and_repro_runs_nothing(tmp_path):
+    """A small DVC repository: its stage commands through the engine, then `dvc commit -f` of the finished
+    stages; `dvc status` finds nothing to do and `dvc repro` runs no stage. Without the commit, it would."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    (repo / "dvc.yaml").write_text(DVC_YAML)
+    (repo / "params.yaml").write_text("items:\n  x: {n: 2}\n  y: {n: 3}\n")
+    (repo / "make.py").write_text("import sys, pathlib\np = pathlib.Path(sys.argv[3]); p.parent.mkdir(exist_ok=True)\n"
+                                  "p.write_text(sys.argv[1] * int(sys.argv[2]))\n")
+    (repo / "total.py").write_text("import sys, json, pathlib\nout = pathlib.Path(sys.argv[2]); out.parent.mkdir(exist_ok=True)\n"
+                                   "out.write_text(json.dumps(sum(len(p.read_text()) for p in pathlib.Path(sys.argv[1]).glob('*.txt'))))\n")
+    (repo / ".gitignore").write_text(".grid/\n")
+    env = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@localhost",
+           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@localhost",
+           "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    run = lambda *a: subprocess.run(a, cwd=repo, env=env, capture_output=True, text=True, check=True).stdout  # noqa: E731
+    run("git", "init", "-q")
+    run(sys.executable, "-m", "dvc", "init", "-q")
+    run("git", "add", "-A")
+    run("git", "commit", "-qm", "init")
+    twin = tmp_path / "twin"
+    shutil.copytree(repo, twin)
+
+    state = grid.main(["--repo", str(repo), "--engine", "local", "--gpus", "0", "--slots", "2", "--commit"])
+    assert state == {"make@x": "done", "make@y": "done", "total": "done"}
+    assert json.loads((repo / "out/total.json").read_text()) == 5
+    assert json.loads(run(sys.executable, "-m", "dvc", "status", "--json")) == {}
+    assert "Running stage" not in run(sys.executable, "-m", "dvc", "repro")
+    (repo / "data/x.txt").unlink()  # a lost output comes back from DVC's cache, not rerun
+    log = run(sys.executable, "-m", "dvc", "repro")
+    assert "Running stage" not in log and (repo / "data/x.txt").read_text() == "xx", log
+
+    # a changed param: only what DVC finds out of date runs again (make@y is up to date; make@x's .done
+    # marker is from other params), then the commit leaves nothing to do
+    (repo / "params.yaml").write_text("items:\n  x: {n: 4}\n  y: {n: 3}\n")
+    state = grid.main(["--repo", str(repo), "--engine", "local", "--gpus", "0", "--commit"])
+    assert state == {"make@x": "done", "total": "done"}
+    assert (repo / "data/x.txt").read_text() == "xxxx" and json.loads((repo / "out/total.json").read_text()) == 7
+    assert json.loads(run(sys.executable, "-m", "dvc", "status", "--json")) == {}
+
+    # negative control: the same outputs without the commit are not known to DVC
+    shutil.copytree(repo / "data", twin / "data")
+    shutil.copytree(repo / "out", twin / "out")
+    status = json.loads(subprocess.run([sys.executable, "-m", "dvc", "status", "--json"], cwd=twin, env=env,
+                                       capture_output=True, text=True, check=True).stdout)
+    assert {"make@x", "make@y", "total"} <= set(status)
+
+
+def test_runs_of_a_scene_batched_after_the_velocity_job():
+    params = grid.grid_params("ci", ["ball"], ["nclaw", "gca", "neuma", "no_cpr"], ["train.seeds=[0,1]"])
+    import yaml
+
+    jobs = grid.split_train(grid.expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, ["train"]), params)
+    batched = grid.link(grid.batch_runs(dict(jobs), 2))
+    # split_train's order: cheapest first (nclaw estimates the velocity), seeds outermost
+    assert set(batched) == {"train@ball:nclaw", "train@ball:no_cpr+neuma", "train@ball:gca",
+                            "train@ball:no_cpr@seed1+neuma@seed1", "train@ball:gca@seed1"}
+    both = batched["train@ball:no_cpr@seed1+neuma@seed1"]
+    assert both.cmd.endswith("--methods no_cpr neuma --seeds 1 --velocity runs/ball/velocity.json")
+    assert both.outs == ["runs/ball/no_cpr@seed1", "runs/ball/neuma@seed1"] and both.after == {"train@ball:nclaw"}
+    assert set(batched) - {"train@ball:nclaw"} <= {n for n, j in batched.items() if "train@ball:nclaw" in j.after}
+    assert grid.batch_runs(dict(jobs), 1) == jobs
