@@ -54,7 +54,7 @@ def _capture(args, params) -> dict:
         with track.stage_run("assets", params, scene=args.object) as run:
             metrics = capture.import_capture(cfg, args.out, name=args.object)
             io.write_json(args.metrics, metrics)
-            run.log_metrics({k: v for k, v in metrics.items() if isinstance(v, (int, float))})
+            run.log_metrics(metrics)  # numbers only, nested ones as removed.far etc.
     except (ScanError, PlyFormatError, config.ConfigError) as exc:
         raise SystemExit(f"assets@{args.object}: {exc}") from None
     return metrics
