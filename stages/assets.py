@@ -3,6 +3,9 @@
     python stages/assets.py --object duck --out data/assets/duck --metrics metrics/assets/duck.json
 
 Writes ``<out>/{gaussians.ply, mesh.ply, preview.png}`` (the directory atomically) and the metrics JSON.
+An ``objects.<name>`` entry with a ``scan`` key is a user's capture (:mod:`gca.capture.objects`): its
+scan is cleaned, oriented and scaled into ``<out>`` instead (plus ``object_from_scan.json``; ``mesh.ply``
+only when a usable mesh was given); a bad scan or option stops the stage with one line naming it.
 """
 
 from __future__ import annotations
@@ -13,6 +16,9 @@ from gca import config, io
 from gca.pipeline import track
 from gca.assets import objects, ply
 from gca.assets.preview import write_preview
+from gca.assets.ply import PlyFormatError
+from gca.assets.scan import ScanError
+from gca.capture import objects as capture
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -24,6 +30,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
 
     params = config.load(f"assets@{args.object}", args.params)
+    if capture.is_capture(config.section(params, f"objects.{args.object}")):
+        return _capture(args, params)
     cfg = config.build(objects.ObjectConfig, config.section(params, f"objects.{args.object}"), f"objects.{args.object}")
     mesh, _, cloud = objects.scan_object(args.object, cfg)
     metrics = {"n_gaussians": cloud.n, "n_faces": len(mesh.faces), "mesh_volume_m3": float(mesh.volume),
@@ -37,6 +45,19 @@ def main(argv: list[str] | None = None) -> dict:
         io.write_json(args.metrics, metrics)
         run.log_metrics(metrics)
         run.log_artifact(f"{args.out}/preview.png")
+    return metrics
+
+
+def _capture(args, params) -> dict:
+    """The capture branch: import the user's scan (user errors end the stage with one line, no traceback)."""
+    try:
+        cfg = capture.capture_config(config.section(params, f"objects.{args.object}"), args.object)
+        with track.stage_run("assets", params, scene=args.object) as run:
+            metrics = capture.import_capture(cfg, args.out, name=args.object)
+            io.write_json(args.metrics, metrics)
+            run.log_metrics(metrics)  # numbers only, nested ones as removed.far etc.
+    except (ScanError, PlyFormatError, config.ConfigError) as exc:
+        raise SystemExit(f"assets@{args.object}: {exc}") from None
     return metrics
 
 

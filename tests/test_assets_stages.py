@@ -46,7 +46,13 @@ def test_assets_then_particles(tmp_path, monkeypatch):
     p = pa.load_particles(npz)
     written = json.loads(metrics.read_text())
     assert written["n_particles"] == p.n > 50 and written["used_mesh"]
-    np.testing.assert_allclose(written["mass_kg"], 800.0 * p.vol.sum(), rtol=1e-5)
+    np.testing.assert_allclose(written["mass_sim_kg"], 800.0 * p.vol.sum(), rtol=1e-5)
+    # SI: the duck's real volume (its mesh's, 0.3 m across) and mass, not the unit cube's
+    s = p.sim_from_world[0, 0]
+    np.testing.assert_allclose(written["volume_m3"], p.vol.sum() / s**3, rtol=1e-5)
+    np.testing.assert_allclose(written["mass_kg"], 800.0 * written["volume_m3"], rtol=1e-5)
+    assert written["mass_kg"] < written["mass_sim_kg"] and written["mesh"]["used"]
+    assert 0 < written["share_bound_within_mahalanobis"] <= 1
     # the object's bottom rests at floor_gap; the lowest lattice point is within one spacing above it
     assert 0.05 <= p.x[:, 1].min() <= 0.05 + written["spacing_sim_m"]
     assert p.x.min() > 0 and p.x.max() < 1

@@ -41,7 +41,7 @@ def stage_defs():
     for name, stage in DVC["stages"].items():
         body = stage.get("do", stage)
         script = ROOT / body["cmd"].split()[1]
-        yield name, script, [d for d in body["deps"] if not d.startswith(("data/", "models/", "runs/", "metrics/"))]
+        yield name, script, [d for d in body["deps"] if d.startswith(("gca/", "stages/"))]
 
 
 @pytest.mark.parametrize("name,script,deps", list(stage_defs()), ids=[n for n, _, _ in stage_defs()])
@@ -76,7 +76,8 @@ def required_deps(script: Path) -> list[str]:
 
 
 def rewrite_code_deps(text: str) -> str:
-    """dvc.yaml text with each stage's code deps (the leading non-data entries) replaced by :func:`required_deps`."""
+    """dvc.yaml text with each stage's code deps (its ``gca/`` and ``stages/`` entries) replaced by
+    :func:`required_deps`; every other dep (data, models, a user's captures) is kept after them."""
     import re
 
     for name, script, _ in stage_defs():
@@ -84,10 +85,10 @@ def rewrite_code_deps(text: str) -> str:
         indent = m["indent"] + "  "
         lines = text[m.end():].split("\n")
         k = 0
-        while lines[k].startswith(indent + "- ") and not lines[k].strip()[2:].startswith(("data/", "models/", "runs/",
-                                                                                           "metrics/")):
+        while lines[k].startswith(indent + "- "):
             k += 1
-        text = text[:m.end()] + "\n".join([indent + "- " + d for d in required_deps(script)] + lines[k:])
+        kept = [line for line in lines[:k] if not line.strip()[2:].startswith(("gca/", "stages/"))]  # data deps
+        text = text[:m.end()] + "\n".join([indent + "- " + d for d in required_deps(script)] + kept + lines[k:])
     return text
 
 

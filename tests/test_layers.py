@@ -10,11 +10,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: bottom to top; a module may import its own package and anything on a lower layer, nothing beside or above.
 LAYERS = (
-    ("core", ("gca", "gca.config", "gca.io", "gca.warp_stream", "gca.gpu_slot", "gca.efficiency", "gca.linalg")),
+    ("core", ("gca", "gca.config", "gca.io", "gca.warp_stream", "gca.gpu_slot", "gca.efficiency", "gca.linalg",
+              "gca.sh")),
     ("assets", ("gca.assets",)),
     ("laws", ("gca.laws",)),
     ("sim", ("gca.sim",)),
     ("render", ("gca.render",)),
+    ("capture", ("gca.capture",)),
     ("vision", ("gca.vision",)),
     ("scenes", ("gca.scenes",)),
     ("align", ("gca.align",)),

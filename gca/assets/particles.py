@@ -234,6 +234,10 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
     A6 = precisions(R, sigmas, inflate=h / 2)
     r_cut = 3.0 * float(np.sqrt(np.quantile((sigmas**2).max(axis=1), 0.99) + (h / 2) ** 2))
     field = lambda p: opacity_field(p, means, A6, alphas, r_cut, cfg.n_candidates)  # noqa: E731
+    cells = np.prod(np.ceil((means.max(axis=0) - means.min(axis=0)) / h) + 7)
+    if cells > MAX_LATTICE_CELLS:
+        raise ValueError(f"gca/assets/particles.py: a lattice of {cells:.3g} cells at spacing {h:.4g} sim m "
+                         f"(more than {MAX_LATTICE_CELLS:.0e}): raise particles.spacing or lower target_count")
     points, shape = lattice(means.min(axis=0), means.max(axis=0), h, pad=3)
     level = cfg.density_threshold * float(np.median(field(means)))
     solid = _solid_from_field((field(points) > level).reshape(shape))
@@ -241,8 +245,9 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
     b = float(np.median(ndi.map_coordinates(depth, ((means - points[0]) / h).T, order=1)))
     if depth.max() < 2 * b + 1:  # nothing deeper than the band itself: the flood fill leaked inside
         raise ValueError(f"gca/assets/particles.py: the Gaussians' surface band did not enclose a volume "
-                         f"(max depth {depth.max():.1f} cells, surface depth {b:.1f}): spacing {h} is too fine "
-                         f"for the Gaussian density, or density_threshold {cfg.density_threshold} too high")
+                         f"(max depth {depth.max():.1f} cells, surface depth {b:.1f}): spacing {h:.4g} sim m "
+                         f"is too fine for the Gaussian density (raise particles.spacing), or density_threshold "
+                         f"{cfg.density_threshold} too high (lower it); a thin or open scan may need its mesh")
     volume = float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * h**3
     return points[(depth >= b).reshape(-1) & solid.reshape(-1)], volume
 
@@ -298,6 +303,44 @@ def _kept_gaussians(cloud: GaussianCloud, cfg: ParticleConfig) -> np.ndarray:
     return keep
 
 
+OUTLIER_QUANTILE = 0.001  # the bulk of a scan: its means between these per-axis quantiles [1]
+OUTLIER_BOX_FACTOR = 2.0  # a bounding box this many times the bulk's is the outliers' [1]
+MAX_LATTICE_CELLS = 50_000_000  # larger lattices are refused before they are allocated [count]
+
+
+def check_bounding_box(means: np.ndarray, name: str = "the scan") -> None:
+    """Refuse a bounding box set by a few outlying Gaussians (floaters, a Gaussian at 1e30 m).
+
+    The conversion scales the means' bounding box into the unit cube; a few far Gaussians shrink the
+    object to a few lattice cells, and no spacing or density threshold helps. The bulk is the box of
+    the per-axis ``OUTLIER_QUANTILE`` .. ``1 - OUTLIER_QUANTILE`` quantiles; a full box more than
+    ``OUTLIER_BOX_FACTOR`` times larger than the bulk's along any axis is refused.
+
+    Args:
+        means: [G, 3] Gaussian centres (world frame).
+        name: what to call the scan in the message.
+
+    Raises:
+        ValueError: naming how many Gaussians lie outside the bulk, how far, and the fix.
+    """
+    x = np.asarray(means, dtype=np.float64)
+    if len(x) < 100:
+        return
+    lo, hi = np.quantile(x, OUTLIER_QUANTILE, axis=0), np.quantile(x, 1 - OUTLIER_QUANTILE, axis=0)
+    bulk = np.maximum(hi - lo, 1e-12 * max(1.0, float(np.abs(x).max())))
+    full = x.max(axis=0) - x.min(axis=0)
+    ratio = full / bulk
+    if ratio.max() > OUTLIER_BOX_FACTOR:
+        pad = (OUTLIER_BOX_FACTOR - 1) / 2 * bulk
+        outside = np.any((x < lo - pad) | (x > hi + pad), axis=1)
+        far = float(np.linalg.norm(x - (lo + hi) / 2, axis=1).max())
+        raise ValueError(f"{name}: {int(outside.sum())} of {len(x)} Gaussians lie far outside the bulk of the scan "
+                         f"(bounding box {ratio.max():.3g}x the bulk's, the farthest {far:.3g} m from its centre): "
+                         f"floaters or outliers set the object's size, so no spacing or density_threshold can help; "
+                         f"remove them (a capture object's scan_options: far_factor, outlier_factor, min_component, "
+                         f"crop; gca.assets.scan.prepare_scan)")
+
+
 def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None) -> Particles:
     """Turn a static 3DGS scan (and optionally its watertight mesh) into simulation particles.
 
@@ -315,6 +358,8 @@ def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None
         raise ValueError(f"gca/assets/particles.py: density must be > 0 kg/m^3, got {density}")
     keep = _kept_gaussians(cloud, cfg)
     kept = cloud.subset(keep)
+    if mesh is None:
+        check_bounding_box(kept.means)
     lo, hi = (mesh.bounds if mesh is not None else (kept.means.min(axis=0), kept.means.max(axis=0)))
     T = fit_sim_from_world(lo, hi, cfg)
     s = T[0, 0]

@@ -22,6 +22,7 @@ from gca.render.follow import Binding, follow
 from gca.render.camera import Camera
 from gca.render.rasterize import RasterConfig, render
 from gca.render.backend import CHOICES, choose, gsplat_version
+from gca.sh import view_term
 
 
 @dataclasses.dataclass
@@ -39,6 +40,10 @@ class Body:
         opacities: [G] in [0, 1].
         backend: rasterizer backend (``torch`` everywhere, ``gsplat`` on CUDA).
         raster: rasterizer settings.
+        sh_rest: SH bands 1-3 [G, K, 3] when the scan has non-zero ones (view-dependent colour,
+            :func:`body_colors`), else None. The sim frame is the object frame scaled and shifted
+            (no rotation), so the bands apply to sim-frame view directions as stored. They are not
+            rotated with each Gaussian's deformation (PhysGaussian's simplification).
     """
 
     x0: torch.Tensor
@@ -51,6 +56,7 @@ class Body:
     opacities: torch.Tensor
     backend: str = "torch"
     raster: RasterConfig = RasterConfig()
+    sh_rest: torch.Tensor | None = None
 
     @property
     def n_particles(self) -> int:
@@ -85,7 +91,8 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                       weights=as_t(particles.binding_weights), n_gaussians=kept.n, n_particles=particles.n)
     return Body(x0=as_t(particles.x), vol=as_t(particles.vol), mass=as_t(particles.mass), binding=binding,
                 means0=as_t(means), covs0=as_t(covs), colors=as_t(np.clip(sh0_to_rgb(kept.sh_dc), 0, 1)),
-                opacities=as_t(opacities(kept)), backend=backend, raster=raster)
+                opacities=as_t(opacities(kept)), backend=backend, raster=raster,
+                sh_rest=as_t(kept.sh_rest) if np.any(kept.sh_rest) else None)
 
 
 BACKEND_CHOICES = CHOICES
@@ -120,10 +127,23 @@ def gaussians_at(body: Body, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Te
     return follow(body.binding, body.means0, body.covs0, body.x0, x, F)
 
 
+def body_colors(body: Body, means: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """The body's colours seen from ``camera`` [G, 3] in [0, 1]: ``body.colors`` plus, when the scan has
+    SH bands 1-3, their view-dependent term along camera centre -> mean (:mod:`gca.sh`)."""
+    if body.sh_rest is None:
+        return body.colors
+    centre = torch.as_tensor(camera.center, dtype=means.dtype, device=means.device)
+    return (body.colors + view_term(body.sh_rest, means, centre)).clamp(0.0, 1.0)
+
+
 def render_gaussians(body: Body, means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, camera: Camera,
                      bg: torch.Tensor) -> dict:
     """Render the body's Gaussians at (means [G,3], covs [G,3,3]) with per-Gaussian ``colors`` [G,C]
-    through the body's rasterizer settings: ``{rgb [H,W,C], alpha [H,W], depth [H,W], ...}``."""
+    through the body's rasterizer settings: ``{rgb [H,W,C], alpha [H,W], depth [H,W], ...}``.
+    ``colors`` given as ``body.colors`` itself means the scan's colours: view-dependent
+    (:func:`body_colors`) when it has SH bands 1-3."""
+    if colors is body.colors:
+        colors = body_colors(body, means, camera)
     return render(means, covs, colors, body.opacities, camera, bg, backend=body.backend, cfg=body.raster)
 
 

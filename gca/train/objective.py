@@ -21,7 +21,7 @@ from gca.align.cpr import CPR, CPRConfig
 from gca.align.rdga import RDGAConfig, position_colors, position_image, rdga_loss
 from gca.render.camera import Camera
 from gca.scenes.store import ViewData
-from gca.scenes.world import Body, gaussians_at, render_gaussians
+from gca.scenes.world import Body, body_colors, gaussians_at, render_gaussians
 from gca.sim.rollout import Rollout
 from gca.train.config import TrainConfig
 from gca.train.law import LearnedLaw
@@ -270,7 +270,7 @@ class Objective:
         if not with_positions:
             return render_gaussians(body, means, covs, body.colors, view.camera, self.bg)
         extra = position_colors(view.camera.to_camera(means), self.train0_rdga.global_gradient)
-        out = render_gaussians(body, means, covs, torch.cat([body.colors, extra], 1), view.camera,
+        out = render_gaussians(body, means, covs, torch.cat([body_colors(body, means, view.camera), extra], 1), view.camera,
                                torch.cat([self.bg, self.bg.new_zeros(extra.shape[1])]))
         return {**out, "rgb": out["rgb"][..., :3],
                 "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
