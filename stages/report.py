@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> list[Path]:
     cfg = config.build(ReportConfig, config.section(params, "report"), "report")
     with stage_run("report", params, table="all") as run:
         written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()])
-        headline = summary(load_runs(args.metrics))
+        headline = summary(load_runs(args.metrics), cfg)
         write_json(args.summary, headline)
         run.log_metrics({"n_records": headline["n_records"],
                          "table1_average_cd": {m: a["mean_cd"] for m, a in headline["table1_average_cd"].items()}})

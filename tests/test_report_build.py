@@ -79,9 +79,9 @@ def test_table1_cells(metrics):
     ours, nclaw, neuma = (_row(df, m, "measured") for m in ("Ours", "NCLaw", "NeuMA"))
     assert ours["Ball (Elastomer)"] == "0.50000"  # measured CDs [m] with 5 decimals, the paper's with 3
     assert ours["Duck (Gel)"] == "0.50000 ± 0.14142"  # mean and sample std of 0.4, 0.6
-    assert ours["Pawn (Rubber)"] == "> 100 (diverged)"
+    assert ours["Pawn (Rubber)"] == "55.00000 (diverged)"  # the measured CD, its status beside it
     assert ours["Cat (Plasticine)"] == "—"
-    assert ours["Average"] == "> 100 (diverged)"
+    assert ours["Average"] == "18.66667 (diverged) (3/6 scenes)"  # (0.5 + 0.5 + 55) / 3
     assert nclaw["Average"] == "3.50000"  # mean of 1..6
     assert neuma["Ball (Elastomer)"] == "failed"
     assert neuma["Average"] == "1.00000 (1/6 scenes)"
@@ -100,17 +100,17 @@ def test_other_tables_cells(metrics):
     lora = _row(t4, "Ours (LoRA)", "measured")
     # train: ball 120 s only (duck has none, pawn diverged has none) -> 2.0 min; CD average is diverged
     cells = (lora["Train (min)"], lora["Mem. (GB)"], lora["CD"], lora["Scenes"])
-    assert cells == ("2.0", "1.0", "> 100 (diverged)", "3/6")
+    assert cells == ("2.00", "1.00", "18.66667 (diverged) (3/6 scenes)", "3/6")  # >= 3 significant digits
     assert _row(t4, "NeuMA", "paper")["Mem. (GB)"] == "28.9"
     assert _row(t4, "NeuMA", "measured")["Mem. (GB)"] == "n/a"  # ball failed, duck reported no memory
     t5 = tables.table5_explicit(runs).df
     assert _row(t5, "PAC-NeRF + Depth", "paper")["Ball (Elastomer)"] == "> 100 (Diverged)"
     assert _row(t5, "PAC-NeRF + Depth", "measured")["Status"] == "not run"
-    assert t5[t5["Supervision"] == "Multi-view"].iloc[2]["Ball (Elastomer)"] == "0.90"
+    assert t5[t5["Supervision"] == "Multi-view"].iloc[2]["Ball (Elastomer)"] == "0.900"
     t6 = tables.table6_ood(runs).df
     assert _row(t6, "Ours (Target Removed)", "paper")["Composite (undefined)"] == "--"
     law = tables.table_law_level(runs).df
-    assert _row(law, "Ours", "measured")["Avg. (%)"] == "8.0 ± 1.4"  # seed averages 7.0 and 9.0: std sqrt(2)
+    assert _row(law, "Ours", "measured")["Avg. (%)"] == "8.00 ± 1.41"  # seed averages 7.0 and 9.0: std sqrt(2)
     assert _row(law, "NeuMA", "measured")["Sh. (%)"] == "n/a"
 
 
@@ -121,7 +121,7 @@ def test_markdown_header_states_provenance(metrics, tmp_path):
     assert "profile `mixed (ci, paper)`" in text and "mixed (NVIDIA H100 80GB HBM3, cpu)" in text
     assert CD_DEF in text and "not comparable to the paper" in text
     law_md = (tmp_path / "reports" / "table_law_level.md").read_text()
-    assert "profile `ci`, device `cpu`, 3 metrics files" in law_md
+    assert "profile `ci`, device `cpu`, 4 metrics files" in law_md  # nclaw, neuma, gca x2
     assert all(p.exists() and p.stat().st_size > 0 for p in written)
 
 

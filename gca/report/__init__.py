@@ -2,7 +2,8 @@
 
 ``build_reports(metrics_dir, out_dir)`` writes, atomically as one folder::
 
-    <out_dir>/table1_synthetic_cd.{md,csv}  ... table6_ood.{md,csv}, table_law_level.{md,csv}
+    <out_dir>/table1_synthetic_cd.{md,csv}  ... table6_ood.{md,csv}, table_law_level.{md,csv}, table_render_metrics.{md,csv}
+    <out_dir>/claims.{md,csv}   each claim of the paper: measured effect, bootstrap interval, verdict (gca.report.claims)
     <out_dir>/figures/cd_time_<scene>.png, render_metrics.png, law_curves.png, strip_<scene>.png
     <out_dir>/README.md   one line per file
 
@@ -18,9 +19,10 @@ from pathlib import Path
 from typing import Sequence
 
 from gca.io import atomic_path
-from gca.report import figures, paper
-from gca.report.runs import Runs, load_runs
-from gca.report.tables import build_tables, provenance, scene_average, write_table
+from gca.report import claims as claims_mod, figures, paper
+from gca.report.claims import ClaimsConfig
+from gca.report.runs import DivergenceRule, Runs, load_runs, mark_divergence
+from gca.report.tables import build_tables, markdown_table, provenance, scene_average, write_table
 
 __all__ = ["ReportConfig", "build_reports", "summary"]
 
@@ -30,6 +32,14 @@ class ReportConfig:
     """Knobs of the ``report`` stage (params.yaml section ``report``)."""
 
     dpi: int = 120  # resolution of every figure [dots per inch]; the same at both profiles
+    # a run whose CD exceeds this multiple of the prior's (nclaw) on its scene is diverged (0 = off); fixed
+    # before the runs, never moved after seeing a table scene (gca.report.runs.DivergenceRule)
+    divergence_cd_ratio: float = 10.0
+    claims: ClaimsConfig = ClaimsConfig()  # the claims table's bootstrap and verdict rules
+
+    @property
+    def divergence(self) -> DivergenceRule:
+        return DivergenceRule(cd_ratio=self.divergence_cd_ratio)
 
 
 def _run_root(metrics_dir: Path) -> Path:
@@ -48,6 +58,18 @@ def _write_figures(runs: Runs, fig_dir: Path, cfg: ReportConfig, search_dirs: Se
     paths.append(figures.plot_law_curves(runs, fig_dir / "law_curves.png", cfg.dpi))
     paths += [figures.compose_strips(runs, s, fig_dir / f"strip_{s}.png", cfg.dpi, search_dirs) for s in scenes]
     return [p for p in paths if p is not None]
+
+
+def write_claims(runs: Runs, out_dir: Path, cfg: ReportConfig) -> list[Path]:
+    """``claims.md`` and ``claims.csv``: every claim of :func:`gca.report.claims.paper_claims` judged on ``runs``
+    (already marked by the divergence rule)."""
+    judgements = claims_mod.judge_all(runs, cfg.claims)
+    df = claims_mod.claims_frame(judgements)
+    info = {**provenance(runs, runs.keys()), "divergence": cfg.divergence.describe()}
+    md, csv = out_dir / "claims.md", out_dir / "claims.csv"
+    md.write_text(claims_mod.claims_markdown(df, info, cfg.claims, markdown_table), encoding="utf-8")
+    csv.write_text(df.to_csv(index=False, lineterminator="\n"), encoding="utf-8")
+    return [md, csv]
 
 
 _FIGURE_LINES = {
@@ -120,23 +142,27 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
     """
     cfg = cfg or ReportConfig()
     metrics_dir, out_dir = Path(metrics_dir), Path(out_dir)
-    runs = load_runs(metrics_dir)
+    runs = mark_divergence(load_runs(metrics_dir), cfg.divergence)
     search_dirs = [_run_root(metrics_dir)]
     with atomic_path(out_dir, is_dir=True) as tmp:
         tmp.chmod(0o755)  # mkdtemp makes it private; reports are for everyone
-        tables = build_tables(runs)
+        tables = build_tables(runs, cfg.divergence)
         written = [p for table, info in tables for p in write_table(table, info, tmp)]
+        written += write_claims(runs, tmp, cfg)
         written += _write_figures(runs, tmp / "figures", cfg, search_dirs)
         media = _copy_media([Path(m) for m in media_dirs], tmp)
         titles = {table.name: table.title for table, _ in tables}
+        titles["claims"] = "each claim of the paper: measured effect, 95% bootstrap interval and verdict"
         written += media
         written.append(_write_index(written, tmp, titles, sum(len(r) for r in runs.values()), set(media)))
         result = [out_dir / p.relative_to(tmp) for p in written]
     return result
 
 
-def summary(runs: Runs) -> dict:
-    """Headline numbers for ``metrics/report.json``: Table 1 averages (measured and paper) and run counts."""
+def summary(runs: Runs, cfg: ReportConfig | None = None) -> dict:
+    """Headline numbers for ``metrics/report.json``: Table 1 averages (measured and paper) and run counts,
+    after the divergence rule of ``cfg`` (default :class:`ReportConfig`)."""
+    runs = mark_divergence(runs, (cfg or ReportConfig()).divergence)
     statuses = [r["status"] for records in runs.values() for r in records]
     averages = {}
     for method in paper.TABLE1_SYNTHETIC_CD:

@@ -3,6 +3,12 @@
 Layout read: ``<metrics_dir>/<scene>/<method>.json`` and optional ``<method>@seed<k>.json``. Files in a scene
 folder that carry no ``method`` key (other stages' metrics) are ignored. A record's ``status`` is
 ``ok``, ``diverged`` (its last finite metrics are kept) or ``failed`` (no usable metrics).
+
+Divergence is defined before the runs (:class:`DivergenceRule`, params ``report.divergence_cd_ratio``): a run
+is diverged when a stage said so (a non-finite loss or state, particles leaving the domain, a CFL failure
+past refinement) or when its Chamfer distance exceeds the stated multiple of the prior's (the ``nclaw`` row:
+the prior as is) on the same scene. A diverged cell still prints the measured value, with the status beside
+it (``0.0123 (diverged)``); every number has at least three significant digits (:func:`format_number`).
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ from gca.io import read_json
 
 STATUSES = ("ok", "diverged", "failed")
 MISSING = "—"  # a run that was not run (no metrics file)
-DIVERGED_CELL = "> 100 (diverged)"  # a diverged run, marked as the paper marks divergence
+DIVERGED_MARK = "(diverged)"  # printed after a diverged cell's measured value
+DIVERGED_CELL = "diverged (no finite value)"  # a diverged run that left no finite value of this metric
+SIGNIFICANT = 3  # every printed number keeps at least this many significant digits
 FAILED_CELL = "failed"
 NO_VALUE = "n/a"  # the run exists but did not report this metric
 _NAME = re.compile(r"^(?P<method>[A-Za-z0-9_\-]+?)(?:@seed(?P<seed>\d+))?\.json$")
@@ -119,15 +127,80 @@ def reduce_seeds(records: Sequence[Mapping] | None, key: str) -> Cell:
     return Cell("ok" if values else "no_value", mean, std, len(values))
 
 
+def decimals_for(value: float, decimals: int, significant: int = SIGNIFICANT) -> int:
+    """At least ``decimals`` decimals, more where ``value`` would otherwise keep fewer than ``significant``
+    significant digits (``0.00123`` at 2 decimals would print ``0.00``)."""
+    if not math.isfinite(value) or value == 0:
+        return decimals
+    return max(decimals, significant - 1 - math.floor(math.log10(abs(value))))
+
+
+def format_number(value: float, decimals: int, significant: int = SIGNIFICANT) -> str:
+    """``value`` with fixed decimals, at least ``significant`` significant digits (:func:`decimals_for`)."""
+    return f"{value:.{decimals_for(value, decimals, significant)}f}"
+
+
 def format_cell(cell: Cell, decimals: int, mark_diverged: bool = True) -> str:
-    """Render a :class:`Cell` with fixed decimals: ``0.422``, ``0.422 ± 0.010``, or a status marker."""
+    """Render a :class:`Cell`: ``0.422``, ``0.422 ± 0.010`` (the std with the mean's decimals), the measured
+    value of a diverged cell with its status beside it (``0.0123 (diverged)``; ``mark_diverged=False``
+    drops the mark), or a status marker. Numbers keep at least :data:`SIGNIFICANT` significant digits."""
     if cell.status == "missing":
         return MISSING
     if cell.status == "failed":
         return FAILED_CELL
-    if cell.status == "diverged" and mark_diverged:
-        return DIVERGED_CELL
     if cell.mean is None:
-        return NO_VALUE
-    text = f"{cell.mean:.{decimals}f}"
-    return f"{text} ± {cell.std:.{decimals}f}" if cell.std is not None else text
+        return DIVERGED_CELL if cell.status == "diverged" else NO_VALUE
+    places = decimals_for(cell.mean, decimals)
+    text = f"{cell.mean:.{places}f}"
+    if cell.std is not None:
+        text += f" ± {cell.std:.{places}f}"
+    return f"{text} {DIVERGED_MARK}" if cell.status == "diverged" and mark_diverged else text
+
+
+@dataclass(frozen=True)
+class DivergenceRule:
+    """When a run counts as diverged, fixed before the runs (params ``report``).
+
+    Attributes:
+        cd_ratio: a run whose ``chamfer_mean`` exceeds ``cd_ratio`` x the prior's on the same scene is
+            diverged (0 = off: only the stages' own verdicts count).
+        prior_method: the row that is the prior as is (its seed-mean ok CD is the reference).
+        key: the metric compared.
+    """
+
+    cd_ratio: float = 10.0
+    prior_method: str = "nclaw"
+    key: str = "chamfer_mean"
+
+    def describe(self) -> str:
+        """One sentence for the tables' headers."""
+        text = ("a run is `diverged` when a stage said so (non-finite loss or state, particles leaving the domain, "
+                "CFL failure past refinement)")
+        if self.cd_ratio > 0:
+            text += (f" or its CD exceeds {self.cd_ratio:g} x the prior's (`{self.prior_method}`) on the same "
+                     f"scene (`report.divergence_cd_ratio`)")
+        return text
+
+
+def mark_divergence(runs: Runs, rule: DivergenceRule) -> Runs:
+    """``runs`` with each record's ``status`` set by ``rule`` and its ``divergence`` reason: ``stage`` (the
+    stage's own verdict), ``cd_ratio`` (CD above ``rule.cd_ratio`` x the prior's) or absent. Records are
+    copied; the prior's own records are never re-marked. Scenes without an ok prior CD keep the stages'
+    verdicts only."""
+    out: Runs = {}
+    for (scene, method), records in runs.items():
+        prior = [v for v in (finite(r.get(rule.key)) for r in runs.get((scene, rule.prior_method), [])
+                             if r["status"] == "ok") if v is not None]
+        limit = rule.cd_ratio * statistics.fmean(prior) if prior and rule.cd_ratio > 0 else None
+        marked = []
+        for record in records:
+            record = dict(record)
+            value = finite(record.get(rule.key))
+            if record["status"] == "diverged":
+                record.setdefault("divergence", "stage")
+            elif (record["status"] == "ok" and method != rule.prior_method and limit is not None
+                  and value is not None and value > limit):
+                record.update(status="diverged", divergence="cd_ratio", divergence_limit=limit)
+            marked.append(record)
+        out[scene, method] = marked
+    return out

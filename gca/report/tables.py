@@ -17,9 +17,11 @@ from typing import Callable, Iterable, Mapping, Sequence
 import pandas as pd
 
 from gca.report import paper
-from gca.report.runs import (DIVERGED_CELL, MISSING, Cell, Runs, finite, format_cell, reduce_seeds)
+from gca.report.runs import (DIVERGED_CELL, DIVERGED_MARK, MISSING, NO_VALUE, SIGNIFICANT, Cell, DivergenceRule, Runs,
+                             finite, format_cell, format_number, reduce_seeds)
 
 MEASURED, PUBLISHED = "measured", "paper"
+PAPER_DIVERGED_CELL = "> 100 (Diverged)"  # how the paper prints divergence (published rows only)
 CD_KEY = "chamfer_mean"
 
 
@@ -37,7 +39,7 @@ class Table:
 def paper_cell(value: float | str | None, decimals: int) -> str:
     """Render a published number: float with fixed decimals, the paper's divergence marker, or ``--``."""
     if value == paper.DIVERGED:
-        return DIVERGED_CELL.replace("diverged", "Diverged")
+        return PAPER_DIVERGED_CELL
     if value is None:
         return "--"
     return f"{value:.{decimals}f}"
@@ -52,15 +54,16 @@ def scene_label(scene: str) -> str:
 def scene_average(runs: Runs, method: str, scenes: Sequence[str], key: str = CD_KEY) -> Cell:
     """Average of the per-scene seed means over ``scenes``.
 
-    Any diverged scene makes the average diverged; with scenes missing the mean is over those present and
-    ``n`` says how many (the caller marks the partial average). Missing everywhere gives ``missing``.
+    Any diverged scene makes the average diverged (its measured mean is still averaged in, and printed with
+    the mark); with scenes missing the mean is over those present and ``n`` says how many (the caller marks
+    the partial average). Missing everywhere gives ``missing``.
     """
     cells = [reduce_seeds(runs.get((s, method)), key) for s in scenes]
     if all(c.status == "missing" for c in cells):
         return Cell("missing")
-    if any(c.status == "diverged" for c in cells):
-        return Cell("diverged")
     means = [c.mean for c in cells if c.mean is not None]
+    if any(c.status == "diverged" for c in cells):
+        return Cell("diverged", statistics.fmean(means) if means else None, None, len(means))
     if not means:
         ran = [c for c in cells if c.status != "missing"]
         return Cell("failed" if all(c.status == "failed" for c in ran) else "no_value")
@@ -70,7 +73,7 @@ def scene_average(runs: Runs, method: str, scenes: Sequence[str], key: str = CD_
 def format_average(cell: Cell, n_scenes: int, decimals: int) -> str:
     """Render a scene average; a partial one gets ``(k/n scenes)``."""
     text = format_cell(cell, decimals)
-    if cell.status == "ok" and cell.n < n_scenes:
+    if cell.mean is not None and cell.n < n_scenes:
         text += f" ({cell.n}/{n_scenes} scenes)"
     return text
 
@@ -223,26 +226,72 @@ def _law_average(records: Sequence[Mapping] | None) -> Cell:
                         "law_error_average_pct")
 
 
+LAW_LEVEL_METHODS = ("nclaw", "neuma", "gca")  # the prior as is, the baseline, ours
+
+
 def table_law_level(runs: Runs) -> Table:
     """Law-level validation: response error [%] of the learned elasticity on held-out F (duck scene)."""
     rows = []
-    for method, published in paper.LAW_LEVEL_ERROR_PCT.items():
+    for method in LAW_LEVEL_METHODS:
+        published = paper.LAW_LEVEL_ERROR_PCT.get(method, {})
         records = runs.get((paper.LAW_SCENE, method))
         label = paper.METHODS[method]
         rows.append({"Method": label, "Source": MEASURED,
-                     "Uni. (%)": format_cell(reduce_seeds(records, "law_error_uniaxial_pct"), 1, False),
-                     "Sh. (%)": format_cell(reduce_seeds(records, "law_error_shear_pct"), 1, False),
-                     "Avg. (%)": format_cell(_law_average(records), 1, False)})
-        rows.append({"Method": label, "Source": PUBLISHED, "Uni. (%)": paper_cell(published["uniaxial"], 1),
-                     "Sh. (%)": paper_cell(published["shear"], 1), "Avg. (%)": paper_cell(published["average"], 1)})
+                     "Uni. (%)": format_cell(reduce_seeds(records, "law_error_uniaxial_pct"), 1),
+                     "Sh. (%)": format_cell(reduce_seeds(records, "law_error_shear_pct"), 1),
+                     "Avg. (%)": format_cell(_law_average(records), 1)})
+        rows.append({"Method": label, "Source": PUBLISHED, "Uni. (%)": paper_cell(published.get("uniaxial"), 1),
+                     "Sh. (%)": paper_cell(published.get("shear"), 1),
+                     "Avg. (%)": paper_cell(published.get("average"), 1)})
     notes = ("Response error of the learned elasticity against the analytic ground-truth law of the duck (gel) "
-             "scene on held-out deformation gradients; a diverged training run still reports its law error.",)
+             "scene on held-out deformation gradients; a diverged training run still reports its law error "
+             "(marked). NCLaw is the prior as is (the paper's inset table has no NCLaw row: `--`).",)
     return Table("table_law_level", "Law-level validation: constitutive response error (%, lower is better)",
                  "Paper: ours reduces the average constitutive response error from 39.6% to 8.0%.",
                  pd.DataFrame(rows), notes)
 
 
-# (builder, the (scene, method) pairs it reads) in file order.
+NO_LPIPS_WEIGHTS = "n/a (no weights)"  # LPIPS not computed: its backbone's weights are not on this machine
+
+
+def _method_mean(runs: Runs, method: str, key: str) -> Cell:
+    """Mean over every scene ``method`` ran on of the seed-mean of ``key`` (diverged scenes marked)."""
+    return scene_average(runs, method, sorted({s for s, m in runs if m == method}), key)
+
+
+def _lpips_cell(runs: Runs, method: str) -> str:
+    """LPIPS where it was measured; else ``n/a (no weights)`` when the runs say its weights are absent."""
+    cell = _method_mean(runs, method, "lpips_train")
+    if cell.mean is not None or cell.status in ("missing", "failed"):
+        return format_cell(cell, 3)
+    reasons = {str(r.get("lpips_reason") or "") for (s, m), records in runs.items() if m == method for r in records}
+    return NO_LPIPS_WEIGHTS if any("weight" in reason.lower() for reason in reasons) else NO_VALUE
+
+
+def table_render_metrics(runs: Runs) -> Table:
+    """Image metrics of every method that ran (paper fig. render_metrics), means over its scenes: PSNR and SSIM
+    on the training and held-out views, LPIPS (training view) where its weights exist."""
+    rows = []
+    for method, label in paper.METHODS.items():
+        ran = sorted({s for s, m in runs if m == method})
+        if not ran:
+            continue
+        rows.append({"Method": label, "Source": MEASURED, "Scenes": str(len(ran)),
+                     "PSNR train (dB)": format_cell(_method_mean(runs, method, "psnr_train"), 2),
+                     "PSNR held-out (dB)": format_cell(_method_mean(runs, method, "psnr_heldout"), 2),
+                     "SSIM train": format_cell(_method_mean(runs, method, "ssim_train"), 3),
+                     "SSIM held-out": format_cell(_method_mean(runs, method, "ssim_heldout"), 3),
+                     "LPIPS train": _lpips_cell(runs, method)})
+    columns = ["Method", "Source", "Scenes", "PSNR train (dB)", "PSNR held-out (dB)", "SSIM train", "SSIM held-out",
+               "LPIPS train"]
+    notes = (f"`{NO_LPIPS_WEIGHTS}`: LPIPS needs its backbone's weights on the machine (`eval.metrics.lpips_net`); "
+             "the runs recorded why it was not computed (`lpips_reason`).",)
+    return Table("table_render_metrics", "Image metrics of every method (means over the scenes it ran on)",
+                 "Paper (fig. render_metrics): ours renders closer to the held-out views.",
+                 pd.DataFrame(rows, columns=columns), notes)
+
+
+# (builder, the (scene, method) pairs it reads; None: every run) in file order.
 TABLES: tuple[tuple[Callable[[Runs], Table], Callable[[], set[tuple[str, str]]]], ...] = (
     (table1_synthetic_cd, lambda: {(s, m) for m in paper.TABLE1_SYNTHETIC_CD for s in paper.SYNTHETIC_SCENES}),
     (table2_real_to_sim_cd, lambda: {(s, m) for m in paper.TABLE2_REAL_TO_SIM_CD for s in paper.REAL_TO_SIM_SCENES}),
@@ -250,7 +299,8 @@ TABLES: tuple[tuple[Callable[[Runs], Table], Callable[[], set[tuple[str, str]]]]
     (table4_efficiency, lambda: {(s, m) for m in paper.TABLE4_EFFICIENCY for s in paper.SYNTHETIC_SCENES}),
     (table5_explicit, lambda: {(s, m) for m in paper.TABLE5_EXPLICIT for s in ("ball", "cat")}),
     (table6_ood, lambda: {(s, m) for m in paper.TABLE6_OOD for s in paper.TABLE6_COLUMNS}),
-    (table_law_level, lambda: {(paper.LAW_SCENE, m) for m in paper.LAW_LEVEL_ERROR_PCT}),
+    (table_law_level, lambda: {(paper.LAW_SCENE, m) for m in LAW_LEVEL_METHODS}),
+    (table_render_metrics, lambda: None),  # None: every run (build_tables)
 )
 
 
@@ -292,9 +342,12 @@ def markdown(table: Table, info: Mapping[str, str]) -> str:
              f"- Chamfer distance (measured): {info['chamfer_definition']}.",
              "- **Absolute numbers are not comparable to the paper's** (different objects, scale, Chamfer "
              "definition, profile and device): compare orderings and ratios.",
-             f"- Cells: mean over seeds (± sample std when several seeds ran); `{DIVERGED_CELL}` = the run "
-             f"diverged (status `diverged`), as the paper marks divergence; `{MISSING}` = not run; `failed` = "
-             "the run failed; `n/a` = the run did not report this metric; `--` = not reported in the paper."]
+             f"- Cells: mean over seeds (± sample std when several seeds ran, with the mean's decimals), at least "
+             f"{SIGNIFICANT} significant digits; `x {DIVERGED_MARK}` = the measured value of a run that diverged, "
+             f"`{DIVERGED_CELL}` = a diverged run without a finite value; `{MISSING}` = not run; `failed` = "
+             "the run failed; `n/a` = the run did not report this metric; `--` = not reported in the paper; "
+             f"`{PAPER_DIVERGED_CELL}` is the paper's own mark (published rows only).",
+             f"- Divergence (defined before the runs): {info.get('divergence', DivergenceRule().describe())}."]
     lines += [f"- {note}" for note in table.notes]
     return "\n".join(lines) + "\n\n" + markdown_table(table.df)
 
@@ -304,9 +357,11 @@ def csv_text(table: Table) -> str:
     return table.df.to_csv(index=False, lineterminator="\n")
 
 
-def build_tables(runs: Runs) -> list[tuple[Table, dict[str, str]]]:
-    """Every table with its provenance, in file order."""
-    return [(builder(runs), provenance(runs, pairs())) for builder, pairs in TABLES]
+def build_tables(runs: Runs, rule: DivergenceRule | None = None) -> list[tuple[Table, dict[str, str]]]:
+    """Every table with its provenance (and the divergence rule ``runs`` were marked with), in file order."""
+    rule = rule or DivergenceRule()
+    return [(builder(runs), {**provenance(runs, runs.keys() if pairs() is None else pairs()),
+                             "divergence": rule.describe()}) for builder, pairs in TABLES]
 
 
 def write_table(table: Table, info: Mapping[str, str], out_dir: Path) -> list[Path]:
