@@ -5,7 +5,8 @@
         --prior-dir models/prior --out metrics/eval/duck [--methods gca] [--seeds 0 1]
 
 One JSON per (method, seed) trained (``metrics/eval/duck/gca.json``, ``gca@seed1.json``, ...), added to the
-training run's MLflow run.
+training run's MLflow run (Chamfer also in mm), and mirrored into the experiment of each other table of the
+method (``gca.pipeline.track.mirror_runs``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import sys
 from gca.pipeline.evaluate import evaluate_trained
 from gca.io import read_json, write_json
 from gca.pipeline.train import seed_runs
-from gca.pipeline.track import stage_run
+from gca.pipeline.track import method_params, mirror_runs, stage_run, with_millimetres
 
 from common import scene_context, scene_parser  # stages/common.py
 
@@ -34,9 +35,15 @@ def main(argv=None) -> dict:
             out[name] = evaluate_trained(settings, args.scene, method, inputs, body, args.runs, args.out, args.device,
                                          seed)
             write_json(args.out / f"{name}.json", out[name])
-            run.log_metrics({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})
+            final = with_millimetres({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})
+            run.log_metrics(final)
             for media in ("strip.png", "rollout.gif", "cd_time.png"):
                 run.log_artifact(args.out / name / media)
+            primary = run.run_id
+        # every other table of the method lists this row too (gca.pipeline.track module doc)
+        mirror_runs(settings.params, final, method.tables[1:], primary, scene=args.scene, method=method.name,
+                    run_name=f"{args.scene}/{name}", tags={"tables": ",".join(method.tables), "seed": str(seed)},
+                    extra_params=method_params(method, lora=settings.lora))
         print(f"evaluate {args.scene}/{name}: {out[name]['status']} CD={out[name].get('chamfer_mean', float('nan')):.4g}")
     return out
 

@@ -10,7 +10,7 @@ A run resuming from a checkpoint under ``--out`` reuses ``--out``/velocity.json 
 
 One training run per (method, seed) of ``train.seeds`` (``runs/duck/gca``, ``runs/duck/gca@seed1``, ...;
 ``--seeds`` picks a subset), seeds outermost. One MLflow run per (scene, method, seed), in the experiment of
-the method's first paper table.
+the method's first paper table, with the method's effective configuration (``gca.pipeline.track.method_params``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from gca.pipeline.track import stage_run
+from gca.pipeline.track import method_params, stage_run
 
 from common import scene_context, scene_parser  # stages/common.py
 from gca.pipeline.train import estimate_scene_velocity, read_velocity, seed_runs, train_method
@@ -46,6 +46,7 @@ def main(argv=None) -> dict:
         with stage_run("train", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
                        tags={"tables": ",".join(method.tables), "material": scene.material, "seed": str(seed)}) as run:
+            run.log_params(method_params(method, settings.rdga, settings.cpr, settings.lora))
             results[name] = train_method(settings, args.scene, method, inputs, velocity, args.out / name, run,
                                          args.device, seed)
             run.log_artifact(args.out / name / "loss.png")

@@ -5,6 +5,18 @@ Tracking never breaks a stage: every MLflow failure is turned into a warning and
 
 Defaults: ``MLFLOW_TRACKING_URI`` when set, else ``sqlite:///mlflow.db`` in the working directory.
 Tags: stage, scene, method, table, seed (training runs), git commit and ``DVC_EXP_NAME`` (set by ``dvc exp run``).
+
+Comparison in the UI (issue 22, item 7):
+
+- every training run logs its method's *effective* configuration (:func:`method_params`: ``method.terms``, the
+  RDGA switches its terms set applied to ``align.rdga``, CPR's config or ``off``, its adapt mode and LoRA), so
+  "show diff only" separates the ablations even though their ``align.*`` params are identical;
+- each table's experiment holds every row of that table: a run lives in the experiment of its method's first
+  table (``gca/table1`` for gca, with the training history), and the evaluate stage logs a *mirror* run (its
+  params and final metrics, tag ``mirror_of`` = the primary run id) into the experiment of each other table
+  the method belongs to (:func:`mirror_runs`);
+- Chamfer distances are also logged in millimetres (``chamfer_mean_mm``; :func:`with_millimetres`), since the
+  compare view rounds metrics to three decimals.
 """
 
 from __future__ import annotations
@@ -65,10 +77,79 @@ class Run:
         if flat and self._mlflow is not None:
             self._call("log_metrics", self._mlflow.log_metrics, flat, step=step)
 
+    def log_params(self, params: Mapping[str, Any]) -> None:
+        """Log extra params (e.g. :func:`method_params`); a value already logged the same is fine."""
+        if params and self._mlflow is not None:
+            self._call("log_params", self._mlflow.log_params, _flat_params(params))
+
     def log_artifact(self, path: str | os.PathLike) -> None:
         if self._mlflow is not None and Path(path).exists():
             fn = self._mlflow.log_artifacts if Path(path).is_dir() else self._mlflow.log_artifact
             self._call("log_artifact", fn, str(path))
+
+
+def method_params(method, rdga=None, cpr=None, lora=None) -> dict[str, Any]:
+    """The effective configuration of ``method`` (a :class:`gca.train.methods.Method`) as MLflow params:
+    its declared terms, law, adapt mode, views; the RDGA config its terms switch (``rdga`` with
+    ``Method.rdga_switches`` applied, or ``off``); CPR's config (``cpr``, or ``off`` without the ``cpr`` term;
+    ``cpr_remove_target``); LoRA's rank and alpha where it adapts by LoRA."""
+    import dataclasses
+
+    out: dict[str, Any] = {"method.name": method.name, "method.terms": ",".join(method.terms) or "none",
+                           "method.law": method.law, "method.adapt": method.adapt, "method.views": method.views,
+                           "method.tables": ",".join(method.tables)}
+    switches = method.rdga_switches()
+    if switches is None:
+        out["method.rdga"] = "off"
+    elif rdga is not None:
+        out.update({f"method.rdga.{k}": v for k, v in dataclasses.asdict(dataclasses.replace(rdga, **switches)).items()})
+    else:
+        out.update({f"method.rdga.{k}": v for k, v in switches.items()})
+    if not method.uses("cpr"):
+        out["method.cpr"] = "off"
+    else:
+        out["method.cpr.remove_target"] = method.cpr_remove_target
+        if cpr is not None:
+            out.update({f"method.cpr.{k}": v for k, v in dataclasses.asdict(cpr).items()})
+    if method.adapt == "lora" and lora is not None:
+        out.update({f"method.lora.{k}": v for k, v in dataclasses.asdict(lora).items()})
+    elif method.adapt != "lora":
+        out["method.lora"] = "off"
+    return out
+
+
+def with_millimetres(metrics: Mapping[str, Any]) -> dict[str, Any]:
+    """``metrics`` plus ``<key>_mm`` for every finite Chamfer number ``chamfer_*`` in metres (x 1e3; a squared
+    definition, m^2, gets ``<key>_mm2``, x 1e6)."""
+    squared = "squared" in str(metrics.get("chamfer_definition", "")).lower()
+    out = dict(metrics)
+    for key, value in metrics.items():
+        if key.startswith("chamfer") and isinstance(value, (int, float)) and not isinstance(value, bool) \
+                and value == value:
+            out[f"{key}_mm2" if squared else f"{key}_mm"] = float(value) * (1e6 if squared else 1e3)
+    return out
+
+
+def mirror_runs(params: Mapping | None, metrics: Mapping[str, Any], tables: tuple[str, ...], primary_run_id: str | None,
+                *, scene: str, method: str, run_name: str, tags: Mapping[str, str] | None = None,
+                extra_params: Mapping[str, Any] | None = None) -> None:
+    """Log a mirror of one finished run into ``gca/<table>`` for every table in ``tables``: the primary run's
+    params where they can be read (the training run's: the method's effective configuration included), else
+    ``params`` and ``extra_params``; its final ``metrics``; tag ``mirror_of``."""
+    copied = None
+    if primary_run_id and tables:
+        try:
+            import mlflow
+
+            copied = dict(mlflow.get_run(primary_run_id).data.params)
+        except Exception:  # noqa: BLE001 - tracking must never fail a stage
+            copied = None
+    for table in tables:
+        with stage_run("evaluate", None if copied else params, experiment=f"gca/{table}", scene=scene, method=method,
+                       table=table, run_name=run_name,
+                       tags={**(tags or {}), "mirror_of": primary_run_id or "unknown"}) as run:
+            run.log_params(copied or extra_params or {})
+            run.log_metrics(metrics)
 
 
 def _flat_params(params: Mapping) -> dict[str, str]:
