@@ -394,7 +394,7 @@ def _as_tensor(x: Any, like: torch.Tensor) -> torch.Tensor:
 
 def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est_depth: torch.Tensor,
               p: torch.Tensor, q: torch.Tensor, cfg: RDGAConfig, pos_image: torch.Tensor | None = None,
-              K: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+              K: torch.Tensor | None = None, terms: dict | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """RDGA loss of one frame: ``lambda_mask * L_mask + lambda_geo * L_geo`` (module docstring).
 
     Args:
@@ -407,6 +407,9 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
         pos_image: premultiplied position image [H, W, 2|3] (see :func:`render_points`); needed
             when the global term is on.
         K: intrinsics [3, 3] [px] for a 3-channel ``pos_image``.
+        terms: when given, filled with each weighted term's tensor (with its graph), keyed as
+            ``gca.train.methods.TERMS``: ``silhouette`` (lambda_m L_mask), ``global`` (lambda_g lambda_1 L_global),
+            ``anchor`` or ``anchor_l1`` (lambda_g lambda_2 L_anchor); they sum to the loss.
 
     Returns:
         (loss scalar, stats) with stats n_matches, n_global, n_stable, n_anchors, mean_gamma,
@@ -430,6 +433,12 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
         stats.update(anchor_stats, l_anchor=float(l_anchor.detach()))
         l_geo = l_geo + cfg.lambda2 * l_anchor
     loss = cfg.lambda_mask * l_mask + cfg.lambda_geo * l_geo
+    if terms is not None:
+        terms["silhouette"] = cfg.lambda_mask * l_mask
+        if cfg.enabled and cfg.use_global:
+            terms["global"] = cfg.lambda_geo * cfg.lambda1 * l_global
+        if cfg.enabled and cfg.use_anchor:
+            terms["anchor_l1" if cfg.depth_term == "l1" else "anchor"] = cfg.lambda_geo * cfg.lambda2 * l_anchor
     if not torch.isfinite(loss):
         raise FloatingPointError(f"{_WHERE}: non-finite RDGA loss (L_mask={float(l_mask)}, stats={stats})")
     stats["l_mask"] = float(l_mask.detach())

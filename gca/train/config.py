@@ -20,6 +20,9 @@ class TrainConfig:
         lambda_color: weight of the pixel colour L2 loss.
         lambda_depth_l1: weight of the L1 monocular-depth loss (PAC-NeRF + depth row).
         cpr_every: apply CPR on every n-th supervised frame.
+        term_shares_every: every k-th iteration (0 = never) also each declared loss term's gradient norm and
+            its cosine with the total gradient (``share/<term>/norm|cos`` in the history and MLflow; one extra
+            backward pass per image term on those iterations; ``Objective.gradient(shares=True)``).
         checkpoint_every: save a resumable checkpoint every n iterations.
         max_spread_growth: a rollout whose particles spread further from their centre of mass than
             at rest by more than this [m] is treated as diverged (particles flying away).
@@ -54,8 +57,12 @@ class TrainConfig:
     max_rejections: int = 3
     backtrack_factor: float = 0.5
     keep: str = "best"
+    term_shares_every: int = 0
 
     def __post_init__(self):
+        if isinstance(self.term_shares_every, bool) or not isinstance(self.term_shares_every, int) \
+                or self.term_shares_every < 0:
+            raise ValueError(f"train.term_shares_every must be an integer >= 0, got {self.term_shares_every!r}")
         seeds = tuple(self.seeds) if isinstance(self.seeds, (list, tuple)) else (self.seeds,)
         if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) \
                 or len(set(seeds)) != len(seeds):

@@ -90,7 +90,8 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
     it = it0
     while it < cfg.iterations:
         try:
-            record = _gradient(solver, law, data, objective, cfg, horizon(cfg, it, n_video))
+            shares = cfg.term_shares_every > 0 and it % cfg.term_shares_every == 0
+            record = _gradient(solver, law, data, objective, cfg, horizon(cfg, it, n_video), shares)
         except DIVERGENCE_ERRORS as exc:
             message = f"{type(exc).__name__}: {exc}"
             if undo is None or in_a_row >= cfg.max_rejections:
@@ -176,7 +177,7 @@ class PhaseTimer:
         self._t = t
 
 
-def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
+def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) -> dict:
     """Rollout, losses, backward and clipping: the law's ``.grad`` is ready for the update.
 
     Returns the iteration's record (loss, gradient norm before clipping, horizon, stats, phase times).
@@ -192,7 +193,8 @@ def _gradient(solver, law, data, objective, cfg, n_video) -> dict:
     probe.watch("particles", "F", -1, traj.F)
     timer.lap("simulate")
     _check_drift(traj, data, n_video, cfg)
-    loss, stats = objective.gradient(traj, n_video, law, timer.lap)
+    loss, stats = objective.gradient(traj, n_video, law, timer.lap, shares=shares) if shares else \
+        objective.gradient(traj, n_video, law, timer.lap)
     _check_gradients(law, probe)
     params = law.trainable()
     grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)

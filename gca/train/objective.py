@@ -83,6 +83,8 @@ class Objective:
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
         self.probe: GradProbe | None = None  # set per iteration by _gradient (gradient provenance)
+        self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares
+        self.last_term_grads: dict[str, list] | None = None  # each term's gradient of the last gradient(shares=True)
         switches = method.rdga_switches()  # the method's RDGA terms (silhouette, global, anchor) or None
         self.rdga = dataclasses.replace(rdga, **(switches or {}))
         self.train0_rdga = self.rdga if switches else None  # RDGA on train0, as the method's terms set it
@@ -101,7 +103,7 @@ class Objective:
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
     def gradient(self, traj: Rollout, n_video: int, law: LearnedLaw,
-                 lap: Callable[[str], None] = lambda phase: None) -> tuple[torch.Tensor, dict]:
+                 lap: Callable[[str], None] = lambda phase: None, shares: bool = False) -> tuple[torch.Tensor, dict]:
         """The training loss over video frames ``0 .. n_video - 1`` and its gradient, left in the law's
         trainable parameters' ``.grad`` (which must be None or zero on entry).
 
@@ -122,6 +124,10 @@ class Objective:
         Args:
             traj: the law's differentiable rollout; n_video: supervised video frames (the horizon).
             law: the law being trained; lap: called with "render_losses" and "backward" as each phase ends.
+            shares: also each declared term's gradient (``torch.autograd.grad`` of that term alone, one extra
+                backward pass per image term; ``train.term_shares_every``): its norm and its cosine with the total
+                gradient go into the stats (:func:`term_shares`), the gradients into ``last_term_grads``.
+                CPR's is the gradient as added (x ``prior_scale``). Off: the cost is unchanged.
 
         Returns:
             ``(loss, stats)``: the loss value (detached scalar) and the per-term means over the frames.
@@ -133,17 +139,30 @@ class Objective:
         prior = self.cpr is not None
         # CPR first, chunk by chunk, so its activations are gone before the frames are rendered
         prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior else (0.0, None, {})
-        data_loss, stats = self.data_loss(traj, n_video)
+        self._terms = {} if shares else None
+        try:
+            data_loss, stats = self.data_loss(traj, n_video)
+        finally:
+            collected, self._terms = self._terms, None
         stats.update(prior_stats)
         loss = data_loss.detach() + prior_value
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
         lap("render_losses")
+        term_grads: dict[str, list] = {}
         if data_loss.requires_grad:
+            for name, value in (collected or {}).items():
+                if value.requires_grad:
+                    term_grads[name] = list(torch.autograd.grad(value, params, retain_graph=True, allow_unused=True))
             data_loss.backward()
         if prior:  # a method without image terms (no_rdga) has only the prior to follow: nothing to cap it to
             ratio = self.cpr.cfg.max_grad_ratio if data_loss.requires_grad else 0.0
             stats.update(add_prior_gradient(params, g_prior, ratio))
+            if shares:
+                term_grads["cpr"] = [None if g is None else g * stats["prior_scale"] for g in g_prior]
+        if shares:
+            stats.update(term_shares(term_grads, [p.grad for p in params]))
+            self.last_term_grads = term_grads
         lap("backward")
         return loss, stats
 
@@ -241,6 +260,7 @@ class Objective:
             if self.method.uses("color"):
                 l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
                 loss = loss + self.cfg.lambda_color * l_color
+                self._collect("color", self.cfg.lambda_color * l_color)
                 stats.add(f"color/{name}", l_color)
             if name == "train0":
                 loss = loss + self._mono_terms(out, pq, j, stats)
@@ -282,17 +302,48 @@ class Objective:
             mask, est = self.mask[j], self.est_depth[j]
             l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
             loss = loss + self.cfg.lambda_depth_l1 * l_depth
+            self._collect("depth_l1", self.cfg.lambda_depth_l1 * l_depth)
             stats.add("depth_l1", l_depth)
         rdga = self.train0_rdga
         if rdga is not None:
             p, q = pq if pq is not None else (np.zeros((0, 2), np.float32),) * 2
             # "positions" is rendered exactly when the global term needs it (_needs_positions)
+            terms = {} if self._terms is not None else None
             l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=out.get("positions"),
-                                  K=self.K["train0"])
+                                  K=self.K["train0"], terms=terms)
+            for key, value in (terms or {}).items():
+                self._collect(key, value)
             loss = loss + l_rdga
             for k, v in s.items():
                 stats.add(f"rdga/{k}", v)
         return loss
+
+
+    def _collect(self, term: str, value: torch.Tensor) -> None:
+        """Add one frame's weighted ``term`` to the per-term sums (only while term shares are collected)."""
+        if self._terms is not None:
+            self._terms[term] = self._terms[term] + value if term in self._terms else value
+
+
+def term_shares(term_grads: dict[str, list], total: list) -> dict[str, float]:
+    """Each term's gradient norm and its cosine with the total gradient ``total`` (norms over all parameters;
+    ``None`` entries are zero): ``{"share/<term>/norm", "share/<term>/cos"}``, plus ``share/total/norm``."""
+    def flat(gs):
+        parts = [g.detach().double().reshape(-1) for g in gs if g is not None]
+        return torch.cat(parts) if parts else None
+
+    g_total = flat(total)
+    out = {}
+    n_total = float(g_total.norm()) if g_total is not None else 0.0
+    out["share/total/norm"] = n_total
+    for name, grads in term_grads.items():
+        g = flat([a if a is not None else (torch.zeros_like(b) if b is not None else None)
+                  for a, b in zip(grads, total)])
+        norm = float(g.norm()) if g is not None else 0.0
+        cos = float(g @ g_total) / (norm * n_total) if g is not None and g_total is not None and norm * n_total > 0 \
+            else 0.0
+        out[f"share/{name}/norm"], out[f"share/{name}/cos"] = norm, cos
+    return out
 
 
 class _MeanStats:
