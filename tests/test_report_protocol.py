@@ -177,3 +177,16 @@ def test_table2_conjunction(tmp_path):
     _write(tmp_path, "wolf", "nclaw", chamfer_mean=0.5)  # NCLaw beats GCA on wolf
     summary = [j for j in claims.judge_all(load_runs(tmp_path), cfg) if j.claim.kind == "all"][0]
     assert summary.verdict == claims.FAILS
+
+
+def test_term_share_table(tmp_path):
+    shares = {"share/silhouette/norm": 2.0, "share/silhouette/cos": 0.999, "share/global/norm": 0.001,
+              "share/global/cos": 0.01, "share/cpr/norm": 0.5, "share/cpr/cos": 0.2, "share/total/norm": 2.1}
+    _write(tmp_path, "ball", "gca", chamfer_mean=0.01, term_shares=shares)
+    _write(tmp_path, "ball", "gca", seed=1, chamfer_mean=0.01, term_shares={**shares, "share/silhouette/norm": 4.0})
+    _write(tmp_path, "ball", "neuma", chamfer_mean=0.01, term_shares={})  # no iteration measured: no row
+    df = tables.table_term_shares(load_runs(tmp_path)).df
+    assert list(df.columns) == ["Method", "Runs", "silhouette", "global", "cpr", "total"]
+    row = df.iloc[0]
+    assert (row["Method"], row["Runs"]) == ("Ours", "2") and len(df) == 1
+    assert row["silhouette"] == "3.000 (cos 0.999)" and row["global"] == "0.00100 (cos 0.010)"

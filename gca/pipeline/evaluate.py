@@ -41,4 +41,5 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
         metrics.update(law_metrics(law.material, settings.material(scene.material), scene.dt, cfg))
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "material": scene.material,
             "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device),
-            "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}
+            "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],
+            "term_shares": train.get("term_shares", {})}

@@ -159,10 +159,23 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
                "rejected_updates": result.rejected, "selected": result.selected,
+               "term_shares": mean_term_shares(result.history),
                "last": result.history[-1] if result.history else {}}
     write_json(out_dir / "train.json", summary)
     _plot_history(result.history, out_dir / "loss.png", f"{scene_name} / {method.name}")
     return summary
+
+
+def mean_term_shares(history: list[dict]) -> dict[str, float]:
+    """Mean over the iterations that measured them (``train.term_shares_every``) of each ``share/<term>/<norm|cos>``
+    of the history; ``{}`` when none did."""
+    keys = sorted({k for rec in history for k in rec if k.startswith("share/")})
+    out = {}
+    for key in keys:
+        values = [rec[key] for rec in history if key in rec and rec[key] == rec[key]]
+        if values:
+            out[key] = sum(values) / len(values)
+    return out
 
 
 def _plot_history(history: list[dict], path: Path, title: str) -> None:

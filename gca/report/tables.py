@@ -291,6 +291,42 @@ def table_render_metrics(runs: Runs) -> Table:
                  pd.DataFrame(rows, columns=columns), notes)
 
 
+TERM_ORDER = ("color", "depth_l1", "depth_l1_aligned", "silhouette", "global", "anchor", "anchor_l1", "cpr")  # TERMS
+
+
+def table_term_shares(runs: Runs) -> Table:
+    """Each declared loss term's share of the gradient per method (issue 22, item 2): the gradient norm |g_T| and
+    its cosine with the total gradient, means over every run's measured iterations (``train.term_shares_every``)
+    and over its scenes and seeds."""
+    found = {k.split("/")[1] for rs in runs.values() for r in rs for k in (r.get("term_shares") or {})
+             if k.count("/") == 2}
+    terms = [t for t in TERM_ORDER if t in found] + sorted(found - set(TERM_ORDER) - {"total"}) + ["total"]
+    rows = []
+    for method, label in paper.METHODS.items():
+        records = [r for (s, m), rs in runs.items() if m == method for r in rs if r["status"] != "failed"]
+        shares = [r.get("term_shares") or {} for r in records]
+        shares = [sh for sh in shares if sh]
+        if not shares:
+            continue
+        row = {"Method": label, "Runs": str(len(shares))}
+        for term in terms:
+            norms = [v for sh in shares if (v := finite(sh.get(f"share/{term}/norm"))) is not None]
+            coss = [v for sh in shares if (v := finite(sh.get(f"share/{term}/cos"))) is not None]
+            if not norms:
+                row[term] = MISSING
+                continue
+            text = format_number(statistics.fmean(norms), 3)
+            row[term] = text if term == "total" else f"{text} (cos {statistics.fmean(coss):.3f})"
+        rows.append(row)
+    columns = ["Method", "Runs", *terms]
+    notes = ("Each cell: the term's gradient norm |g_T| over the law's trainable parameters (before clipping) and "
+             "its cosine with the total gradient; `total` is the total's norm. CPR's is the gradient as added "
+             "(x `prior_scale`). `—`: the method does not declare the term.",)
+    return Table("table_term_shares", "Every loss term's share of the gradient (norm and cosine with the total)",
+                 "Issue 22: a term that carries no share of the gradient cannot matter in an ablation.",
+                 pd.DataFrame(rows, columns=columns), notes)
+
+
 # (builder, the (scene, method) pairs it reads; None: every run) in file order.
 TABLES: tuple[tuple[Callable[[Runs], Table], Callable[[], set[tuple[str, str]]]], ...] = (
     (table1_synthetic_cd, lambda: {(s, m) for m in paper.TABLE1_SYNTHETIC_CD for s in paper.SYNTHETIC_SCENES}),
@@ -301,6 +337,7 @@ TABLES: tuple[tuple[Callable[[Runs], Table], Callable[[], set[tuple[str, str]]]]
     (table6_ood, lambda: {(s, m) for m in paper.TABLE6_OOD for s in paper.TABLE6_COLUMNS}),
     (table_law_level, lambda: {(paper.LAW_SCENE, m) for m in LAW_LEVEL_METHODS}),
     (table_render_metrics, lambda: None),  # None: every run (build_tables)
+    (table_term_shares, lambda: None),
 )
 
 
