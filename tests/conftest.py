@@ -21,8 +21,18 @@ def repo_root() -> Path:
     return ROOT
 
 
+def _slow_tests() -> set[str]:
+    """``file::function`` names of the tests measured slow (``tests/slow.txt``)."""
+    lines = (ROOT / "tests" / "slow.txt").read_text().splitlines()
+    return {line.split("#")[0].strip() for line in lines} - {""}
+
+
 def pytest_collection_modifyitems(config, items):
-    """Skip `gpu`-marked tests where torch has no CUDA device."""
+    """Mark the tests listed in ``tests/slow.txt`` ``slow``; skip `gpu`-marked tests where torch has no CUDA device."""
+    slow = _slow_tests()
+    for item in items:
+        if item.path.name in slow or f"{item.path.name}::{getattr(item, 'originalname', item.name)}" in slow:
+            item.add_marker(pytest.mark.slow)
     try:
         import torch
         has_cuda = torch.cuda.is_available()

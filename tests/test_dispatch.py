@@ -220,7 +220,6 @@ stages:
 """
 
 
-@pytest.mark.slow
 def test_dvc_commit_assembles_what_the_jobs_wrote_and_repro_runs_nothing(tmp_path):
     """A small DVC repository: its stage commands through the engine, then `dvc commit -f` of the finished
     stages; `dvc status` finds nothing to do and `dvc repro` runs no stage. Without the commit, it would."""

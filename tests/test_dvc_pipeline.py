@@ -26,7 +26,6 @@ SCENES = ("ball", "cat")
 REPORTS = ["table1_synthetic_cd", "table2_real_to_sim_cd", "table3_ablation_cd", "table4_efficiency",
            "table5_explicit", "table6_ood", "table_law_level"]
 
-pytestmark = pytest.mark.slow
 
 
 def _run(args, cwd, env):

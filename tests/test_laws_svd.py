@@ -161,6 +161,7 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(R_gpu, R_cpu, atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.grad
 def test_bmm3_equals_matmul_with_broadcasting_and_gradients():
     g = torch.Generator().manual_seed(11)
     A = torch.randn(7, 3, 3, generator=g, dtype=f64, requires_grad=True)

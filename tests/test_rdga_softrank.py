@@ -56,6 +56,7 @@ def test_gamma_invariant_to_scale_shift_and_monotone_warp_of_target():
     torch.testing.assert_close(spearman_exact(x, -y), -base_exact)
 
 
+@pytest.mark.grad
 def test_soft_gamma_gradient_is_finite_nonzero_and_passes_gradcheck():
     x, y = _patches(m=3, n=9)
     x.requires_grad_(True)
@@ -81,6 +82,7 @@ class _WrongGrad(torch.autograd.Function):
         return 1.1 * v_x, None
 
 
+@pytest.mark.grad
 def test_gradcheck_catches_a_wrong_gradient():
     x, y = _patches(m=3, n=9)
     with pytest.raises(GradcheckError):

@@ -82,6 +82,7 @@ def test_not_spd_is_flagged():
     assert h["not_spd"].tolist() == [False, True, True]
 
 
+@pytest.mark.grad
 def test_projection_gradient_float64_gradcheck_with_floor():
     """The floored determinant is differentiable where det0 > 0 (float64 gradcheck) and its gradient
     differs from the naive one only where det0 < 0 (negative control: a rank-deficient 2D covariance)."""

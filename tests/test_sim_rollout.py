@@ -44,6 +44,7 @@ def _blob(n, seed, dtype=F64):
     return x, v, vol, vol * 1e3
 
 
+@pytest.mark.grad
 def test_rollout_gradcheck_to_initial_velocity_and_law_parameter():
     # float64 gradcheck through 2 checkpointed frames of 2 steps: d x_final / d (v0, mu).
     cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary="slip", dtype="float64")

@@ -41,6 +41,7 @@ def _floor_state(n, seed):
     return x, v, C, F, tau, vol, mass
 
 
+@pytest.mark.grad
 @pytest.mark.parametrize("boundary", ["sticky", "slip", "friction"])
 def test_step_gradcheck_float64(boundary):
     # 8^3 grid, 3 particles near the floor (bound = 2 cells reaches them), 2 steps.
@@ -70,6 +71,7 @@ class _WrongBackward(torch.autograd.Function):
         return (*grads, None, None, None)
 
 
+@pytest.mark.grad
 def test_gradcheck_catches_wrong_backward():
     # Negative control: the same check and tolerances must reject a 1 % error in dL/dx.
     cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary="slip", dtype="float64")
