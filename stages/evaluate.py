@@ -1,11 +1,12 @@
 """DVC stage ``evaluate``: metrics of every trained method of a scene, one JSON per method.
 
-    python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --runs runs/duck \
+    python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --gt data/gt/duck --runs runs/duck \
         --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
         --prior-dir models/prior --out metrics/eval/duck [--methods gca] [--seeds 0 1]
 
 One JSON per (method, seed) trained (``metrics/eval/duck/gca.json``, ``gca@seed1.json``, ...), added to the
-training run's MLflow run.
+training run's MLflow run. The ground truth (``--gt``, trajectory) is bound to the scene directory for this
+process only (:func:`gca.scenes.truth.bind`): training's processes never have it.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import sys
 
 from gca.eval.evaluate import evaluate_trained
 from gca.io import read_json, write_json
+from gca.scenes import truth
 from gca.scenes.world import load_scene_body
 from gca.train.run import seed_runs
 from gca.track import stage_run
@@ -22,7 +24,7 @@ from common import scene_context, scene_parser  # stages/common.py
 
 
 def main(argv=None) -> dict:
-    paths = ("scene-dir", "runs", "particles", "gaussians", "prior-dir", "out")
+    paths = ("scene-dir", "gt", "runs", "particles", "gaussians", "prior-dir", "out")
     args = scene_parser(__doc__.splitlines()[0], paths).parse_args(argv)
     params, scene, methods, inputs = scene_context("evaluate", args)
     body = load_scene_body(params, args.particles, args.gaussians, args.device)
@@ -32,8 +34,9 @@ def main(argv=None) -> dict:
         with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
                        tags={"tables": ",".join(method.tables), "seed": str(seed)}, resume_run_id=run_id) as run:
-            out[name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out, args.device,
-                                         seed)
+            with truth.bind(args.scene_dir, args.gt):
+                out[name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out,
+                                             args.device, seed)
             write_json(args.out / f"{name}.json", out[name])
             run.log_metrics({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})
             for media in ("strip.png", "rollout.gif", "cd_time.png"):

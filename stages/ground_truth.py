@@ -1,7 +1,11 @@
 """DVC stage ``ground_truth``: simulate a scene with its ground-truth law and render its videos.
 
     python stages/ground_truth.py --scene duck --assets data/assets/duck \
-        --particles data/particles/duck.npz --out data/scenes/duck --metrics metrics/ground_truth/duck.json
+        --particles data/particles/duck.npz --out data/scenes/duck --gt data/gt/duck \
+        --metrics metrics/ground_truth/duck.json
+
+``--out`` gets what a monocular method observes (frames, cameras, timing); ``--gt`` the ground-truth-only
+data (trajectory, true alpha and depth, the unlit render, the true law) that only evaluation reads.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from gca.scenes.groundtruth import generate
 from gca.scenes.world import load_scene_body
 from gca.sim.solver import SimConfig
 from gca.track import stage_run
+from gca.vision.depth import DepthConfig
 
 
 def parse_args(argv):
@@ -28,6 +33,7 @@ def parse_args(argv):
     ap.add_argument("--assets", type=Path, required=True, help="data/assets/<object> (gaussians.ply)")
     ap.add_argument("--particles", type=Path, required=True, help="data/particles/<object>.npz")
     ap.add_argument("--out", type=Path, required=True, help="scene directory (replaced atomically)")
+    ap.add_argument("--gt", type=Path, required=True, help="ground-truth-only directory (replaced atomically)")
     ap.add_argument("--metrics", type=Path, required=True)
     ap.add_argument("--params", type=Path, default=Path("params.yaml"))
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -40,11 +46,13 @@ def main(argv=None) -> dict:
     scene, video = scene_config(params, args.scene), video_config(params)
     sim = config.build(SimConfig, config.section(params, "sim"), "sim")
     lighting = config.build(LightingConfig, config.section(params, "render.lighting"), "render.lighting")
+    depth_cfg = config.build(DepthConfig, config.section(params, "vision.depth"), "vision.depth").simulated
     body = load_scene_body(params, args.particles, args.assets / "gaussians.ply", args.device)
     preset = config.section(params, f"materials.{scene.material}")
     with stage_run("ground_truth", params, scene=args.scene) as run:
-        with atomic_path(args.out, is_dir=True) as tmp:
-            metrics = generate(tmp, body, args.scene, scene, video, sim, preset, lighting, args.device)
+        with atomic_path(args.out, is_dir=True) as tmp, atomic_path(args.gt, is_dir=True) as gt_tmp:
+            metrics = generate(tmp, gt_tmp, body, args.scene, scene, video, sim, preset, lighting, depth_cfg,
+                               int(params["seed"]), args.device)
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)
         run.log_artifact(args.out / "preview.gif")

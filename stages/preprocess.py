@@ -1,5 +1,8 @@
 """DVC stage ``preprocess``: what a monocular method extracts from the training video.
 
+It reads the scene directory only (frames, cameras, the simulated estimator's depth); the ground-truth
+directory ``data/gt/<scene>`` is not among its dependencies and is never opened.
+
     python stages/preprocess.py --scene duck --scene-dir data/scenes/duck --out data/prep/duck \
         --metrics metrics/preprocess/duck.json
 """
@@ -14,7 +17,7 @@ import numpy as np
 
 from gca import config
 from gca.io import atomic_path, write_json
-from gca.scenes import TRAIN_VIEW, load_view
+from gca.scenes import TRAIN_VIEW, load_simulated_depth, load_view
 from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
 from gca.track import stage_run
 from gca.vision import VisionConfig
@@ -35,8 +38,9 @@ def main(argv=None) -> dict:
     params = config.load(f"preprocess@{args.scene}", args.params)
     cfg = config.build(VisionConfig, config.section(params, "vision"), "vision")
     view = load_view(args.scene_dir, TRAIN_VIEW)
+    sim_depth = load_simulated_depth(args.scene_dir, len(view.rgb)) if cfg.depth.backend == "simulated" else None
     with stage_run("preprocess", params, scene=args.scene) as run:
-        prep = preprocess_view(view, cfg, seed=int(params["seed"]))
+        prep = preprocess_view(view, cfg, seed=int(params["seed"]), simulated_depth=sim_depth)
         with atomic_path(args.out, is_dir=True) as tmp:
             write_prep(tmp, prep)
         n_kpts = np.diff(prep["keypoints"]["offsets"])

@@ -23,6 +23,8 @@ from gca.render.follow import smallest_axis_normal
 from gca.render.camera import Camera, look_at
 from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
 from gca.scenes.store import TRAIN_VIEW, frame_name, view_dir
+from gca.scenes.truth import write_truth, write_view_truth
+from gca.vision.depth import SimulatedDepth, SimulatedDepthConfig
 from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
 from gca.sim.rollout import Rollout, rollout
 from gca.sim.solver import MPMSolver, SimConfig
@@ -66,21 +68,20 @@ def _render_view(body: Body, traj: Rollout, frames: list[int], camera: Camera, l
     return {"rgb": np.stack(rgb), "alpha": np.stack(alpha), "depth": np.stack(depth)}
 
 
-def _write_view(out_dir: Path, name: str, images: dict, mask_threshold: float) -> None:
+def _write_view(out_dir: Path, name: str, images: dict) -> None:
+    """The observable part of one view: its lit frames (nothing else of the render leaves for training)."""
     folder = view_dir(out_dir, name)
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
-    (folder / "mask").mkdir(parents=True, exist_ok=True)
-    for i, (rgb, alpha) in enumerate(zip(images["rgb"], images["alpha"])):
+    for i, rgb in enumerate(images["rgb"]):
         iio.imwrite(folder / "rgb" / frame_name(i), (rgb * 255 + 0.5).astype(np.uint8))
-        iio.imwrite(folder / "mask" / frame_name(i), ((alpha > mask_threshold) * 255).astype(np.uint8))
-    mask = images["alpha"] > mask_threshold
-    np.save(folder / "depth.npy", np.where(mask, images["depth"], 0.0).astype(np.float32))
 
 
-def generate(out_dir: Path, body: Body, scene_name: str, scene: SceneConfig, video: VideoConfig,
+def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: SceneConfig, video: VideoConfig,
              sim: SimConfig, material_preset: Mapping, light_cfg: "shading.LightingConfig",
+             depth_cfg: SimulatedDepthConfig = SimulatedDepthConfig(), seed: int = 0,
              device: str | torch.device = "cpu") -> dict:
-    """Simulate and render every view of a scene into ``out_dir`` (an empty directory).
+    """Simulate and render every view of a scene: observations into ``out_dir``, ground truth into ``gt_dir``
+    (two empty directories; layouts in :mod:`gca.scenes.store` and :mod:`gca.scenes.truth`).
 
     Returns:
         Summary metrics (counts, mean mask coverage, displacement of the centre of mass).
@@ -94,10 +95,17 @@ def generate(out_dir: Path, body: Body, scene_name: str, scene: SceneConfig, vid
     coverage = {}
     for name, camera in tqdm(cameras.items(), desc=f"render {scene_name}", unit="view"):
         images = _render_view(body, traj, frames, camera, lights, bg)
-        _write_view(out_dir, name, images, video.mask_threshold)
-        coverage[name] = float((images["alpha"] > video.mask_threshold).mean())
+        _write_view(out_dir, name, images)
+        write_view_truth(gt_dir, name, images["alpha"], images["depth"], video.mask_threshold)
+        mask = images["alpha"] > video.mask_threshold
+        coverage[name] = float(mask.mean())
+        if name == TRAIN_VIEW:  # the simulated estimator's output: an observation the ground truth makes
+            rgb8 = (images["rgb"] * 255 + 0.5).astype(np.uint8)
+            est = SimulatedDepth(depth_cfg, seed).estimate(rgb8, np.where(mask, images["depth"], 0.0), mask)
+            np.save(view_dir(out_dir, name) / "depth_sim.npy", est.astype(np.float32))
     x = traj.x[[0] + frames].cpu().numpy().astype(np.float32)
-    np.savez_compressed(out_dir / "trajectory.npz", x=x)
+    write_truth(gt_dir, x, {"scene": scene_name, "material": scene.material, "preset": dict(material_preset),
+                            "v0": list(scene.v0), "w0": list(scene.w0), "light_seed": scene.light_seed})
     write_json(out_dir / "cameras.json", {n: c.to_dict() for n, c in cameras.items()})
     times = [f * video.substeps * scene.dt for f in frames]
     meta = {"scene": scene_name, "object": scene.object, "material": scene.material, "dt": scene.dt,
