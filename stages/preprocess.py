@@ -18,6 +18,7 @@ import numpy as np
 from gca import config
 from gca.io import atomic_path, write_json
 from gca.scenes import TRAIN_VIEW, load_simulated_depth, load_view
+from gca.scenes.store import load_plate
 from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
 from gca.track import stage_run
 from gca.vision import VisionConfig
@@ -40,7 +41,8 @@ def main(argv=None) -> dict:
     view = load_view(args.scene_dir, TRAIN_VIEW)
     sim_depth = load_simulated_depth(args.scene_dir, len(view.rgb)) if cfg.depth.backend == "simulated" else None
     with stage_run("preprocess", params, scene=args.scene) as run:
-        prep = preprocess_view(view, cfg, seed=int(params["seed"]), simulated_depth=sim_depth)
+        prep = preprocess_view(view, cfg, seed=int(params["seed"]), simulated_depth=sim_depth,
+                               plate=load_plate(args.scene_dir, TRAIN_VIEW))
         with atomic_path(args.out, is_dir=True) as tmp:
             write_prep(tmp, prep)
         n_kpts = np.diff(prep["keypoints"]["offsets"])

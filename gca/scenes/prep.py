@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from gca.scenes.store import TRAIN_VIEW, SceneDataError, ViewData
+from gca.vision.segment import segment_frames
 from gca.vision import (VisionConfig, compute_masks, detect_keypoints, estimate_depth, match_features,
                         match_precision, pack_keypoints, unpack_keypoints)
 
@@ -42,7 +43,7 @@ def synthetic_pair_precision(frame: np.ndarray, cfg: VisionConfig, seed: int = 0
 
 
 def preprocess_view(view: ViewData, cfg: VisionConfig, seed: int = 0,
-                    simulated_depth: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                    simulated_depth: np.ndarray | None = None, plate: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Depth, masks and keypoints of the monocular view, from its frames.
 
     Args:
@@ -51,11 +52,16 @@ def preprocess_view(view: ViewData, cfg: VisionConfig, seed: int = 0,
         simulated_depth: [T, H, W] the simulated estimator's output the ground_truth stage stored
             (:func:`gca.scenes.store.load_simulated_depth`), used by ``vision.depth.backend: simulated``;
             the ``transformers`` backend reads only the frames.
+        plate: the view's clean plate [H, W, 3] (:func:`gca.scenes.store.load_plate`) for the segmenter's
+            ``background: plate``; None: ``plate_color``.
     """
     if view.name != TRAIN_VIEW:
         raise SceneDataError(f"preprocess works on the monocular view {TRAIN_VIEW!r}, got {view.name!r}")
     frames = (view.rgb * 255 + 0.5).astype(np.uint8)
-    masks = compute_masks(cfg.masks, frames=frames)
+    if cfg.masks.method == "segment":
+        masks = segment_frames(frames, cfg.masks.segment, plate)
+    else:
+        masks = compute_masks(cfg.masks, frames=frames)
     if cfg.depth.backend == "simulated":
         if simulated_depth is None:
             raise SceneDataError("preprocess: vision.depth.backend 'simulated' needs the scene's views/train0/depth_sim.npy")

@@ -5,6 +5,7 @@
       cameras.json         {view: Camera.to_dict()}; "train0" is the monocular camera,
                            "train1", "train2" the extra multi-view cameras, "eval*" held out
       views/<view>/rgb/00000.png ...     the lit RGB frames (uint8): what a camera recorded
+      views/<view>/plate.png             the empty scene filmed before the throw (a clean plate, uint8)
       views/train0/depth_sim.npy         the simulated monocular depth estimator's output [T, H, W] (float32,
                                          relative; ``vision.depth.backend: simulated``): an observation made in
                                          the ground_truth stage, because the estimator model needs the true depth
@@ -101,6 +102,17 @@ def load_view(scene_dir: str | Path, view: str, meta: dict | None = None,
 def load_views(scene_dir: str | Path, views: Iterable[str]) -> dict[str, ViewData]:
     meta, cameras = read_meta(scene_dir), read_cameras(scene_dir)
     return {v: load_view(scene_dir, v, meta, cameras) for v in views}
+
+
+def load_plate(scene_dir: str | Path, view: str = TRAIN_VIEW) -> np.ndarray | None:
+    """The view's clean plate [H, W, 3] float32 in [0, 1], or None when the scene has none."""
+    path = view_dir(scene_dir, view) / "plate.png"
+    if not path.is_file():
+        return None
+    img = iio.imread(path)
+    if img.ndim != 3 or img.shape[-1] < 3:
+        raise SceneDataError(f"{path}: a plate must be an RGB image, got shape {img.shape}")
+    return img[..., :3].astype(np.float32) / 255.0
 
 
 def load_simulated_depth(scene_dir: str | Path, n_frames: int, view: str = TRAIN_VIEW) -> np.ndarray:
