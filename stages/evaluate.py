@@ -29,6 +29,7 @@ def main(argv=None) -> dict:
     params, scene, methods, inputs = scene_context("evaluate", args)
     body = load_scene_body(params, args.particles, args.gaussians, args.device)
     out = {}
+    args.out.mkdir(parents=True, exist_ok=True)  # a calibration scene (no methods) still gets its folder
     for method, seed, name in seed_runs(params, methods, args.seeds):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
         with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
@@ -37,6 +38,7 @@ def main(argv=None) -> dict:
             with truth.bind(args.scene_dir, args.gt):
                 out[name] = evaluate_trained(params, args.scene, method, inputs, body, args.runs, args.out,
                                              args.device, seed)
+            out[name]["benchmark_version"] = str(params.get("benchmark", {}).get("version", ""))
             write_json(args.out / f"{name}.json", out[name])
             run.log_metrics({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})
             for media in ("strip.png", "rollout.gif", "cd_time.png"):

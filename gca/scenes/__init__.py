@@ -3,10 +3,10 @@
 ``store`` is the training-visible scene directory (frames, cameras); ``truth`` the ground-truth-only
 directory that evaluation alone reads."""
 
-from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig, scene_config, video_config
+from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig, scene_config, scene_video, video_config
 from gca.scenes.store import (TRAIN_VIEW, SceneDataError, ViewData, load_simulated_depth, load_trajectory, load_view,
                               load_views, read_meta)
 
-__all__ = ["OrbitCamera", "SceneConfig", "VideoConfig", "scene_config", "video_config", "TRAIN_VIEW",
+__all__ = ["OrbitCamera", "SceneConfig", "VideoConfig", "scene_config", "scene_video", "video_config", "TRAIN_VIEW",
            "SceneDataError", "ViewData", "load_simulated_depth", "load_trajectory", "load_view", "load_views",
            "read_meta"]

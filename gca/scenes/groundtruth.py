@@ -24,7 +24,7 @@ from gca.render import shading
 from gca.render.follow import smallest_axis_normal
 from gca.render.camera import Camera, look_at
 from gca.render.shadow import light_visibility
-from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
+from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig, scene_video
 from gca.scenes.store import TRAIN_VIEW, frame_name, view_dir
 from gca.scenes.truth import write_truth, write_view_truth
 from gca.vision.depth import SimulatedDepth, SimulatedDepthConfig
@@ -48,7 +48,8 @@ def scene_cameras(scene: SceneConfig, resolution: int) -> dict[str, Camera]:
 
 def simulate_scene(body: Body, material, scene: SceneConfig, video: VideoConfig, sim: SimConfig,
                    device: str | torch.device = "cpu") -> Rollout:
-    """Roll the ground-truth material out for ``video.n_frames`` frames (no gradients)."""
+    """Roll the ground-truth material out for ``video.n_frames`` frames of the scene's timing (no gradients)."""
+    video = scene_video(video, scene)
     solver = MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
     dtype = body.x0.dtype
     v = initial_velocity(body.x0, torch.tensor(scene.v0, dtype=dtype, device=body.x0.device),
@@ -142,6 +143,7 @@ def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: Sc
     Returns:
         Summary metrics (counts, mean mask coverage, displacement of the centre of mass).
     """
+    video = scene_video(video, scene)
     material = material_from_preset(material_preset, dt=scene.dt, n_particles=body.n_particles).to(device=device, dtype=body.x0.dtype)
     traj = simulate_scene(body, material, scene, video, sim, device)
     frames = video.video_frames()
@@ -171,6 +173,8 @@ def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: Sc
     meta = {"scene": scene_name, "object": scene.object, "material": scene.material, "dt": scene.dt,
             "substeps": video.substeps, "frame_every": video.frame_every, "n_frames": video.n_frames,
             "video_frames": frames, "times": times, "n_particles": body.n_particles,
+            "timing": video.timing, "fps": 1.0 / (video.substeps * video.frame_every * scene.dt),
+            "duration_s": frames[-1] * video.substeps * scene.dt,
             "n_gaussians": body.n_gaussians, "resolution": video.resolution,
             "views": {"train": [n for n in cameras if n.startswith("train")],
                       "eval": [n for n in cameras if n.startswith("eval")]}}
