@@ -75,7 +75,7 @@ class SegmentConfig:
     plate_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
     border_px: int = 2
     chroma_threshold: float = 0.06
-    shadow_min: float = 0.55
+    shadow_min: float = 0.5
     highlight_max: float = 1.15
     edge_threshold: float = 0.25
     open_px: int = 3
