@@ -126,3 +126,16 @@ def test_a_missing_simulated_depth_names_the_file(scene, tmp_path):
     (tmp_path / "scene/views/train0/depth_sim.npy").unlink()
     with pytest.raises(SceneDataError, match="depth_sim.npy"):
         load_simulated_depth(tmp_path / "scene", 4)
+
+
+def test_true_depth_is_alpha_normalised_at_the_silhouette(scene):
+    """The stored true depth is z, not the compositing sum alpha * z: edge pixels lie within the object's
+    depth range (benchmark 1.x stored the sum, so edge pixels read up to twice nearer)."""
+    tmp, _ = scene
+    alpha, depth = truth.load_alpha(tmp / "gt", "train0"), truth.load_true_depth(tmp / "gt", "train0")
+    inside = alpha > 0.5
+    solid = alpha > 0.98
+    assert solid.any() and (inside & ~solid).any()
+    lo, hi = depth[solid].min(), depth[solid].max()
+    edge = depth[inside & ~solid]
+    assert edge.min() > lo - 0.1 * (hi - lo) - 0.02, (edge.min(), lo, hi)

@@ -93,7 +93,7 @@ def _render_view(body: Body, traj: Rollout, frames: list[int], camera: Camera, l
         lit = shading.camera_response(out["rgb"] + (1.0 - a) * scene_bg, light)
         rgb.append(lit.clamp(0, 1).cpu().numpy())
         alpha.append(out["alpha"].cpu().numpy())
-        depth.append(out["depth"].cpu().numpy())
+        depth.append(out["depth_expected"].cpu().numpy())  # alpha-normalised z: "depth" is sum_i w_i z_i (alpha z at edges)
         if unlit:
             plain.append(render_gaussians(body, means, covs, body.colors, camera, bg)["rgb"].clamp(0, 1).cpu().numpy())
     images = {"rgb": np.stack(rgb), "alpha": np.stack(alpha), "depth": np.stack(depth)}

@@ -4,7 +4,8 @@
       trajectory.npz                 x [T+1, P, 3]: particles at frame 0 and at each video frame [m, sim]
       law.json                       the true material preset, v0 [m/s], w0 [rad/s], light seed
       views/<view>/alpha.npy         rendered alpha [T, H, W] (float32, [0, 1]): the true silhouette
-      views/<view>/depth.npy         true camera-space depth [T, H, W] (float32, m; 0 where alpha <= threshold)
+      views/<view>/depth.npy         true camera-space depth [T, H, W] (float32, m; the render's alpha-normalised
+                                     depth; 0 where alpha <= threshold)
       views/train0/unlit.npy         the monocular view rendered with the base colours, no lighting,
                                      exposure or shadow [T, H, W, 3] (uint8): the lighting statistic's reference
 
