@@ -50,6 +50,31 @@ def write_preview(work: Path, scene: str, out: Path, scale: int = 3) -> Path:
     return out
 
 
+def depth_ablation(work: Path, scene: str, params: dict) -> dict:
+    """Mean in-object Spearman of the simulated estimator on a scene with all components, none of the four
+    non-monotone ones (benchmark 1.x), and each one switched off (the same seed as the ground_truth stage)."""
+    import dataclasses
+
+    import numpy as np
+
+    from gca import config
+    from gca.eval.nuisance import depth_spearman
+    from gca.scenes import load_view, truth
+    from gca.vision.depth import DepthConfig, SimulatedDepth
+
+    base = config.build(DepthConfig, config.section(params, "vision.depth"), "vision.depth").simulated
+    view = load_view(work / "data/scenes" / scene, "train0")
+    inside = truth.load_alpha(work / "data/gt" / scene, "train0") > 0.5
+    z = truth.load_true_depth(work / "data/gt" / scene, "train0")
+    frames = (view.rgb * 255 + 0.5).astype(np.uint8)
+    variants = {"all": {}, "none_of_4": dict(texture_copy=0.0, smooth_sigma_px=0.0, thin_flatten=0.0, flicker_tilt_std=0.0),
+                "no_texture": dict(texture_copy=0.0), "no_smooth": dict(smooth_sigma_px=0.0),
+                "no_thin": dict(thin_flatten=0.0), "no_flicker": dict(flicker_tilt_std=0.0)}
+    seed = int(params["seed"])
+    return {name: float(np.nanmean(depth_spearman(SimulatedDepth(dataclasses.replace(base, **kw), seed).estimate(
+        frames, z, inside), z, inside))) for name, kw in variants.items()}
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True)
@@ -59,6 +84,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--json", type=Path, help="write the rows here")
     ap.add_argument("--gifs", type=Path, help="write a preview GIF per scene here (frame | mask errors | depth)")
     ap.add_argument("--gifs-only", action="store_true", help="only write the GIFs of an existing --work")
+    ap.add_argument("--ablate-depth", action="store_true", help="with --gifs-only: print the depth components' ablation")
     args = ap.parse_args(argv)
     import assets, ground_truth, nuisance, particles, preprocess  # noqa: E401
 
@@ -70,7 +96,15 @@ def main(argv=None) -> list[dict]:
         params.write_text(yaml.safe_dump(raw, sort_keys=False))
     p = ["--params", str(params)]
     if args.gifs_only:
-        return [write_preview(args.work, s, args.gifs / f"{s}.gif") for s in args.scenes or list(raw["scenes"])]
+        from gca import config
+        resolved = config.resolve(yaml.safe_load(params.read_text()), args.profile)
+        out = []
+        for scene in args.scenes or list(raw["scenes"]):
+            if args.gifs:
+                out.append(write_preview(args.work, scene, args.gifs / f"{scene}.gif"))
+            if args.ablate_depth:
+                print(scene, {k: round(v, 3) for k, v in depth_ablation(args.work, scene, resolved).items()})
+        return out
     d = lambda *parts: str(args.work.joinpath(*parts))  # noqa: E731
     rows = []
     for scene in args.scenes or list(raw["scenes"]):
