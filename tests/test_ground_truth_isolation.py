@@ -139,3 +139,30 @@ def test_true_depth_is_alpha_normalised_at_the_silhouette(scene):
     lo, hi = depth[solid].min(), depth[solid].max()
     edge = depth[inside & ~solid]
     assert edge.min() > lo - 0.1 * (hi - lo) - 0.02, (edge.min(), lo, hi)
+
+
+def test_the_nuisance_stage_reads_the_ground_truth_and_reports_per_frame(scene, tmp_path):
+    import json
+
+    import nuisance
+    import preprocess
+
+    tmp, _ = scene
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    params["profile"] = "ci"
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    p = ["--params", str(tmp_path / "params.yaml")]
+    preprocess.main(["--scene", "tiny", "--scene-dir", str(tmp / "scene"), "--out", str(tmp_path / "prep"),
+                     "--metrics", str(tmp_path / "prep.json")] + p)
+    out = tmp_path / "nuisance.json"
+    nuisance.main(["--scene", "tiny", "--scene-dir", str(tmp / "scene"), "--gt", str(tmp / "gt"),
+                   "--prep", str(tmp_path / "prep"), "--out", str(out)] + p)
+    record = json.loads(out.read_text())
+    T = len(read_meta(tmp / "scene")["video_frames"])
+    assert record["benchmark_version"] == str(params["benchmark"]["version"])
+    assert len(record["mask_iou_per_frame"]) == len(record["depth_spearman_per_frame"]) == T
+    assert 0 <= record["mask_iou_min"] <= record["mask_iou_mean"] <= 1
+    assert 0 <= record["lighting_unexplained_share"] <= 1
+    with pytest.raises(truth.GroundTruthUnavailable, match="alpha.npy"):
+        nuisance.main(["--scene", "tiny", "--scene-dir", str(tmp / "scene"), "--gt", str(tmp_path / "nowhere"),
+                       "--prep", str(tmp_path / "prep"), "--out", str(out)] + p)
