@@ -42,7 +42,7 @@ from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the 
 
 from gca import config  # noqa: E402
 from gca.pipeline.settings import Settings  # noqa: E402
-from gca.scenes import load_trajectory  # noqa: E402
+from gca.scenes import truth  # noqa: E402
 from gca.train.loop import simulate  # noqa: E402
 from gca.train.methods import Method, get_method  # noqa: E402
 from gca.pipeline.train import (SceneInputs, default_device, law_for, load_law, load_train_data,  # noqa: E402
@@ -64,6 +64,11 @@ def oracle_loss(traj, gt: torch.Tensor, video_frames: list[int], n_video: int) -
     return (pred - gt[1:n_video + 1]).square().sum(-1).mean()
 
 
+def gt_dir_of(scene_dir: Path) -> Path:
+    """``<work>/data/gt/<scene>`` beside ``<work>/data/scenes/<scene>`` (an oracle benchmark reads the truth)."""
+    return Path(scene_dir).parent.parent / "gt" / Path(scene_dir).name
+
+
 def _scene_and_law(params, scene_name: str, inputs: SceneInputs, velocity, law_path: Path | None, device: str):
     """The scene's config, its training data (GCA's view of it) and the law: the prior or ``law_path``."""
     scene = params.scene(scene_name)
@@ -82,7 +87,7 @@ def term_gradients(params, scene_name: str, inputs: SceneInputs, loaded, n_video
     scene, data, law = loaded
     solver = solver_for(params, scene, device)
     theta = law.trainable()
-    gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=data.body.x0.dtype, device=device)
+    gt = torch.as_tensor(truth.load_trajectory(gt_dir_of(inputs.scene_dir)), dtype=data.body.x0.dtype, device=device)
 
     def grad_of(loss_fn) -> tuple[float, torch.Tensor]:
         traj = simulate(solver, law, data, n_video)
@@ -131,7 +136,7 @@ def path_values(params, scene_name: str, inputs: SceneInputs, loaded, n_video: i
     scene, data, law = loaded
     with torch.no_grad():
         traj = simulate(solver_for(params, scene, device), law, data, n_video)
-    gt = torch.as_tensor(load_trajectory(inputs.scene_dir), dtype=traj.x.dtype, device=device)
+    gt = torch.as_tensor(truth.load_trajectory(gt_dir_of(inputs.scene_dir)), dtype=traj.x.dtype, device=device)
     frames = data.video_frames[:n_video]
     objectives = {name: objective_for(params, TERMS[name], data, scene) for name in terms if name != "cpr"}
     rows = []

@@ -84,14 +84,14 @@ def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, ski
             print(f"[harness] prior on {device} failed ({type(exc).__name__}: {exc}); retrying on cpu", flush=True)
             timed("prior", prior.main, argv + ["--device", "cpu"])
     timed("ground_truth", ground_truth.main, ["--scene", scene, "--assets", d("assets", obj), "--particles",
-                                              d("particles.npz"), "--out", d("scene"), "--metrics", d("m/gt.json"),
+                                              d("particles.npz"), "--out", d("scene"), "--gt", d("gt"), "--metrics", d("m/gt.json"),
                                               "--device", device] + p)
     timed("preprocess", preprocess.main, ["--scene", scene, "--scene-dir", d("scene"), "--out", d("prep"),
                                           "--metrics", d("m/prep.json")] + p)
     common = ["--scene", scene, "--scene-dir", d("scene"), "--particles", d("particles.npz"), "--gaussians",
               d("assets", obj, "gaussians.ply"), "--prior-dir", d("prior"), "--device", device] + p
     timed("train", train.main, common + ["--prep", d("prep"), "--out", d("runs")])
-    timed("evaluate", evaluate.main, common + ["--runs", d("runs"), "--out", d("eval")])
+    timed("evaluate", evaluate.main, common + ["--gt", d("gt"), "--runs", d("runs"), "--out", d("eval")])
     return seconds
 
 

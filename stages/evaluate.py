@@ -1,12 +1,13 @@
 """DVC stage ``evaluate``: metrics of every trained method of a scene, one JSON per method.
 
-    python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --runs runs/duck \
+    python stages/evaluate.py --scene duck --scene-dir data/scenes/duck --gt data/gt/duck --runs runs/duck \
         --particles data/particles/duck.npz --gaussians data/assets/duck/gaussians.ply \
         --prior-dir models/prior --out metrics/eval/duck [--methods gca] [--seeds 0 1]
 
 One JSON per (method, seed) trained (``metrics/eval/duck/gca.json``, ``gca@seed1.json``, ...), added to the
 training run's MLflow run (Chamfer also in mm), and mirrored into the experiment of each other table of the
-method (``gca.pipeline.track.mirror_runs``).
+method (``gca.pipeline.track.mirror_runs``). The ground truth (``--gt``, trajectory) is bound to the scene directory
+for this process only (:func:`gca.scenes.truth.bind`): training's processes never have it.
 """
 
 from __future__ import annotations
@@ -17,23 +18,27 @@ from gca.pipeline.evaluate import evaluate_trained
 from gca.io import read_json, write_json
 from gca.pipeline.train import seed_runs
 from gca.pipeline.track import method_params, mirror_runs, stage_run, with_millimetres
+from gca.scenes import truth
 
 from common import scene_context, scene_parser  # stages/common.py
 
 
 def main(argv=None) -> dict:
-    paths = ("scene-dir", "runs", "particles", "gaussians", "prior-dir", "out")
+    paths = ("scene-dir", "gt", "runs", "particles", "gaussians", "prior-dir", "out")
     args = scene_parser(__doc__.splitlines()[0], paths).parse_args(argv)
     settings, scene, methods, inputs = scene_context("evaluate", args)
     body = settings.load_body(args.particles, args.gaussians, args.device)
     out = {}
+    args.out.mkdir(parents=True, exist_ok=True)  # a calibration scene (no methods) still gets its folder
     for method, seed, name in seed_runs(settings, methods, args.seeds):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
         with stage_run("evaluate", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
                        tags={"tables": ",".join(method.tables), "seed": str(seed)}, resume_run_id=run_id) as run:
-            out[name] = evaluate_trained(settings, args.scene, method, inputs, body, args.runs, args.out, args.device,
-                                         seed)
+            with truth.bind(args.scene_dir, args.gt):
+                out[name] = evaluate_trained(settings, args.scene, method, inputs, body, args.runs, args.out,
+                                             args.device, seed)
+            out[name]["benchmark_version"] = settings.benchmark_version
             write_json(args.out / f"{name}.json", out[name])
             final = with_millimetres({k: v for k, v in out[name].items() if k != "chamfer_per_frame"})
             run.log_metrics(final)

@@ -1,5 +1,8 @@
 """DVC stage ``preprocess``: what a monocular method extracts from the training video.
 
+It reads the scene directory only (frames, cameras, the simulated estimator's depth); the ground-truth
+directory ``data/gt/<scene>`` is not among its dependencies and is never opened.
+
     python stages/preprocess.py --scene duck --scene-dir data/scenes/duck --out data/prep/duck \
         --metrics metrics/preprocess/duck.json
 """
@@ -15,7 +18,8 @@ import numpy as np
 from gca.io import atomic_path, write_json
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
-from gca.scenes import TRAIN_VIEW, load_view
+from gca.scenes import TRAIN_VIEW, load_simulated_depth, load_view
+from gca.scenes.store import load_plate
 from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
 
 
@@ -34,8 +38,10 @@ def main(argv=None) -> dict:
     settings = Settings.load(f"preprocess@{args.scene}", args.params)
     cfg = settings.vision
     view = load_view(args.scene_dir, TRAIN_VIEW)
+    sim_depth = load_simulated_depth(args.scene_dir, len(view.rgb)) if cfg.depth.backend == "simulated" else None
     with stage_run("preprocess", settings.params, scene=args.scene) as run:
-        prep = preprocess_view(view, cfg, seed=settings.seed)
+        prep = preprocess_view(view, cfg, seed=settings.seed, simulated_depth=sim_depth,
+                               plate=load_plate(args.scene_dir, TRAIN_VIEW))
         with atomic_path(args.out, is_dir=True) as tmp:
             write_prep(tmp, prep)
         n_kpts = np.diff(prep["keypoints"]["offsets"])

@@ -22,6 +22,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=Path("reports"), help="reports folder (replaced)")
     parser.add_argument("--summary", type=Path, default=Path("metrics/report.json"), help="summary metrics JSON")
     parser.add_argument("--media", type=Path, nargs="*", default=[], help="GIF/PNG folders to include (demos)")
+    parser.add_argument("--nuisance", type=Path, help="the nuisance stage's folder (metrics/nuisance)")
     parser.add_argument("--params", type=Path, default=Path("params.yaml"))
     return parser.parse_args(argv)
 
@@ -31,7 +32,9 @@ def main(argv: list[str] | None = None) -> list[Path]:
     params = config.load("report", args.params)
     cfg = config.build(ReportConfig, config.section(params, "report"), "report")
     with stage_run("report", params, table="all") as run:
-        written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()])
+        written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()],
+                                benchmark_version=str(params.get("benchmark", {}).get("version", "")),
+                                nuisance_dir=args.nuisance)
         headline = summary(load_runs(args.metrics), cfg)
         write_json(args.summary, headline)
         run.log_metrics({"n_records": headline["n_records"],

@@ -47,41 +47,59 @@ def pipeline(tmp_path_factory):
     prior.main(["--family", FAMILY, "--out", d("models/prior", f"{FAMILY}.pt"), "--metrics", d("metrics/prior.json"),
                 "--plots", d("metrics/prior.png"), "--params", params])
     ground_truth.main(["--scene", SCENE, "--assets", d("data/assets", OBJECT), "--particles", d("data/particles/duck.npz"),
-                       "--out", d("data/scenes", SCENE), "--metrics", d("metrics/gt.json"), "--params", params])
-    preprocess.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--out", d("data/prep", SCENE),
-                     "--metrics", d("metrics/prep.json"), "--params", params])
+                       "--out", d("data/scenes", SCENE), "--gt", d("data/gt", SCENE), "--metrics", d("metrics/gt.json"),
+                       "--params", params])
+    # preprocessing and training run with the ground-truth directory absent, and open nothing under it
+    hidden = tmp / "hidden_gt"
+    (tmp / "data/gt").rename(hidden)
     common = ["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
               "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"), "--params", params]
-    train.main(common + ["--prep", d("data/prep", SCENE), "--out", d("runs", SCENE)])
-    evaluate.main(common + ["--runs", d("runs", SCENE), "--out", d("metrics/eval", SCENE)])
+    from test_ground_truth_isolation import recorder
+    with recorder() as rec:
+        preprocess.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--out", d("data/prep", SCENE),
+                         "--metrics", d("metrics/prep.json"), "--params", params])
+        train.main(common + ["--prep", d("data/prep", SCENE), "--out", d("runs", SCENE)])
+    (tmp / "gt_opened_by_training.json").write_text(json.dumps({
+        "gt": [p for p in rec.paths if "gt" in Path(p).parts or str(hidden) in p],
+        "prep_opened": sum(str(tmp / "data/prep") in p for p in rec.paths)}))
+    hidden.rename(tmp / "data/gt")
+    evaluate.main(common + ["--gt", d("data/gt", SCENE), "--runs", d("runs", SCENE), "--out", d("metrics/eval", SCENE)])
     report.main(["--metrics", d("metrics/eval"), "--out", d("reports"), "--summary", d("metrics/report.json"),
                  "--params", params])
     return tmp
 
 
 def test_ground_truth_outputs_are_consistent(pipeline):
-    from gca.scenes import load_trajectory, load_view, read_meta
+    from gca.scenes import load_view, read_meta, truth
 
-    scene_dir = pipeline / "data/scenes" / SCENE
+    scene_dir, gt_dir = pipeline / "data/scenes" / SCENE, pipeline / "data/gt" / SCENE
     meta = read_meta(scene_dir)
     view = load_view(scene_dir, "train0")
     T = len(meta["video_frames"])
-    assert view.rgb.shape[0] == T and view.depth.shape == view.mask.shape
-    assert load_trajectory(scene_dir).shape[0] == T + 1
+    assert view.rgb.shape[0] == T and view.mask is None and view.depth is None
+    assert truth.load_trajectory(gt_dir).shape[0] == T + 1
     assert (scene_dir / "preview.gif").is_file()
     assert set(meta["views"]["train"]) == {"train0", "train1", "train2"} and meta["views"]["eval"]
-    assert 0.005 < view.mask.mean() < 0.8, "the object should be visible but not fill the frame"
-    assert np.all(view.depth[view.mask] > 0) and np.all(view.depth[~view.mask] == 0)
+    alpha, depth = truth.load_alpha(gt_dir, "train0"), truth.load_true_depth(gt_dir, "train0")
+    mask = alpha > 0.5
+    assert 0.005 < mask.mean() < 0.8, "the object should be visible but not fill the frame"
+    assert np.all(depth[mask] > 0) and np.all(depth[~mask] == 0)
 
 
-def test_mask_matches_the_rendered_alpha(pipeline):
-    """Re-simulate and re-render the last ground-truth frame: the stored mask is its alpha > threshold."""
+def test_preprocess_and_training_never_opened_the_ground_truth(pipeline):
+    opened = json.loads((pipeline / "gt_opened_by_training.json").read_text())
+    assert opened["prep_opened"] > 0  # the recorder saw the stages' own reads (not a vacuous pass)
+    assert opened["gt"] == [], opened["gt"]
+
+
+def test_true_alpha_matches_the_rendered_alpha(pipeline):
+    """Re-simulate and re-render the last ground-truth frame: the stored true alpha is its alpha."""
     import torch
 
     from gca import config
     from gca.laws.presets import material_from_preset
     from gca.pipeline.settings import Settings
-    from gca.scenes import load_view, read_meta
+    from gca.scenes import load_view, read_meta, truth
     from gca.scenes.groundtruth import simulate_scene
     from gca.scenes.world import gaussians_at, render_gaussians
 
@@ -96,8 +114,9 @@ def test_mask_matches_the_rendered_alpha(pipeline):
     means, covs = gaussians_at(body, traj.x[f], traj.F[f])
     with torch.no_grad():
         alpha = render_gaussians(body, means, covs, body.colors, view.camera, torch.ones(3))["alpha"].numpy()
-    agree = ((alpha > video.mask_threshold) == view.mask[j]).mean()
-    assert agree > 0.999, f"mask and re-rendered alpha agree on only {agree:.4f} of the pixels"
+    stored = truth.load_alpha(pipeline / "data/gt" / SCENE, "train0")[j] > video.mask_threshold
+    agree = ((alpha > video.mask_threshold) == stored).mean()
+    assert agree > 0.999, f"true alpha and re-rendered alpha agree on only {agree:.4f} of the pixels"
 
 
 def test_every_method_has_metrics_and_reports_exist(pipeline):
@@ -178,6 +197,7 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
     common = ["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
               "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
               "--params", str(params), "--methods", "gca", "nclaw"]
+    gt = ["--gt", d("data/gt", SCENE)]
     runs, metrics = tmp_path / "runs", tmp_path / "eval" / SCENE
     runs.mkdir()
     shutil.copyfile(pipeline / "runs" / SCENE / "velocity.json", runs / "velocity.json")  # the scene's, reused
@@ -194,7 +214,7 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
             for n in ("gca", "gca@seed3")]
     assert not torch.equal(flat[0], flat[1])  # another seed, another LoRA init, another trained law
 
-    evaluated = evaluate.main(common + ["--runs", str(runs), "--out", str(metrics)])
+    evaluated = evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics)])
     assert list(evaluated) == ["gca", "nclaw", "gca@seed3"]
     assert {p.name for p in metrics.glob("*.json")} == {"gca.json", "gca@seed3.json", "nclaw.json"}
     assert (metrics / "gca@seed3" / "strip.png").is_file()
@@ -204,7 +224,7 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
     cds = [json.loads((metrics / f"{n}.json").read_text())["chamfer_mean"] for n in ("gca", "gca@seed3")]
     assert cell.n == 2 and cell.mean == pytest.approx(np.mean(cds)) and cell.std == pytest.approx(np.std(cds, ddof=1))
 
-    assert list(evaluate.main(common + ["--runs", str(runs), "--out", str(metrics), "--seeds", "3"])) == ["gca@seed3"]
+    assert list(evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics), "--seeds", "3"])) == ["gca@seed3"]
     with pytest.raises(ConfigError, match=r"seeds \[5\] are not in train.seeds \[0, 3\]"):
-        evaluate.main(common + ["--runs", str(runs), "--out", str(metrics), "--seeds", "5"])
+        evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics), "--seeds", "5"])
 

@@ -114,3 +114,74 @@ def test_bad_configs_raise():
         DepthConfig(backend="midas")
     with pytest.raises(ValueError, match="gamma_max"):
         dataclasses.replace(SimulatedDepthConfig(), gamma_max=0.5)
+
+
+# ---- non-monotone error components (issue 21, item 4): one test of each component's effect ----
+
+_OFF = dict(gamma_max=1.0, noise_std=0.0, lowfreq_std=0.0, edge_band_px=0.0, scale_range=(1.0, 1.0),
+            shift_range=(0.0, 0.0))
+
+
+def _spearman_inside(est, z, masks):
+    return np.array([scipy.stats.spearmanr(z[t][masks[t]], est[t][masks[t]]).statistic for t in range(len(z))])
+
+
+def test_texture_copying_follows_the_image_and_breaks_the_rank_order():
+    _, z, masks = _scene()
+    rng = np.random.default_rng(0)
+    frames = (rng.uniform(0, 1, (T, H, W, 3)) * 255).astype(np.uint8)  # a strongly textured object
+    clean = SimulatedDepth(SimulatedDepthConfig(**_OFF), 0).estimate(frames, z, masks)
+    copied = SimulatedDepth(SimulatedDepthConfig(**_OFF, texture_copy=0.3, texture_sigma_px=2.0), 0).estimate(frames, z, masks)
+    err = (copied - clean)[masks]
+    grey = frames.mean(-1) / 255.0
+    high = np.stack([g - cv2.GaussianBlur(g, (0, 0), 2.0, borderType=cv2.BORDER_REPLICATE) for g in grey])[masks]
+    assert np.corrcoef(err, high)[0, 1] < -0.99            # darker texture reads farther, exactly the high-pass
+    assert np.all((copied - clean)[~masks] == 0)            # only inside the object
+    assert _spearman_inside(copied, z, masks).max() < 0.99  # not a monotone function of depth any more
+    np.testing.assert_allclose(_spearman_inside(clean, z, masks), 1.0, atol=1e-9)
+
+
+def test_over_smoothing_rounds_boundaries_and_flattens_relief():
+    frames, z, masks = _scene()
+    clean = SimulatedDepth(SimulatedDepthConfig(**_OFF), 0).estimate(frames, z, masks)
+    smooth = SimulatedDepth(SimulatedDepthConfig(**_OFF, smooth_sigma_px=2.0), 0).estimate(frames, z, masks)
+    ring = masks[0] & ~_interior(masks[0], 2)                  # the object's boundary pixels
+    assert np.abs(smooth[0] - clean[0])[ring].mean() > 5 * np.abs(smooth[0] - clean[0])[_interior(masks[0], 6)].mean()
+    gy, gx = np.gradient(smooth[0])
+    cy, cx = np.gradient(clean[0])
+    assert np.hypot(gy, gx).max() < 0.5 * np.hypot(cy, cx).max()   # the depth step is smeared
+
+
+def test_thin_parts_are_flattened_toward_the_background_and_thick_parts_kept():
+    z = np.zeros((1, H, W))
+    masks = np.zeros((1, H, W), bool)
+    masks[0, 10:30, 10:30] = True                             # thick body
+    masks[0, 18:20, 30:44] = True                             # a 2-px-thin arm
+    z[masks] = 2.0 + 0.01 * np.arange(masks.sum())
+    frames = np.zeros((1, H, W, 3), np.uint8)
+    cfg = SimulatedDepthConfig(**_OFF, thin_px=5, thin_flatten=0.8)
+    clean = SimulatedDepth(SimulatedDepthConfig(**_OFF), 0).estimate(frames, z, masks)[0]
+    flat = SimulatedDepth(cfg, 0).estimate(frames, z, masks)[0]
+    arm, body = np.zeros_like(masks[0]), np.zeros_like(masks[0])
+    arm[18:20, 32:44], body[12:28, 12:28] = True, True
+    np.testing.assert_allclose(flat[body], clean[body])
+    bg = cfg.background
+    assert np.all(np.abs(flat[arm] - bg) <= 0.2 * np.abs(clean[arm] - bg) + 1e-6)  # 80% of the way to the background
+
+
+def test_flicker_changes_a_static_surface_from_frame_to_frame_beyond_scale_and_shift():
+    frames, z, masks = _scene()
+    z, masks = np.repeat(z[:1], 4, 0), np.repeat(masks[:1], 4, 0)   # a static object
+    frames = np.repeat(frames[:1], 4, 0)
+    rhos = {}
+    for std in (0.0, 0.2):
+        est = SimulatedDepth(SimulatedDepthConfig(**_OFF, flicker_tilt_std=std), 1).estimate(frames, z, masks)
+        m = masks[0]
+        # rank agreement of consecutive frames on the same pixels (scale/shift cannot change it)
+        rhos[std] = min(scipy.stats.spearmanr(est[t][m], est[t + 1][m]).statistic for t in range(3))
+    assert rhos[0.0] > 0.999 and rhos[0.2] < 0.97, rhos
+
+
+def test_error_components_reject_negative_amplitudes():
+    with pytest.raises(ValueError, match="depth.py"):
+        SimulatedDepthConfig(texture_copy=-0.1)

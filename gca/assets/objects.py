@@ -161,13 +161,36 @@ def _pudding(rng) -> trimesh.Trimesh:
     return _union([mesh] + drip)
 
 
+# calibration objects (issue 21, item 5): in no paper table; thin parts, holes and overhangs that stress
+# segmentation, depth and shadows in ways the table objects do not
+def _torus(rng) -> trimesh.Trimesh:
+    ring = trimesh.creation.torus(major_radius=0.7, minor_radius=0.22, major_sections=48, minor_sections=16)
+    ring.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2 * 0.8, [1, 0, 0]))
+    return ring
+
+
+def _mushroom(rng) -> trimesh.Trimesh:
+    profile = [(0, 0), (0.24, 0), (0.2, 0.35), (0.18, 0.62), (0.75, 0.66), (0.8, 0.74), (0.65, 0.92),
+               (0.35, 1.05), (0, 1.08)]
+    return _revolve(profile)
+
+
+def _star(rng) -> trimesh.Trimesh:
+    angles = np.pi / 2 + np.arange(10) * np.pi / 5
+    radii = np.where(np.arange(10) % 2 == 0, 1.0, 0.42)
+    polygon = [(r * np.cos(a), r * np.sin(a)) for r, a in zip(radii, angles)]
+    return _plate(polygon, 0.3, trimesh.transformations.rotation_matrix(-0.35, [1, 0, 0]))
+
+
 SHAPES: dict[str, Callable[[np.random.Generator], trimesh.Trimesh]] = {
     "ball": _ball, "duck": _duck, "pawn": _pawn, "cat": _cat, "fish": _fish, "bottle": _bottle,
     "dragon": _dragon, "wolf": _wolf, "pudding": _pudding,
+    "torus": _torus, "mushroom": _mushroom, "star": _star,
 }
 BASE_RGB = {"ball": (0.8, 0.25, 0.2), "duck": (0.95, 0.8, 0.2), "pawn": (0.85, 0.8, 0.7),
             "cat": (0.6, 0.45, 0.35), "fish": (0.3, 0.55, 0.8), "bottle": (0.3, 0.7, 0.45),
-            "dragon": (0.35, 0.6, 0.3), "wolf": (0.55, 0.55, 0.6), "pudding": (0.95, 0.75, 0.4)}
+            "dragon": (0.35, 0.6, 0.3), "wolf": (0.55, 0.55, 0.6), "pudding": (0.95, 0.75, 0.4),
+            "torus": (0.75, 0.7, 0.65), "mushroom": (0.7, 0.3, 0.25), "star": (0.45, 0.4, 0.75)}
 
 
 # ----------------------------------------------------------------------------- public API

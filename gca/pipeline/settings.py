@@ -65,10 +65,23 @@ class Settings:
 
     @functools.cached_property
     def video(self) -> VideoConfig:
+        """The ``video`` section, with the chosen ``video.timing`` variant of ``video.timings`` merged in (a
+        scene's own timing: :func:`gca.scenes.config.scene_video`)."""
         raw = dict(section(self.params, "video"))
+        timings = raw.pop("timings", None) or {}
+        timing = raw.get("timing", "")
+        if timing:
+            if timing not in timings:
+                raise ConfigError(f"params: video.timing {timing!r} is not one of video.timings {sorted(timings)}")
+            raw.update(timings[timing])
         if "background" in raw:
             raw["background"] = tuple(raw["background"])
         return build(VideoConfig, raw, "video")
+
+    @functools.cached_property
+    def benchmark_version(self) -> str:
+        """``benchmark.version`` (docs/benchmark.md): the frozen conditions the scenes were made under."""
+        return str(section(self.params, "benchmark.version"))
 
     @functools.cached_property
     def lighting(self) -> LightingConfig:

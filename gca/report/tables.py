@@ -353,6 +353,7 @@ def provenance(runs: Runs, pairs: Iterable[tuple[str, str]]) -> dict[str, str]:
 
     definitions = sorted({str(r["chamfer_definition"]) for r in records if r.get("chamfer_definition")})
     return {"runs": str(len(records)), "profile": one("profile"), "device": one("device"),
+            "benchmark_version": one("benchmark_version"),
             "chamfer_definition": " | ".join(definitions) if definitions else "not stated in the metrics"}
 
 
@@ -375,6 +376,8 @@ def markdown(table: Table, info: Mapping[str, str]) -> str:
     else:
         where = f"profile `{info['profile']}`, device `{info['device']}`, {info['runs']} metrics files"
     lines = [f"# {table.title}", "", table.caption, "",
+             f"- Benchmark version: {info.get('benchmark_version', 'unknown')} (params `benchmark.version` of the "
+             "metrics; docs/benchmark.md).",
              f"- Measured at: {where}.",
              f"- Chamfer distance (measured): {info['chamfer_definition']}.",
              "- **Absolute numbers are not comparable to the paper's** (different objects, scale, Chamfer "

@@ -1,7 +1,12 @@
-"""Scenes: configuration, the simulate-and-render world, ground-truth generation, on-disk layout."""
+"""Scenes: configuration, the simulate-and-render world, ground-truth videos, on-disk layout.
 
-from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
-from gca.scenes.store import TRAIN_VIEW, SceneDataError, ViewData, load_trajectory, load_view, load_views, read_meta
+``store`` is the training-visible scene directory (frames, cameras); ``truth`` the ground-truth-only
+directory that evaluation alone reads."""
 
-__all__ = ["OrbitCamera", "SceneConfig", "VideoConfig", "TRAIN_VIEW",
-           "SceneDataError", "ViewData", "load_trajectory", "load_view", "load_views", "read_meta"]
+from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig, scene_video
+from gca.scenes.store import (TRAIN_VIEW, SceneDataError, ViewData, load_simulated_depth, load_trajectory, load_view,
+                              load_views, read_meta)
+
+__all__ = ["OrbitCamera", "SceneConfig", "VideoConfig", "scene_video", "TRAIN_VIEW",
+           "SceneDataError", "ViewData", "load_simulated_depth", "load_trajectory", "load_view", "load_views",
+           "read_meta"]

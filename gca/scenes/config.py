@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from gca.config import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +55,12 @@ class VideoConfig:
         resolution: square image size [pixels].
         background: RGB background in [0, 1].
         mask_threshold: alpha above which a pixel belongs to the object mask.
+        fps: > 0: the video's frame rate [1/s]; then each scene's frames are derived from its dt
+            (:func:`scene_video`: one video frame per round(1 / (fps dt)) steps, for its duration) and
+            ``n_frames``/``substeps``/``frame_every`` are ignored; 0: those three as given.
+        duration_s: > 0: every scene's video duration [s]; 0: the scene's own ``duration_s``.
+        max_duration_s: > 0: a cap on the duration (the CI profile's small size) [s].
+        timing: the name of the ``video.timings`` variant these came from (recorded in meta.json).
     """
 
     n_frames: int = 400
@@ -62,6 +69,10 @@ class VideoConfig:
     resolution: int = 256
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     mask_threshold: float = 0.5
+    fps: float = 0.0
+    duration_s: float = 0.0
+    max_duration_s: float = 0.0
+    timing: str = ""
 
     def video_frames(self) -> list[int]:
         """Simulated-frame indices (1-based, after each frame's steps) kept in the video."""
@@ -88,6 +99,9 @@ class SceneConfig:
         cpr_target: (elastic, plastic) CPR hypotheses closest to the true law; the
             ``cpr_target_removed`` method drops them from CPR's library.
         law_level: evaluate the law-level response error against the analytic ground truth.
+        duration_s: the video's duration when ``video.fps`` > 0 [s] (NeuMA's: 0.2 s pawn/cat/fish/bottle,
+            0.4 s ball/duck; docs/benchmark.md states the others').
+        calibration: a calibration scene (issue 21, item 5): for tuning only, in no table.
     """
 
     object: str
@@ -104,3 +118,22 @@ class SceneConfig:
     methods: tuple[str, ...] = ("gca", "neuma", "nclaw")
     cpr_target: tuple[str, str] = ("corotated", "identity")
     law_level: bool = False
+    duration_s: float = 0.0
+    calibration: bool = False
+
+
+def scene_video(video: VideoConfig, scene: SceneConfig) -> VideoConfig:
+    """The video timing of one scene: with ``video.fps`` > 0, one video frame per ``round(1 / (fps dt))`` MPM
+    steps of the scene's dt (the realised rate is ``1 / (steps dt)``), ``frame_every = 1``, for the scene's
+    duration (``video.duration_s`` or ``scene.duration_s``, capped by ``video.max_duration_s``). Idempotent."""
+    if video.fps <= 0:
+        return video
+    steps = max(1, int(round(1.0 / (video.fps * scene.dt))))
+    duration = video.duration_s or scene.duration_s
+    if duration <= 0:
+        raise ConfigError(f"params: video.fps = {video.fps} needs a duration: set video.duration_s or the scene's "
+                          f"duration_s (scene of object {scene.object!r})")
+    if video.max_duration_s > 0:
+        duration = min(duration, video.max_duration_s)
+    n = max(1, int(round(duration / (steps * scene.dt))))
+    return dataclasses.replace(video, fps=0.0, n_frames=n, substeps=steps, frame_every=1)

@@ -1,8 +1,10 @@
 """Ground-truth video generation: simulate a scene with its analytic law, render it from one fixed camera.
 
-What makes the benchmark hard, as in the paper: (1) randomized lighting interference, per-frame light
-direction/intensity/colour applied as shading on the Gaussians, so pixel colour is not a reliable
-signal; (2) a reduced frame rate (every k-th simulated frame); (3) composite materials.
+What makes the benchmark hard, as in the paper (docs/benchmark.md): (1) randomized lighting interference:
+per-frame light direction/intensity/colour shading the Gaussians at their deformed state, self- and cast
+shadows from their occupancy, optional highlights, per-frame exposure and white-balance drift, so pixel
+colour is not a reliable signal; (2) a reduced frame rate (every k-th simulated frame); (3) composite
+materials. Observations go to the scene directory, ground truth to the ground-truth directory.
 """
 
 from __future__ import annotations
@@ -21,8 +23,11 @@ from gca.laws.presets import material_from_preset
 from gca.render import shading
 from gca.render.follow import smallest_axis_normal
 from gca.render.camera import Camera, look_at
-from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
+from gca.render.shadow import light_visibility
+from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig, scene_video
 from gca.scenes.store import TRAIN_VIEW, frame_name, view_dir
+from gca.scenes.truth import write_truth, write_view_truth
+from gca.vision.depth import SimulatedDepth, SimulatedDepthConfig
 from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
 from gca.sim.rollout import Rollout, rollout
 from gca.sim.solver import MPMSolver, SimConfig
@@ -43,7 +48,8 @@ def scene_cameras(scene: SceneConfig, resolution: int) -> dict[str, Camera]:
 
 def simulate_scene(body: Body, material, scene: SceneConfig, video: VideoConfig, sim: SimConfig,
                    device: str | torch.device = "cpu") -> Rollout:
-    """Roll the ground-truth material out for ``video.n_frames`` frames (no gradients)."""
+    """Roll the ground-truth material out for ``video.n_frames`` frames of the scene's timing (no gradients)."""
+    video = scene_video(video, scene)
     solver = MPMSolver(dataclasses.replace(sim, dt=scene.dt), device)
     dtype = body.x0.dtype
     v = initial_velocity(body.x0, torch.tensor(scene.v0, dtype=dtype, device=body.x0.device),
@@ -53,56 +59,122 @@ def simulate_scene(body: Body, material, scene: SceneConfig, video: VideoConfig,
                        n_steps=video.n_frames * video.substeps, steps_per_frame=video.substeps, checkpoint=False)
 
 
-def _render_view(body: Body, traj: Rollout, frames: list[int], camera: Camera, lights, bg) -> dict:
-    """Render the kept frames of one view with per-frame shading. Returns numpy stacks."""
-    rgb, alpha, depth = [], [], []
+def _render_view(body: Body, traj: Rollout, frames: list[int], camera: Camera, lights, bg,
+                 cfg: "shading.LightingConfig" = shading.LightingConfig(), unlit: bool = False) -> dict:
+    """Render the kept frames of one view with per-frame lighting interference. Returns numpy stacks.
+
+    Per frame: the Gaussians' normals at the deformed state, their visibility from the light (self- and
+    cast shadows, ``cfg.shadows``), Lambert + optional specular shading, the object composited over the lit
+    floor with its cast shadow (``cfg.floor_shadow``), then the camera response (exposure, white balance).
+    ``unlit``: also the render with the base colours over the plain background (the lighting statistic's
+    reference; ground truth only).
+    """
+    rgb, alpha, depth, plain = [], [], [], []
+    dtype, device = body.x0.dtype, body.x0.device
+    pts, hit = shading.floor_points(camera, dtype, device) if cfg.floor_shadow else (None, None)
+    eye = torch.tensor(camera.center.tolist(), dtype=dtype, device=device)
+    black = torch.zeros(3, dtype=dtype, device=device)
     for j, f in enumerate(frames):
+        light = lights[j]
         means, covs = gaussians_at(body, traj.x[f], traj.F[f])
-        colors = shading.shade(body.colors, smallest_axis_normal(covs), lights[j])
-        out = render_gaussians(body, means, covs, colors, camera, bg)
-        rgb.append(out["rgb"].clamp(0, 1).cpu().numpy())
+        vis, vis_floor = (light_visibility(means, covs, body.opacities, light.direction, cfg.shadow_resolution,
+                                           pts[hit] if pts is not None else None)
+                          if cfg.shadows else (None, None))
+        if vis_floor is not None:
+            full = torch.ones(hit.shape[0], dtype=dtype, device=device)
+            full[hit] = vis_floor
+            vis_floor = full
+        view_dirs = torch.nn.functional.normalize(eye - means, dim=-1)
+        colors = shading.shade(body.colors, smallest_axis_normal(covs), light, vis, view_dirs, cfg.specular,
+                               cfg.shininess)
+        out = render_gaussians(body, means, covs, colors, camera, black)
+        a = out["alpha"][..., None]
+        scene_bg = shading.background_image(camera, bg, light, vis_floor, hit)
+        lit = shading.camera_response(out["rgb"] + (1.0 - a) * scene_bg, light)
+        rgb.append(lit.clamp(0, 1).cpu().numpy())
         alpha.append(out["alpha"].cpu().numpy())
-        depth.append(out["depth"].cpu().numpy())
-    return {"rgb": np.stack(rgb), "alpha": np.stack(alpha), "depth": np.stack(depth)}
+        depth.append(out["depth_expected"].cpu().numpy())  # alpha-normalised z: "depth" is sum_i w_i z_i (alpha z at edges)
+        if unlit:
+            plain.append(render_gaussians(body, means, covs, body.colors, camera, bg)["rgb"].clamp(0, 1).cpu().numpy())
+    images = {"rgb": np.stack(rgb), "alpha": np.stack(alpha), "depth": np.stack(depth)}
+    if unlit:
+        images["unlit"] = np.stack(plain)
+    return images
 
 
-def _write_view(out_dir: Path, name: str, images: dict, mask_threshold: float) -> None:
+def unexplained_colour_share(lit: np.ndarray, unlit: np.ndarray, mask: np.ndarray) -> float:
+    """Share of the in-object colour variance of the lit video that the best per-frame affine colour map of
+    the unlit render cannot explain (issue 21, item 2).
+
+    Per frame t, over the object pixels p (``mask``): least squares ``lit_p ~ A_t unlit_p + b_t`` (A_t 3x3,
+    b_t [3]); returns ``sum_t |residual_t|^2 / sum_t |lit_t - mean_t(lit_t)|^2`` (0: lighting is a global
+    colour change; 1: nothing of it is).
+
+    Args:
+        lit, unlit: [T, H, W, 3] in [0, 1]; mask: [T, H, W] bool.
+    """
+    res, tot = 0.0, 0.0
+    for L, U, m in zip(lit, unlit, mask):
+        if m.sum() < 8:
+            continue
+        y, x = L[m].astype(np.float64), U[m].astype(np.float64)
+        X = np.concatenate([x, np.ones((len(x), 1))], 1)
+        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+        res += float(((X @ coef - y) ** 2).sum())
+        tot += float(((y - y.mean(0)) ** 2).sum())
+    return res / tot if tot > 0 else 0.0
+
+
+def _write_view(out_dir: Path, name: str, images: dict) -> None:
+    """The observable part of one view: its lit frames (nothing else of the render leaves for training)."""
     folder = view_dir(out_dir, name)
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
-    (folder / "mask").mkdir(parents=True, exist_ok=True)
-    for i, (rgb, alpha) in enumerate(zip(images["rgb"], images["alpha"])):
+    for i, rgb in enumerate(images["rgb"]):
         iio.imwrite(folder / "rgb" / frame_name(i), (rgb * 255 + 0.5).astype(np.uint8))
-        iio.imwrite(folder / "mask" / frame_name(i), ((alpha > mask_threshold) * 255).astype(np.uint8))
-    mask = images["alpha"] > mask_threshold
-    np.save(folder / "depth.npy", np.where(mask, images["depth"], 0.0).astype(np.float32))
 
 
-def generate(out_dir: Path, body: Body, scene_name: str, scene: SceneConfig, video: VideoConfig,
+def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: SceneConfig, video: VideoConfig,
              sim: SimConfig, material_preset: Mapping, light_cfg: "shading.LightingConfig",
+             depth_cfg: SimulatedDepthConfig = SimulatedDepthConfig(), seed: int = 0,
              device: str | torch.device = "cpu") -> dict:
-    """Simulate and render every view of a scene into ``out_dir`` (an empty directory).
+    """Simulate and render every view of a scene: observations into ``out_dir``, ground truth into ``gt_dir``
+    (two empty directories; layouts in :mod:`gca.scenes.store` and :mod:`gca.scenes.truth`).
 
     Returns:
         Summary metrics (counts, mean mask coverage, displacement of the centre of mass).
     """
+    video = scene_video(video, scene)
     material = material_from_preset(material_preset, dt=scene.dt, n_particles=body.n_particles).to(device=device, dtype=body.x0.dtype)
     traj = simulate_scene(body, material, scene, video, sim, device)
     frames = video.video_frames()
     cameras = scene_cameras(scene, video.resolution)
     lights = shading.sample_lights(light_cfg, len(frames), seed=scene.light_seed)
     bg = torch.tensor(video.background, dtype=body.x0.dtype, device=body.x0.device)
-    coverage = {}
+    coverage, stats = {}, {}
     for name, camera in tqdm(cameras.items(), desc=f"render {scene_name}", unit="view"):
-        images = _render_view(body, traj, frames, camera, lights, bg)
-        _write_view(out_dir, name, images, video.mask_threshold)
-        coverage[name] = float((images["alpha"] > video.mask_threshold).mean())
+        images = _render_view(body, traj, frames, camera, lights, bg, light_cfg, unlit=name == TRAIN_VIEW)
+        _write_view(out_dir, name, images)
+        plate = shading.camera_response(shading.background_image(camera, bg, lights[0]), lights[0])
+        iio.imwrite(view_dir(out_dir, name) / "plate.png", (plate.cpu().numpy() * 255 + 0.5).astype(np.uint8))
+        write_view_truth(gt_dir, name, images["alpha"], images["depth"], video.mask_threshold, images.get("unlit"))
+        mask = images["alpha"] > video.mask_threshold
+        coverage[name] = float(mask.mean())
+        if name == TRAIN_VIEW:  # the simulated estimator's output: an observation the ground truth makes
+            stats["lighting_unexplained_share"] = unexplained_colour_share(images["rgb"], images["unlit"], mask)
+            stats["image_mean_range"] = float(np.ptp(images["rgb"].mean(axis=(1, 2, 3))))
+            rgb8 = (images["rgb"] * 255 + 0.5).astype(np.uint8)
+            est = SimulatedDepth(depth_cfg, seed).estimate(rgb8, np.where(mask, images["depth"], 0.0), mask)
+            np.save(view_dir(out_dir, name) / "depth_sim.npy", est.astype(np.float32))
     x = traj.x[[0] + frames].cpu().numpy().astype(np.float32)
-    np.savez_compressed(out_dir / "trajectory.npz", x=x)
+    write_truth(gt_dir, x, {"scene": scene_name, "material": scene.material, "preset": dict(material_preset),
+                            "v0": list(scene.v0), "w0": list(scene.w0), "light_seed": scene.light_seed})
     write_json(out_dir / "cameras.json", {n: c.to_dict() for n, c in cameras.items()})
     times = [f * video.substeps * scene.dt for f in frames]
     meta = {"scene": scene_name, "object": scene.object, "material": scene.material, "dt": scene.dt,
             "substeps": video.substeps, "frame_every": video.frame_every, "n_frames": video.n_frames,
             "video_frames": frames, "times": times, "n_particles": body.n_particles,
+            "timing": video.timing, "fps": 1.0 / (video.substeps * video.frame_every * scene.dt),
+            "duration_s": frames[-1] * video.substeps * scene.dt,
             "n_gaussians": body.n_gaussians, "resolution": video.resolution,
             "views": {"train": [n for n in cameras if n.startswith("train")],
                       "eval": [n for n in cameras if n.startswith("eval")]}}
@@ -111,7 +183,7 @@ def generate(out_dir: Path, body: Body, scene_name: str, scene: SceneConfig, vid
     com = x.mean(axis=1)
     return {"n_particles": body.n_particles, "n_gaussians": body.n_gaussians, "n_video_frames": len(frames),
             "mask_coverage_train0": coverage[TRAIN_VIEW], "com_drop_m": float(com[0, 1] - com[:, 1].min()),
-            "max_clamped": int(max(traj.clamped))}
+            "max_clamped": int(max(traj.clamped)), **stats}
 
 
 def _write_preview(out_dir: Path) -> None:

@@ -1,7 +1,8 @@
 """Monocular preprocessing of a scene's training video (the ``preprocess`` stage's library side).
 
-From the monocular view ``train0`` only: estimated relative depth per frame, object masks, and
-cached SIFT keypoints of the ground-truth frames. Also a measured match precision on a synthetic
+From the monocular view ``train0``'s frames only (the scene directory; never the ground-truth
+directory): estimated relative depth per frame, object masks segmented from the lit frames, and
+cached SIFT keypoints. Also a measured match precision on a synthetic
 pair with a known correspondence (frame 0 against a homography-warped copy of itself).
 
     data/prep/<scene>/depth.npy       estimated relative depth [T, H, W] (float32; larger = farther)
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 
 from gca.scenes.store import TRAIN_VIEW, SceneDataError, ViewData
+from gca.vision.segment import segment_frames
 from gca.vision import (VisionConfig, compute_masks, detect_keypoints, estimate_depth, match_features,
                         match_precision, pack_keypoints, unpack_keypoints)
 
@@ -40,18 +42,32 @@ def synthetic_pair_precision(frame: np.ndarray, cfg: VisionConfig, seed: int = 0
     return {"match_pairs": int(len(p)), "match_precision": float(match_precision(p, q, Hm, tol_px))}
 
 
-def preprocess_view(view: ViewData, cfg: VisionConfig, seed: int = 0) -> dict[str, np.ndarray]:
-    """Depth, masks and keypoints of the monocular view.
+def preprocess_view(view: ViewData, cfg: VisionConfig, seed: int = 0,
+                    simulated_depth: np.ndarray | None = None, plate: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Depth, masks and keypoints of the monocular view, from its frames.
 
-    The ``simulated`` depth backend models an estimator from the ground-truth depth (synthetic scenes
-    only); the ``transformers`` backend reads only the frames.
+    Args:
+        view: the scene loader's ``train0`` (frames and camera; no mask, no depth).
+        cfg: the ``vision`` section.
+        simulated_depth: [T, H, W] the simulated estimator's output the ground_truth stage stored
+            (:func:`gca.scenes.store.load_simulated_depth`), used by ``vision.depth.backend: simulated``;
+            the ``transformers`` backend reads only the frames.
+        plate: the view's clean plate [H, W, 3] (:func:`gca.scenes.store.load_plate`) for the segmenter's
+            ``background: plate``; None: ``plate_color``.
     """
     if view.name != TRAIN_VIEW:
         raise SceneDataError(f"preprocess works on the monocular view {TRAIN_VIEW!r}, got {view.name!r}")
     frames = (view.rgb * 255 + 0.5).astype(np.uint8)
-    alpha = view.mask.astype(np.float32)
-    masks = compute_masks(cfg.masks, frames=frames, alpha=alpha)
-    depth = estimate_depth(frames, cfg.depth, gt_depth=view.depth, masks=masks, seed=seed).astype(np.float32)
+    if cfg.masks.method == "segment":
+        masks = segment_frames(frames, cfg.masks.segment, plate)
+    else:
+        masks = compute_masks(cfg.masks, frames=frames)
+    if cfg.depth.backend == "simulated":
+        if simulated_depth is None:
+            raise SceneDataError("preprocess: vision.depth.backend 'simulated' needs the scene's views/train0/depth_sim.npy")
+        depth = np.asarray(simulated_depth, dtype=np.float32)
+    else:
+        depth = estimate_depth(frames, cfg.depth, seed=seed).astype(np.float32)
     if not np.all(np.isfinite(depth)):
         raise FloatingPointError("preprocess: the depth estimator returned NaN/inf")
     keypoints = pack_keypoints([detect_keypoints(f, cfg.matching) for f in frames])

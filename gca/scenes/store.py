@@ -4,12 +4,17 @@
       meta.json            scene/timing facts: dt, substeps, frame_every, video_frames, times [s], views
       cameras.json         {view: Camera.to_dict()}; "train0" is the monocular camera,
                            "train1", "train2" the extra multi-view cameras, "eval*" held out
-      views/<view>/rgb/00000.png ...     RGB frames (uint8)
-      views/<view>/mask/00000.png ...    object masks (0/255)
-      views/<view>/depth.npy             ground-truth camera-space depth [T, H, W] (m; 0 = background)
-      trajectory.npz       x [T+1, P, 3]: particles at frame 0 and at each video frame (evaluation only:
-                           training code never reads it)
+      views/<view>/rgb/00000.png ...     the lit RGB frames (uint8): what a camera recorded
+      views/<view>/plate.png             the empty scene filmed before the throw (a clean plate, uint8)
+      views/train0/depth_sim.npy         the simulated monocular depth estimator's output [T, H, W] (float32,
+                                         relative; ``vision.depth.backend: simulated``): an observation made in
+                                         the ground_truth stage, because the estimator model needs the true depth
       preview.gif          the monocular video
+
+Only what a monocular method observes is here: no masks, no true depth, no trajectory. Those are
+ground-truth-only and live in ``data/gt/<scene>/`` (:mod:`gca.scenes.truth`); :func:`load_view`
+cannot return them (``ViewData.mask`` and ``.depth`` are None until preprocessing's own masks are
+set), and :func:`load_trajectory` works only where evaluation bound the ground truth.
 
 Every problem found while loading names the file and the problem (missing frames, a camera that
 does not match the images, NaN in data).
@@ -36,13 +41,15 @@ class SceneDataError(ValueError):
 
 @dataclasses.dataclass
 class ViewData:
-    """One camera's video. rgb [T, H, W, 3] float32 in [0,1]; mask [T, H, W] bool; depth [T, H, W] (m)."""
+    """One camera's video. rgb [T, H, W, 3] float32 in [0,1]; mask [T, H, W] bool (None from the scene
+    loader: training sets the preprocess stage's masks); depth [T, H, W] (None from the scene loader;
+    tests building synthetic views may fill it)."""
 
     name: str
     camera: Camera
     rgb: np.ndarray
-    mask: np.ndarray
-    depth: np.ndarray
+    mask: np.ndarray | None = None
+    depth: np.ndarray | None = None
 
 
 def frame_name(i: int) -> str:
@@ -81,25 +88,15 @@ def _read_frames(folder: Path, n: int, camera: Camera, channels: int) -> np.ndar
 
 def load_view(scene_dir: str | Path, view: str, meta: dict | None = None,
               cameras: dict[str, Camera] | None = None) -> ViewData:
-    """Load and validate one view's frames, masks and depth."""
+    """Load and validate one view's frames (mask and depth are None: the scene directory holds neither)."""
     scene_dir = Path(scene_dir)
     meta = meta or read_meta(scene_dir)
     cameras = cameras or read_cameras(scene_dir)
     if view not in cameras:
         raise SceneDataError(f"{scene_dir / 'cameras.json'}: no camera for view {view!r} (have {sorted(cameras)})")
     camera, n = cameras[view], len(meta["video_frames"])
-    folder = view_dir(scene_dir, view)
-    rgb = _read_frames(folder / "rgb", n, camera, 3).astype(np.float32) / 255.0
-    mask = _read_frames(folder / "mask", n, camera, 1) > 127
-    depth_path = folder / "depth.npy"
-    if not depth_path.is_file():
-        raise SceneDataError(f"{depth_path}: missing depth")
-    depth = np.load(depth_path)
-    if depth.shape != mask.shape:
-        raise SceneDataError(f"{depth_path}: shape {depth.shape} does not match the frames {mask.shape}")
-    if not np.all(np.isfinite(depth)):
-        raise SceneDataError(f"{depth_path}: contains NaN/inf")
-    return ViewData(view, camera, rgb, mask, depth)
+    rgb = _read_frames(view_dir(scene_dir, view) / "rgb", n, camera, 3).astype(np.float32) / 255.0
+    return ViewData(view, camera, rgb)
 
 
 def load_views(scene_dir: str | Path, views: Iterable[str]) -> dict[str, ViewData]:
@@ -107,12 +104,34 @@ def load_views(scene_dir: str | Path, views: Iterable[str]) -> dict[str, ViewDat
     return {v: load_view(scene_dir, v, meta, cameras) for v in views}
 
 
-def load_trajectory(scene_dir: str | Path) -> np.ndarray:
-    """Ground-truth particle positions [T+1, P, 3] (evaluation only)."""
-    path = Path(scene_dir) / "trajectory.npz"
+def load_plate(scene_dir: str | Path, view: str = TRAIN_VIEW) -> np.ndarray | None:
+    """The view's clean plate [H, W, 3] float32 in [0, 1], or None when the scene has none."""
+    path = view_dir(scene_dir, view) / "plate.png"
     if not path.is_file():
-        raise SceneDataError(f"{path}: missing ground-truth trajectory")
-    x = np.load(path)["x"]
-    if not np.all(np.isfinite(x)):
-        raise SceneDataError(f"{path}: trajectory contains NaN/inf")
-    return x
+        return None
+    img = iio.imread(path)
+    if img.ndim != 3 or img.shape[-1] < 3:
+        raise SceneDataError(f"{path}: a plate must be an RGB image, got shape {img.shape}")
+    return img[..., :3].astype(np.float32) / 255.0
+
+
+def load_simulated_depth(scene_dir: str | Path, n_frames: int, view: str = TRAIN_VIEW) -> np.ndarray:
+    """The simulated estimator's relative depth [T, H, W] written by the ground_truth stage."""
+    path = view_dir(scene_dir, view) / "depth_sim.npy"
+    if not path.is_file():
+        raise SceneDataError(f"{path}: missing (the ground_truth stage writes it for vision.depth.backend: simulated)")
+    depth = np.load(path)
+    if depth.ndim != 3 or len(depth) != n_frames:
+        raise SceneDataError(f"{path}: shape {depth.shape}, expected [{n_frames}, H, W]")
+    if not np.all(np.isfinite(depth)):
+        raise SceneDataError(f"{path}: contains NaN/inf")
+    return depth
+
+
+def load_trajectory(scene_dir: str | Path) -> np.ndarray:
+    """Ground-truth particle positions [T+1, P, 3] (evaluation only): read from the ground-truth directory
+    bound to ``scene_dir`` (:func:`gca.scenes.truth.bind`); raises
+    :class:`gca.scenes.truth.GroundTruthUnavailable` in a process that did not bind one."""
+    from gca.scenes import truth
+
+    return truth.load_trajectory(truth.bound_dir(scene_dir))

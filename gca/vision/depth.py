@@ -54,6 +54,23 @@ class SimulatedDepthConfig:
         lowfreq_sigma_px: correlation length of the smooth noise [px].
         scale_range: per-frame positive scale s ~ log-uniform in [lo, hi] [-].
         shift_range: per-frame shift b ~ uniform in [lo, hi] [-].
+        texture_copy: texture copying: the high-pass of the frame's grey level (frame minus its Gaussian blur
+            of sigma ``texture_sigma_px``) is added inside the object with this gain; darker reads nearer
+            (more distant), as estimators read albedo and shading as relief; 0 disables [normalised depth
+            per unit intensity].
+        texture_sigma_px: scale of the copied texture [px].
+        smooth_sigma_px: over-smoothing: the whole frame's depth (object and background) is blurred with
+            this sigma, which rounds boundaries and flattens fine relief; 0 disables [px].
+        thin_px: object parts thinner than this (removed by an opening with a square of this side) are
+            thin parts; 0 disables [px].
+        thin_flatten: thin parts' depth moves this fraction of the way to the background's (flattened into
+            it, as estimators miss thin structures) [-].
+        flicker_tilt_std: temporal flicker beyond scale/shift: a fresh random planar tilt per frame (std of
+            its slope across the object's extent), so the same surface ranks differently frame to frame;
+            0 disables [normalised depth].
+
+    The non-monotone components (texture copying, over-smoothing, thin parts, flicker) default to off
+    here; ``params.yaml`` sets the benchmark's values (docs/benchmark.md says where they come from).
     """
 
     background: float = 1.5
@@ -64,8 +81,18 @@ class SimulatedDepthConfig:
     lowfreq_sigma_px: float = 16.0
     scale_range: tuple[float, float] = (0.5, 2.0)
     shift_range: tuple[float, float] = (-0.5, 0.5)
+    texture_copy: float = 0.0
+    texture_sigma_px: float = 2.0
+    smooth_sigma_px: float = 0.0
+    thin_px: int = 0
+    thin_flatten: float = 0.0
+    flicker_tilt_std: float = 0.0
 
     def __post_init__(self) -> None:
+        if min(self.texture_copy, self.smooth_sigma_px, self.thin_px, self.thin_flatten, self.flicker_tilt_std) < 0 \
+                or self.thin_flatten > 1 or self.texture_sigma_px <= 0:
+            raise ValueError(f"{_WHERE}: SimulatedDepthConfig's error components must be >= 0 (thin_flatten <= 1, "
+                             f"texture_sigma_px > 0)")
         if self.gamma_max < 1 or self.background <= 1:
             raise ValueError(f"{_WHERE}: SimulatedDepthConfig needs gamma_max >= 1 and background > 1, "
                              f"got gamma_max={self.gamma_max}, background={self.background}")
@@ -155,13 +182,63 @@ def _edge_bleed(d: np.ndarray, mask: np.ndarray, band_px: float) -> np.ndarray:
     return (1.0 - w) * d + w * blurred
 
 
+def texture_copy(d: np.ndarray, grey: np.ndarray, mask: np.ndarray, gain: float, sigma_px: float) -> np.ndarray:
+    """Add the high-pass of the grey image [H, W] (in [0, 1]) inside the object: darker = farther."""
+    if gain <= 0:
+        return d
+    high = grey - cv2.GaussianBlur(grey, (0, 0), sigmaX=sigma_px, borderType=cv2.BORDER_REPLICATE)
+    return d - gain * high * mask
+
+
+def oversmooth(d: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Blur the whole depth map (object and background) with ``sigma_px``."""
+    if sigma_px <= 0:
+        return d
+    return cv2.GaussianBlur(d, (0, 0), sigmaX=sigma_px, borderType=cv2.BORDER_REPLICATE)
+
+
+def thin_parts(mask: np.ndarray, thin_px: int) -> np.ndarray:
+    """Object pixels [H, W] bool that an opening with a ``thin_px`` square removes."""
+    if thin_px <= 1:
+        return np.zeros_like(mask, dtype=bool)
+    m = mask.astype(np.uint8)
+    opened = cv2.morphologyEx(m, cv2.MORPH_OPEN, np.ones((thin_px, thin_px), np.uint8))
+    return mask.astype(bool) & ~opened.astype(bool)
+
+
+def flatten_thin(d: np.ndarray, mask: np.ndarray, thin_px: int, weight: float, background: float) -> np.ndarray:
+    """Move thin parts' depth ``weight`` of the way to the background's."""
+    thin = thin_parts(mask, thin_px)
+    if weight <= 0 or not thin.any():
+        return d
+    return np.where(thin, (1 - weight) * d + weight * background, d)
+
+
+def flicker_tilt(d: np.ndarray, mask: np.ndarray, std: float, rng: np.random.Generator) -> np.ndarray:
+    """Add a random plane (slope ~ N(0, std) per object extent along x and y) inside the object."""
+    if std <= 0 or not mask.any():
+        return d
+    rows, cols = np.nonzero(mask)
+    extent = max(np.ptp(rows), np.ptp(cols), 1)
+    gy, gx = rng.normal(0.0, std, 2)
+    yy, xx = np.mgrid[0:d.shape[0], 0:d.shape[1]]
+    plane = (gy * (yy - rows.mean()) + gx * (xx - cols.mean())) / extent
+    return d + plane * mask
+
+
 def _simulate_frame(z: np.ndarray, mask: np.ndarray, cfg: SimulatedDepthConfig,
-                    rng: np.random.Generator) -> np.ndarray:
-    """One frame of the estimator model: normalise, warp, bleed, noise, scale and shift."""
+                    rng: np.random.Generator, grey: np.ndarray | None = None) -> np.ndarray:
+    """One frame of the estimator model: normalise, warp, texture copy, thin parts, flicker, bleed, smooth,
+    noise, scale and shift."""
     d = _normalise_object_depth(z, mask, cfg.background)
     g = np.exp(rng.uniform(-np.log(cfg.gamma_max), np.log(cfg.gamma_max)))
     d = d ** g
+    if grey is not None:
+        d = texture_copy(d, grey, mask, cfg.texture_copy, cfg.texture_sigma_px)
+    d = flatten_thin(d, mask, cfg.thin_px, cfg.thin_flatten, cfg.background)
+    d = flicker_tilt(d, mask, cfg.flicker_tilt_std, rng)
     d = _edge_bleed(d, mask, cfg.edge_band_px)
+    d = oversmooth(d, cfg.smooth_sigma_px)
     d = d + cfg.noise_std * rng.standard_normal(d.shape)
     if cfg.lowfreq_std > 0:
         field = cv2.GaussianBlur(rng.standard_normal(d.shape), (0, 0), sigmaX=cfg.lowfreq_sigma_px)
@@ -175,10 +252,12 @@ class SimulatedDepth(DepthEstimator):
     """A model of a monocular depth estimator for synthetic scenes (NOT an estimator).
 
     Per frame t, on the GT depth z and mask M: the object's depth is mapped to [0, 1] (background
-    set to ``cfg.background``), warped by d^g_t (a random monotone power), blended toward its blur
-    within ``edge_band_px`` of the mask edge (foreground/background bleed, as estimators smear
-    depth discontinuities), perturbed by pixel noise and a smooth noise field, then mapped by a
-    random positive scale and shift. Seeded: the same (cfg, seed) gives the same output.
+    set to ``cfg.background``), warped by d^g_t (a random monotone power), given the non-monotone
+    errors of real estimators (texture copying from the frame, thin parts flattened toward the
+    background, a per-frame random tilt: flicker), blended toward its blur within ``edge_band_px`` of
+    the mask edge (foreground/background bleed), blurred as a whole (over-smoothing), perturbed by pixel
+    noise and a smooth noise field, then mapped by a random positive scale and shift. Seeded: the same
+    (cfg, seed) gives the same output.
     """
 
     def __init__(self, cfg: SimulatedDepthConfig, seed: int = 0) -> None:
@@ -196,7 +275,9 @@ class SimulatedDepth(DepthEstimator):
         if not np.isfinite(gt_depth[masks]).all():
             raise ValueError(f"{_WHERE}: gt_depth is non-finite inside the object mask")
         rng = np.random.default_rng(self.seed)
-        return np.stack([_simulate_frame(z, m, self.cfg, rng) for z, m in zip(gt_depth, masks)])
+        unit = frames.astype(np.float64) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float64)
+        grey = unit.mean(-1)
+        return np.stack([_simulate_frame(z, m, self.cfg, rng, g) for z, m, g in zip(gt_depth, masks, grey)])
 
 
 _HOWTO = ("to obtain the weights, on a machine with network run\n"

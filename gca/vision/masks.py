@@ -1,8 +1,11 @@
-"""Object masks of the GT video: from synthetic alpha, background difference, or user files.
+"""Object masks of the video: segmented from the lit frames, background difference, user files, or alpha.
 
 Methods (``MaskConfig.method``):
 
-- ``"alpha"``: threshold the renderer's alpha (synthetic scenes).
+- ``"segment"`` (the benchmark's default): background model + colour/edge cues + kornia morphology on the
+  lit frames, or a learned segmenter from local weights (:mod:`gca.vision.segment`).
+- ``"alpha"``: threshold a rendered alpha (tests and evaluation; the preprocess stage has no alpha: the
+  scene directory holds none, issue 21).
 - ``"background"``: a fixed camera sees a static background; pixels whose colour differs from it
   by more than ``diff_threshold`` (max over RGB, in [0, 1] units) are the object. The background is
   the per-pixel temporal median of the video (valid when the object moves off every pixel for
@@ -23,8 +26,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gca.vision.segment import SegmentConfig, segment_frames
+
 _WHERE = "gca/vision/masks.py"
-METHODS = ("alpha", "background", "files")
+METHODS = ("segment", "alpha", "background", "files")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,20 +37,22 @@ class MaskConfig:
     """Mask extraction knobs (params section ``vision.masks``).
 
     Attributes:
-        method: "alpha", "background" or "files".
+        method: "segment", "alpha", "background" or "files".
         alpha_threshold: alpha above which a pixel is object [-].
         diff_threshold: colour difference (max over RGB) above which a pixel is object [0-1 units].
         background_color: constant RGB background [0-1 units] for a colour key; None = temporal median.
         open_px: side of the square opening kernel [px]; 0 or 1 disables the cleanup.
         files_dir: directory of per-frame mask PNGs (method "files").
+        segment: the segmenter's settings (method "segment").
     """
 
-    method: str = "alpha"
+    method: str = "segment"
     alpha_threshold: float = 0.5
     diff_threshold: float = 0.1
     background_color: tuple[float, float, float] | None = None
     open_px: int = 3
     files_dir: str = ""
+    segment: SegmentConfig = SegmentConfig()
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -138,7 +145,7 @@ def compute_masks(cfg: MaskConfig, frames: np.ndarray | None = None,
 
     Args:
         cfg: mask config.
-        frames: video [T, H, W, 3] (methods "background" and "files").
+        frames: video [T, H, W, 3] (methods "segment", "background" and "files").
         alpha: rendered alpha [T, H, W] (method "alpha").
     """
     if cfg.method == "alpha":
@@ -147,6 +154,8 @@ def compute_masks(cfg: MaskConfig, frames: np.ndarray | None = None,
         return mask_from_alpha(alpha, cfg.alpha_threshold)
     if frames is None:
         raise ValueError(f"{_WHERE}: mask method {cfg.method!r} needs the video frames")
+    if cfg.method == "segment":
+        return segment_frames(frames, cfg.segment)
     if cfg.method == "background":
         return mask_from_background(frames, cfg.background_color, cfg.diff_threshold, cfg.open_px)
     return load_mask_files(cfg.files_dir, len(frames), tuple(np.shape(frames)[1:3]))

@@ -1,0 +1,46 @@
+"""DVC stage ``nuisance``: measured nuisance statistics of a scene's observations against its ground truth.
+
+    python stages/nuisance.py --scene duck --scene-dir data/scenes/duck --gt data/gt/duck --prep data/prep/duck \
+        --out metrics/nuisance/duck.json
+
+Per-frame mask IoU, per-frame depth Spearman inside the object, and the share of in-object colour variance
+the lighting adds beyond a per-frame affine colour map (gca/eval/nuisance.py). Evaluation-side: it reads
+the ground-truth directory; no training stage depends on its output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from gca.eval.nuisance import scene_nuisance
+from gca.io import write_json
+from gca.pipeline.settings import Settings
+from gca.pipeline.track import stage_run
+
+
+def parse_args(argv):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for name in ("scene-dir", "gt", "prep", "out"):
+        ap.add_argument(f"--{name}", type=Path, required=True)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    return ap.parse_args(argv)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    settings = Settings.load(f"nuisance@{args.scene}", args.params)
+    with stage_run("nuisance", settings.params, scene=args.scene) as run:
+        metrics = {"scene": args.scene, "benchmark_version": settings.benchmark_version,
+                   **scene_nuisance(args.scene_dir, args.gt, args.prep, settings.video.mask_threshold)}
+        write_json(args.out, metrics)
+        run.log_metrics({k: v for k, v in metrics.items() if isinstance(v, float)})
+    print(f"nuisance {args.scene}: mask IoU {metrics['mask_iou_mean']:.3f}, depth Spearman "
+          f"{metrics['depth_spearman_mean']:.3f}, lighting unexplained {metrics['lighting_unexplained_share']:.3f}")
+    return metrics
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
