@@ -27,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from harness import result_name  # noqa: E402
-KEEP = ("assets", "prior", "scene", "prep", "m", "particles.npz")  # what the copies reuse (not runs/eval)
+KEEP = ("assets", "prior", "scene", "gt", "prep", "m", "particles.npz")  # what the copies reuse (not runs/eval)
 
 
 def copy_work(work: Path, dest: Path) -> None:
