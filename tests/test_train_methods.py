@@ -516,6 +516,8 @@ def test_methods_declare_their_terms():
         Method("bad", terms=("mask",))
     with pytest.raises(ValueError, match="two forms"):
         Method("bad", terms=("anchor", "anchor_l1"))
+    with pytest.raises(ValueError, match="two forms"):
+        Method("bad", terms=("depth_l1", "depth_l1_aligned"))
     with pytest.raises(ValueError, match="cpr_remove_target"):
         Method("bad", terms=("silhouette",), cpr_remove_target=True)
     with pytest.raises(KeyError):

@@ -47,7 +47,7 @@ def _setup(scene, name, ratio=0.0, **cfg_kw):
     return method, cfg, law, objective
 
 
-@pytest.mark.parametrize("name", ["gca", "pacnerf_depth"])
+@pytest.mark.parametrize("name", ["gca", "pacnerf_depth", "pacnerf_depth_aligned"])
 def test_term_gradients_sum_to_the_total(scene, name):
     """eq. 8 with max_grad_ratio 0: the per-term gradients add up to the gradient training applies."""
     method, cfg, law, objective = _setup(scene, name)
