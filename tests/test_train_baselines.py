@@ -123,7 +123,7 @@ def _depth_stat(data, name):
     method = get_method(name)
     cfg = TrainConfig(iterations=1, curriculum_start=1.0)
     law = build_law(method, "", "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2,
-                    family_presets={"jelly": JELLY})
+                    family_presets={"jelly": JELLY}, category="elastic")
     objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2), MatchConfig())
     n_video = len(data.video_frames)
     with torch.no_grad():
@@ -137,3 +137,130 @@ def test_objective_aligned_depth_row_ignores_the_estimates_scale_and_shift_raw_r
     assert aligned > 0 and aligned == pytest.approx(_depth_stat(moved, "pacnerf_depth_aligned"), rel=1e-4)
     raw = _depth_stat(scene, "pacnerf_depth")
     assert raw != pytest.approx(_depth_stat(moved, "pacnerf_depth"), rel=1e-2)  # negative control
+
+
+# ------------------------------------------------------------ PAC-NeRF-style rows: the scene's law category
+
+import yaml  # noqa: E402
+
+from gca.config import ConfigError  # noqa: E402
+from gca.laws.ground_truth import NeoHookeanElasticity, ViscoplasticPlasticity  # noqa: E402
+from gca.laws.plastic import DruckerPragerPlasticity, IdentityPlasticity, VonMisesPlasticity  # noqa: E402
+from gca.laws.presets import material_category  # noqa: E402
+from gca.train.law import NU_RANGE, LaunchVelocity, _Interval, category_law  # noqa: E402
+from gca.train.loop import train  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_homogeneous_scene_material_has_its_category():
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    cats = {name: material_category(m) for name, m in params["materials"].items() if "parts" not in m}
+    assert cats == {"elastomer": "elastic", "gel": "elastic", "rubber": "plastic", "plasticine": "plastic",
+                    "granular": "granular", "non_newtonian": "viscoplastic", "plasticine_dragon": "plastic",
+                    "sand_wolf": "granular", "gel_pudding": "elastic"}
+    with pytest.raises(ConfigError, match="composite"):
+        material_category(params["materials"]["composite"])
+    with pytest.raises(ConfigError, match="no material category"):
+        material_category({"elasticity": "volume", "plasticity": "sigma"})  # a fluid: no PAC-NeRF row here
+
+
+@pytest.mark.parametrize("category, plastic_type, constants", [
+    ("elastic", IdentityPlasticity, set()),
+    ("plastic", VonMisesPlasticity, {"plasticity.log_yield_stress"}),
+    ("granular", DruckerPragerPlasticity, {"plasticity.parametrizations.friction_angle.original"}),
+    ("viscoplastic", ViscoplasticPlasticity, {"plasticity.parametrizations.yield_stress.original",
+                                              "plasticity.parametrizations.viscosity.original"}),
+])
+def test_category_law_form_and_what_it_learns(category, plastic_type, constants):
+    m = category_law(category, {"E": 1e5, "nu": 0.2}, 1000.0, dt=1e-3)
+    assert isinstance(m.plasticity, plastic_type)
+    assert isinstance(m.elasticity, NeoHookeanElasticity) == (category == "elastic")
+    learned = {n for n, p in m.named_parameters() if p.requires_grad}
+    assert learned == {"elasticity.log_E", "elasticity.parametrizations.nu.original"} | constants
+    assert float(m.elasticity.E) == pytest.approx(1e5, rel=1e-5) and float(m.elasticity.nu) == pytest.approx(0.2)
+
+
+def test_category_law_shares_one_E_and_one_nu_and_bounds_nu():
+    m = category_law("granular", {"E": 1e5, "nu": 0.2}, 1000.0, dt=1e-3)
+    e, p = m.elasticity, m.plasticity
+    with torch.no_grad():
+        e.log_E += 1.0
+        e.parametrizations.nu.original += 50.0  # a huge step: nu stays below its bound
+    assert float(p.E) == pytest.approx(float(e.E)) and float(p.nu) == pytest.approx(float(e.nu))
+    assert NU_RANGE[0] < float(e.nu) <= NU_RANGE[1] + 1e-6 and torch.isfinite(p.lam)  # lam finite: nu < 0.5
+    # negative control: two independently built laws do not share
+    other = category_law("granular", {"E": 1e5, "nu": 0.2}, 1000.0, dt=1e-3)
+    assert float(other.plasticity.E) != pytest.approx(float(e.E))
+
+
+@pytest.mark.grad
+def test_category_law_and_launch_gradcheck_float64():
+    from torch.func import functional_call
+
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        m = category_law("plastic", {"E": 1e5, "nu": 0.3}, 1000.0, dt=1e-3)
+        launch = LaunchVelocity([0.5, -2.0, 0.0], [0.0, 0.0, 1.0])
+    finally:
+        torch.set_default_dtype(old)
+    g = torch.Generator().manual_seed(0)
+    F = torch.eye(3, dtype=torch.float64) + 0.05 * torch.randn(4, 3, 3, generator=g, dtype=torch.float64)
+
+    def stress(log_E, raw_nu):
+        return functional_call(m.elasticity, {"log_E": log_E, "parametrizations.nu.original": raw_nu}, (F,)) / 1e4
+
+    raw = m.elasticity.parametrizations.nu.original.detach().clone().requires_grad_(True)
+    log_E = m.elasticity.log_E.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(stress, (log_E, raw), eps=1e-6, atol=1e-6)
+    interval = _Interval(*NU_RANGE)
+    assert torch.autograd.gradcheck(interval, (torch.tensor([-3.0, 0.1, 2.0], dtype=torch.float64,
+                                                            requires_grad=True),))
+    x0 = torch.rand(6, 3, generator=g, dtype=torch.float64)
+    v0 = launch.v0.detach().clone().requires_grad_(True)
+    w0 = launch.w0.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: functional_call(launch, {"v0": a, "w0": b}, (x0,)), (v0, w0))
+
+
+def test_explicit_row_learns_its_launch_and_moduli_in_one_iteration(scene):
+    method = get_method("pacnerf_depth_aligned")
+    cfg = TrainConfig(iterations=1, curriculum_start=1.0, keep="last")
+    law = build_law(method, "", "plasticine", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2,
+                    family_presets={"plasticine": {"elasticity": "sigma", "plasticity": "von_mises", "E": 4e4,
+                                                   "nu": 0.25, "yield_stress": 5e3}},
+                    category="plastic", velocity=([0.5, -2.0, 0.0], [0.0, 0.0, 0.0]))
+    assert [g["name"] for g in law.groups] == ["explicit", "launch"]
+    before = {k: v.clone() for k, v in law.state().items()}
+    objective = Objective(method, scene, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    result = train(tiny_solver(), law, scene, objective, cfg)
+    assert result.status == "ok", result.message
+    after = law.state()
+    for key in ("elasticity.log_E", "elasticity.parametrizations.nu.original", "launch.v0"):
+        assert not torch.equal(before[key], after[key]), f"{key} did not move"
+    assert torch.equal(after["elasticity.log_E"], after["plasticity.log_E"])  # still one E
+    v0, w0 = law.launch_velocity(([9.0] * 3, [9.0] * 3))
+    assert v0 == pytest.approx(after["launch.v0"].tolist()) and v0 != [9.0] * 3  # evaluation uses the learned launch
+    # the state round-trips into a fresh skeleton (launch zeros), and a state without the launch is refused
+    skeleton = build_law(method, "", "plasticine", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2,
+                         family_presets={"plasticine": {"elasticity": "sigma", "plasticity": "von_mises", "E": 4e4,
+                                                        "nu": 0.25, "yield_stress": 5e3}}, category="plastic")
+    skeleton.load_state(after)
+    assert skeleton.launch_velocity(([9.0] * 3, [9.0] * 3))[0] == pytest.approx(v0)
+    assert float(skeleton.material.plasticity.nu) == pytest.approx(float(law.material.elasticity.nu))
+    with pytest.raises(Exception):
+        skeleton.load_state({k: v for k, v in after.items() if not k.startswith("launch.")})
+    # negative control: a neural row keeps the shared estimate
+    neuma = build_law(get_method("neuma"), _prior(), "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    assert neuma.launch is None and neuma.launch_velocity(([9.0] * 3, [1.0] * 3)) == ([9.0] * 3, [1.0] * 3)
+
+
+def _prior():
+    import tempfile
+
+    from gca.laws.checkpoint import save_prior
+    from gca.laws.neural import NeuralElasticity, NeuralPlasticity
+
+    path = Path(tempfile.mkdtemp()) / "jelly.pt"
+    save_prior(path, NeuralElasticity(), NeuralPlasticity(), family="jelly")
+    return path

@@ -25,6 +25,7 @@ from gca.efficiency import measure
 from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
+from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
 from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.prep import load_prep
@@ -113,13 +114,20 @@ def seed_runs(settings: Settings, methods: Sequence[Method], chosen: Sequence[in
 
 
 def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
-            device="cpu", seed: int | None = None) -> LearnedLaw:
-    """The method's law to train (or its trained law's skeleton) for the run of ``seed``, density ``rho`` [kg/m^3]."""
+            device="cpu", seed: int | None = None, velocity: tuple[list, list] | None = None) -> LearnedLaw:
+    """The method's law to train (or its trained law's skeleton) for the run of ``seed``, density ``rho`` [kg/m^3].
+
+    An explicit (PAC-NeRF-style) method is told the scene's material category (ground truth it assumes given:
+    ``gca.laws.presets.material_category`` of ``materials.<scene material>``) and learns its launch from
+    ``velocity``, the shared estimate (None when a trained state is loaded next)."""
     tcfg = settings.train_for(seed)
+    category = material_category(settings.material(scene.material)) if method.law == "explicit" else None
     law = build_law(method, inputs.prior, scene.prior, rho, settings.lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
                     tcfg.lr_explicit, family_presets=settings.prior_families, dt=scene.dt,
-                    seed=tcfg.seed)
+                    seed=tcfg.seed, category=category, velocity=velocity)
     law.material.to(device)
+    if law.launch is not None:
+        law.launch.to(device)
     return law
 
 
@@ -143,7 +151,8 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     scene = settings.scene(scene_name)
     tcfg = settings.train_for(seed)
     data = load_train_data(settings, inputs, method, velocity, settings.video.background, device)
-    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed)
+    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
+                  velocity)
     objective = objective_for(settings, method, data, scene, tcfg.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
@@ -229,7 +238,7 @@ def load_law(path: Path, law: LearnedLaw, family: str) -> None:
         e.load_state_dict(trained.elasticity.state_dict())
         p.load_state_dict(trained.plasticity.state_dict())
     elif law.kind == "explicit":
-        payload = torch.load(path, weights_only=False, map_location=e.log_E.device if hasattr(e, "log_E") else "cpu")
+        payload = torch.load(path, weights_only=False, map_location=law.trainable()[0].device)
         if payload.get("kind") != "explicit":
             raise ValueError(f"{path}: not an explicit-law checkpoint (kind {payload.get('kind')!r})")
         law.load_state(payload["state"])

@@ -67,10 +67,11 @@ def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
 
 
 def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) -> Rollout:
-    """Differentiable rollout up to the ``n_video``-th video frame."""
+    """Differentiable rollout up to the ``n_video``-th video frame, from the law's learned launch (explicit rows)
+    or the shared estimate ``data.v_init``."""
     n_frames = data.video_frames[n_video - 1]
     b = data.body
-    return rollout(solver, law.material, b.x0, data.v_init, b.vol, b.mass,
+    return rollout(solver, law.material, b.x0, law.initial_velocity(b.x0, data.v_init), b.vol, b.mass,
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
 
 
