@@ -264,3 +264,51 @@ def _prior():
     path = Path(tempfile.mkdtemp()) / "jelly.pt"
     save_prior(path, NeuralElasticity(), NeuralPlasticity(), family="jelly")
     return path
+
+
+# --------------------------------------------------------------------------- NeuMA's published recipe
+
+from gca.train.config import NEUMA_LR, frame_weights, neuma_recipe  # noqa: E402
+from gca.train.state import make_optimizer  # noqa: E402
+
+
+def test_neuma_recipe_by_prior_family_and_gca_untouched():
+    base = TrainConfig(iterations=30)
+    for family, (lr_e, lr_p, floor) in NEUMA_LR.items():
+        cfg = neuma_recipe(base, family)
+        assert (cfg.lr_elasticity, cfg.lr_plasticity, cfg.cosine_floor, cfg.optimizer) == (lr_e, lr_p, floor, "radam")
+        assert cfg.iterations == base.iterations and cfg.curriculum_start == 1.0 and cfg.grad_clip == 1.0
+    assert neuma_recipe(base, "plasticine").lr_elasticity == 2e-2  # clay cat / rubber pawn
+    fluid = neuma_recipe(base, "fluid")  # no NeuMA base model: train's rates kept
+    assert (fluid.lr_elasticity, fluid.cosine_floor) == (base.lr_elasticity, base.cosine_floor)
+    assert get_method("neuma").recipe == get_method("neuma_multiview").recipe == "neuma"
+    assert get_method("gca").recipe == "gca" and frame_weights(base, 0, 10) is None  # negative control
+
+
+def test_neuma_frame_weights_decay_then_reach_one():
+    cfg = neuma_recipe(TrainConfig(iterations=30), "jelly")
+    w0 = frame_weights(cfg, 0, 10)  # groups of 2 frames, decay 0.5
+    assert w0 == [1.0, 1.0, 0.5, 0.5, 0.25, 0.25, 0.125, 0.125, 0.0625, 0.0625]
+    mid = frame_weights(cfg, 5, 10)
+    assert 0.5 < mid[2] < 1.0 and mid == sorted(mid, reverse=True)
+    assert frame_weights(cfg, 10, 10) == [1.0] * 10 and frame_weights(cfg, 29, 10) == [1.0] * 10
+
+
+def test_neuma_recipe_steps_radam_and_weights_the_frames(scene):
+    method = get_method("neuma")
+    law = build_law(method, _prior(), "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 8e-3, 8e-4, 1e-2)
+    cfg = neuma_recipe(TrainConfig(iterations=3, keep="last"), "jelly")
+    opt, _ = make_optimizer(law, cfg)
+    assert isinstance(opt, torch.optim.RAdam)
+    assert not isinstance(make_optimizer(law, TrainConfig())[0], torch.optim.RAdam)  # GCA: Adam
+    objective = Objective(method, scene, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    n_video = len(scene.video_frames)
+    with torch.no_grad():
+        traj = simulate(tiny_solver(), law, scene, n_video)
+        flat, _ = objective.data_loss(traj, n_video)
+        objective.frame_weights = frame_weights(cfg, 0, n_video)
+        weighted, _ = objective.data_loss(traj, n_video)
+    assert float(weighted) < float(flat)  # later frames weigh less at the start
+    result = train(tiny_solver(), law, scene, objective, cfg)
+    assert result.status == "ok", result.message
+    assert objective.frame_weights is None  # the final law is judged on the unweighted video

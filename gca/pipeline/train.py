@@ -31,7 +31,7 @@ from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.prep import load_prep
 from gca.scenes.world import Body, initial_velocity
 from gca.sim.solver import MPMSolver
-from gca.train.config import run_dir_name
+from gca.train.config import TrainConfig, neuma_recipe, run_dir_name
 from gca.train.law import LearnedLaw, build_law
 from gca.train.loop import TrainResult, train
 from gca.train.objective import Objective, TrainData
@@ -113,6 +113,13 @@ def seed_runs(settings: Settings, methods: Sequence[Method], chosen: Sequence[in
             if s in per_method[m.name]]
 
 
+def train_config(settings: Settings, method: Method, scene: SceneConfig, seed: int | None = None) -> TrainConfig:
+    """``train`` for the run of ``seed``, with NeuMA's published recipe for a method that declares it
+    (``gca.train.config.neuma_recipe``: optimiser, learning rates by prior family, schedule, rollout weighting)."""
+    tcfg = settings.train_for(seed)
+    return neuma_recipe(tcfg, scene.prior) if method.recipe == "neuma" else tcfg
+
+
 def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
             device="cpu", seed: int | None = None, velocity: tuple[list, list] | None = None) -> LearnedLaw:
     """The method's law to train (or its trained law's skeleton) for the run of ``seed``, density ``rho`` [kg/m^3].
@@ -120,7 +127,7 @@ def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: Scen
     An explicit (PAC-NeRF-style) method is told the scene's material category (ground truth it assumes given:
     ``gca.laws.presets.material_category`` of ``materials.<scene material>``) and learns its launch from
     ``velocity``, the shared estimate (None when a trained state is loaded next)."""
-    tcfg = settings.train_for(seed)
+    tcfg = train_config(settings, method, scene, seed)
     category = material_category(settings.material(scene.material)) if method.law == "explicit" else None
     law = build_law(method, inputs.prior, scene.prior, rho, settings.lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
                     tcfg.lr_explicit, family_presets=settings.prior_families, dt=scene.dt,
@@ -134,7 +141,7 @@ def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: Scen
 def objective_for(settings: Settings, method: Method, data: TrainData, scene: SceneConfig,
                   seed: int | None = None) -> Objective:
     """The method's training objective on ``data`` for the run of ``seed``."""
-    return Objective(method, data, settings.train_for(seed), settings.rdga, settings.cpr, settings.match,
+    return Objective(method, data, train_config(settings, method, scene, seed), settings.rdga, settings.cpr, settings.match,
                      cpr_target=scene.cpr_target)
 
 
@@ -149,7 +156,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
     (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
     scene = settings.scene(scene_name)
-    tcfg = settings.train_for(seed)
+    tcfg = train_config(settings, method, scene, seed)
     data = load_train_data(settings, inputs, method, velocity, settings.video.background, device)
     law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
                   velocity)

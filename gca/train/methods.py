@@ -8,8 +8,8 @@ Each method declares its loss terms (:data:`TERMS`); nothing else switches a ter
 | name                | law      | adapt | terms                                    | paper row |
 | ------------------- | -------- | ----- | ---------------------------------------- | --------- |
 | gca                 | neural   | lora  | silhouette, global, anchor, cpr (eq. 8)  | Ours |
-| neuma               | neural   | lora  | color                                    | NeuMA (monocular) |
-| neuma_multiview     | neural   | lora  | color, 3 views                           | NeuMA multi-view (Table 5) |
+| neuma               | neural   | lora  | color (NeuMA's recipe)                   | NeuMA (monocular) |
+| neuma_multiview     | neural   | lora  | color, 3 views (NeuMA's recipe)          | NeuMA multi-view (Table 5) |
 | nclaw               | neural   | none  | - (prior as is)                          | NCLaw |
 | gca_full_ft         | neural   | full  | as gca                                   | Ours (Full F.T.) (Table 4) |
 | pacnerf_depth       | explicit*| -     | color, depth_l1 (raw)                    | PAC-NeRF + Depth (Table 5) |
@@ -71,6 +71,8 @@ class Method:
         terms: the loss terms it optimises, keys of :data:`TERMS` (empty: it does not train on video).
         cpr_remove_target: drop the scene's ground-truth hypothesis from CPR's library.
         tables: the paper tables this method appears in.
+        recipe: ``gca`` (``train`` as params give it) or ``neuma`` (NeuMA's published optimiser, learning rates,
+            schedule and rollout weighting at the same iteration budget: ``gca.train.config.neuma_recipe``).
     """
 
     name: str
@@ -80,6 +82,7 @@ class Method:
     terms: tuple[str, ...] = ()
     cpr_remove_target: bool = False
     tables: tuple[str, ...] = ()
+    recipe: str = "gca"
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.terms if t not in TERMS]
@@ -90,6 +93,8 @@ class Method:
             raise ValueError(f"gca/train/methods.py: method {self.name!r}: anchor and anchor_l1 are two forms of one term")
         if {"depth_l1", "depth_l1_aligned"} <= set(self.terms):
             raise ValueError(f"gca/train/methods.py: method {self.name!r}: depth_l1 and depth_l1_aligned are two forms of one term")
+        if self.recipe not in ("gca", "neuma"):
+            raise ValueError(f"gca/train/methods.py: method {self.name!r}: unknown recipe {self.recipe!r}")
         if self.cpr_remove_target and "cpr" not in self.terms:
             raise ValueError(f"gca/train/methods.py: method {self.name!r}: cpr_remove_target needs the cpr term")
 
@@ -121,8 +126,8 @@ _GCA = ("silhouette", "global", "anchor", "cpr")  # eq. 8: lambda_m L_mask + lam
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gca", terms=_GCA, tables=("table1", "table2", "table3", "table4", "table5", "table6", "law")),
-    Method("neuma", terms=("color",), tables=("table1", "table2", "table3", "table4", "table5", "table6", "law")),
-    Method("neuma_multiview", terms=("color",), views="multi", tables=("table5",)),
+    Method("neuma", terms=("color",), recipe="neuma", tables=("table1", "table2", "table3", "table4", "table5", "table6", "law")),
+    Method("neuma_multiview", terms=("color",), views="multi", recipe="neuma", tables=("table5",)),
     Method("nclaw", adapt="none", tables=("table1", "table2")),
     Method("gca_full_ft", adapt="full", terms=_GCA, tables=("table4",)),
     Method("pacnerf_depth", law="explicit", adapt="none", terms=("color", "depth_l1"), tables=("table5",)),

@@ -83,6 +83,7 @@ class Objective:
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
         self.probe: GradProbe | None = None  # set per iteration by _gradient (gradient provenance)
+        self.frame_weights: list[float] | None = None  # per video frame, set per iteration by the loop (NeuMA's rollout weighting)
         self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares
         self.last_term_grads: dict[str, list] | None = None  # each term's gradient of the last gradient(shares=True)
         switches = method.rdga_switches()  # the method's RDGA terms (silhouette, global, anchor) or None
@@ -192,7 +193,7 @@ class Objective:
         loss, stats = traj.x.new_zeros(()), _MeanStats(n_video)
         for j in range(n_video):
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
-            loss = loss + l_j
+            loss = loss + (l_j if self.frame_weights is None else self.frame_weights[j] * l_j)
         return loss, stats
 
     def _cpr_frames(self, n_video: int) -> list[int]:
