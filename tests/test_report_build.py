@@ -104,8 +104,10 @@ def test_other_tables_cells(metrics):
     assert _row(t4, "NeuMA", "paper")["Mem. (GB)"] == "28.9"
     assert _row(t4, "NeuMA", "measured")["Mem. (GB)"] == "n/a"  # ball failed, duck reported no memory
     t5 = tables.table5_explicit(runs).df
-    assert _row(t5, "PAC-NeRF + Depth", "paper")["Ball (Elastomer)"] == "> 100 (Diverged)"
-    assert _row(t5, "PAC-NeRF + Depth", "measured")["Status"] == "not run"
+    assert _row(t5, "PAC-NeRF + Depth (raw L1)", "paper")["Ball (Elastomer)"] == "> 100 (Diverged)"
+    assert _row(t5, "PAC-NeRF + Depth (aligned L1)", "paper")["Ball (Elastomer)"] == "--"  # not in the paper
+    assert _row(t5, "PAC-NeRF + Depth (aligned L1)", "paper")["Status"] == "not in paper"
+    assert _row(t5, "PAC-NeRF + Depth (raw L1)", "measured")["Status"] == "not run"
     assert t5[t5["Supervision"] == "Multi-view"].iloc[2]["Ball (Elastomer)"] == "0.900"
     t6 = tables.table6_ood(runs).df
     assert _row(t6, "Ours (Target Removed)", "paper")["Composite (undefined)"] == "--"

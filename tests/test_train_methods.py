@@ -70,7 +70,7 @@ def test_every_method_runs_one_iteration(scene, name):
     cfg = TrainConfig(iterations=1, curriculum_start=1.0, lr_elasticity=1e-2, lr_plasticity=1e-3, lr_explicit=1e-2,
                       keep="last")  # the step itself is under test, not which law is kept
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
-                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
+                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}}, category="elastic")
     before = [p.detach().clone() for p in law.trainable()]
     rdga = RDGAConfig(r=5, k=5)
     objective = Objective(method, _data(scene, method), cfg, rdga, CPRConfig(subset_size=16, n_groups=2),
@@ -393,7 +393,7 @@ def _gca_step(scene, method_name="gca", **cpr_kw):
     method = get_method(method_name)
     cfg = TrainConfig(iterations=1, curriculum_start=1.0, keep="last")
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
-                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
+                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}}, category="elastic")
     before = [p.detach().clone() for p in law.trainable()]
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2, **cpr_kw), MatchConfig())
@@ -516,6 +516,8 @@ def test_methods_declare_their_terms():
         Method("bad", terms=("mask",))
     with pytest.raises(ValueError, match="two forms"):
         Method("bad", terms=("anchor", "anchor_l1"))
+    with pytest.raises(ValueError, match="two forms"):
+        Method("bad", terms=("depth_l1", "depth_l1_aligned"))
     with pytest.raises(ValueError, match="cpr_remove_target"):
         Method("bad", terms=("silhouette",), cpr_remove_target=True)
     with pytest.raises(KeyError):

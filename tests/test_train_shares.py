@@ -41,13 +41,13 @@ def _setup(scene, name, ratio=0.0, **cfg_kw):
     method = get_method(name)
     cfg = TrainConfig(**{"iterations": 1, "curriculum_start": 1.0, "keep": "last", **cfg_kw})
     law = build_law(method, prior, "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), cfg.lr_elasticity,
-                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}})
+                    cfg.lr_plasticity, cfg.lr_explicit, family_presets={"jelly": {**JELLY, "E": 4.0e4}}, category="elastic")
     objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2,
                           max_grad_ratio=ratio), MatchConfig())
     return method, cfg, law, objective
 
 
-@pytest.mark.parametrize("name", ["gca", "pacnerf_depth"])
+@pytest.mark.parametrize("name", ["gca", "pacnerf_depth", "pacnerf_depth_aligned"])
 def test_term_gradients_sum_to_the_total(scene, name):
     """eq. 8 with max_grad_ratio 0: the per-term gradients add up to the gradient training applies."""
     method, cfg, law, objective = _setup(scene, name)

@@ -27,6 +27,25 @@ HYPOTHESES_ELASTIC = ("corotated", "stvk", "volume", "sigma")  # CPR's H_e
 HYPOTHESES_PLASTIC = ("identity", "sigma", "von_mises", "drucker_prager")  # CPR's H_p
 
 
+#: A preset's material *category*, from its plastic law's name: what a PAC-NeRF-style explicit row is told
+#: (PAC-NeRF picks its constitutive model per scene: elastic, plasticine, sand, non-Newtonian; the category is
+#: ground-truth knowledge it assumes given). identity -> elastic, von Mises -> plastic, Drucker-Prager ->
+#: granular, viscoplastic (Herschel-Bulkley) -> viscoplastic. A fluid (sigma) or composite preset has none here.
+CATEGORIES = {"identity": "elastic", "von_mises": "plastic", "drucker_prager": "granular",
+              "viscoplastic": "viscoplastic"}
+
+
+def material_category(preset: Mapping) -> str:
+    """The category (:data:`CATEGORIES`) of a homogeneous material preset mapping, from its plasticity's name."""
+    if not isinstance(preset, Mapping) or "parts" in preset:
+        raise ConfigError("gca/laws/presets.py: a composite (or non-mapping) material preset has no single category")
+    plasticity = preset.get("plasticity", "identity")
+    if plasticity not in CATEGORIES:
+        raise ConfigError(f"gca/laws/presets.py: plasticity {plasticity!r} has no material category; "
+                          f"known: {CATEGORIES}")
+    return CATEGORIES[plasticity]
+
+
 @dataclasses.dataclass(frozen=True)
 class MaterialPreset:
     """One homogeneous material (a ``materials.<scene>`` entry of params.yaml)."""

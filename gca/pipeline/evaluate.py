@@ -33,7 +33,8 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
     law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
                            float(body.mass.sum() / body.vol.sum()), device, seed)
     cfg = settings.metrics
-    metrics = evaluate_run(solver_for(settings, scene, device), law.material, body, read_velocity(runs_dir / "velocity.json"),
+    velocity = law.launch_velocity(read_velocity(runs_dir / "velocity.json"))  # an explicit row's learned launch
+    metrics = evaluate_run(solver_for(settings, scene, device), law.material, body, velocity,
                            inputs.scene_dir, settings.video.background, out_dir / name, cfg)
     if train["status"] != "ok":
         metrics["status"] = train["status"]

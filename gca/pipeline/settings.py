@@ -139,7 +139,8 @@ class Settings:
         return {k: dict(v) for k, v in section(self.params, "prior.families").items()}
 
     def material(self, name: str) -> dict:
-        """The preset of ``materials.<name>`` (a ground-truth law: evaluation and ground truth only)."""
+        """The preset of ``materials.<name>`` (a ground-truth law: evaluation and ground truth; training reads only
+        its category, which the PAC-NeRF-style explicit rows are told: ``gca.pipeline.train.law_for``)."""
         return dict(section(self.params, f"materials.{name}"))
 
     def scene(self, name: str) -> SceneConfig:

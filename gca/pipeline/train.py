@@ -25,12 +25,13 @@ from gca.efficiency import measure
 from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
+from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
 from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.prep import load_prep
 from gca.scenes.world import Body, initial_velocity
 from gca.sim.solver import MPMSolver
-from gca.train.config import run_dir_name
+from gca.train.config import TrainConfig, neuma_recipe, run_dir_name
 from gca.train.law import LearnedLaw, build_law
 from gca.train.loop import TrainResult, train
 from gca.train.objective import Objective, TrainData
@@ -112,21 +113,35 @@ def seed_runs(settings: Settings, methods: Sequence[Method], chosen: Sequence[in
             if s in per_method[m.name]]
 
 
-def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
-            device="cpu", seed: int | None = None) -> LearnedLaw:
-    """The method's law to train (or its trained law's skeleton) for the run of ``seed``, density ``rho`` [kg/m^3]."""
+def train_config(settings: Settings, method: Method, scene: SceneConfig, seed: int | None = None) -> TrainConfig:
+    """``train`` for the run of ``seed``, with NeuMA's published recipe for a method that declares it
+    (``gca.train.config.neuma_recipe``: optimiser, learning rates by prior family, schedule, rollout weighting)."""
     tcfg = settings.train_for(seed)
+    return neuma_recipe(tcfg, scene.prior) if method.recipe == "neuma" else tcfg
+
+
+def law_for(settings: Settings, method: Method, scene: SceneConfig, inputs: SceneInputs, rho: float,
+            device="cpu", seed: int | None = None, velocity: tuple[list, list] | None = None) -> LearnedLaw:
+    """The method's law to train (or its trained law's skeleton) for the run of ``seed``, density ``rho`` [kg/m^3].
+
+    An explicit (PAC-NeRF-style) method is told the scene's material category (ground truth it assumes given:
+    ``gca.laws.presets.material_category`` of ``materials.<scene material>``) and learns its launch from
+    ``velocity``, the shared estimate (None when a trained state is loaded next)."""
+    tcfg = train_config(settings, method, scene, seed)
+    category = material_category(settings.material(scene.material)) if method.law == "explicit" else None
     law = build_law(method, inputs.prior, scene.prior, rho, settings.lora, tcfg.lr_elasticity, tcfg.lr_plasticity,
                     tcfg.lr_explicit, family_presets=settings.prior_families, dt=scene.dt,
-                    seed=tcfg.seed)
+                    seed=tcfg.seed, category=category, velocity=velocity)
     law.material.to(device)
+    if law.launch is not None:
+        law.launch.to(device)
     return law
 
 
 def objective_for(settings: Settings, method: Method, data: TrainData, scene: SceneConfig,
                   seed: int | None = None) -> Objective:
     """The method's training objective on ``data`` for the run of ``seed``."""
-    return Objective(method, data, settings.train_for(seed), settings.rdga, settings.cpr, settings.match,
+    return Objective(method, data, train_config(settings, method, scene, seed), settings.rdga, settings.cpr, settings.match,
                      cpr_target=scene.cpr_target)
 
 
@@ -141,9 +156,10 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
     (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
     scene = settings.scene(scene_name)
-    tcfg = settings.train_for(seed)
+    tcfg = train_config(settings, method, scene, seed)
     data = load_train_data(settings, inputs, method, velocity, settings.video.background, device)
-    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed)
+    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
+                  velocity)
     objective = objective_for(settings, method, data, scene, tcfg.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
@@ -229,7 +245,7 @@ def load_law(path: Path, law: LearnedLaw, family: str) -> None:
         e.load_state_dict(trained.elasticity.state_dict())
         p.load_state_dict(trained.plasticity.state_dict())
     elif law.kind == "explicit":
-        payload = torch.load(path, weights_only=False, map_location=e.log_E.device if hasattr(e, "log_E") else "cpu")
+        payload = torch.load(path, weights_only=False, map_location=law.trainable()[0].device)
         if payload.get("kind") != "explicit":
             raise ValueError(f"{path}: not an explicit-law checkpoint (kind {payload.get('kind')!r})")
         law.load_state(payload["state"])

@@ -34,6 +34,10 @@ class TrainConfig:
             smaller learning rate, in a row, before the run is declared diverged (0: the first
             divergence ends the run).
         backtrack_factor: learning-rate multiplier applied at each rejected update (for the rest of the run).
+        optimizer: ``adam`` (GCA) or ``radam`` (NeuMA's recipe, :func:`neuma_recipe`).
+        frame_decay_start, frame_decay_until, frame_decay_every: NeuMA's rollout weighting (:func:`frame_weights`):
+            video frame j weighs ``decay ** (j // (frame_decay_every * n_video))``, decay rising linearly from
+            ``frame_decay_start`` to 1 over the first ``frame_decay_until`` of the iterations; start 1 = off.
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
@@ -58,6 +62,10 @@ class TrainConfig:
     backtrack_factor: float = 0.5
     keep: str = "best"
     term_shares_every: int = 0
+    optimizer: str = "adam"
+    frame_decay_start: float = 1.0
+    frame_decay_until: float = 0.33
+    frame_decay_every: float = 0.2
 
     def __post_init__(self):
         if isinstance(self.term_shares_every, bool) or not isinstance(self.term_shares_every, int) \
@@ -73,12 +81,48 @@ class TrainConfig:
         elif self.seed not in seeds:
             raise ValueError(f"train.seed {self.seed!r} is not one of train.seeds {list(seeds)} "
                              "(params name the seeds; each run takes one)")
+        if self.optimizer not in ("adam", "radam"):
+            raise ValueError(f"train.optimizer must be 'adam' or 'radam', got {self.optimizer!r}")
+        if not 0.0 < self.frame_decay_start <= 1.0 or not 0.0 < self.frame_decay_every <= 1.0:
+            raise ValueError("train.frame_decay_start and frame_decay_every must be in (0, 1]")
         if self.keep not in ("best", "last"):
             raise ValueError(f"train.keep must be 'best' or 'last', got {self.keep!r}")
         if self.max_rejections < 0:
             raise ValueError(f"train.max_rejections must be >= 0, got {self.max_rejections}")
         if not 0.0 < self.backtrack_factor < 1.0:
             raise ValueError(f"train.backtrack_factor must be in (0, 1), got {self.backtrack_factor}")
+
+
+#: NeuMA's published fine-tuning recipe (XJay18/NeuMA at a3e8e663, ``experiments/finetune.py`` and
+#: ``experiments/configs/synthetic/finetune-*.yaml``; /work/shared/reference/nclaw-neuma.md section 4.5):
+#: RAdam (one per network, weight decay 0), cosine decay to a floor, grad-norm clip 1.0, pixel L2 summed over
+#: frames and views, every frame rolled out from the first epoch with the rollout weight
+#: ``decay ** ((frame - 1) // decay_steps)``, decay rising 0.5 -> 1 over the first 33% of the epochs,
+#: decay_steps 80 of its 400 synthetic frames (here 0.2 of the video). Learning rates (elasticity, plasticity,
+#: cosine floor) by base model M0, which NeuMA picks per object as this project picks the prior family:
+#: bouncy ball / jelly duck (jelly) 8e-3, 8e-4, 0.025; rubber pawn / clay cat (plasticine) 2e-2, 2e-3, 0.01;
+#: honey bottle / sand fish (sand) 5e-3, 5e-4, 0.04. NeuMA has no fluid base model: a fluid family keeps
+#: ``train``'s rates. Its 1000 epochs become ``train.iterations`` (the same budget as GCA).
+NEUMA_LR: dict[str, tuple[float, float, float]] = {"jelly": (8e-3, 8e-4, 0.025), "plasticine": (2e-2, 2e-3, 0.01),
+                                                   "sand": (5e-3, 5e-4, 0.04)}
+
+
+def neuma_recipe(cfg: TrainConfig, family: str) -> TrainConfig:
+    """``cfg`` with NeuMA's optimiser, schedule and rollout weighting (:data:`NEUMA_LR`) for prior ``family``."""
+    lr_e, lr_p, floor = NEUMA_LR.get(family, (cfg.lr_elasticity, cfg.lr_plasticity, cfg.cosine_floor))
+    return dataclasses.replace(cfg, optimizer="radam", lr_elasticity=lr_e, lr_plasticity=lr_p, cosine_floor=floor,
+                               grad_clip=1.0, curriculum_start=1.0, frame_decay_start=0.5, frame_decay_until=0.33,
+                               frame_decay_every=0.2)
+
+
+def frame_weights(cfg: TrainConfig, it: int, n_video: int) -> list[float] | None:
+    """Each video frame's loss weight at iteration ``it`` (NeuMA's rollout weighting), or None when off."""
+    if cfg.frame_decay_start >= 1.0:
+        return None
+    ramp = max(1.0, cfg.frame_decay_until * cfg.iterations)
+    decay = cfg.frame_decay_start + (1.0 - cfg.frame_decay_start) * min(1.0, it / ramp)
+    group = max(1, round(cfg.frame_decay_every * n_video))
+    return [decay ** (j // group) for j in range(n_video)]
 
 
 def run_dir_name(method: str, seed: int) -> str:

@@ -35,7 +35,7 @@ from gca.efficiency import synced_clock
 from gca.sim.cfl import CFLError
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
-from gca.train.config import TrainConfig
+from gca.train.config import TrainConfig, frame_weights
 from gca.train.law import LearnedLaw
 from gca.train.objective import Objective, TrainData
 from gca.train.probe import GradProbe
@@ -67,10 +67,11 @@ def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
 
 
 def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) -> Rollout:
-    """Differentiable rollout up to the ``n_video``-th video frame."""
+    """Differentiable rollout up to the ``n_video``-th video frame, from the law's learned launch (explicit rows)
+    or the shared estimate ``data.v_init``."""
     n_frames = data.video_frames[n_video - 1]
     b = data.body
-    return rollout(solver, law.material, b.x0, data.v_init, b.vol, b.mass,
+    return rollout(solver, law.material, b.x0, law.initial_velocity(b.x0, data.v_init), b.vol, b.mass,
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
 
 
@@ -91,6 +92,7 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
     while it < cfg.iterations:
         try:
             shares = cfg.term_shares_every > 0 and it % cfg.term_shares_every == 0
+            objective.frame_weights = frame_weights(cfg, it, n_video)
             record = _gradient(solver, law, data, objective, cfg, horizon(cfg, it, n_video), shares)
         except DIVERGENCE_ERRORS as exc:
             message = f"{type(exc).__name__}: {exc}"
@@ -112,7 +114,8 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
             bar.set_postfix(rejected=len(rejected))
             continue
         in_a_row = 0
-        if record["horizon"] == n_video:
+        weights = objective.frame_weights
+        if record["horizon"] == n_video and (weights is None or min(weights) == 1.0):  # comparable losses only
             best.offer(law, record["loss"], it)
         undo = Undo(law, opt, sched)
         t0 = time.perf_counter()
@@ -140,6 +143,7 @@ def _select(best: BestLaw, undo, solver, law, data, objective, cfg, n_video: int
     last update) is evaluated once over the whole video, and replaced by the best earlier one when that
     one's loss is lower or the final rollout diverges (with no earlier full-video loss to compare with,
     a diverging final law is replaced by the law before the last update)."""
+    objective.frame_weights = None  # the whole video, every frame at weight 1
     try:
         final = _gradient(solver, law, data, objective, cfg, n_video)["loss"]
     except DIVERGENCE_ERRORS:

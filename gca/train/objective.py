@@ -83,6 +83,7 @@ class Objective:
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
         self.probe: GradProbe | None = None  # set per iteration by _gradient (gradient provenance)
+        self.frame_weights: list[float] | None = None  # per video frame, set per iteration by the loop (NeuMA's rollout weighting)
         self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares
         self.last_term_grads: dict[str, list] | None = None  # each term's gradient of the last gradient(shares=True)
         switches = method.rdga_switches()  # the method's RDGA terms (silhouette, global, anchor) or None
@@ -192,7 +193,7 @@ class Objective:
         loss, stats = traj.x.new_zeros(()), _MeanStats(n_video)
         for j in range(n_video):
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
-            loss = loss + l_j
+            loss = loss + (l_j if self.frame_weights is None else self.frame_weights[j] * l_j)
         return loss, stats
 
     def _cpr_frames(self, n_video: int) -> list[int]:
@@ -296,14 +297,15 @@ class Objective:
                 "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
 
     def _mono_terms(self, out: dict, pq, j: int, stats: "_MeanStats") -> torch.Tensor:
-        """Monocular terms of train0 at frame ``j``: L1 depth (PAC-NeRF + depth) and silhouette/RDGA."""
+        """Monocular terms of train0 at frame ``j``: L1 depth, raw or aligned (PAC-NeRF + depth), and
+        silhouette/RDGA."""
         loss = out["alpha"].new_zeros(())
-        if self.method.uses("depth_l1"):
-            mask, est = self.mask[j], self.est_depth[j]
-            l_depth = (out["depth"] - est).abs()[mask].mean() if mask.any() else out["depth"].sum() * 0.0
-            loss = loss + self.cfg.lambda_depth_l1 * l_depth
-            self._collect("depth_l1", self.cfg.lambda_depth_l1 * l_depth)
-            stats.add("depth_l1", l_depth)
+        for term, fn in (("depth_l1", depth_l1_raw), ("depth_l1_aligned", depth_l1_aligned)):
+            if self.method.uses(term):
+                l_depth = fn(out["depth"], self.est_depth[j], self.mask[j])
+                loss = loss + self.cfg.lambda_depth_l1 * l_depth
+                self._collect(term, self.cfg.lambda_depth_l1 * l_depth)
+                stats.add(term, l_depth)
         rdga = self.train0_rdga
         if rdga is not None:
             p, q = pq if pq is not None else (np.zeros((0, 2), np.float32),) * 2
@@ -323,6 +325,41 @@ class Objective:
         """Add one frame's weighted ``term`` to the per-term sums (only while term shares are collected)."""
         if self._terms is not None:
             self._terms[term] = self._terms[term] + value if term in self._terms else value
+
+
+def depth_l1_raw(depth: torch.Tensor, est: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean L1 between the rendered metric depth ``depth`` [H, W] (camera z, m) and the estimated depth ``est``
+    [H, W] inside ``mask`` [H, W] (bool), as they come: the estimate is only defined up to an unknown per-frame
+    scale and shift (``gca.vision.depth``), so this compares numbers in two different units (the
+    ``pacnerf_depth`` row, labelled raw). A frame with an empty mask gives 0 (with the render's graph)."""
+    if not bool(mask.any()):
+        return depth.sum() * 0.0
+    return (depth - est).abs()[mask].mean()
+
+
+def depth_l1_aligned(depth: torch.Tensor, est: torch.Tensor, mask: torch.Tensor,
+                     min_var: float = 1e-12) -> torch.Tensor:
+    """Mean L1 between the rendered depth ``depth`` [H, W] and the estimated depth ``est`` [H, W] mapped onto it
+    by the per-frame least-squares scale and shift inside ``mask`` [H, W] (bool): the standard MiDaS-style
+    alignment (Ranftl et al. 2020, scale-and-shift-invariant loss), the ``pacnerf_depth_aligned`` row.
+
+        (s, t) = argmin sum_mask (s est + t - depth)^2:   s = cov(est, depth) / var(est),
+                                                          t = mean(depth) - s mean(est)
+        L = mean_mask |s est + t - depth|
+
+    (s, t) are **not detached**: as in MiDaS they are part of the loss, so L is a function of the render that is
+    invariant to any affine change of the estimate, and its gradient is that function's true gradient (the
+    render is pulled towards the estimate's *shape*, never its unknown scale or offset). Detached, the gradient
+    would treat the aligned estimate as a fixed target and the reported loss would not be the one descended.
+    ``var(est)`` is floored at ``min_var`` (a constant estimate: s = 0, t = mean depth). A frame with an empty
+    mask gives 0 (with the render's graph).
+    """
+    if not bool(mask.any()):
+        return depth.sum() * 0.0
+    d, e = depth[mask], est[mask].to(depth.dtype)
+    e_c, d_c = e - e.mean(), d - d.mean()
+    s = (e_c * d_c).mean() / (e_c * e_c).mean().clamp(min=min_var)
+    return (s * e_c - d_c).abs().mean()
 
 
 def term_shares(term_grads: dict[str, list], total: list) -> dict[str, float]:

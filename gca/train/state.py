@@ -53,7 +53,8 @@ class Schedule:
 
 
 def make_optimizer(law: LearnedLaw, cfg: TrainConfig):
-    opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in law.groups])
+    kind = torch.optim.RAdam if cfg.optimizer == "radam" else torch.optim.Adam
+    opt = kind([{"params": g["params"], "lr": g["lr"]} for g in law.groups])
     return opt, Schedule(opt, cfg)
 
 
