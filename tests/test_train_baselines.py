@@ -158,7 +158,8 @@ def test_every_homogeneous_scene_material_has_its_category():
     cats = {name: material_category(m) for name, m in params["materials"].items() if "parts" not in m}
     assert cats == {"elastomer": "elastic", "gel": "elastic", "rubber": "plastic", "plasticine": "plastic",
                     "granular": "granular", "non_newtonian": "viscoplastic", "plasticine_dragon": "plastic",
-                    "sand_wolf": "granular", "gel_pudding": "elastic"}
+                    "sand_wolf": "granular", "gel_pudding": "elastic",
+                    "foam": "elastic", "clay": "plastic", "snow": "granular"}  # the calibration scenes' (benchmark v2)
     with pytest.raises(ConfigError, match="composite"):
         material_category(params["materials"]["composite"])
     with pytest.raises(ConfigError, match="no material category"):

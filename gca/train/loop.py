@@ -133,6 +133,7 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
             save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
                              seconds_before + time.perf_counter() - start)
     bar.close()
+    objective.frame_weights = None  # after training the objective is the whole video, every frame at weight 1
     selected = (_select(best, undo, solver, law, data, objective, cfg, n_video, history, opt) if cfg.keep == "best"
                 else {"rule": "last"})
     return TrainResult("ok", cfg.iterations, history, "", time.perf_counter() - start, rejected, selected, **resumed)
@@ -143,7 +144,6 @@ def _select(best: BestLaw, undo, solver, law, data, objective, cfg, n_video: int
     last update) is evaluated once over the whole video, and replaced by the best earlier one when that
     one's loss is lower or the final rollout diverges (with no earlier full-video loss to compare with,
     a diverging final law is replaced by the law before the last update)."""
-    objective.frame_weights = None  # the whole video, every frame at weight 1
     try:
         final = _gradient(solver, law, data, objective, cfg, n_video)["loss"]
     except DIVERGENCE_ERRORS:
