@@ -18,6 +18,7 @@ from gca.eval.nuisance import scene_nuisance
 from gca.io import write_json
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
+from gca.scenes.capture import is_capture
 
 
 def parse_args(argv):
@@ -32,6 +33,11 @@ def parse_args(argv):
 def main(argv=None) -> dict:
     args = parse_args(argv)
     settings = Settings.load(f"nuisance@{args.scene}", args.params)
+    if is_capture(args.scene_dir):  # a real video has no ground truth to measure the observations against
+        metrics = {"scene": args.scene, "skipped": "capture scene: no ground truth"}
+        write_json(args.out, metrics)
+        print(f"nuisance {args.scene}: skipped ({metrics['skipped']})")
+        return metrics
     with stage_run("nuisance", settings.params, scene=args.scene) as run:
         metrics = {"scene": args.scene, "benchmark_version": settings.benchmark_version,
                    **scene_nuisance(args.scene_dir, args.gt, args.prep, settings.video.mask_threshold)}

@@ -20,7 +20,11 @@ from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
 from gca.scenes import TRAIN_VIEW, load_simulated_depth, load_view
 from gca.scenes.store import load_plate
-from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
+from gca.capture.cameras import CaptureError
+from gca.config import ConfigError
+from gca.scenes.capture import is_capture, load_heldout
+from gca.scenes.prep import preprocess_capture, preprocess_view, synthetic_pair_precision, write_prep
+from gca.scenes.store import SceneDataError
 
 
 def parse_args(argv):
@@ -37,6 +41,8 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     settings = Settings.load(f"preprocess@{args.scene}", args.params)
     cfg = settings.vision
+    if is_capture(args.scene_dir):
+        return _capture(args, settings)
     view = load_view(args.scene_dir, TRAIN_VIEW)
     sim_depth = load_simulated_depth(args.scene_dir, len(view.rgb)) if cfg.depth.backend == "simulated" else None
     with stage_run("preprocess", settings.params, scene=args.scene) as run:
@@ -50,6 +56,28 @@ def main(argv=None) -> dict:
                    **synthetic_pair_precision(view.rgb[0], cfg, seed=settings.seed)}
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)
+    return metrics
+
+
+def _capture(args, settings: Settings) -> dict:
+    """A capture: masks, depth and keypoints from the frames only (user errors: one line, nothing written)."""
+    try:
+        scene = settings.scene(args.scene)
+        view = load_view(args.scene_dir, TRAIN_VIEW)
+        heldout, _ = load_heldout(args.scene_dir)
+        with stage_run("preprocess", settings.params, scene=args.scene) as run:
+            prep = preprocess_capture(view, heldout.rgb, settings.vision, scene.capture.depth, seed=settings.seed,
+                                      plate=load_plate(args.scene_dir, TRAIN_VIEW))
+            with atomic_path(args.out, is_dir=True) as tmp:
+                write_prep(tmp, prep)
+            n_kpts = np.diff(prep["keypoints"]["offsets"])
+            metrics = {"n_frames": int(len(prep["depth"])), "n_heldout_frames": int(len(prep["heldout_masks"])),
+                       "keypoints_per_frame": float(n_kpts.mean()), "mask_coverage": float(prep["masks"].mean()),
+                       "depth": scene.capture.depth}
+            write_json(args.metrics, metrics)
+            run.log_metrics({k: v for k, v in metrics.items() if not isinstance(v, str)})
+    except (SceneDataError, CaptureError, ConfigError) as exc:
+        raise SystemExit(f"preprocess@{args.scene}: {exc}") from None
     return metrics
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from gca.eval.capture import evaluate_capture
 from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json
 from gca.pipeline.settings import Settings
@@ -44,3 +45,23 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
             "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],
             "term_shares": train.get("term_shares", {})}
+
+
+def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path,
+                             out_dir: Path, device: str = "cpu", seed: int | None = None) -> dict:
+    """:func:`evaluate_trained` for a capture scene (no ground truth): :func:`gca.eval.capture.evaluate_capture`
+    on the held-out frames, CPR's nearest classical law; ``inputs.prep_dir`` holds the held-out masks."""
+    scene = settings.scene(scene_name)
+    seed = settings.train_for(seed).seed
+    name = run_dir_name(method.name, seed)
+    train = read_json(runs_dir / name / "train.json")
+    law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
+                           float(body.mass.sum() / body.vol.sum()), device, seed)
+    metrics = evaluate_capture(solver_for(settings, scene, device), law.material, body,
+                               read_velocity(runs_dir / "velocity.json"), inputs.scene_dir, inputs.prep_dir,
+                               settings.video.background, out_dir / name, settings.metrics, settings.cpr, seed)
+    if train["status"] != "ok":
+        metrics["status"] = train["status"]
+    return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "seed": seed,
+            "profile": settings.profile, "device": device_name(body.x0.device), "velocity": read_json(runs_dir / "velocity.json"),
+            "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}

@@ -17,6 +17,7 @@ import torch
 
 from gca.align.cpr import CPRConfig
 from gca.align.rdga import RDGAConfig
+from gca.capture.video import CaptureVideoConfig
 from gca.config import ConfigError, build, load, section
 from gca.eval.config import MetricsConfig
 from gca.laws.lora import LoRAConfig
@@ -171,6 +172,13 @@ def scene_config(raw: Mapping, where: str) -> SceneConfig:
     for key in ("v0", "w0"):
         if key in raw:
             raw[key] = tuple(float(x) for x in raw[key])
+    if raw.get("capture") is not None:
+        raw["capture"] = build(CaptureVideoConfig, dict(raw["capture"]), f"{where}.capture")
+        if raw.get("kind", "capture") != "capture":
+            raise ConfigError(f"params {where}: a scene with a 'capture' entry has kind 'capture', got {raw['kind']!r}")
+        raw["kind"] = "capture"
+    elif raw.get("kind") == "capture":
+        raise ConfigError(f"params {where}: kind 'capture' needs a 'capture' entry (video, camera, fps)")
     for key in ("methods", "cpr_target"):
         if key in raw:
             raw[key] = tuple(raw[key])

@@ -20,6 +20,8 @@ def nuisance_frame(nuisance_dir: str | Path) -> pd.DataFrame:
     rows = []
     for path in sorted(Path(nuisance_dir).glob("*.json")):
         record = json.loads(path.read_text())
+        if "skipped" in record:  # a capture scene: no ground truth to measure against
+            continue
         row = {"scene": record.get("scene", path.stem), "benchmark": record.get("benchmark_version", "")}
         row.update({label: f"{record[key]:.3f}" if isinstance(record.get(key), (int, float)) else "n/a"
                     for key, label in COLUMNS})

@@ -54,6 +54,8 @@ def _read_scene(scene_dir: Path, runs: Runs) -> None:
         record = read_json(path)
         if match is None or not isinstance(record, Mapping) or "method" not in record:
             continue
+        if record.get("kind") == "capture":  # a capture scene: its own page (gca.report.captures), in no table
+            continue
         method, scene = match["method"], scene_dir.name
         _check_record(path, record, scene, method)
         seed = int(match["seed"] or 0)  # the file name says the run (gca.train.config.run_dir_name)

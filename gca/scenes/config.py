@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from gca.capture.video import CaptureVideoConfig
 from gca.config import ConfigError
 
 
@@ -102,6 +103,9 @@ class SceneConfig:
         duration_s: the video's duration when ``video.fps`` > 0 [s] (NeuMA's: 0.2 s pawn/cat/fish/bottle,
             0.4 s ball/duck; docs/benchmark.md states the others').
         calibration: a calibration scene (issue 21, item 5): for tuning only, in no table.
+        capture: a capture scene (``kind: capture``, README "Your own object"): the user's video, camera and
+            frame rate (:class:`gca.capture.video.CaptureVideoConfig`); its ``material`` is ``none`` (no
+            ground-truth law) and its timing comes from the frame rate, not the ``video`` section.
     """
 
     object: str
@@ -120,6 +124,11 @@ class SceneConfig:
     law_level: bool = False
     duration_s: float = 0.0
     calibration: bool = False
+    capture: CaptureVideoConfig | None = None
+
+    @property
+    def is_capture(self) -> bool:
+        return self.capture is not None
 
 
 def scene_video(video: VideoConfig, scene: SceneConfig) -> VideoConfig:

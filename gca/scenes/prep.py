@@ -8,16 +8,19 @@ pair with a known correspondence (frame 0 against a homography-warped copy of it
     data/prep/<scene>/depth.npy       estimated relative depth [T, H, W] (float32; larger = farther)
     data/prep/<scene>/masks.npy       masks [T, H, W] (bool)
     data/prep/<scene>/keypoints.npz   SIFT keypoints + descriptors per frame (pack_keypoints layout)
+    data/prep/<scene>/heldout_masks.npy   a capture's held-out frames' masks [T_h, H, W] (evaluation only)
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from gca.scenes.store import TRAIN_VIEW, SceneDataError, ViewData
+from gca.vision.depth import silhouette_depth
 from gca.vision.segment import segment_frames
 from gca.vision import (VisionConfig, compute_masks, detect_keypoints, estimate_depth, match_features,
                         match_precision, pack_keypoints, unpack_keypoints)
@@ -74,10 +77,47 @@ def preprocess_view(view: ViewData, cfg: VisionConfig, seed: int = 0,
     return {"depth": depth, "masks": masks, "keypoints": keypoints}
 
 
+def preprocess_capture(view: ViewData, heldout: np.ndarray, cfg: VisionConfig, depth: str, seed: int = 0,
+                       plate: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """:func:`preprocess_view` of a capture's training frames, needing the frames only, plus the held-out
+    frames' masks (``heldout_masks`` [T_h, H, W] bool, for evaluation; segmented with the same background).
+
+    Args:
+        view: ``train0`` (frames, camera); heldout: the held-out frames [T_h, H, W, 3] float in [0, 1].
+        depth: ``scenes.<name>.capture.depth``: ``transformers`` (Depth Anything from
+            ``vision.depth.transformers.weights_dir``; a missing model is a one-line :class:`SceneDataError`
+            saying how to get it) or ``silhouette`` (:func:`gca.vision.depth.silhouette_depth`, the fallback).
+    """
+    frames = (np.concatenate([view.rgb, heldout]) * 255 + 0.5).astype(np.uint8) if len(heldout) else \
+        (view.rgb * 255 + 0.5).astype(np.uint8)
+    if cfg.masks.method == "segment":
+        masks = segment_frames(frames, cfg.masks.segment, plate)
+    else:
+        masks = compute_masks(cfg.masks, frames=frames)
+    n = len(view.rgb)
+    train = frames[:n]
+    if depth == "silhouette":
+        est = silhouette_depth(masks[:n], cfg.depth.simulated.background)
+    else:
+        tcfg = cfg.depth.transformers
+        if not (Path(tcfg.weights_dir) / "config.json").is_file():
+            raise SceneDataError(f"{tcfg.weights_dir}: no Depth Anything model (config.json) for this capture's depth: "
+                                 "download it (README, 'Your own object') and set vision.depth.transformers.weights_dir, "
+                                 "or set scenes.<name>.capture.depth: silhouette (a fallback without a model)")
+        est = estimate_depth(train, dataclasses.replace(cfg.depth, backend="transformers"), seed=seed)
+    est = np.asarray(est, dtype=np.float32)
+    if not np.all(np.isfinite(est)):
+        raise FloatingPointError("preprocess: the depth estimator returned NaN/inf")
+    keypoints = pack_keypoints([detect_keypoints(f, cfg.matching) for f in train])
+    return {"depth": est, "masks": masks[:n], "keypoints": keypoints, "heldout_masks": masks[n:]}
+
+
 def write_prep(out_dir: Path, prep: dict) -> None:
     np.save(out_dir / "depth.npy", prep["depth"])
     np.save(out_dir / "masks.npy", prep["masks"])
     np.savez(out_dir / "keypoints.npz", **prep["keypoints"])
+    if "heldout_masks" in prep:  # captures: the held-out frames' masks, read by evaluation only
+        np.save(out_dir / "heldout_masks.npy", prep["heldout_masks"])
 
 
 def load_prep(prep_dir: str | Path, n_frames: int) -> tuple[np.ndarray, np.ndarray, list]:

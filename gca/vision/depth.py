@@ -365,3 +365,26 @@ def estimate_depth(frames: np.ndarray, cfg: DepthConfig, gt_depth: np.ndarray | 
                    masks: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
     """Relative depth [T, H, W] of a video [T, H, W, 3] with the configured backend."""
     return make_depth_estimator(cfg, seed).estimate(frames, gt_depth, masks)
+
+
+def silhouette_depth(masks: np.ndarray, background: float = 1.5) -> np.ndarray:
+    """A depth fallback needing only masks (captures without a depth model): relative depth [T, H, W] float32,
+    ``background`` outside the mask and ``1 - d / d_max`` inside, d the Euclidean distance to the mask's edge
+    [px]: the object reads as a rounded solid nearest at its silhouette's middle. It carries no texture or
+    surface detail, so RDGA's anchor and global terms see only this shape prior (README, "Your own object").
+
+    Args:
+        masks: [T, H, W] bool object masks.
+        background: relative depth of background pixels [1] (``vision.depth.simulated.background``'s role).
+    """
+    import cv2
+
+    masks = np.asarray(masks, dtype=bool)
+    if masks.ndim != 3:
+        raise ValueError(f"{_WHERE}: silhouette_depth needs masks [T, H, W], got {masks.shape}")
+    out = np.full(masks.shape, background, dtype=np.float32)
+    for t, m in enumerate(masks):
+        if m.any():
+            d = cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, 3)
+            out[t][m] = 1.0 - d[m] / max(float(d.max()), 1e-6)
+    return out
