@@ -44,7 +44,8 @@ def _presets_to_check():
     presets = dict(PAPER_PRESETS)
     params = ROOT / "params.yaml"
     shipped = (yaml.safe_load(params.read_text()) or {}).get("materials", {}) if params.is_file() else {}
-    presets.update({f"params.yaml:{k}": v for k, v in (shipped or {}).items()})
+    # materials.none ({}) is the capture scenes' placeholder: no law to build
+    presets.update({f"params.yaml:{k}": v for k, v in (shipped or {}).items() if v})
     return presets
 
 

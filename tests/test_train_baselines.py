@@ -155,7 +155,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_every_homogeneous_scene_material_has_its_category():
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
-    cats = {name: material_category(m) for name, m in params["materials"].items() if "parts" not in m}
+    cats = {name: material_category(m) for name, m in params["materials"].items() if m and "parts" not in m}  # {}: captures
     assert cats == {"elastomer": "elastic", "gel": "elastic", "rubber": "plastic", "plasticine": "plastic",
                     "granular": "granular", "non_newtonian": "viscoplastic", "plasticine_dragon": "plastic",
                     "sand_wolf": "granular", "gel_pudding": "elastic",
