@@ -21,8 +21,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "stages"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from grid import apply_overrides  # noqa: E402
+from gca.pipeline.grid import apply_overrides  # noqa: E402
 
 
 def write_preview(work: Path, scene: str, out: Path, scale: int = 3) -> Path:
