@@ -31,4 +31,10 @@ if [ -z "${SKIP_GSPLAT:-}" ] && python -c "import torch, sys; sys.exit(0 if torc
 else
   python -m pip install -q -e ".[dev]"
 fi
+# the depth extra (transformers) when a local Depth Anything folder is configured (vision.depth.transformers.weights_dir)
+weights=$(python -c "import yaml; print(yaml.safe_load(open('params.yaml'))['vision']['depth']['transformers']['weights_dir'])" 2>/dev/null || true)
+if [ -n "$weights" ] && [ -f "$weights/config.json" ]; then
+  echo "setup: local depth model found in $weights: installing gca with the depth extra (transformers)"
+  python -m pip install -q -e ".[depth]"
+fi
 python -c "import torch, warp, gca; print(f'setup: torch {torch.__version__} (cuda={torch.cuda.is_available()}), warp {warp.__version__}, gca {gca.__version__}')"

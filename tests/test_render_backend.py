@@ -71,6 +71,7 @@ STUB_PY = """#!/usr/bin/env bash
 echo "python $*" >> "$STUB_LOG"
 case "$*" in
   *"sys.exit(0 if torch.cuda.is_available()"*) exit "$STUB_CUDA" ;;
+  *"weights_dir"*) echo "${STUB_WEIGHTS:-}" ;;
 esac
 exit 0
 """
@@ -105,3 +106,15 @@ def test_setup_without_cuda_skips_gsplat(tmp_path, cuda, env):
     calls = _setup(tmp_path, cuda=cuda, **env)
     assert 'python -m pip install -q -e .[dev]' in calls
     assert not any("gpu]" in c or "--build" in c for c in calls)
+
+
+@pytest.mark.parametrize("with_model", [True, False])
+def test_setup_installs_the_depth_extra_only_with_a_local_model(tmp_path, with_model):
+    """A configured Depth Anything folder that holds a model (config.json) brings the depth extra; an empty or
+    absent one does not (the negative control)."""
+    weights = tmp_path / "repo" / "models" / "depth"
+    weights.mkdir(parents=True)
+    if with_model:
+        (weights / "config.json").write_text("{}")
+    calls = _setup(tmp_path, cuda=False, STUB_WEIGHTS=str(weights))
+    assert ('python -m pip install -q -e .[depth]' in calls) == with_model
