@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from gca import config
+from gca import cli, config
 from gca.eval.demos import DemoInputs, demo_config, interaction_demo, new_shape_demo
 from gca.io import atomic_path, write_json
 from gca.scenes import video_config
@@ -24,10 +24,11 @@ from gca.train.run import default_device
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name in ("runs", "data", "prior-dir", "out", "metrics"):
-        ap.add_argument(f"--{name}", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
+    for name, what in (("runs", "the train stage's runs/ root (runs/<scene>/<method>/law.pt)"),
+                       ("data", "the data/ root (data/particles, data/assets)"), ("prior-dir", "models/prior"),
+                       ("out", "metrics/demo (GIFs and strips)"), ("metrics", "metrics .json")):
+        ap.add_argument(f"--{name}", type=Path, required=True, help=what)
+    cli.add_common(ap, device=default_device())
     return ap.parse_args(argv)
 
 
@@ -55,4 +56,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

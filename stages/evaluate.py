@@ -16,6 +16,7 @@ from gca.eval.evaluate import evaluate_trained
 from gca.io import read_json, write_json
 from gca.scenes.world import load_scene_body
 from gca.train.run import seed_runs
+from gca import cli
 from gca.track import stage_run
 
 from common import scene_context, scene_parser  # stages/common.py
@@ -43,4 +44,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from gca import config
+from gca import cli, config
 from gca.io import atomic_path, write_json
 from gca.render.shading import LightingConfig
 from gca.scenes import scene_config, video_config
@@ -24,13 +24,12 @@ from gca.track import stage_run
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True)
+    ap.add_argument("--scene", required=True, help="a key of `scenes:` in params.yaml (e.g. duck)")
     ap.add_argument("--assets", type=Path, required=True, help="data/assets/<object> (gaussians.ply)")
     ap.add_argument("--particles", type=Path, required=True, help="data/particles/<object>.npz")
     ap.add_argument("--out", type=Path, required=True, help="scene directory (replaced atomically)")
-    ap.add_argument("--metrics", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--metrics", type=Path, required=True, help="metrics .json")
+    cli.add_common(ap, device="cuda" if torch.cuda.is_available() else "cpu")
     return ap.parse_args(argv)
 
 
@@ -52,4 +51,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -9,28 +9,29 @@ comes from the Gaussians alone, as for a user's own scan).
 
 from __future__ import annotations
 
+import sys
 import argparse
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from gca import config, io, track
+from gca import cli, config, io, track
 from gca.assets import objects, particles, ply
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--object", required=True)
+    parser.add_argument("--object", required=True, help="a key of `objects:` in params.yaml (e.g. duck)")
     parser.add_argument("--assets", required=True, help="directory with gaussians.ply [and mesh.ply]")
-    parser.add_argument("--out", required=True, help="particles .npz")
+    parser.add_argument("--out", required=True, help="particles .npz (written atomically)")
     parser.add_argument("--metrics", required=True, help="metrics .json")
-    parser.add_argument("--params", default="params.yaml")
+    cli.add_common(parser)
     args = parser.parse_args(argv)
 
     params = config.load(f"particles@{args.object}", args.params)
     cfg = config.build(particles.ParticleConfig, config.section(params, "particles"), "particles")
-    obj = config.build(objects.ObjectConfig, config.section(params, f"objects.{args.object}"), f"objects.{args.object}")
+    obj = config.build(objects.ObjectConfig, config.entry(params, "objects", args.object), f"objects.{args.object}")
     cloud = ply.read_ply(Path(args.assets) / "gaussians.ply")
     mesh_path = Path(args.assets) / "mesh.ply"
     mesh = trimesh.load(mesh_path, force="mesh") if mesh_path.exists() else None
@@ -50,4 +51,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.run(main))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gca import config
+from gca import cli, config
 from gca.io import atomic_path, write_json
 from gca.scenes import TRAIN_VIEW, load_view
 from gca.scenes.prep import preprocess_view, synthetic_pair_precision, write_prep
@@ -22,17 +22,19 @@ from gca.vision import VisionConfig
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--scene-dir", type=Path, required=True)
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--metrics", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--scene", required=True, help="a key of `scenes:` in params.yaml (e.g. duck)")
+    ap.add_argument("--scene-dir", type=Path, required=True, help="the ground_truth stage's data/scenes/<scene>")
+    ap.add_argument("--out", type=Path, required=True, help="data/prep/<scene> (replaced atomically)")
+    ap.add_argument("--metrics", type=Path, required=True, help="metrics .json")
+    cli.add_common(ap)
     return ap.parse_args(argv)
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
     params = config.load(f"preprocess@{args.scene}", args.params)
+    if "scenes" in params:  # under DVC the stage sees no scenes section; dvc.yaml's foreach names them
+        config.entry(params, "scenes", args.scene)
     cfg = config.build(VisionConfig, config.section(params, "vision"), "vision")
     view = load_view(args.scene_dir, TRAIN_VIEW)
     with stage_run("preprocess", params, scene=args.scene) as run:
@@ -49,4 +51,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from gca import config
+from gca import cli, config
 from gca.io import write_json
 from gca.report import ReportConfig, build_reports, summary
 from gca.report.runs import load_runs
@@ -22,7 +22,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=Path("reports"), help="reports folder (replaced)")
     parser.add_argument("--summary", type=Path, default=Path("metrics/report.json"), help="summary metrics JSON")
     parser.add_argument("--media", type=Path, nargs="*", default=[], help="GIF/PNG folders to include (demos)")
-    parser.add_argument("--params", type=Path, default=Path("params.yaml"))
+    cli.add_common(parser)
     return parser.parse_args(argv)
 
 
@@ -42,4 +42,4 @@ def main(argv: list[str] | None = None) -> list[Path]:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -137,14 +137,17 @@ def test_every_section_of_the_shipped_params_validates(repo_root, profile):
             assert scene.dt <= bound, f"scenes.{name}.dt={scene.dt} exceeds the CFL bound {bound:.3g} ({profile})"
 
 
-def test_render_backend_auto_resolves_per_device():
+def test_render_backend_auto_resolves_per_device(repo_root):
     from gca.scenes.world import raster_settings
 
-    assert raster_settings({"render": {"backend": "auto"}}, "cpu")[0] == "torch"
+    raster = config.load(path=repo_root / "params.yaml", via_dvc=False)["render"]["raster"]
+    assert raster_settings({"render": {"backend": "auto", "raster": raster}}, "cpu")[0] == "torch"
     with pytest.warns(RuntimeWarning, match="needs CUDA"):
-        assert raster_settings({"render": {"backend": "gsplat"}}, "cpu")[0] == "torch"
+        assert raster_settings({"render": {"backend": "gsplat", "raster": raster}}, "cpu")[0] == "torch"
     with pytest.raises(ValueError, match="render.backend='opengl'"):
-        raster_settings({"render": {"backend": "opengl"}}, "cpu")
+        raster_settings({"render": {"backend": "opengl", "raster": raster}}, "cpu")
+    with pytest.raises(config.ConfigError, match="missing key 'render.raster'"):
+        raster_settings({"render": {"backend": "auto"}}, "cpu")
 
 
 def _own_prior_scenes(raw: dict) -> list[str]:

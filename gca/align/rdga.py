@@ -125,7 +125,7 @@ class RDGAConfig:
     stable_region: str = "eroded"
     stable_on: str = "render"
     alpha_threshold: float = 0.5
-    mask_reduction: str = "mean"
+    mask_reduction: str = "sum"
     global_reduction: str = "norm"
     anchor_reduction: str = "sum"
     global_gradient: str = "material"

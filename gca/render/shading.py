@@ -29,7 +29,7 @@ class LightingConfig:
     intensity: tuple[float, float] = (0.5, 0.9)          # directional intensity [-]
     ambient: tuple[float, float] = (0.2, 0.5)            # ambient term [-]
     color_jitter: float = 0.1                            # per-channel light colour in [1 - j, 1] [-]
-    drift: float = 1.0                                   # 1: independent per frame; <1: each frame moves
+    drift: float = 0.5                                   # 1: independent per frame; <1: each frame moves
                                                          # this fraction from the previous light to a fresh draw [-]
 
     def __post_init__(self) -> None:

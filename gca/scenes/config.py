@@ -14,7 +14,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from gca.config import ConfigError, build
+from gca.config import OPTIONAL, ConfigError, build
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,8 +58,8 @@ class VideoConfig:
         mask_threshold: alpha above which a pixel belongs to the object mask.
     """
 
-    n_frames: int = 400
-    substeps: int = 1
+    n_frames: int = 200
+    substeps: int = 2
     frame_every: int = 4
     resolution: int = 256
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -100,16 +100,16 @@ class SceneConfig:
     v0: tuple[float, float, float] = (0.0, -1.0, 0.0)
     w0: tuple[float, float, float] = (0.0, 0.0, 0.0)
     camera: OrbitCamera = OrbitCamera()
-    extra_train_cameras: tuple[OrbitCamera, ...] = ()
+    extra_train_cameras: tuple[OrbitCamera, ...] = dataclasses.field(default=(), metadata=OPTIONAL)
     eval_cameras: tuple[OrbitCamera, ...] = ()
     light_seed: int = 0
     methods: tuple[str, ...] = ("gca", "neuma", "nclaw")
     cpr_target: tuple[str, str] = ("corotated", "identity")
-    law_level: bool = False
+    law_level: bool = dataclasses.field(default=False, metadata=OPTIONAL)
 
 
 def _cameras(items: Sequence[Mapping] | None, where: str) -> tuple[OrbitCamera, ...]:
-    return tuple(build(OrbitCamera, dict(c), f"{where}[{i}]") for i, c in enumerate(items or ()))
+    return tuple(build(OrbitCamera, c, f"{where}[{i}]", partial=True) for i, c in enumerate(items or ()))
 
 
 def scene_config(params: Mapping, scene: str) -> SceneConfig:
@@ -119,15 +119,9 @@ def scene_config(params: Mapping, scene: str) -> SceneConfig:
         raise ConfigError(f"params: unknown scene {scene!r}; known scenes: {sorted(scenes)}")
     raw = dict(scenes[scene])
     where = f"scenes.{scene}"
-    raw["camera"] = build(OrbitCamera, dict(raw.get("camera", {})), f"{where}.camera")
+    raw["camera"] = build(OrbitCamera, raw.get("camera", {}), f"{where}.camera", partial=True)
     raw["extra_train_cameras"] = _cameras(raw.get("extra_train_cameras"), f"{where}.extra_train_cameras")
     raw["eval_cameras"] = _cameras(raw.get("eval_cameras"), f"{where}.eval_cameras")
-    for key in ("v0", "w0"):
-        if key in raw:
-            raw[key] = tuple(float(x) for x in raw[key])
-    for key in ("methods", "cpr_target"):
-        if key in raw:
-            raw[key] = tuple(raw[key])
     return build(SceneConfig, raw, where)
 
 

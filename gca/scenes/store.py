@@ -24,7 +24,7 @@ from typing import Iterable
 import imageio.v3 as iio
 import numpy as np
 
-from gca.io import read_json
+from gca.io import load_array, load_arrays, read_json, reading
 from gca.render.camera import Camera
 
 TRAIN_VIEW = "train0"
@@ -71,7 +71,10 @@ def _read_frames(folder: Path, n: int, camera: Camera, channels: int) -> np.ndar
         path = folder / frame_name(i)
         if not path.is_file():
             raise SceneDataError(f"{path}: missing frame {i} of {n}")
-        img = iio.imread(path)
+        with reading(path, "image"):
+            img = iio.imread(path)
+        if channels > 1 and (img.ndim != 3 or img.shape[2] < channels):
+            raise SceneDataError(f"{path}: expected a colour image ({channels} channels), got shape {img.shape}")
         if img.shape[:2] != (camera.height, camera.width):
             raise SceneDataError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but the camera is "
                                  f"{camera.width}x{camera.height} (mismatched camera)")
@@ -94,7 +97,7 @@ def load_view(scene_dir: str | Path, view: str, meta: dict | None = None,
     depth_path = folder / "depth.npy"
     if not depth_path.is_file():
         raise SceneDataError(f"{depth_path}: missing depth")
-    depth = np.load(depth_path)
+    depth = load_array(depth_path, "depth")
     if depth.shape != mask.shape:
         raise SceneDataError(f"{depth_path}: shape {depth.shape} does not match the frames {mask.shape}")
     if not np.all(np.isfinite(depth)):
@@ -112,7 +115,10 @@ def load_trajectory(scene_dir: str | Path) -> np.ndarray:
     path = Path(scene_dir) / "trajectory.npz"
     if not path.is_file():
         raise SceneDataError(f"{path}: missing ground-truth trajectory")
-    x = np.load(path)["x"]
+    arrays = load_arrays(path, "trajectory")
+    if "x" not in arrays:
+        raise SceneDataError(f"{path}: no array 'x' (have {sorted(arrays)})")
+    x = arrays["x"]
     if not np.all(np.isfinite(x)):
         raise SceneDataError(f"{path}: trajectory contains NaN/inf")
     return x

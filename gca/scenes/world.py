@@ -21,7 +21,7 @@ import torch
 from gca.assets.particles import Particles, load_particles
 from gca.assets.ply import GaussianCloud, covariances, opacities, read_ply, sh0_to_rgb
 from gca.render.follow import Binding, follow
-from gca.config import build
+from gca.config import build, section
 from gca.render.camera import Camera
 from gca.render.rasterize import RasterConfig, render
 
@@ -100,10 +100,10 @@ def raster_settings(params: Mapping, device: str | torch.device | None = None) -
     ``auto`` picks gsplat on CUDA when the package is installed and the torch rasterizer otherwise;
     an explicit ``gsplat`` off CUDA falls back to torch with a warning.
     """
-    backend = params.get("render", {}).get("backend", "torch")
+    backend = section(params, "render.backend")
     if backend not in BACKEND_CHOICES:
         raise ValueError(f"params: render.backend={backend!r} is not one of {BACKEND_CHOICES}")
-    raster = build(RasterConfig, params.get("render", {}).get("raster", {}), "render.raster")
+    raster = build(RasterConfig, section(params, "render.raster"), "render.raster")
     on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
     if backend == "auto":
         return ("gsplat" if on_cuda and gsplat_available() else "torch"), raster

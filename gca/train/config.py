@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from gca.config import NOT_A_PARAM
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -50,7 +52,7 @@ class TrainConfig:
     checkpoint_every: int = 10
     max_spread_growth: float = 0.5
     seeds: tuple[int, ...] = (0,)
-    seed: int | None = None
+    seed: int | None = dataclasses.field(default=None, metadata=NOT_A_PARAM)  # set per run, not in params
     max_rejections: int = 3
     backtrack_factor: float = 0.5
     keep: str = "best"
@@ -95,7 +97,7 @@ class VelocityConfig:
 
     iterations: int = 100
     n_video_frames: int = 8
-    lr: float = 0.2
+    lr: float = 0.5
     lambda_mask: float = 1.0
     lambda_color: float = 0.0
     angular: bool = True

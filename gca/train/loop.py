@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from gca import stop
 from gca.align.cpr import CPR, CPRConfig
 from gca.align.rdga import RDGAConfig, position_colors, position_image, rdga_loss
 from gca.eval.efficiency import synced_clock
@@ -464,9 +465,10 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
             on_iteration(it, record)
         it += 1
         bar.update(1)
-        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations):
+        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stop.requested()):
             _save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
                              seconds_before + time.perf_counter() - start)
+        stop.check()  # SIGTERM under gca.stop.deferred: stop here, checkpointed
     bar.close()
     selected = (_select(best, undo, solver, law, data, objective, cfg, n_video, history, opt) if cfg.keep == "best"
                 else {"rule": "last"})
