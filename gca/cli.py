@@ -13,11 +13,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+import time
 import traceback
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from gca import stop
 from gca.config import ConfigError
@@ -94,3 +96,12 @@ def add_common(parser, device: str | None = None) -> None:
     if device is not None:
         parser.add_argument("--device", default=device, help=DEVICE_HELP)
     parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)
+
+
+@contextlib.contextmanager
+def phase(stage: str, what: str) -> Iterator[None]:
+    """One line when a long step starts and one with its time when it ends (stderr; kept under CI)."""
+    start = time.perf_counter()
+    print(f"{stage}: {what} ...", file=sys.stderr, flush=True)
+    yield
+    print(f"{stage}: {what}: done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)

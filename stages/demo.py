@@ -40,8 +40,11 @@ def main(argv=None) -> dict:
     background = video_config(params).background
     with stage_run("demo", params) as run:
         with atomic_path(args.out, is_dir=True) as tmp:
-            out = {"new_shape": new_shape_demo(params, cfg, inputs, tmp / "new_shape", background),
-                   "interaction": interaction_demo(params, cfg, inputs, tmp / "interaction", background)}
+            out = {}
+            with cli.phase("demo", f"new shape ({cfg.n_frames} frames)"):
+                out["new_shape"] = new_shape_demo(params, cfg, inputs, tmp / "new_shape", background)
+            with cli.phase("demo", f"interaction ({cfg.n_frames} frames)"):
+                out["interaction"] = interaction_demo(params, cfg, inputs, tmp / "interaction", background)
         for demo in out.values():  # point at the final folder, not the temporary one
             for key in ("gif", "strip_png"):
                 if key in demo:

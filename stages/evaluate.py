@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import sys
 
+from tqdm import tqdm
+
 from gca.eval.evaluate import evaluate_trained
 from gca.io import read_json, write_json
 from gca.scenes.world import load_scene_body
@@ -28,7 +30,7 @@ def main(argv=None) -> dict:
     params, scene, methods, inputs = scene_context("evaluate", args)
     body = load_scene_body(params, args.particles, args.gaussians, args.device)
     out = {}
-    for method, seed, name in seed_runs(params, methods, args.seeds):
+    for method, seed, name in tqdm(seed_runs(params, methods, args.seeds), desc=f"evaluate {args.scene}", unit="run"):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
         with stage_run("evaluate", params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",

@@ -42,7 +42,8 @@ def main(argv=None) -> dict:
     body = load_scene_body(params, args.particles, args.assets / "gaussians.ply", args.device)
     preset = config.section(params, f"materials.{scene.material}")
     with stage_run("ground_truth", params, scene=args.scene) as run:
-        with atomic_path(args.out, is_dir=True) as tmp:
+        with atomic_path(args.out, is_dir=True) as tmp, \
+                cli.phase("ground_truth", f"{args.scene}: simulating {video.n_frames} frames, then rendering"):
             metrics = generate(tmp, body, args.scene, scene, video, sim, preset, lighting, args.device)
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)

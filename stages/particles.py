@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> dict:
     cloud = ply.read_ply(Path(args.assets) / "gaussians.ply")
     mesh_path = Path(args.assets) / "mesh.ply"
     mesh = trimesh.load(mesh_path, force="mesh") if mesh_path.exists() else None
-    result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
+    with cli.phase("particles", f"{args.object}: {cloud.n} Gaussians to particles"):
+        result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
     bound = np.bincount(result.binding_rows, minlength=len(result.gaussian_index))
     metrics = {"n_particles": result.n, "n_gaussians": result.n_gaussians, "n_gaussians_kept": len(result.gaussian_index),
                "volume_sim_m3": float(result.vol.sum()), "mass_kg": float(result.mass.sum()),
