@@ -123,7 +123,7 @@ def test_training_wrote_history_and_adapters(pipeline):
         assert (run / method / "law.pt").is_file() and not (run / method / "checkpoint.pt").exists()
 
 
-def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch):
+def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch, capsys):
     """A train stage re-run where a method left a checkpoint (stopped by grid.py's deadline) does not
     estimate the launch velocity again: its first iterations used the one in velocity.json."""
     import shutil
@@ -147,7 +147,9 @@ def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, t
                 "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
                 "--params", params, "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
     assert used and [list(v) for v in used[0]] == [saved["v0"], saved["w0"]]
-    (out / "neuma" / "checkpoint.pt").unlink()  # no checkpoint: a fresh run estimates it
+    # the marker has no stamp of the params and inputs it was made with (gca.stamp): not resumed, and said so
+    assert f"{out / 'neuma' / 'checkpoint.pt'}: not resumed: the checkpoint has no stamp" in capsys.readouterr().out
+    assert not (out / "neuma" / "checkpoint.pt").exists()  # no checkpoint: a fresh run estimates it
     with pytest.raises(AssertionError, match="estimated again"):
         train.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
                     "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
