@@ -58,10 +58,11 @@ def _remove(path: Path) -> None:
 
 
 def sweep(folder: str | os.PathLike, name: str | None = None) -> list[Path]:
-    """Remove the stale temporaries in ``folder`` (of output ``name`` only, if given): those of a process
-    that no longer runs (killed with SIGKILL, or a machine reset) and the unnamed ones of older versions.
-    A parked ``.<name>.old<pid>`` whose output is missing is put back (the swap was cut in the middle).
-    Returns what was removed or restored."""
+    """Remove the stale temporaries in ``folder``: those of a process that no longer runs (killed with
+    SIGKILL, or a machine reset). With ``name`` (an output about to be written), only that output's, and
+    also the untagged ones older versions left (``.<name>.<8 random chars>``, ``.<name>.old``: without a
+    known name that pattern could match a user's own hidden file). A parked ``.<name>.old<pid>`` whose
+    output is missing is put back (the swap was cut in the middle). Returns what was removed or restored."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
@@ -69,6 +70,8 @@ def sweep(folder: str | os.PathLike, name: str | None = None) -> list[Path]:
     for entry in sorted(folder.iterdir()):
         match = _TEMPORARY.match(entry.name) if entry.name.startswith(".") else None
         if match is None or (name is not None and match["name"] != name):
+            continue
+        if name is None and (match["legacy"] or match["legacy_old"]):
             continue
         pid = match["pid"] or match["old"]
         if pid is not None and _alive(int(pid)):

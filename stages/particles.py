@@ -34,7 +34,10 @@ def main(argv: list[str] | None = None) -> dict:
     obj = config.build(objects.ObjectConfig, config.entry(params, "objects", args.object), f"objects.{args.object}")
     cloud = ply.read_ply(Path(args.assets) / "gaussians.ply")
     mesh_path = Path(args.assets) / "mesh.ply"
-    mesh = trimesh.load(mesh_path, force="mesh") if mesh_path.exists() else None
+    mesh = None
+    if mesh_path.exists():
+        with io.reading(mesh_path, "mesh"):
+            mesh = trimesh.load(mesh_path, force="mesh")
     with cli.phase("particles", f"{args.object}: {cloud.n} Gaussians to particles"):
         result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
     bound = np.bincount(result.binding_rows, minlength=len(result.gaussian_index))

@@ -70,9 +70,11 @@ def test_sweep_removes_stale_temporaries_and_keeps_live_ones(tmp_path):
     live = tmp_path / f".law.pt.tmp{os.getpid()}.live.pt"  # this process is writing it
     live.write_text("in progress")
     (tmp_path / ".gitignore").write_text("/ball\n")
-    removed = io.sweep(tmp_path)
-    assert sorted(p.name for p in removed) == sorted([".ball.at4r17my", f".ball.tmp{dead}.k2j3", f".law.pt.tmp{dead}.abcd.pt"])
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([".gitignore", "ball", live.name])
+    (tmp_path / ".bashrc.backup12").write_text("a user's file that looks like an old temporary")
+    removed = io.sweep(tmp_path)  # a stage's start: only what a dead process's pid names
+    assert sorted(p.name for p in removed) == sorted([f".ball.tmp{dead}.k2j3", f".law.pt.tmp{dead}.abcd.pt"])
+    assert io.sweep(tmp_path, "ball") == [tmp_path / ".ball.at4r17my"]  # before writing ball: its old litter too
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([".bashrc.backup12", ".gitignore", "ball", live.name])
 
 
 def test_sweep_puts_back_an_output_parked_by_a_cut_swap(tmp_path):
