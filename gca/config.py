@@ -13,8 +13,10 @@ Reading. In a DVC run a stage calls ``load(stage)``; that goes through
 visible and reading an undeclared key fails (instead of silently escaping DVC's invalidation).
 Outside DVC (tests, ``python stages/x.py --params p.yaml``) the YAML file is read directly.
 
-Typed access. Library sections map to frozen dataclasses; :func:`build` turns a mapping into one and
-refuses unknown or missing keys with a message naming the section.
+Typed access. Library sections map to frozen dataclasses; :func:`build` turns a mapping into one:
+every key is required (no code default stands in for a key params.yaml omits), values are coerced to
+the field's type or refused, and every message names the key. :func:`load` validates what it read
+(``gca.schema.validate``: each section present, ranges, references between sections).
 """
 
 from __future__ import annotations

@@ -22,10 +22,10 @@ import sys
 from pathlib import Path
 
 from gca import cli, stamp, stop
+from gca.io import read_json, write_json
 from gca.track import stage_run
 
 from common import scene_context, scene_parser  # stages/common.py
-from gca.io import read_json, write_json
 from gca.train.run import estimate_scene_velocity, read_velocity, seed_runs, train_method
 
 
@@ -54,7 +54,8 @@ def main(argv=None) -> dict:
     if args.velocity is None and resuming and (args.out / "velocity.json").is_file():
         args.velocity = args.out / "velocity.json"  # with the launch velocity its first iterations used
     if args.velocity is not None and not stamp.matches(read_json(args.velocity), inputs_stamp):
-        print(f"{args.velocity}: not reused: made with other params or inputs (or unstamped); estimating again")
+        why = "has no stamp" if stamp.KEY not in read_json(args.velocity) else "was made with other params or inputs"
+        print(f"{args.velocity}: not reused: the launch velocity {why}; estimating it again")
         args.velocity = None
     if args.velocity is None:
         with stage_run("train", params, scene=args.scene, method="velocity") as run:

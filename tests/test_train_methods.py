@@ -369,7 +369,10 @@ def test_seeds_name_the_runs():
         parsed = _NAME.match(run_dir_name("neuma", s) + ".json")
         assert parsed["method"] == "neuma" and int(parsed["seed"] or 0) == s
 
-    params = {"train": {"seeds": [0, 1, 2]}}
+    from gca import config
+
+    shipped = config.load(path=Path(__file__).resolve().parents[1] / "params.yaml", via_dvc=False)["train"]
+    params = {"train": {**shipped, "seeds": [0, 1, 2]}}  # every train key is required
     assert run_seeds(params, get_method("gca")) == [0, 1, 2]
     assert run_seeds(params, get_method("nclaw")) == [0]  # the prior does not depend on the seed
     assert run_seeds(params, get_method("gca"), [2, 1]) == [1, 2] and run_seeds(params, get_method("nclaw"), [1]) == []
