@@ -123,7 +123,7 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
         from gca.schema import validate as check  # lazy: the schema imports every package's config
 
         try:
-            check(resolved)
+            check(resolved, stage)
         except ConfigError as exc:
             raise ConfigError(f"{path}: {exc}") from None
     return resolved

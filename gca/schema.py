@@ -62,7 +62,7 @@ RANGES: dict[str, tuple[float, bool]] = {
     "render.raster.tile_size": (1, False), "render.raster.slab": (1, False), "render.raster.max_elems": (1, False),
     "render.raster.max_per_tile": (1, False),
     "laws.lora.rank": (1, False), "laws.neural.stress_scale": (0.0, True),
-    "prior.train.iterations": (1, False), "prior.train.lr_elasticity": (0.0, False),
+    "prior.train.iterations": (0, False), "prior.train.lr_elasticity": (0.0, False),  # 0: the warm start only
     "prior.train.lr_plasticity": (0.0, False),
     "align.cpr.subset_size": (2, False), "align.cpr.n_groups": (2, False), "align.cpr.refit_every": (1, False),
     "align.rdga.r": (1, False), "align.rdga.k": (1, False),
@@ -126,8 +126,11 @@ def _has(params: Mapping, dotted: str) -> bool:
     return True
 
 
-def validate(params: Mapping) -> None:
-    """Check every section of resolved ``params`` that is present (a DVC stage sees only its own)."""
+def validate(params: Mapping, stage: str | None = None) -> None:
+    """Check every section of resolved ``params`` that is present (a DVC stage sees only its own).
+
+    ``stage`` (``"train@duck"``; None: all checks): the demo's references to scenes are checked for the
+    ``demo`` stage only, so a params file cut down to a few scenes still runs their other stages."""
     for dotted in KNOB_SECTIONS:
         if _has(params, dotted) and (dotted != "prior.train" or _has(params, "sim")):
             build_section(params, dotted)
@@ -135,7 +138,7 @@ def validate(params: Mapping) -> None:
         if _has(params, table):
             for name, raw in section(params, table).items():
                 build(dataclass_of(spec), raw, f"{table}.{name}")
-    cross_check(params)
+    cross_check(params, demo=stage is None or stage.split("@")[0] == "demo")
 
 
 def _refs(params: Mapping, what: str, name: Any, table: str) -> list[str]:
@@ -147,8 +150,8 @@ def _refs(params: Mapping, what: str, name: Any, table: str) -> list[str]:
     return []
 
 
-def cross_check(params: Mapping) -> None:
-    """References between sections, checked where both sides are visible."""
+def cross_check(params: Mapping, demo: bool = True) -> None:
+    """References between sections, checked where both sides are visible (``demo``: the demo's too)."""
     problems: list[str] = []
     if _has(params, "scenes"):
         from gca.scenes.config import scene_config
@@ -165,7 +168,7 @@ def cross_check(params: Mapping) -> None:
             unknown = [m for m in scene.methods if m not in METHODS]
             if unknown:
                 problems.append(f"scenes.{name}.methods: unknown methods {unknown} (valid: {', '.join(sorted(METHODS))})")
-    if _has(params, "demo") and _has(params, "scenes"):
+    if demo and _has(params, "demo") and _has(params, "scenes"):
         demo = section(params, "demo")
         problems += _refs(params, "demo.new_shape.law_scene", demo["new_shape"]["law_scene"], "scenes")
         problems += _refs(params, "demo.new_shape.object", demo["new_shape"]["object"], "objects")

@@ -185,3 +185,13 @@ def test_shipped_params_validate_in_both_profiles(repo_root):
 def test_unknown_entry_names_the_table():
     with pytest.raises(config.ConfigError, match=r"^params: unknown scene 'nosuch' \(not a key of scenes: ball, cat\)$"):
         config.entry({"scenes": {"ball": {}, "cat": {}}}, "scenes", "nosuch")
+
+
+def test_a_params_file_cut_to_one_scene_runs_its_stages_but_not_the_demo(tmp_path, repo_root):
+    def cut(tree):
+        tree["scenes"] = {"duck": tree["scenes"]["duck"]}
+
+    path = _write(tmp_path, repo_root, cut)
+    assert list(config.load("train@duck", path, via_dvc=False)["scenes"]) == ["duck"]
+    with pytest.raises(config.ConfigError, match="demo.new_shape.law_scene='cat' is not a key of scenes \\(duck\\)"):
+        config.load("demo", path, via_dvc=False)
