@@ -27,6 +27,9 @@ def _params(tmp: Path) -> Path:
     raw["objects"] = {OBJECT: raw["objects"][OBJECT]}
     raw["scenes"] = {SCENE: {**raw["scenes"][SCENE], "methods": METHODS}}
     raw["prior"]["families"] = {FAMILY: raw["prior"]["families"][FAMILY]}
+    raw["demo"]["new_shape"].update(law_scene=SCENE, object=OBJECT)  # the demo refers to scenes that exist
+    for side in ("a", "b"):
+        raw["demo"]["interaction"][side]["scene"] = SCENE
     path = tmp / "params.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
