@@ -102,8 +102,9 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
         via_dvc: force/forbid ``dvc.api.params_show``; default: only when DVC is running the stage
             (DVC exports ``DVC_STAGE`` and ``DVC_ROOT`` to stage commands) and ``path`` is the
             repository's ``params.yaml``. Under DVC the stage name DVC gives wins.
-        validate: check every visible section (:func:`gca.schema.validate`: types, ranges,
-            cross-references); a problem is a :class:`ConfigError` naming the file and the key.
+        validate: check every section (:func:`gca.schema.validate`: types, ranges, cross-references;
+            under DVC, of the whole file, not only the stage's view); a problem is a
+            :class:`ConfigError` naming the file and the key.
 
     Returns:
         Nested dict with profile switches resolved and ``profile`` kept at the top.
@@ -122,8 +123,11 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
     if validate:
         from gca.schema import validate as check  # lazy: the schema imports every package's config
 
+        # DVC's view holds only the keys the stage declares (`vision.matching` without the rest of `vision`):
+        # check the whole file (with any `dvc exp run -S` override already written into it) instead
+        full = resolve(read_yaml(path), profile) if via_dvc and path.is_file() else resolved
         try:
-            check(resolved, stage)
+            check(full, stage)
         except ConfigError as exc:
             raise ConfigError(f"{path}: {exc}") from None
     return resolved

@@ -195,3 +195,16 @@ def test_a_params_file_cut_to_one_scene_runs_its_stages_but_not_the_demo(tmp_pat
     assert list(config.load("train@duck", path, via_dvc=False)["scenes"]) == ["duck"]
     with pytest.raises(config.ConfigError, match="demo.new_shape.law_scene='cat' is not a key of scenes \\(duck\\)"):
         config.load("demo", path, via_dvc=False)
+
+
+def test_under_dvc_the_whole_file_is_checked_not_the_stage_view(tmp_path, repo_root, monkeypatch):
+    """DVC shows a stage only the keys it declares (train: `vision.matching`, not `vision.depth`): that view
+    must not read as missing keys, and a bad key outside it is still refused."""
+    full = config.load(path=_write(tmp_path, repo_root, lambda tree: None), via_dvc=False)
+    view = {"profile": "ci", "vision": {"matching": full["vision"]["matching"]}, "train": full["train"]}
+    monkeypatch.setattr(config, "_params_via_dvc", lambda stage: copy.deepcopy(view))
+    path = tmp_path / "params.yaml"
+    assert config.load("train@duck", path, via_dvc=True) == view
+    _write(tmp_path, repo_root, _set("particles.floor_gap", -0.5))
+    with pytest.raises(config.ConfigError, match="particles.floor_gap=-0.5 must be > 0.0"):
+        config.load("train@duck", path, via_dvc=True)
