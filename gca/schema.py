@@ -1,6 +1,7 @@
 """The params schema: which typed config each ``params.yaml`` section builds, and the checks that need
-more than one section. :func:`validate` runs at every :func:`gca.config.load`, so a malformed params
-file stops a stage before it computes anything, with one message naming the key.
+more than one section. :func:`validate` runs at every :func:`gca.config.load` (under DVC on the whole
+params file, not only the keys the stage declares), so a malformed params file stops a stage before it
+computes anything, with one message naming the key.
 
 Three kinds of check, all raising :class:`gca.config.ConfigError`:
 
