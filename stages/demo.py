@@ -17,7 +17,6 @@ from pathlib import Path
 from gca import cli, config
 from gca.eval.demos import DemoInputs, demo_config, interaction_demo, new_shape_demo
 from gca.io import atomic_path, write_json
-from gca.scenes import video_config
 from gca.track import stage_run
 from gca.train.run import default_device
 
@@ -37,7 +36,7 @@ def main(argv=None) -> dict:
     params = config.load("demo", args.params)
     cfg = demo_config(params)
     inputs = DemoInputs(args.runs, args.data, args.prior_dir, args.device)
-    background = video_config(params).background
+    background = tuple(config.section(params, "video.background"))  # the one video key the stage declares
     with stage_run("demo", params) as run:
         with atomic_path(args.out, is_dir=True) as tmp:
             out = {}
