@@ -22,8 +22,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gca.align.cpr import CPR, CPRConfig  # noqa: E402
+from gca.align.cpr import CPR  # noqa: E402
 from gca.laws.checkpoint import load_prior  # noqa: E402
+from gca.pipeline.schema import load_section  # noqa: E402
 
 
 def peak_gib(device: str) -> float:
@@ -46,7 +47,7 @@ def main(argv=None) -> None:
     g = torch.Generator().manual_seed(0)
     F = (torch.eye(3) + 0.03 * torch.randn(args.frames, args.particles, 3, 3, generator=g)).to(args.device)
     base, t = peak_gib(args.device), time.perf_counter()
-    cpr, chunk = CPR(CPRConfig(), args.particles, seed=0), args.chunk or args.frames
+    cpr, chunk = CPR(load_section("align.cpr", ROOT / "params.yaml"), args.particles, seed=0), args.chunk or args.frames
     for s in range(0, args.frames, chunk):
         R_e, R_p, _ = cpr.residuals_frames(el, pl, F[s:s + chunk], F[s:s + chunk])
         torch.autograd.grad(R_e + R_p, params, allow_unused=True)

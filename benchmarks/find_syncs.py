@@ -26,14 +26,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def cpr_call():
     """A callable making one CPR residual call on 320 near-identity F (after a warm-up call)."""
-    from gca.align.cpr import CPR, CPRConfig
+    from gca.align.cpr import CPR
+    from gca.pipeline.schema import load_section
     from gca.laws.neural import NeuralElasticity, NeuralPlasticity
 
     g = torch.Generator().manual_seed(0)
     F = (torch.eye(3) + 0.06 * torch.randn(320, 3, 3, generator=g)).cuda()
     Ftr = (torch.eye(3) + 0.06 * torch.randn(320, 3, 3, generator=g)).cuda()
     el, pl = NeuralElasticity().cuda(), NeuralPlasticity().cuda()
-    cpr = CPR(CPRConfig(), 320, 0)
+    cpr = CPR(load_section("align.cpr", ROOT / "params.yaml"), 320, 0)
     cpr.residuals(el, pl, F, Ftr)
     torch.cuda.synchronize()
     return lambda: cpr.residuals(el, pl, F, Ftr)

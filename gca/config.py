@@ -13,17 +13,22 @@ Reading. In a DVC run a stage calls ``load(stage)``; that goes through
 visible and reading an undeclared key fails (instead of silently escaping DVC's invalidation).
 Outside DVC (tests, ``python stages/x.py --params p.yaml``) the YAML file is read directly.
 
-Typed access. Library sections map to frozen dataclasses; :func:`build` turns a mapping into one and
-refuses unknown or missing keys with a message naming the section.
+Typed access. Library sections map to frozen dataclasses; :func:`build` turns a mapping into one:
+every key is required (no code default stands in for a key params.yaml omits), values are coerced to
+the field's type or refused, and every message names the key. :func:`load` validates what it read
+(``gca.pipeline.schema.validate``, passed as ``check``: each section present, ranges, references).
 """
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
+import math
 import os
+import types
 import typing
 from pathlib import Path
-from typing import Any, Mapping, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 import yaml
 
@@ -88,7 +93,7 @@ def _params_via_dvc(stage: str) -> dict:
 
 
 def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
-         via_dvc: bool | None = None) -> dict:
+         via_dvc: bool | None = None, check: Callable[[Mapping, str | None], None] | None = None) -> dict:
     """Load the resolved params tree for ``stage``.
 
     Args:
@@ -97,6 +102,9 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
         via_dvc: force/forbid ``dvc.api.params_show``; default: only when DVC is running the stage
             (DVC exports ``DVC_STAGE`` and ``DVC_ROOT`` to stage commands) and ``path`` is the
             repository's ``params.yaml``. Under DVC the stage name DVC gives wins.
+        check: called with the resolved params and the stage (the pipeline passes
+            :func:`gca.pipeline.schema.validate`: types, ranges, cross-references; under DVC, of the whole
+            file, not only the stage's view); a :class:`ConfigError` it raises is re-raised naming the file.
 
     Returns:
         Nested dict with profile switches resolved and ``profile`` kept at the top.
@@ -112,6 +120,14 @@ def load(stage: str | None = None, path: str | os.PathLike = "params.yaml",
     profile = _active_profile(tree)
     resolved = resolve(tree, profile)
     resolved["profile"] = profile
+    if check is not None:
+        # DVC's view holds only the keys the stage declares (`vision.matching` without the rest of `vision`):
+        # check the whole file (with any `dvc exp run -S` override already written into it) instead
+        full = resolve(read_yaml(path), profile) if via_dvc and path.is_file() else resolved
+        try:
+            check(full, stage)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
     return resolved
 
 
@@ -127,29 +143,117 @@ def section(params: Mapping, dotted: str) -> Any:
     return node
 
 
-def build(cls: type[T], mapping: Mapping, name: str = "") -> T:
+OPTIONAL = {"optional": True}  # field metadata: params may omit the key (the default is its documented meaning)
+NOT_A_PARAM = {"param": False}  # field metadata: set by code, never read from params (e.g. TrainConfig.seed)
+
+
+def build(cls: type[T], mapping: Mapping, name: str = "", *, partial: bool = False) -> T:
     """Build the frozen dataclass ``cls`` from ``mapping``; unknown or missing keys are errors.
 
-    Nested dataclass fields are built recursively. Fields with defaults may be omitted.
+    Every field is required (a params file that omits a key never silently takes a code default),
+    except fields marked ``metadata=OPTIONAL`` or ``NOT_A_PARAM`` and, with ``partial=True``, every field
+    (records such as a camera or a material preset, which name only what differs). Values are coerced
+    to the field's type (:func:`coerce`: YAML's ``1e-3`` string becomes a float, ``5.0`` an int) or refused
+    with the key named; nested dataclass fields are built recursively. The dataclass's own checks
+    (``__post_init__``) become :class:`ConfigError` naming the section.
     """
+    where = name or cls.__name__
     if not isinstance(mapping, Mapping):
-        raise ConfigError(f"params section {name or cls.__name__}: expected a mapping, got {type(mapping).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+        raise ConfigError(f"params: {where} must be a mapping, got {type(mapping).__name__} {mapping!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     hints = typing.get_type_hints(cls)
-    unknown = set(mapping) - set(fields)
+    unknown = set(mapping) - {k for k, f in fields.items() if f.metadata.get("param", True)}
     if unknown:
-        raise ConfigError(f"params section {name or cls.__name__}: unknown keys {sorted(unknown)}")
+        raise ConfigError(f"params section {where}: unknown keys {sorted(unknown)}")
+    if not partial:
+        missing = [k for k, f in fields.items() if k not in mapping and f.metadata.get("param", True)
+                   and not f.metadata.get("optional", False)]
+        if missing:
+            raise ConfigError(f"params: missing key {where}.{missing[0]}" + (
+                f" (and {', '.join(missing[1:])})" if len(missing) > 1 else ""))
     kwargs = {}
     for key, value in mapping.items():
-        sub = hints.get(key)
-        sub = sub if isinstance(sub, type) and dataclasses.is_dataclass(sub) else None
-        kwargs[key] = build(sub, value, f"{name}.{key}" if name else key) if sub and isinstance(value, Mapping) else value
+        kwargs[key] = coerce(hints.get(key, Any), value, f"{where}.{key}", partial=partial)
     try:
         return cls(**kwargs)
-    except TypeError as exc:
-        raise ConfigError(f"params section {name or cls.__name__}: {exc}") from exc
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f"params section {where}: {exc}") from exc
 
 
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool):
+        raise ConfigError(f"params: {key}={value!r} must be a number")
+    if isinstance(value, str):
+        try:
+            value = float(value.strip())  # YAML 1.1 reads 1e-3 (no dot) as a string
+        except ValueError:
+            raise ConfigError(f"params: {key}={value!r} must be a number") from None
+    if not isinstance(value, (int, float)):
+        raise ConfigError(f"params: {key}={value!r} must be a number")
+    if not math.isfinite(value):
+        raise ConfigError(f"params: {key}={value!r} must be a finite number")
+    return value
+
+
+def coerce(hint: Any, value: Any, key: str, *, partial: bool = False) -> Any:
+    """``value`` as type ``hint`` (bool, int, float, str, tuples, optionals, nested dataclasses), or a
+    :class:`ConfigError` naming ``key``. Floats must be finite; ints may be written as integral floats."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if dataclasses.is_dataclass(hint) and isinstance(hint, type):
+        if isinstance(value, hint):
+            return value
+        return build(hint, value, key, partial=partial)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        for option in options[:-1]:
+            try:
+                return coerce(option, value, key, partial=partial)
+            except ConfigError:
+                pass
+        return coerce(options[-1], value, key, partial=partial)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"params: {key}={value!r} must be true or false")
+        return value
+    if hint is int:
+        number = _number(value, key)
+        if int(number) != number:
+            raise ConfigError(f"params: {key}={value!r} must be an integer")
+        return int(number)
+    if hint is float:
+        return float(_number(value, key))
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"params: {key}={value!r} must be a string")
+        return value
+    if origin in (tuple, list, collections.abc.Sequence):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"params: {key}={value!r} must be a list")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(f"params: {key}={list(value)!r} must have {len(args)} components")
+            return tuple(coerce(a, v, f"{key}[{i}]", partial=partial) for i, (a, v) in enumerate(zip(args, value)))
+        item = args[0] if args else Any
+        return tuple(coerce(item, v, f"{key}[{i}]", partial=partial) for i, v in enumerate(value))
+    return value
+
+
+_ENTRY_NAMES = {"scenes": "scene", "objects": "object", "materials": "material", "prior.families": "prior family"}
+
+
+def entry(params: Mapping, dotted: str, name: str) -> Any:
+    """``params[dotted][name]``, or a :class:`ConfigError` listing the known names (an unknown scene,
+    object or family given to a stage on the command line)."""
+    table = section(params, dotted)
+    if not isinstance(table, Mapping) or name not in table:
+        known = sorted(table) if isinstance(table, Mapping) else []
+        what = _ENTRY_NAMES.get(dotted, f"{dotted} entry")
+        raise ConfigError(f"params: unknown {what} {name!r} (not a key of {dotted}: {', '.join(map(str, known))})")
+    return table[name]
 
 
 def flatten(tree: Mapping, prefix: str = "", sep: str = ".") -> dict[str, Any]:

@@ -1,5 +1,12 @@
 """Atomic output helpers: every stage writes to a temporary path and renames, so a failure never
-leaves a half-written or corrupted output in place of a good one."""
+leaves a half-written or corrupted output in place of a good one.
+
+Temporaries are hidden siblings of their output named ``.<name>.tmp<pid>.<random>`` (a directory being
+replaced is parked as ``.<name>.old<pid>`` for the instant of the swap). They are removed on an exception
+(a stage's SIGTERM is one: ``gca.pipeline.cli``) and, after a SIGKILL, by :func:`sweep`, which every atomic write
+and every stage start run on their folders: a temporary whose process is gone is litter. Outputs get the
+permissions of an ordinary file or folder under the process's umask (``tempfile`` makes 0600 / 0700).
+"""
 
 from __future__ import annotations
 
@@ -7,46 +14,161 @@ import contextlib
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator, Mapping
+
+# .<name>.tmp<pid>.<random>[<suffix>] | .<name>.old<pid> | before issue 24: .<name>.<8 chars>[<suffix>] | .<name>.old
+_TEMPORARY = re.compile(r"^\.(?P<name>.+?)\.(?:tmp(?P<pid>\d+)\.[A-Za-z0-9_]+|old(?P<old>\d+)|(?P<legacy>[a-z0-9_]{8})|(?P<legacy_old>old))"
+                        r"(?P<suffix>\.[A-Za-z0-9]+)?$")
+
+
+def _umask() -> int:
+    """The process's umask (read, not set, where Linux allows: setting it races with other threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def sweep(folder: str | os.PathLike, name: str | None = None) -> list[Path]:
+    """Remove the stale temporaries in ``folder``: those of a process that no longer runs (killed with
+    SIGKILL, or a machine reset). With ``name`` (an output about to be written), only that output's, and
+    also the untagged ones older versions left (``.<name>.<8 random chars>``, ``.<name>.old``: without a
+    known name that pattern could match a user's own hidden file). A parked ``.<name>.old<pid>`` whose
+    output is missing is put back (the swap was cut in the middle). Returns what was removed or restored."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    done = []
+    for entry in sorted(folder.iterdir()):
+        match = _TEMPORARY.match(entry.name) if entry.name.startswith(".") else None
+        if match is None or (name is not None and match["name"] != name):
+            continue
+        if name is None and (match["legacy"] or match["legacy_old"]):
+            continue
+        pid = match["pid"] or match["old"]
+        if pid is not None and _alive(int(pid)):
+            continue
+        if match["suffix"] and (match["old"] or match["legacy_old"]):
+            continue
+        if match["old"] or match["legacy_old"]:
+            target = folder / match["name"]
+            if not target.exists():
+                entry.rename(target)
+                done.append(entry)
+                continue
+        _remove(entry)
+        done.append(entry)
+    return done
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, is_dir: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path``; on success rename it onto ``path``.
 
-    Works for files and (``is_dir=True``) whole directories. On an exception the temporary is
-    removed and ``path`` is untouched.
+    Works for files and (``is_dir=True``) whole directories. On an exception (SIGTERM included, under
+    ``gca.pipeline.cli``) the temporary is removed and ``path`` is untouched. The result's mode follows the umask.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    sweep(path.parent, path.name)
+    prefix = f".{path.name}.tmp{os.getpid()}."
+    mask = _umask()
     if is_dir:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=path.parent))
+        os.chmod(tmp, 0o777 & ~mask)
     else:
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        fd, name = tempfile.mkstemp(prefix=prefix, suffix=path.suffix, dir=path.parent)
         os.close(fd)
         tmp = Path(name)
+        os.chmod(tmp, 0o666 & ~mask)
     try:
         yield tmp
         if is_dir:
             if path.exists():
-                old = path.with_name(f".{path.name}.old")
-                shutil.rmtree(old, ignore_errors=True)
+                old = path.with_name(f".{path.name}.old{os.getpid()}")
+                _remove(old)
                 path.rename(old)
                 tmp.rename(path)
-                shutil.rmtree(old, ignore_errors=True)
+                _remove(old)
             else:
                 tmp.rename(path)
         else:
             os.replace(tmp, path)
     except BaseException:
-        if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            tmp.unlink(missing_ok=True)
+        _remove(tmp)
         raise
+
+
+class InputError(ValueError):
+    """An input file exists but cannot be read as what it should be (truncated, corrupt, wrong format)."""
+
+
+@contextlib.contextmanager
+def reading(path: str | os.PathLike, what: str = "file") -> Iterator[None]:
+    """Errors raised while reading ``path`` become one :class:`InputError` naming the file."""
+    import zipfile
+
+    try:
+        yield
+    except InputError:
+        raise
+    except FileNotFoundError as exc:
+        raise InputError(f"{path}: {what} not found") from exc
+    except (OSError, ValueError, EOFError, KeyError, IndexError, zipfile.BadZipFile, SyntaxError) as exc:
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise InputError(f"{path}: unreadable {what} ({type(exc).__name__}: {detail})") from exc
+
+
+def load_array(path: str | os.PathLike, what: str = "array"):
+    """``np.load`` of an ``.npy`` file, naming the file in any error."""
+    import numpy as np
+
+    with reading(path, what):
+        return np.load(path, allow_pickle=False)
+
+
+def load_arrays(path: str | os.PathLike, what: str = "archive") -> dict:
+    """Every array of an ``.npz`` file, read eagerly, naming the file in any error (truncated, not a zip)."""
+    import numpy as np
+
+    with reading(path, what), np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Atomically write ``text`` to ``path``."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
 
 
 def _json_safe(value: Any) -> Any:

@@ -22,7 +22,19 @@ reattach() {
     echo "pipeline: HEAD was left detached by an interrupted dvc exp run: re-attached to ${branch#refs/heads/}" >&2
   fi
 }
-trap reattach EXIT
+# dvc exp run -S profile=... writes the override into params.yaml in the working tree: the user's next
+# commit would change the project's default profile. Put the file back as it was, and say so.
+params_backup=$(mktemp)
+cp params.yaml "$params_backup"
+restore_params() {
+  if ! cmp -s params.yaml "$params_backup"; then
+    cp "$params_backup" params.yaml
+    echo "pipeline: params.yaml put back as it was (dvc exp run -S profile=$PROFILE had written the override into it;" \
+         "this run used profile=$PROFILE, recorded in dvc.lock and dvc exp show)" >&2
+  fi
+  rm -f "$params_backup"
+}
+trap 'restore_params; reattach' EXIT
 echo "pipeline: profile=$PROFILE"
 dvc exp run -S "profile=$PROFILE"
 echo "pipeline: done. Tables and figures: reports/$PROFILE/README.md; runs: mlflow ui --backend-store-uri sqlite:///mlflow.db"

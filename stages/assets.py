@@ -10,10 +10,12 @@ only when a usable mesh was given); a bad scan or option stops the stage with on
 
 from __future__ import annotations
 
+import sys
 import argparse
 
 from gca import config, io
-from gca.pipeline import track
+from gca.pipeline import cli
+from gca.pipeline import schema, track
 from gca.assets import objects, ply
 from gca.assets.preview import write_preview
 from gca.assets.ply import PlyFormatError
@@ -23,16 +25,16 @@ from gca.capture import objects as capture
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--object", required=True, help=f"one of {sorted(objects.SHAPES)}")
-    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--object", required=True, help="a key of `objects:` in params.yaml (e.g. duck)")
+    parser.add_argument("--out", required=True, help="output directory (replaced atomically)")
     parser.add_argument("--metrics", required=True, help="metrics .json")
-    parser.add_argument("--params", default="params.yaml")
+    cli.add_common(parser)
     args = parser.parse_args(argv)
 
-    params = config.load(f"assets@{args.object}", args.params)
+    params = schema.load(f"assets@{args.object}", args.params)
     if capture.is_capture(config.section(params, f"objects.{args.object}")):
         return _capture(args, params)
-    cfg = config.build(objects.ObjectConfig, config.section(params, f"objects.{args.object}"), f"objects.{args.object}")
+    cfg = config.build(objects.ObjectConfig, config.entry(params, "objects", args.object), f"objects.{args.object}")
     mesh, _, cloud = objects.scan_object(args.object, cfg)
     metrics = {"n_gaussians": cloud.n, "n_faces": len(mesh.faces), "mesh_volume_m3": float(mesh.volume),
                "mesh_area_m2": float(mesh.area), "extent_m": mesh.extents.tolist(), "watertight": bool(mesh.is_watertight),
@@ -62,4 +64,4 @@ def _capture(args, params) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.run(main))

@@ -5,22 +5,28 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from gca.pipeline import cli
 from gca.config import section
 from gca.pipeline.settings import Settings
 from gca.pipeline.train import SceneInputs, default_device
 from gca.train.methods import get_method
 
 
+PATH_HELP = {"scene-dir": "the ground_truth stage's data/scenes/<scene>", "prep": "the preprocess stage's data/prep/<scene>",
+             "particles": "data/particles/<object>.npz", "gaussians": "data/assets/<object>/gaussians.ply",
+             "prior-dir": "models/prior (the scene's prior family's .pt)", "runs": "the train stage's runs/<scene>",
+             "out": "output folder"}
+
+
 def scene_parser(description: str, paths: tuple[str, ...]) -> argparse.ArgumentParser:
     """--scene, --methods, --params, --device and the required path arguments ``paths``."""
     ap = argparse.ArgumentParser(description=description)
     for name in paths:
-        ap.add_argument(f"--{name}", type=Path, required=True)
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--methods", nargs="*", help="default: scenes.<scene>.methods")
+        ap.add_argument(f"--{name}", type=Path, required=True, help=PATH_HELP.get(name, name))
+    ap.add_argument("--scene", required=True, help="a key of `scenes:` in params.yaml (e.g. duck)")
+    ap.add_argument("--methods", nargs="*", help="methods (table rows) to run; default: scenes.<scene>.methods")
     ap.add_argument("--seeds", nargs="*", type=int, help="default: train.seeds (a method that does not train: the first)")
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
+    cli.add_common(ap, device=default_device())
     return ap
 
 

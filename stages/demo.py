@@ -14,6 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from gca.pipeline import cli
 from gca.io import atomic_path, write_json
 from gca.pipeline.demo import DemoInputs, demo_config, interaction_demo, new_shape_demo
 from gca.pipeline.settings import Settings
@@ -23,10 +24,11 @@ from gca.pipeline.train import default_device
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name in ("runs", "data", "prior-dir", "out", "metrics"):
-        ap.add_argument(f"--{name}", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default=default_device(), help="cuda when available, else cpu")
+    for name, what in (("runs", "the train stage's runs/ root (runs/<scene>/<method>/law.pt)"),
+                       ("data", "the data/ root (data/particles, data/assets)"), ("prior-dir", "models/prior"),
+                       ("out", "metrics/demo (GIFs and strips)"), ("metrics", "metrics .json")):
+        ap.add_argument(f"--{name}", type=Path, required=True, help=what)
+    cli.add_common(ap, device=default_device())
     return ap.parse_args(argv)
 
 
@@ -38,8 +40,11 @@ def main(argv=None) -> dict:
     background = settings.video.background
     with stage_run("demo", settings.params) as run:
         with atomic_path(args.out, is_dir=True) as tmp:
-            out = {"new_shape": new_shape_demo(settings, cfg, inputs, tmp / "new_shape", background),
-                   "interaction": interaction_demo(settings, cfg, inputs, tmp / "interaction", background)}
+            out = {}
+            with cli.phase("demo", f"new shape ({cfg.n_frames} frames)"):
+                out["new_shape"] = new_shape_demo(settings, cfg, inputs, tmp / "new_shape", background)
+            with cli.phase("demo", f"interaction ({cfg.n_frames} frames)"):
+                out["interaction"] = interaction_demo(settings, cfg, inputs, tmp / "interaction", background)
         for demo in out.values():  # point at the final folder, not the temporary one
             for key in ("gif", "strip_png"):
                 if key in demo:
@@ -54,4 +59,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

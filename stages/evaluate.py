@@ -18,6 +18,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from tqdm import tqdm
+
+from gca.pipeline import cli
 from gca.pipeline.evaluate import evaluate_capture_trained, evaluate_trained
 from gca.io import read_json, write_json
 from gca.pipeline.train import seed_runs
@@ -38,7 +41,8 @@ def main(argv=None) -> dict:
     body = settings.load_body(args.particles, args.gaussians, args.device)
     out = {}
     args.out.mkdir(parents=True, exist_ok=True)  # a calibration scene (no methods) still gets its folder
-    for method, seed, name in seed_runs(settings, methods, args.seeds):
+    for method, seed, name in tqdm(seed_runs(settings, methods, args.seeds), desc=f"evaluate {args.scene}", unit="run",
+                                   disable=cli.quiet()):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
         with stage_run("evaluate", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
                        experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
@@ -85,4 +89,4 @@ def _capture(args, settings, methods, inputs) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

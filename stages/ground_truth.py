@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from gca.pipeline import cli
 from gca.assets.particles import load_particles
 from gca.capture.cameras import CaptureError
 from gca.capture.objects import read_object_from_scan
@@ -34,14 +35,13 @@ from gca.vision.depth import DepthConfig
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True)
+    ap.add_argument("--scene", required=True, help="a key of `scenes:` in params.yaml (e.g. duck)")
     ap.add_argument("--assets", type=Path, required=True, help="data/assets/<object> (gaussians.ply)")
     ap.add_argument("--particles", type=Path, required=True, help="data/particles/<object>.npz")
     ap.add_argument("--out", type=Path, required=True, help="scene directory (replaced atomically)")
     ap.add_argument("--gt", type=Path, required=True, help="ground-truth-only directory (replaced atomically)")
-    ap.add_argument("--metrics", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--metrics", type=Path, required=True, help="metrics .json")
+    cli.add_common(ap, device="cuda" if torch.cuda.is_available() else "cpu")
     return ap.parse_args(argv)
 
 
@@ -57,7 +57,8 @@ def main(argv=None) -> dict:
     depth_cfg = settings.section_as(DepthConfig, "vision.depth").simulated
     body = settings.load_body(args.particles, args.assets / "gaussians.ply", args.device)
     with stage_run("ground_truth", settings.params, scene=args.scene) as run:
-        with atomic_path(args.out, is_dir=True) as tmp, atomic_path(args.gt, is_dir=True) as gt_tmp:
+        with atomic_path(args.out, is_dir=True) as tmp, atomic_path(args.gt, is_dir=True) as gt_tmp, \
+                cli.phase("ground_truth", f"{args.scene}: simulating, then rendering"):
             metrics = generate(tmp, gt_tmp, body, args.scene, scene, settings.video, settings.sim,
                                settings.material(scene.material), settings.lighting, depth_cfg, settings.seed,
                                args.device)
@@ -85,4 +86,4 @@ def _capture(args, settings: Settings, scene) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

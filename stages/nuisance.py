@@ -14,6 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from gca.pipeline import cli
 from gca.eval.nuisance import scene_nuisance
 from gca.io import write_json
 from gca.pipeline.settings import Settings
@@ -49,4 +50,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -12,6 +12,7 @@ a particle inside their bound; the others fell back to their nearest particle).
 
 from __future__ import annotations
 
+import sys
 import argparse
 from pathlib import Path
 
@@ -19,30 +20,34 @@ import numpy as np
 import trimesh
 
 from gca import config, io
+from gca.pipeline import cli
 from gca.assets import objects, particles, ply, scan
 from gca.capture import objects as capture
-from gca.pipeline import track
+from gca.pipeline import schema, track
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--object", required=True)
+    parser.add_argument("--object", required=True, help="a key of `objects:` in params.yaml (e.g. duck)")
     parser.add_argument("--assets", required=True, help="directory with gaussians.ply [and mesh.ply]")
-    parser.add_argument("--out", required=True, help="particles .npz")
+    parser.add_argument("--out", required=True, help="particles .npz (written atomically)")
     parser.add_argument("--metrics", required=True, help="metrics .json")
-    parser.add_argument("--params", default="params.yaml")
+    cli.add_common(parser)
     args = parser.parse_args(argv)
 
-    params = config.load(f"particles@{args.object}", args.params)
+    params = schema.load(f"particles@{args.object}", args.params)
     cfg = config.build(particles.ParticleConfig, config.section(params, "particles"), "particles")
-    section = config.section(params, f"objects.{args.object}")
+    section = config.entry(params, "objects", args.object)
     obj = (capture.capture_config(section, args.object) if capture.is_capture(section)
            else config.build(objects.ObjectConfig, section, f"objects.{args.object}"))
     cloud = ply.read_ply(Path(args.assets) / "gaussians.ply")
     mesh_path = Path(args.assets) / "mesh.ply"
-    mesh, mesh_report = (scan.check_mesh(trimesh.load(mesh_path, force="mesh"), mesh_path) if mesh_path.exists()
-                         else (None, None))
-    result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
+    mesh, mesh_report = None, None
+    if mesh_path.exists():
+        with io.reading(mesh_path, "mesh"):
+            mesh, mesh_report = scan.check_mesh(trimesh.load(mesh_path, force="mesh"), mesh_path)
+    with cli.phase("particles", f"{args.object}: {cloud.n} Gaussians to particles"):
+        result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
     bound = np.bincount(result.binding_rows, minlength=len(result.gaussian_index))
     s = float(result.sim_from_world[0, 0])
     volume_m3 = float(result.vol.sum()) / s**3  # the object frame is metres: SI volume and mass
@@ -62,4 +67,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.run(main))

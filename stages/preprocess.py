@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gca.pipeline import cli
+from gca import config
 from gca.io import atomic_path, write_json
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
@@ -29,17 +31,19 @@ from gca.scenes.store import SceneDataError
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--scene-dir", type=Path, required=True)
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--metrics", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
+    ap.add_argument("--scene", required=True, help="a key of `scenes:` in params.yaml (e.g. duck)")
+    ap.add_argument("--scene-dir", type=Path, required=True, help="the ground_truth stage's data/scenes/<scene>")
+    ap.add_argument("--out", type=Path, required=True, help="data/prep/<scene> (replaced atomically)")
+    ap.add_argument("--metrics", type=Path, required=True, help="metrics .json")
+    cli.add_common(ap)
     return ap.parse_args(argv)
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
     settings = Settings.load(f"preprocess@{args.scene}", args.params)
+    if "scenes" in settings.params:  # under DVC the stage sees no scenes section; dvc.yaml's foreach names them
+        config.entry(settings.params, "scenes", args.scene)
     cfg = settings.vision
     if is_capture(args.scene_dir):
         return _capture(args, settings)
@@ -82,4 +86,4 @@ def _capture(args, settings: Settings) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from gca.pipeline import cli
 from gca.io import write_json
 from gca.laws.checkpoint import save_prior
 from gca.pipeline.prior import prior_configs
@@ -23,11 +24,10 @@ from gca.train.prior import plot_prior, pretrain_prior
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--family", required=True)
-    for name in ("out", "metrics", "plots"):
-        ap.add_argument(f"--{name}", type=Path, required=True)
-    ap.add_argument("--params", type=Path, default=Path("params.yaml"))
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--family", required=True, help="a key of `prior.families:` in params.yaml (e.g. jelly)")
+    for name, what in (("out", "prior checkpoint .pt"), ("metrics", "metrics .json"), ("plots", "loss and response plot .png")):
+        ap.add_argument(f"--{name}", type=Path, required=True, help=what)
+    cli.add_common(ap, device="cuda" if torch.cuda.is_available() else "cpu")
     return ap.parse_args(argv)
 
 
@@ -61,4 +61,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 
 from gca import config
+from gca.pipeline import cli
+from gca.pipeline import schema
 from gca.report.captures import write_capture_pages
 from gca.io import write_json
 from gca.report import ReportConfig, build_reports, summary
@@ -24,13 +26,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--summary", type=Path, default=Path("metrics/report.json"), help="summary metrics JSON")
     parser.add_argument("--media", type=Path, nargs="*", default=[], help="GIF/PNG folders to include (demos)")
     parser.add_argument("--nuisance", type=Path, help="the nuisance stage's folder (metrics/nuisance)")
-    parser.add_argument("--params", type=Path, default=Path("params.yaml"))
+    cli.add_common(parser)
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> list[Path]:
     args = parse_args(argv)
-    params = config.load("report", args.params)
+    params = schema.load("report", args.params)
     cfg = config.build(ReportConfig, config.section(params, "report"), "report")
     with stage_run("report", params, table="all") as run:
         written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()],
@@ -47,4 +49,4 @@ def main(argv: list[str] | None = None) -> list[Path]:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(cli.run(main))

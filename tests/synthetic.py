@@ -43,7 +43,7 @@ def tiny_camera(resolution: int = 48):
 
 
 def tiny_solver(dt: float = 1e-3) -> MPMSolver:
-    return MPMSolver(SimConfig(n_grid=16, dt=dt, bound=1, boundary="friction", friction=0.4), "cpu")
+    return MPMSolver(SimConfig(n_grid=16, dt=dt, bound=1, boundary="friction", friction=0.4, max_refine=1), "cpu")
 
 
 def ground_truth_views(body: Body, v0, w0=(0.0, 0.0, 0.0), n_frames: int = 8, substeps: int = 2,

@@ -26,7 +26,7 @@ def sphere_volume_sim(p: pa.Particles) -> float:
 
 def test_mesh_path_volume(sphere):
     mesh, cloud = sphere
-    cfg = pa.ParticleConfig(spacing=0.025, margin=0.25)
+    cfg = pa.ParticleConfig(spacing=0.025, margin=0.25, floor_gap=0.05)
     p = pa.convert(cloud, cfg, density=1000.0, mesh=mesh)
     V = sphere_volume_sim(p)
     assert abs(p.vol.sum() / V - 1) < 0.02
@@ -39,7 +39,7 @@ def test_mesh_path_volume(sphere):
 def test_gaussians_only_path_volume(sphere):
     """No mesh: the hole-filled opacity field; stated bound 8 % on the total volume."""
     _, cloud = sphere
-    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.025), density=1000.0)
+    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.025, floor_gap=0.05), density=1000.0)
     assert abs(p.vol.sum() / sphere_volume_sim(p) - 1) < 0.08
 
 
@@ -49,15 +49,15 @@ def test_target_count_sizes_the_lattice_per_object(sphere, with_mesh):
     volume to a few %), whatever the fixed spacing says; the spacing used is recorded."""
     mesh, cloud = sphere
     for n_target in (1500, 6000):
-        cfg = pa.ParticleConfig(spacing=0.025, target_count=n_target)
+        cfg = pa.ParticleConfig(spacing=0.025, target_count=n_target, floor_gap=0.05)
         p = pa.convert(cloud, cfg, density=1000.0, mesh=mesh if with_mesh else None)
         assert abs(p.n / n_target - 1) < (0.05 if with_mesh else 0.12), (n_target, p.n)
         # mesh: the volume is the mesh's; no mesh: re-estimated from the field at the new spacing
         assert p.spacing != cfg.spacing and abs(p.spacing**3 * n_target / p.vol.sum() - 1) < (1e-6 if with_mesh else 0.05)
-    fixed = pa.convert(cloud, pa.ParticleConfig(spacing=0.025), density=1000.0, mesh=mesh)
+    fixed = pa.convert(cloud, pa.ParticleConfig(spacing=0.025, floor_gap=0.05), density=1000.0, mesh=mesh)
     assert fixed.spacing == 0.025
     with pytest.raises(ValueError, match="target_count"):
-        pa.ParticleConfig(target_count=-1)
+        pa.ParticleConfig(target_count=-1, floor_gap=0.05)
 
 
 def test_gaussians_only_detects_unsealed_surface():
@@ -65,7 +65,7 @@ def test_gaussians_only_detects_unsealed_surface():
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=R_WORLD)
     cloud = objects.gaussians_from_mesh(mesh, lambda x: np.full((len(x), 3), 0.5), 300, 0, seed=0)
     with pytest.raises(ValueError, match="did not enclose a volume"):
-        pa.convert(cloud, pa.ParticleConfig(spacing=0.01, density_threshold=0.9), density=1000.0)
+        pa.convert(cloud, pa.ParticleConfig(spacing=0.01, density_threshold=0.9, floor_gap=0.05), density=1000.0)
 
 
 @pytest.mark.parametrize("placement", ["floor", "centre"])
@@ -84,7 +84,7 @@ def test_sim_from_world_round_trip_and_placement(placement):
 @pytest.mark.parametrize("unbound", ["nearest", "extra"])
 def test_binding_rows_sum_to_one_and_every_gaussian_bound(sphere, unbound):
     mesh, cloud = sphere
-    cfg = pa.ParticleConfig(spacing=0.03, unbound=unbound, max_bound=6, n_candidates=16)
+    cfg = pa.ParticleConfig(spacing=0.03, unbound=unbound, max_bound=6, n_candidates=16, floor_gap=0.05)
     p = pa.convert(cloud, cfg, density=500.0, mesh=mesh)
     W = p.binding_matrix()
     np.testing.assert_allclose(np.asarray(W.sum(axis=1)).ravel(), 1.0, rtol=1e-6)
@@ -103,7 +103,7 @@ def test_binding_matches_bruteforce_reference():
     R = quats_to_rotmats(q / np.linalg.norm(q, axis=1, keepdims=True))
     sigmas = rng.uniform(0.02, 0.12, size=(40, 3))
     sigmas[:10] /= 10  # small Gaussians: no particle within their ellipsoid -> nearest fallback
-    cfg = pa.ParticleConfig(max_bound=5, n_candidates=300)
+    cfg = pa.ParticleConfig(max_bound=5, n_candidates=300, floor_gap=0.05)
     rows, cols, weights, unbound = pa.bind_gaussians(means, R, sigmas, x, cfg)
     for g in range(40):
         m = np.einsum("pi,ij,pj->p", x - means[g], R[g] @ np.diag(sigmas[g] ** -2) @ R[g].T, x - means[g])
@@ -122,7 +122,7 @@ def test_opacity_filter_and_file_round_trip(sphere, tmp_path):
     transparent = np.arange(cloud.n) % 3 == 0
     logits = np.where(transparent, -6.0, cloud.opacity_logit).astype(np.float32)
     cloud = type(cloud)(**{**cloud.__dict__, "opacity_logit": logits})
-    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.04), density=1000.0, mesh=mesh)
+    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.04, floor_gap=0.05), density=1000.0, mesh=mesh)
     np.testing.assert_array_equal(p.gaussian_index, np.nonzero(~transparent)[0])
     assert p.n_gaussians == cloud.n
     back = pa.load_particles(pa.save_particles(tmp_path / "p.npz", p))
@@ -136,12 +136,12 @@ def test_all_transparent_is_an_error(sphere):
     mesh, cloud = sphere
     cloud = type(cloud)(**{**cloud.__dict__, "opacity_logit": np.full(cloud.n, -9.0, np.float32)})
     with pytest.raises(ValueError, match="no Gaussian has opacity"):
-        pa.convert(cloud, pa.ParticleConfig(), density=1000.0, mesh=mesh)
+        pa.convert(cloud, pa.ParticleConfig(floor_gap=0.05), density=1000.0, mesh=mesh)
 
 
 def test_sim_frame_gaussians_in_unit_cube(sphere):
     mesh, cloud = sphere
-    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.04, margin=0.1), density=1.0, mesh=mesh)
+    p = pa.convert(cloud, pa.ParticleConfig(spacing=0.04, margin=0.1, floor_gap=0.05), density=1.0, mesh=mesh)
     assert p.x.min() > 0.0 and p.x.max() < 1.0
     assert scales(cloud).max() * p.sim_from_world[0, 0] < 0.1  # scales are mapped by s too
     _ = normalized_quats(cloud)

@@ -43,12 +43,15 @@ def _deformations(seed=0, n=N, amplitude=0.06, dtype=torch.float32):
 
 # ---------------------------------------------------------------- config and subset
 def test_config_validation_and_build():
-    cfg = build(CPRConfig, {"subset_size": 64, "elastic": ["corotated", "sigma"], "plastic": []}, "align.cpr")
+    cfg = build(CPRConfig, {"subset_size": 64, "elastic": ["corotated", "sigma"], "plastic": []}, "align.cpr",
+                partial=True)
     assert cfg.elastic == ("corotated", "sigma") and cfg.plastic == ()
     with pytest.raises(ValueError, match="unknown hypotheses"):
         CPRConfig(elastic=("neo_hookean",))
     with pytest.raises(ConfigError, match="unknown keys"):
         build(CPRConfig, {"subset": 3})
+    with pytest.raises(ConfigError, match="^params: missing key align.cpr.n_groups "):  # params must give every key
+        build(CPRConfig, {"subset_size": 64, "elastic": ["corotated", "sigma"], "plastic": []}, "align.cpr")
 
 
 def test_subset_is_fixed_seeded_and_split_into_groups():

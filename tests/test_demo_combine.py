@@ -34,7 +34,8 @@ def _write_object(folder, name, spacing=0.05):
     mesh, colour = make_object(name, seed=1, size=0.3)
     cloud = gaussians_from_mesh(mesh, colour, n_surface=250, n_interior=30, seed=1)
     write_ply(folder / f"{name}.ply", cloud)
-    save_particles(folder / f"{name}.npz", convert(cloud, ParticleConfig(spacing=spacing), 1000.0, mesh=mesh))
+    save_particles(folder / f"{name}.npz", convert(cloud, ParticleConfig(spacing=spacing, floor_gap=0.05),
+                                                   1000.0, mesh=mesh))
     return load_body(folder / f"{name}.npz", folder / f"{name}.ply")
 
 
@@ -46,7 +47,7 @@ def bodies(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def solver():
-    return MPMSolver(SimConfig(n_grid=16, dt=5e-4, bound=2, boundary="friction", friction=0.4))
+    return MPMSolver(SimConfig(n_grid=16, dt=5e-4, bound=2, boundary="friction", friction=0.4, max_refine=1))
 
 
 def _cfg(**kw):

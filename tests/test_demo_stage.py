@@ -59,7 +59,8 @@ def _write_object(data: Path, name: str) -> None:
     mesh, colour = make_object(name, seed=1, size=0.3)
     cloud = gaussians_from_mesh(mesh, colour, n_surface=200, n_interior=20, seed=1)
     write_ply(data / "assets" / name / "gaussians.ply", cloud)
-    save_particles(data / "particles" / f"{name}.npz", convert(cloud, ParticleConfig(spacing=0.06), 1000.0, mesh=mesh))
+    save_particles(data / "particles" / f"{name}.npz", convert(cloud, ParticleConfig(spacing=0.06, floor_gap=0.05),
+                                                                   1000.0, mesh=mesh))
 
 
 def _write_prior(path: Path, family: str, seed: int) -> None:

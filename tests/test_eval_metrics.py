@@ -155,7 +155,7 @@ def test_measure_sees_allocation_and_counts_parameters():
 
 
 def test_metrics_config_builds_and_validates():
-    cfg = build(MetricsConfig, {"ssim_window": 7, "response_sweeps": ["shear"]}, "eval.metrics")
+    cfg = build(MetricsConfig, {"ssim_window": 7, "response_sweeps": ["shear"]}, "eval.metrics", partial=True)
     assert cfg.response_sweeps == ("shear",) and cfg.ssim_window == 7
     with pytest.raises(ValueError, match="eval/config.py"):
         MetricsConfig(response_sweeps=("torsion",))

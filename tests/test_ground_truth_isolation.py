@@ -57,7 +57,7 @@ def scene(tmp_path_factory):
                       camera=OrbitCamera(distance=1.0, target=(0.5, 0.25, 0.5)),
                       extra_train_cameras=(OrbitCamera(azimuth_deg=120, distance=1.0, target=(0.5, 0.25, 0.5)),),
                       eval_cameras=(OrbitCamera(azimuth_deg=60, distance=1.0, target=(0.5, 0.25, 0.5)),))
-    video = VideoConfig(n_frames=8, substeps=2, frame_every=2, resolution=32)
+    video = VideoConfig(n_frames=8, substeps=2, frame_every=2, resolution=32, fps=0.0, timing="")  # fixed frames
     sim = SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="friction", friction=0.4)
     metrics = generate(tmp / "scene", tmp / "gt", body, "tiny", cfg, video, sim, JELLY, LightingConfig(),
                        SimulatedDepthConfig(edge_band_px=1.0, lowfreq_sigma_px=4.0), seed=0)
@@ -101,6 +101,7 @@ def test_preprocess_runs_without_the_ground_truth_directory_and_never_opens_it(s
     shutil.copytree(tmp / "gt", hidden)
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     params["profile"] = "ci"
+    params["scenes"]["tiny"] = dict(params["scenes"]["ball"])  # the stages check the scene is a key of scenes
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     argv = ["--scene", "tiny", "--scene-dir", str(tmp / "scene"), "--out", str(tmp_path / "prep"),
             "--metrics", str(tmp_path / "prep.json"), "--params", str(tmp_path / "params.yaml")]
@@ -150,6 +151,7 @@ def test_the_nuisance_stage_reads_the_ground_truth_and_reports_per_frame(scene, 
     tmp, _ = scene
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     params["profile"] = "ci"
+    params["scenes"]["tiny"] = dict(params["scenes"]["ball"])  # the stages check the scene is a key of scenes
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     p = ["--params", str(tmp_path / "params.yaml")]
     preprocess.main(["--scene", "tiny", "--scene-dir", str(tmp / "scene"), "--out", str(tmp_path / "prep"),

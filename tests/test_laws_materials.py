@@ -112,7 +112,7 @@ def test_float32_default_and_dtype_conversion():
     ({"elasticity": "sigma", "plasticity": "von_mises"}, r"needs preset keys \['yield_stress'\]"),
     ({"elasticity": "sigma", "plasticity": "viscoplastic", "yield_stress": 1, "viscosity": 1}, "pass dt"),
     ({"elasticity": "sigma", "young": 1e5}, r"unknown keys \['young'\]"),
-    ({"elasticity": "sigma", "E": "stiff"}, "E='stiff' is not a number"),
+    ({"elasticity": "sigma", "E": "stiff"}, "E='stiff' must be a number"),
     ({"elasticity": "sigma", "nu": 0.5}, "Poisson"),
     ({"parts": [{"elasticity": "sigma", "fraction": 0.5}]}, "sum to 1"),
 ])

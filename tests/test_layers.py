@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: bottom to top; a module may import its own package and anything on a lower layer, nothing beside or above.
 LAYERS = (
     ("core", ("gca", "gca.config", "gca.io", "gca.warp_stream", "gca.gpu_slot", "gca.efficiency", "gca.linalg",
-              "gca.sh")),
+              "gca.sh", "gca.stop", "gca.stamp")),
     ("assets", ("gca.assets",)),
     ("laws", ("gca.laws",)),
     ("sim", ("gca.sim",)),

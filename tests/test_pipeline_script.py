@@ -54,7 +54,9 @@ def test_an_interrupted_exp_run_leaves_the_branch_attached(tmp_path):
     assert out.returncode == 130  # the failure still fails the command
     assert _git(repo, "symbolic-ref", "HEAD").strip() == "refs/heads/main"
     assert "re-attached to main" in out.stderr
-    assert "params changed by the run" in (repo / "params.yaml").read_text()  # the working tree is untouched
+    # the stub's `-S` override written into params.yaml is put back (issue 24 G), and the run says so
+    assert (repo / "params.yaml").read_text() == "profile: paper\n"
+    assert "params.yaml put back as it was" in out.stdout + out.stderr
 
 
 def test_a_detached_start_is_left_alone(tmp_path):

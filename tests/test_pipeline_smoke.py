@@ -27,6 +27,9 @@ def _params(tmp: Path) -> Path:
     raw["objects"] = {OBJECT: raw["objects"][OBJECT]}
     raw["scenes"] = {SCENE: {**raw["scenes"][SCENE], "methods": METHODS}}
     raw["prior"]["families"] = {FAMILY: raw["prior"]["families"][FAMILY]}
+    raw["demo"]["new_shape"].update(law_scene=SCENE, object=OBJECT)  # the demo refers to scenes that exist
+    for side in ("a", "b"):
+        raw["demo"]["interaction"][side]["scene"] = SCENE
     path = tmp / "params.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
@@ -142,7 +145,7 @@ def test_training_wrote_history_and_adapters(pipeline):
         assert (run / method / "law.pt").is_file() and not (run / method / "checkpoint.pt").exists()
 
 
-def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch):
+def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch, capsys):
     """A train stage re-run where a method left a checkpoint (stopped by grid.py's deadline) does not
     estimate the launch velocity again: its first iterations used the one in velocity.json."""
     import shutil
@@ -166,11 +169,62 @@ def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, t
                 "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
                 "--params", params, "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
     assert used and [list(v) for v in used[0]] == [saved["v0"], saved["w0"]]
-    (out / "neuma" / "checkpoint.pt").unlink()  # no checkpoint: a fresh run estimates it
+    # the marker has no stamp of the params and inputs it was made with (gca.stamp): not resumed, and said so
+    assert f"{out / 'neuma' / 'checkpoint.pt'}: not resumed: the checkpoint has no stamp" in capsys.readouterr().out
+    assert not (out / "neuma" / "checkpoint.pt").exists()  # no checkpoint: a fresh run estimates it
     with pytest.raises(AssertionError, match="estimated again"):
         train.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
                     "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
                     "--params", params, "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
+
+
+def test_a_checkpoint_of_other_params_is_not_resumed(pipeline, tmp_path, monkeypatch, capsys):
+    """Issue 24's probe: a train stage stopped mid-run, then re-run with other params (2 iterations, lr x100),
+    trains afresh and says so; re-run with its own params, it resumes."""
+    import shutil
+    import train
+
+    from gca import stop
+
+    out = tmp_path / "runs"
+    shutil.copytree(pipeline / "runs" / SCENE, out)
+    seen = []
+
+    def interrupted(params, scene, method, inputs, velocity, out_dir, *a):
+        seen.append((out_dir / "checkpoint.pt").is_file())
+        (out_dir / "checkpoint.pt").write_bytes(b"iteration 15 of 40")
+        raise stop.Terminated()
+
+    saved = json.loads((out / "velocity.json").read_text())
+    estimated = []
+
+    def estimate(params, scene, inputs, path, device):
+        estimated.append(path)
+        path.write_text(json.dumps({"v0": saved["v0"], "w0": saved["w0"]}))
+        return {"v0": saved["v0"], "w0": saved["w0"]}
+
+    monkeypatch.setattr(train, "estimate_scene_velocity", estimate)
+    monkeypatch.setattr(train, "train_method", interrupted)
+    d = lambda *p: str(pipeline.joinpath(*p))  # noqa: E731
+    raw = yaml.safe_load((pipeline / "params.yaml").read_text())
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump({**raw, "train": {**raw["train"], "iterations": 2,
+                                                      "lr_elasticity": 100 * raw["train"]["lr_elasticity"]}}))
+
+    def stage(params):
+        with pytest.raises(stop.Terminated):
+            train.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
+                        "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
+                        "--params", str(params), "--prep", d("data/prep", SCENE), "--out", str(out), "--methods", "neuma"])
+
+    stage(pipeline / "params.yaml")  # a fresh run, stopped
+    stage(pipeline / "params.yaml")  # same params and inputs: resumes
+    capsys.readouterr()
+    stage(other)  # other params: the checkpoint goes
+    assert seen == [False, True, False]
+    assert len(estimated) == 1  # the resumed runs reuse the stamped velocity.json (train params are not its inputs)
+    assert capsys.readouterr().out.splitlines()[0].startswith(
+        f"{out / 'neuma' / 'checkpoint.pt'}: not resumed: the checkpoint was made with other params or inputs (stamp ")
 
 
 def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):

@@ -14,7 +14,7 @@ from gca.train.prior_data import (PriorDataConfig, inside_shape, lattice_body, m
 
 wp.config.quiet = True
 JELLY = {"elasticity": "corotated", "plasticity": "identity", "E": 1.0e5, "nu": 0.2, "rho": 1000}
-SIM = SimConfig(n_grid=16, dt=8e-4, bound=2, boundary="friction", friction=0.4)
+SIM = SimConfig(n_grid=16, dt=8e-4, bound=2, boundary="friction", friction=0.4, max_refine=1)
 DATA = PriorDataConfig(particles_per_axis=6, n_steps=12, speed=(1.5, 3.0), max_tilt_deg=45.0, floor_gap=(0.0, 0.03))
 
 
@@ -85,6 +85,6 @@ def test_stored_states_restart_exactly_with_the_same_law(trajectory, solver):
 
 def test_bad_data_config_and_oversized_body_are_refused(solver):
     with pytest.raises(ValueError, match="prior_data.py.*shapes"):
-        PriorDataConfig(shapes=("torus",))
+        PriorDataConfig(shapes=("torus",), particles_per_axis=12, n_steps=400)
     with pytest.raises(ValueError, match="does not fit the domain"):
-        sample_body(PriorDataConfig(particles_per_axis=40), solver, 0)
+        sample_body(PriorDataConfig(particles_per_axis=40, n_steps=400), solver, 0)

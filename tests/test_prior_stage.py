@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import pytest
+import yaml
 
 from gca.config import ConfigError
 from gca.laws.checkpoint import load_prior
@@ -14,36 +15,15 @@ from gca.laws.pretrain import sweep_response_error
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# The CI profile of the params section the stage needs (the same values proposed for params.yaml).
-PARAMS = """
-profile: ci
-seed: 0
-laws:
-  neural: {widths: [64, 64], activation: gelu, stress_scale: 1.0e+4, alpha: 1.0e-3}
-prior:
-  families:
-    jelly: {elasticity: corotated, plasticity: identity, E: 1.0e+5, nu: 0.2, rho: 1000}
-  train:
-    sim: {n_grid: {paper: 32, ci: 16}, dt: {paper: 4.0e-4, ci: 6.0e-4}, bound: 2, boundary: friction, friction: 0.4}
-    data:
-      particles_per_axis: {paper: 16, ci: 6}
-      n_steps: {paper: 500, ci: 120}
-      speed: {paper: [0.5, 3.0], ci: [1.5, 3.0]}
-      max_tilt_deg: {paper: 60.0, ci: 45.0}
-      floor_gap: {paper: [0.0, 0.1], ci: [0.0, 0.03]}
-    n_train: {paper: 16, ci: 4}
-    n_heldout: {paper: 4, ci: 2}
-    window: {paper: 16, ci: 8}
-    batch: {paper: 4, ci: 2}
-    iterations: {paper: 2000, ci: 30}
-    lr_elasticity: 1.0e-3
-    lr_plasticity: 1.0e-4
-    warm_start: [elasticity, plasticity]
-    fit_elasticity: {sampling: {stretch: 0.2, compression: 0.2, rotation: 3.141592653589793}, lr: 1.0e-2,
-                     n_samples: {paper: 65536, ci: 2048}, batch_size: {paper: 1024, ci: 256}, steps: {paper: 5000, ci: 1000}}
-    fit_plasticity: {sampling: {stretch: 0.05, compression: 0.05, rotation: 0.0}, lr: 1.0e-2,
-                     n_samples: {paper: 65536, ci: 2048}, batch_size: {paper: 1024, ci: 256}, steps: {paper: 5000, ci: 1000}}
-"""
+# The CI profile of the params sections the stage needs, as the shipped params.yaml has them (one family).
+def _params_text() -> str:
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    prior = {**raw["prior"], "families": {"jelly": raw["prior"]["families"]["jelly"]}}
+    return yaml.safe_dump({"profile": "ci", "seed": 0, "laws": {"neural": raw["laws"]["neural"]}, "sim": raw["sim"],
+                           "prior": prior}, sort_keys=False)
+
+
+PARAMS = _params_text()
 
 
 def _stage():

@@ -16,7 +16,7 @@ from gca.train.prior_data import PriorDataConfig, make_trajectories, trajectory_
 
 wp.config.quiet = True
 JELLY = {"elasticity": "corotated", "plasticity": "identity", "E": 1.0e5, "nu": 0.2, "rho": 1000}
-SIM = SimConfig(n_grid=16, dt=6e-4, bound=2, boundary="friction", friction=0.4)
+SIM = SimConfig(n_grid=16, dt=6e-4, bound=2, boundary="friction", friction=0.4, max_refine=1)
 DATA = PriorDataConfig(particles_per_axis=6, n_steps=120, speed=(1.5, 3.0), max_tilt_deg=45.0, floor_gap=(0.0, 0.03))
 
 
@@ -88,4 +88,4 @@ def test_config_refusals_name_the_problem():
     with pytest.raises(ValueError, match="prior.py.*warm_start"):
         PriorTrainConfig(warm_start=("stress",))
     with pytest.raises(ValueError, match="window=500 exceeds"):
-        PriorTrainConfig(window=500, data=PriorDataConfig(n_steps=100))
+        PriorTrainConfig(window=500, data=PriorDataConfig(n_steps=100, particles_per_axis=12))

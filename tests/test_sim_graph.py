@@ -54,7 +54,8 @@ def _loss_and_grads(material, solver, graph, x0, v0, vol, mass, n_steps=8, per_f
 
 def test_twin_equals_checkpointed_rollout():
     material = _law()
-    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float64",
+                                 max_refine=1))
     scene = _scene()
     ref, g_ref = _loss_and_grads(material, solver, False, *scene)
     out, g = _loss_and_grads(material, solver, True, *scene)
@@ -69,7 +70,8 @@ def test_twin_equals_checkpointed_rollout():
 @pytest.mark.grad
 def test_graphed_frame_gradcheck_float64():
     material = _law()
-    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, dtype="float64", boundary="sticky", friction=0.0,
+                                 max_refine=1))
     x0, v0, vol, mass = _scene(n=4)
     runner = FrameGraphs(solver, material, n_steps=2, n=4, capture=False)
     runner.bind(vol, mass)
@@ -88,7 +90,8 @@ def test_graphed_frame_gradcheck_float64():
 
 def test_runner_is_cached_and_sees_in_place_updates():
     material = _law()
-    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, dtype="float64", boundary="sticky", friction=0.0,
+                                 max_refine=1))
     scene = _scene()
     rollout(solver, material, *scene, 4, 2, graph=True)
     runner = solver.frame_graphs(material, 2, scene[0].shape[0])
@@ -105,7 +108,8 @@ def test_runner_is_cached_and_sees_in_place_updates():
 
 
 def test_capture_refused_on_cpu():
-    solver = MPMSolver(SimConfig(n_grid=8, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=8, dtype="float64", dt=1e-3, bound=3, boundary="sticky", friction=0.0,
+                                 max_refine=1))
     with pytest.raises(ValueError, match="CUDA"):
         FrameGraphs(solver, _law(), 2, 4, capture=True)
 
@@ -114,7 +118,7 @@ def test_capture_refused_on_cpu():
 def test_cuda_graphs_match_eager_on_gpu():
     """On a GPU: captured replay vs the eager twin vs the checkpointed rollout (float32)."""
     material = _law(dtype=torch.float32).cuda()
-    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1), "cuda")
+    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1), "cuda")
     scene = [t.cuda() for t in _scene(n=500, dtype=torch.float32)]
     ref, g_ref = _loss_and_grads(material, solver, False, *scene)
     out, g = _loss_and_grads(material, solver, True, *scene)
@@ -137,14 +141,15 @@ def test_capture_survives_unreachable_warp_memory():
     threshold = gc.get_threshold()
     gc.disable()
     try:
-        old = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1), "cuda")
+        old = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1), "cuda")
         old.me = old  # a cycle: only the cyclic collector frees it
         old.grid(scene[0], scene[1], torch.zeros(300, 3, 3, device="cuda"), torch.zeros(300, 3, 3, device="cuda"),
                  scene[2], scene[3])  # allocates its warp grid buffers
         del old
         gc.set_threshold(1, 1, 1)
         gc.enable()
-        solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1), "cuda")
+        solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1),
+                                     "cuda")
         with warnings.catch_warnings():
             warnings.simplefilter("error", RuntimeWarning)  # the eager fallback warns
             _loss_and_grads(material, solver, True, *scene)

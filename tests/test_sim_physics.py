@@ -36,7 +36,7 @@ def test_bar_wave_speed_matches_sqrt_E_over_rho():
     v = torch.zeros_like(x)
     v[:, 0] = A * torch.cos(math.pi * s / L)
     vol = torch.full((x.shape[0],), h**3)
-    cfg = SimConfig(n_grid=n, dt=5e-4, gravity=(0, 0, 0), bound=2)
+    cfg = SimConfig(n_grid=n, dt=5e-4, gravity=(0, 0, 0), bound=2, boundary="sticky", friction=0.0, max_refine=1)
     with torch.no_grad():
         out = rollout(MPMSolver(cfg), elastic(E, 0.0), x, v, vol, vol * RHO, n_steps=130, steps_per_frame=1)
     ends = out.x[:, s > L - h, 0].mean(1) - out.x[:, s < h, 0].mean(1)
@@ -58,7 +58,7 @@ def test_elastic_ball_bounces_without_energy_gain():
     x = lattice((0.3, 0.2, 0.3), (0.7, 0.6, 0.7), h)
     x = x[(x - centre).norm(dim=1) < 0.15]
     mass = torch.full((x.shape[0],), h**3 * RHO)
-    cfg = SimConfig(n_grid=n, dt=1.5e-3, bound=2, boundary="slip")
+    cfg = SimConfig(n_grid=n, dt=1.5e-3, bound=2, boundary="slip", friction=0.0, max_refine=1)
     with torch.no_grad():
         out = rollout(MPMSolver(cfg), elastic(1e5, 0.3), x, torch.zeros_like(x), mass / RHO, mass,
                       n_steps=200, steps_per_frame=2)

@@ -47,7 +47,7 @@ def _blob(n, seed, dtype=F64):
 @pytest.mark.grad
 def test_rollout_gradcheck_to_initial_velocity_and_law_parameter():
     # float64 gradcheck through 2 checkpointed frames of 2 steps: d x_final / d (v0, mu).
-    cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary="slip", dtype="float64")
+    cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary="slip", dtype="float64", friction=0.0, max_refine=1)
     solver = MPMSolver(cfg)
     x0, v0, vol, mass = _blob(6, seed=0)
     k = torch.tensor(1.0, dtype=F64)
@@ -60,7 +60,7 @@ def test_rollout_gradcheck_to_initial_velocity_and_law_parameter():
 
 
 def test_checkpointing_does_not_change_values_or_gradients():
-    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64")
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
     solver = MPMSolver(cfg)
     x0, v0, vol, mass = _blob(60, seed=1)
     material = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
@@ -85,7 +85,8 @@ def test_cfl_bound_hand_computed():
 
 def test_rollout_refuses_too_large_dt_before_stepping():
     # E = 1e7 Pa, rho = 1e3: c ~ 116 m/s; dx = 1/16 m -> dt_max ~ 2.7e-4 s < 1e-3 s.
-    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", bound=3, boundary="sticky", friction=0.0,
+                                 max_refine=1))
     x0, v0, vol, mass = _blob(10, seed=2)
     material = Material(CorotatedElasticity(1e7, 0.3), IdentityPlasticity(), 1e3).double()
     with pytest.raises(CFLError, match="exceeds the CFL bound"):
@@ -93,7 +94,8 @@ def test_rollout_refuses_too_large_dt_before_stepping():
 
 
 def test_divergence_raises_with_step_count_and_law():
-    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, dtype="float64", bound=3, boundary="sticky", friction=0.0,
+                                 max_refine=1))
     x0, v0, vol, mass = _blob(10, seed=3)
     with pytest.raises(SimulationDiverged, match=r"after step 3, law _NaNMaterial: 10 of 10 particles have non-finite"):
         rollout(solver, _NaNMaterial(torch.tensor(1.0, dtype=F64)), x0, v0, vol, mass, n_steps=6, steps_per_frame=3)
@@ -102,7 +104,8 @@ def test_divergence_raises_with_step_count_and_law():
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_particles_leaving_the_domain_are_detected(dtype):
     # Walls off (bound = 0) and a fast sideways throw: the blob piles up on the clamp at x = 1 - clip dx.
-    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=0, gravity=(0, 0, 0), dtype=str(dtype)[6:]))
+    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=0, gravity=(0, 0, 0), dtype=str(dtype)[6:],
+                                 boundary="sticky", friction=0.0, max_refine=1))
     x0, _, vol, mass = _blob(20, seed=4, dtype=dtype)
     v0 = torch.zeros_like(x0)
     v0[:, 0] = 20.0
@@ -112,7 +115,8 @@ def test_particles_leaving_the_domain_are_detected(dtype):
 
 
 def test_rollout_input_errors():
-    solver = MPMSolver(SimConfig(n_grid=8, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=8, dtype="float64", dt=1e-3, bound=3, boundary="sticky", friction=0.0,
+                                 max_refine=1))
     x0, v0, vol, mass = _blob(5, seed=5)
     material = _Corotated(torch.tensor(1.0, dtype=F64))
     with pytest.raises(ValueError, match="multiple of steps_per_frame"):
@@ -126,13 +130,15 @@ def test_cfl_refinement_takes_smaller_steps_with_the_same_frames():
     frame for frame the rollout of a solver built with that dt; with max_refine = 3 it is refused."""
     x0, v0, vol, mass = _blob(10, seed=2)
     material = Material(CorotatedElasticity(1e7, 0.3), IdentityPlasticity(), 1e3).double()
-    refined = rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=4)), material,
+    refined = rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=4, bound=3,
+                                          boundary="sticky", friction=0.0)), material,
                       x0, v0, vol, mass, n_steps=4, steps_per_frame=2)
-    direct = rollout(MPMSolver(SimConfig(n_grid=16, dt=2.5e-4, dtype="float64")), material,
+    direct = rollout(MPMSolver(SimConfig(n_grid=16, dt=2.5e-4, dtype="float64", bound=3, boundary="sticky",
+                                         friction=0.0, max_refine=1)), material,
                      x0, v0, vol, mass, n_steps=16, steps_per_frame=8)
     assert refined.refine == 4 and direct.refine == 1 and refined.x.shape == (3, 10, 3)
     torch.testing.assert_close(refined.x, direct.x, rtol=0, atol=0)
     torch.testing.assert_close(refined.F, direct.F, rtol=0, atol=0)
     with pytest.raises(CFLError, match="max_refine=3 sub-steps allow \\(needs 4\\)"):
-        rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=3)), material,
+        rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=3, bound=3, boundary="sticky", friction=0.0)), material,
                 x0, v0, vol, mass, n_steps=4, steps_per_frame=2)

@@ -45,7 +45,7 @@ def _floor_state(n, seed):
 @pytest.mark.parametrize("boundary", ["sticky", "slip", "friction"])
 def test_step_gradcheck_float64(boundary):
     # 8^3 grid, 3 particles near the floor (bound = 2 cells reaches them), 2 steps.
-    cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary=boundary, friction=0.3, dtype="float64")
+    cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary=boundary, friction=0.3, dtype="float64", max_refine=1)
     fn = _multi_step(MPMSolver(cfg), 2)
     x, v, C, F, tau, vol, mass = _floor_state(3, seed=1)
     inputs = [t.requires_grad_() for t in (x, v, C, F, tau)]
@@ -74,7 +74,7 @@ class _WrongBackward(torch.autograd.Function):
 @pytest.mark.grad
 def test_gradcheck_catches_wrong_backward():
     # Negative control: the same check and tolerances must reject a 1 % error in dL/dx.
-    cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary="slip", dtype="float64")
+    cfg = SimConfig(n_grid=8, dt=2e-3, bound=2, boundary="slip", dtype="float64", friction=0.0, max_refine=1)
     solver = MPMSolver(cfg)
     x, v, C, F, tau, vol, mass = _floor_state(3, seed=1)
     inputs = [t.requires_grad_() for t in (x, v, C, F, tau)]
@@ -91,7 +91,7 @@ def test_step_matches_torch_reference(boundary, dtype, tol):
     # Values and VJPs of the warp step against the dense torch reference, with walls active
     # (particles fill the whole box, some within the 2-cell walls). float32 tolerance: summation
     # order of the atomic scatter vs index_add (relative to each quantity's scale).
-    cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, boundary=boundary, friction=0.5, dtype=str(dtype)[6:])
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, boundary=boundary, friction=0.5, dtype=str(dtype)[6:], max_refine=1)
     x, v, C, F, tau, vol, mass = _state(200, seed=2, lo=0.02, hi=0.98, dtype=dtype)
     inputs = [t.requires_grad_() for t in (x, v, C, F, tau)]
     outs = MPMSolver(cfg).step(*inputs, vol, mass)
@@ -106,7 +106,8 @@ def test_step_matches_torch_reference(boundary, dtype, tol):
 def test_p2g_g2p_conserve_mass_and_momentum():
     # Gravity and walls off: P2G conserves mass, P2G -> G2P conserves linear momentum exactly
     # (partition of unity and sum_i w_ip (x_i - x_p) = 0 of quadratic B-splines), whatever tau and C.
-    cfg = SimConfig(n_grid=16, dt=1e-3, gravity=(0, 0, 0), bound=0, dtype="float64")
+    cfg = SimConfig(n_grid=16, dt=1e-3, gravity=(0, 0, 0), bound=0, dtype="float64", boundary="sticky", friction=0.0,
+                    max_refine=1)
     solver = MPMSolver(cfg)
     x, v, C, F, tau, vol, mass = _state(100, seed=3, lo=0.2, hi=0.8, tau_scale=1e5)
     m_grid, mv_grid = solver.grid(x, v, C, tau, vol, mass)
@@ -120,7 +121,8 @@ def test_p2g_g2p_conserve_mass_and_momentum():
 
 def test_padded_grid_takes_particles_on_the_domain_faces():
     # Positions exactly on the faces 0 and 1 stay inside the padded grid: no mass is lost.
-    cfg = SimConfig(n_grid=8, gravity=(0, 0, 0), bound=0, clip=0.0, dtype="float64")
+    cfg = SimConfig(n_grid=8, gravity=(0, 0, 0), bound=0, clip=0.0, dtype="float64", dt=1e-3, boundary="sticky",
+                    friction=0.0, max_refine=1)
     x = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [0.9999, 1e-4, 0.5]], dtype=F64)
     n = x.shape[0]
     z3, zm = torch.zeros(n, 3, dtype=F64), torch.zeros(n, 3, 3, dtype=F64)
@@ -132,7 +134,7 @@ def test_padded_grid_takes_particles_on_the_domain_faces():
 def test_free_fall_follows_gravity():
     # No stress, no walls reached: symplectic Euler gives y_n = y0 - g dt^2 n (n + 1) / 2 exactly,
     # i.e. g t^2 / 2 up to the O(dt) term g t dt / 2.
-    cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, dtype="float64")
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
     solver = MPMSolver(cfg)
     x, _, _, _, _, vol, mass = _state(64, seed=4, lo=0.4, hi=0.6)
     x0 = x.clone()
@@ -150,16 +152,17 @@ def test_free_fall_follows_gravity():
 
 
 def test_bad_inputs_raise_clear_errors():
-    solver = MPMSolver(SimConfig(n_grid=8, dtype="float64"))
+    solver = MPMSolver(SimConfig(n_grid=8, dtype="float64", dt=1e-3, bound=3, boundary="sticky", friction=0.0,
+                                 max_refine=1))
     x, v, C, F, tau, vol, mass = _state(4, seed=5)
     with pytest.raises(ValueError, match="gca/sim/solver.py: tau must have shape"):
         solver.step(x, v, C, F, tau[:3], vol, mass)
     with pytest.raises(ValueError, match="solver runs torch.float64"):
         solver.step(x.float(), v, C, F, tau, vol, mass)
     with pytest.raises(ValueError, match="boundary='ice'"):
-        SimConfig(boundary="ice")
+        SimConfig(boundary="ice", dt=1e-3, bound=3, friction=0.0, max_refine=1)
     with pytest.raises(ValueError, match="bound=9"):
-        SimConfig(n_grid=16, bound=9)
+        SimConfig(n_grid=16, bound=9, dt=1e-3, boundary="sticky", friction=0.0, max_refine=1)
 
 
 @pytest.mark.parametrize("boundary,vy,expected", [
@@ -172,7 +175,7 @@ def test_floor_conditions_hand_computed(boundary, vy, expected):
     # Moving into the floor: sticky -> 0; slip drops v_y; friction mu_b = 0.5 also removes
     # mu_b * |v_n| = 0.5 from |v_t| = 1. Moving away: only sticky acts.
     cfg = SimConfig(n_grid=16, dt=1e-3, gravity=(0, 0, 0), bound=3, boundary=boundary, friction=0.5,
-                    dtype="float64")
+                    dtype="float64", max_refine=1)
     g = torch.Generator().manual_seed(6)
     n = 50
     x = torch.rand(n, 3, generator=g, dtype=F64) * torch.tensor([0.3, 1.0, 0.3], dtype=F64)
@@ -200,7 +203,8 @@ def test_step_conserves_angular_momentum_for_symmetric_stress():
     # APIC transfers conserve L = sum m (x x v + D axial(C)) exactly; the stress term changes it by
     # -dt sum_p vol_p axial(tau_p) (derivation: sum_i w d x (A d) = axial(A D)), which is zero
     # for a symmetric (Kirchhoff) stress. The non-symmetric case checks the formula itself.
-    cfg = SimConfig(n_grid=16, dt=1e-3, gravity=(0, 0, 0), bound=0, dtype="float64")
+    cfg = SimConfig(n_grid=16, dt=1e-3, gravity=(0, 0, 0), bound=0, dtype="float64", boundary="sticky", friction=0.0,
+                    max_refine=1)
     solver = MPMSolver(cfg)
     x, v, C, F, tau, vol, mass = _state(100, seed=7, lo=0.3, hi=0.7, tau_scale=1e4)
     L0 = _angular_momentum(x, v, C, mass, cfg.dx)
@@ -220,7 +224,8 @@ def test_tiny_stencil_weights_keep_gradients_finite(min_node_mass):
     subnormal); the adjoint of mv / m is then v / m -> inf and the position gradient NaN. Nodes
     lighter than ``min_node_mass`` count as empty, which keeps it finite (0 reproduces the bug seen as
     a random 'non-finite gradients' divergence in paper-scale training)."""
-    cfg = SimConfig(n_grid=16, dt=1e-4, bound=1, min_node_mass=min_node_mass)
+    cfg = SimConfig(n_grid=16, dt=1e-4, bound=1, min_node_mass=min_node_mass, boundary="sticky", friction=0.0,
+                    max_refine=1)
     dx = cfg.dx
     x = torch.tensor([[7.5 * dx + 1e-7] * 3, [0.3] * 3], dtype=torch.float32, requires_grad=True)
     v = torch.tensor([[0.3, -0.2, 0.1], [0.0, 0.0, 0.0]], requires_grad=True)

@@ -42,22 +42,26 @@ def _interior_stats(est, z, masks):
     return np.array(rhos), np.array(residuals)
 
 
+# benchmark 2.0's non-monotone components off (the defaults follow params.yaml, which has them on): the 1.x model
+_V1 = dict(texture_copy=0.0, smooth_sigma_px=0.0, thin_px=0, thin_flatten=0.0, flicker_tilt_std=0.0)
+
+
 def test_simulated_depth_is_monotone_in_the_interior_but_not_affine():
     frames, z, masks = _scene()
-    exact = SimulatedDepthConfig(noise_std=0.0, lowfreq_std=0.0)  # warp + bleed + scale/shift only
+    exact = SimulatedDepthConfig(noise_std=0.0, lowfreq_std=0.0, **_V1)  # warp + bleed + scale/shift only
     est = SimulatedDepth(exact, seed=3).estimate(frames, z, masks)
     assert est.shape == (T, H, W) and est.dtype == np.float32
     rhos, residuals = _interior_stats(est, z, masks)
     np.testing.assert_allclose(rhos, 1.0, atol=1e-9)  # monotone away from the edge band
     assert residuals.max() > 0.02, residuals  # the per-frame warp makes it non-affine
-    rhos, _ = _interior_stats(SimulatedDepth(SimulatedDepthConfig(), seed=3).estimate(frames, z, masks), z, masks)
+    rhos, _ = _interior_stats(SimulatedDepth(SimulatedDepthConfig(**_V1), seed=3).estimate(frames, z, masks), z, masks)
     assert rhos.min() > 0.95, rhos  # with the default noise the local order is still nearly kept
 
 
 def test_simulated_depth_errors_concentrate_at_the_edge():
     frames, z, masks = _scene()
     cfg = SimulatedDepthConfig(gamma_max=1.0, noise_std=0.0, lowfreq_std=0.0, edge_band_px=3.0,
-                               scale_range=(1.0, 1.0), shift_range=(0.0, 0.0))
+                               scale_range=(1.0, 1.0), shift_range=(0.0, 0.0), **_V1)
     est = SimulatedDepth(cfg).estimate(frames, z, masks)
     for t in range(T):
         zo = z[t][masks[t]]
@@ -119,7 +123,12 @@ def test_bad_configs_raise():
 # ---- non-monotone error components (issue 21, item 4): one test of each component's effect ----
 
 _OFF = dict(gamma_max=1.0, noise_std=0.0, lowfreq_std=0.0, edge_band_px=0.0, scale_range=(1.0, 1.0),
-            shift_range=(0.0, 0.0))
+            shift_range=(0.0, 0.0), **_V1)
+
+
+def _cfg(**components) -> SimulatedDepthConfig:
+    """Every error off but the given components."""
+    return SimulatedDepthConfig(**{**_OFF, **components})
 
 
 def _spearman_inside(est, z, masks):
@@ -130,8 +139,8 @@ def test_texture_copying_follows_the_image_and_breaks_the_rank_order():
     _, z, masks = _scene()
     rng = np.random.default_rng(0)
     frames = (rng.uniform(0, 1, (T, H, W, 3)) * 255).astype(np.uint8)  # a strongly textured object
-    clean = SimulatedDepth(SimulatedDepthConfig(**_OFF), 0).estimate(frames, z, masks)
-    copied = SimulatedDepth(SimulatedDepthConfig(**_OFF, texture_copy=0.3, texture_sigma_px=2.0), 0).estimate(frames, z, masks)
+    clean = SimulatedDepth(_cfg(), 0).estimate(frames, z, masks)
+    copied = SimulatedDepth(_cfg(texture_copy=0.3, texture_sigma_px=2.0), 0).estimate(frames, z, masks)
     err = (copied - clean)[masks]
     grey = frames.mean(-1) / 255.0
     high = np.stack([g - cv2.GaussianBlur(g, (0, 0), 2.0, borderType=cv2.BORDER_REPLICATE) for g in grey])[masks]
@@ -143,8 +152,8 @@ def test_texture_copying_follows_the_image_and_breaks_the_rank_order():
 
 def test_over_smoothing_rounds_boundaries_and_flattens_relief():
     frames, z, masks = _scene()
-    clean = SimulatedDepth(SimulatedDepthConfig(**_OFF), 0).estimate(frames, z, masks)
-    smooth = SimulatedDepth(SimulatedDepthConfig(**_OFF, smooth_sigma_px=2.0), 0).estimate(frames, z, masks)
+    clean = SimulatedDepth(_cfg(), 0).estimate(frames, z, masks)
+    smooth = SimulatedDepth(_cfg(smooth_sigma_px=2.0), 0).estimate(frames, z, masks)
     ring = masks[0] & ~_interior(masks[0], 2)                  # the object's boundary pixels
     assert np.abs(smooth[0] - clean[0])[ring].mean() > 5 * np.abs(smooth[0] - clean[0])[_interior(masks[0], 6)].mean()
     gy, gx = np.gradient(smooth[0])
@@ -159,8 +168,8 @@ def test_thin_parts_are_flattened_toward_the_background_and_thick_parts_kept():
     masks[0, 18:20, 30:44] = True                             # a 2-px-thin arm
     z[masks] = 2.0 + 0.01 * np.arange(masks.sum())
     frames = np.zeros((1, H, W, 3), np.uint8)
-    cfg = SimulatedDepthConfig(**_OFF, thin_px=5, thin_flatten=0.8)
-    clean = SimulatedDepth(SimulatedDepthConfig(**_OFF), 0).estimate(frames, z, masks)[0]
+    cfg = _cfg(thin_px=5, thin_flatten=0.8)
+    clean = SimulatedDepth(_cfg(), 0).estimate(frames, z, masks)[0]
     flat = SimulatedDepth(cfg, 0).estimate(frames, z, masks)[0]
     arm, body = np.zeros_like(masks[0]), np.zeros_like(masks[0])
     arm[18:20, 32:44], body[12:28, 12:28] = True, True
@@ -175,7 +184,7 @@ def test_flicker_changes_a_static_surface_from_frame_to_frame_beyond_scale_and_s
     frames = np.repeat(frames[:1], 4, 0)
     rhos = {}
     for std in (0.0, 0.2):
-        est = SimulatedDepth(SimulatedDepthConfig(**_OFF, flicker_tilt_std=std), 1).estimate(frames, z, masks)
+        est = SimulatedDepth(_cfg(flicker_tilt_std=std), 1).estimate(frames, z, masks)
         m = masks[0]
         # rank agreement of consecutive frames on the same pixels (scale/shift cannot change it)
         rhos[std] = min(scipy.stats.spearmanr(est[t][m], est[t + 1][m]).statistic for t in range(3))

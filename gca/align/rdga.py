@@ -70,6 +70,7 @@ import torch
 import torch.nn.functional as F_nn
 
 from gca.align.softrank import spearman_exact, spearman_soft
+from gca.config import NOT_A_PARAM
 
 _WHERE = "gca/align/rdga.py"
 STABLE_MODES = ("eroded", "paper_literal")
@@ -110,10 +111,11 @@ class RDGAConfig:
             global term [px]; 0 keeps all (paper).
     """
 
-    enabled: bool = True
-    use_global: bool = True
-    use_anchor: bool = True
-    depth_term: str = "rank"
+    # which terms run is the method's declaration (gca.train.methods.TERMS -> Method.rdga_switches), not a knob
+    enabled: bool = dataclasses.field(default=True, metadata=NOT_A_PARAM)
+    use_global: bool = dataclasses.field(default=True, metadata=NOT_A_PARAM)
+    use_anchor: bool = dataclasses.field(default=True, metadata=NOT_A_PARAM)
+    depth_term: str = dataclasses.field(default="rank", metadata=NOT_A_PARAM)
     r: int = 9
     k: int = 7
     tau: float = 0.5
@@ -125,7 +127,7 @@ class RDGAConfig:
     stable_region: str = "eroded"
     stable_on: str = "render"
     alpha_threshold: float = 0.5
-    mask_reduction: str = "mean"
+    mask_reduction: str = "sum"
     global_reduction: str = "norm"
     anchor_reduction: str = "sum"
     global_gradient: str = "material"

@@ -44,7 +44,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from gca.assets.ply import GaussianCloud, normalized_quats, opacities, quats_to_rotmats, scales
-from gca.io import atomic_path
+from gca.io import InputError, atomic_path, load_arrays
 
 CHI2_3_95 = 7.815  # chi-square quantile, 3 dof, 95 %
 _CHUNK = 1 << 16  # lattice points per vectorised block (bounds memory)
@@ -60,7 +60,7 @@ class ParticleConfig:
     # object gets ~this many particles whatever its size; 0: the lattice at ``spacing`` [count]
     margin: float = 0.25  # min gap between the object's bounding box and the side walls [sim m]
     placement: str = "floor"  # "floor": rest floor_gap above y = 0; "centre": centre in the cube
-    floor_gap: float = 0.05  # lowest point's height above the floor when placement = floor [sim m]
+    floor_gap: float = 0.08  # lowest point's height above the floor when placement = floor [sim m]
     density_threshold: float = 0.1  # Gaussians-only path: the band around the surface is where the
     # opacity field exceeds this fraction of its median at the Gaussian centres [1]; low = well sealed
     mahalanobis_chi2: float = CHI2_3_95  # binding bound on d^T Sigma^-1 d [1]
@@ -417,10 +417,10 @@ def load_particles(path: str | os.PathLike) -> Particles:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: particles file not found")
-    with np.load(path) as data:
-        missing = [f.name for f in dataclasses.fields(Particles) if f.name not in data]
-        if missing:
-            raise ValueError(f"{path}: particles file lacks key(s) {missing}")
-        values = {f.name: data[f.name] for f in dataclasses.fields(Particles)}
+    data = load_arrays(path, "particles file")
+    missing = [f.name for f in dataclasses.fields(Particles) if f.name not in data]
+    if missing:
+        raise InputError(f"{path}: particles file lacks key(s) {missing}")
+    values = {f.name: data[f.name] for f in dataclasses.fields(Particles)}
     values["n_gaussians"], values["spacing"] = int(values["n_gaussians"]), float(values["spacing"])
     return Particles(**values)

@@ -48,7 +48,7 @@ def is_capture(section: Mapping) -> bool:
 
 def capture_config(section: Mapping, name: str) -> CaptureObjectConfig:
     """Build :class:`CaptureObjectConfig` from ``objects.<name>``, refusing bad options in one line."""
-    cfg = build(CaptureObjectConfig, section, f"objects.{name}")
+    cfg = build(CaptureObjectConfig, section, f"objects.{name}", partial=True)  # a user record: defaults apply
     if not cfg.density > 0:
         raise ScanError(f"params objects.{name}.density: must be > 0 kg/m^3, got {cfg.density}")
     return cfg

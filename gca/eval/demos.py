@@ -68,20 +68,20 @@ def _vec3(value, name: str) -> tuple[float, float, float]:
 class LawRef:
     """One learned law and the object it drives (``demo.interaction.a`` / ``.b``)."""
 
-    scene: str = "duck"  # scene the law was trained on: runs/<scene>/<method>/law.pt
+    scene: str = "ball"  # scene the law was trained on: runs/<scene>/<method>/law.pt
     method: str = "gca"  # method (table row) whose law is used
-    object: str = ""  # object whose particles/Gaussians it drives; "" = the scene's own object
+    object: str = dataclasses.field(default="", metadata=config.OPTIONAL)  # object whose particles/Gaussians it drives; "" = the scene's own object
 
 
 @dataclasses.dataclass(frozen=True)
 class NewShapeConfig:
     """The new-shape demo (``demo.new_shape``): one scene's law on another object."""
 
-    law_scene: str = "duck"  # scene whose learned law is borrowed
+    law_scene: str = "cat"  # scene whose learned law is borrowed
     method: str = "gca"  # method whose law is borrowed
     object: str = "ball"  # object it is applied to (data/particles/<object>.npz)
     v0: tuple[float, float, float] = (0.5, -2.0, 0.0)  # launch velocity [m/s], sim frame
-    w0: tuple[float, float, float] = (0.0, 0.0, 0.0)  # launch angular velocity about the COM [rad/s]
+    w0: tuple[float, float, float] = (0.0, 0.0, 2.0)  # launch angular velocity about the COM [rad/s]
 
     def __post_init__(self):
         object.__setattr__(self, "v0", _vec3(self.v0, "new_shape.v0"))
@@ -92,7 +92,7 @@ class NewShapeConfig:
 class InteractionConfig:
     """The two-object demo (``demo.interaction``): two learned laws in one simulation."""
 
-    a: LawRef = LawRef("duck", "gca")  # first object (particles 0 .. P_a - 1); left / bottom
+    a: LawRef = LawRef("ball", "gca")  # first object (particles 0 .. P_a - 1); left / bottom
     b: LawRef = LawRef("cat", "gca")  # second object (particles P_a ..); right / top
     v0_a: tuple[float, float, float] = (2.0, 0.5, 0.0)  # launch velocity of a [m/s]
     v0_b: tuple[float, float, float] = (-2.0, 0.5, 0.0)  # launch velocity of b [m/s]

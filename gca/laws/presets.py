@@ -131,7 +131,7 @@ def material_from_preset(preset: Mapping, dt: float | None = None, n_particles: 
         raise ConfigError(f"gca/laws/presets.py: a material preset must be a mapping, got {type(preset).__name__}")
     if "parts" in preset:
         return _composite_from_preset(preset, dt, n_particles)
-    p = build(MaterialPreset, preset, "material preset")
+    p = build(MaterialPreset, preset, "material preset", partial=True)
     return Material(make_elasticity(p), make_plasticity(p, dt), p.rho)
 
 
@@ -140,7 +140,7 @@ def _composite_from_preset(preset: Mapping, dt: float | None, n_particles: int |
         raise ConfigError("gca/laws/presets.py: a composite preset is exactly {parts: [non-empty list]}")
     if n_particles is None:
         raise ConfigError("gca/laws/presets.py: a composite preset needs n_particles")
-    parts = [build(MaterialPreset, part, f"material preset part {i}") for i, part in enumerate(preset["parts"])]
+    parts = [build(MaterialPreset, part, f"material preset part {i}", partial=True) for i, part in enumerate(preset["parts"])]
     if any(p.fraction is None for p in parts):
         raise ConfigError("gca/laws/presets.py: every composite part needs a fraction")
     counts = split_counts([p.fraction for p in parts], n_particles)

@@ -11,19 +11,20 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import torch
 
 from gca.align.cpr import CPRConfig
 from gca.align.rdga import RDGAConfig
-from gca.capture.video import CaptureVideoConfig
-from gca.config import ConfigError, build, load, section
+from gca.config import build, entry, section
+from gca.pipeline import schema
+from gca.pipeline.schema import scene_config
 from gca.eval.config import MetricsConfig
 from gca.laws.lora import LoRAConfig
 from gca.render.rasterize import RasterConfig
 from gca.render.shading import LightingConfig
-from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
+from gca.scenes.config import SceneConfig, VideoConfig
 from gca.scenes.world import Body, load_body, resolve_backend
 from gca.sim.solver import SimConfig
 from gca.train.config import TrainConfig, VelocityConfig
@@ -44,8 +45,9 @@ class Settings:
 
     @classmethod
     def load(cls, stage: str, path="params.yaml") -> "Settings":
-        """The settings of DVC stage ``stage`` (:func:`gca.config.load`: only its declared params under dvc)."""
-        return cls(load(stage, path))
+        """The settings of DVC stage ``stage`` (:func:`gca.config.load`: only its declared params under dvc),
+        validated at load (:func:`gca.pipeline.schema.validate`)."""
+        return cls(schema.load(stage, path))
 
     def section_as(self, cls, dotted: str):
         """The dataclass ``cls`` built from params section ``dotted`` (for a section one stage reads once)."""
@@ -68,16 +70,7 @@ class Settings:
     def video(self) -> VideoConfig:
         """The ``video`` section, with the chosen ``video.timing`` variant of ``video.timings`` merged in (a
         scene's own timing: :func:`gca.scenes.config.scene_video`)."""
-        raw = dict(section(self.params, "video"))
-        timings = raw.pop("timings", None) or {}
-        timing = raw.get("timing", "")
-        if timing:
-            if timing not in timings:
-                raise ConfigError(f"params: video.timing {timing!r} is not one of video.timings {sorted(timings)}")
-            raw.update(timings[timing])
-        if "background" in raw:
-            raw["background"] = tuple(raw["background"])
-        return build(VideoConfig, raw, "video")
+        return build(VideoConfig, schema.video_section(section(self.params, "video")), "video")
 
     @functools.cached_property
     def benchmark_version(self) -> str:
@@ -147,10 +140,7 @@ class Settings:
     def scene(self, name: str) -> SceneConfig:
         """The :class:`SceneConfig` of ``scenes.<name>`` (built once per name)."""
         if name not in self._scenes:
-            scenes = section(self.params, "scenes")
-            if name not in scenes:
-                raise ConfigError(f"params: unknown scene {name!r}; known scenes: {sorted(scenes)}")
-            self._scenes[name] = scene_config(scenes[name], f"scenes.{name}")
+            self._scenes[name] = scene_config(entry(self.params, "scenes", name), f"scenes.{name}")
         return self._scenes[name]
 
     def load_body(self, particles_path, gaussians_path, device: str | torch.device = "cpu") -> Body:
@@ -158,28 +148,3 @@ class Settings:
         return load_body(particles_path, gaussians_path, device, backend=resolve_backend(self.backend, device),
                          raster=self.raster)
 
-
-def _cameras(items: Sequence[Mapping] | None, where: str) -> tuple[OrbitCamera, ...]:
-    return tuple(build(OrbitCamera, dict(c), f"{where}[{i}]") for i, c in enumerate(items or ()))
-
-
-def scene_config(raw: Mapping, where: str) -> SceneConfig:
-    """Build a :class:`SceneConfig` from one ``scenes.<name>`` mapping (``where`` names it in errors)."""
-    raw = dict(raw)
-    raw["camera"] = build(OrbitCamera, dict(raw.get("camera", {})), f"{where}.camera")
-    raw["extra_train_cameras"] = _cameras(raw.get("extra_train_cameras"), f"{where}.extra_train_cameras")
-    raw["eval_cameras"] = _cameras(raw.get("eval_cameras"), f"{where}.eval_cameras")
-    for key in ("v0", "w0"):
-        if key in raw:
-            raw[key] = tuple(float(x) for x in raw[key])
-    if raw.get("capture") is not None:
-        raw["capture"] = build(CaptureVideoConfig, dict(raw["capture"]), f"{where}.capture")
-        if raw.get("kind", "capture") != "capture":
-            raise ConfigError(f"params {where}: a scene with a 'capture' entry has kind 'capture', got {raw['kind']!r}")
-        raw["kind"] = "capture"
-    elif raw.get("kind") == "capture":
-        raise ConfigError(f"params {where}: kind 'capture' needs a 'capture' entry (video, camera, fps)")
-    for key in ("methods", "cpr_target"):
-        if key in raw:
-            raw[key] = tuple(raw[key])
-    return build(SceneConfig, raw, where)

@@ -35,16 +35,16 @@ class LightingConfig:
     intensity: tuple[float, float] = (0.5, 0.9)          # directional intensity [-]
     ambient: tuple[float, float] = (0.2, 0.5)            # ambient term [-]
     color_jitter: float = 0.1                            # per-channel light colour in [1 - j, 1] [-]
-    drift: float = 1.0                                   # 1: independent per frame; <1: each frame moves
+    drift: float = 0.5                                   # 1: independent per frame; <1: each frame moves
                                                          # this fraction from the previous light to a fresh draw [-]
-    shadows: bool = False                                # self- and cast shadows from the Gaussians' occupancy
-    shadow_resolution: int = 48                          # light-space cells across the object [count]
-    floor_shadow: bool = False                           # the object's cast shadow on the floor behind it
-    specular: float = 0.0                                # Blinn-Phong highlight strength; 0 = off [-]
-    shininess: float = 32.0                              # Blinn-Phong exponent [-]
-    exposure_step_ev: float = 0.0                        # per-frame std of the exposure random walk [EV]
-    exposure_max_ev: float = 0.5                         # |exposure| bound [EV]
-    wb_step: float = 0.0                                 # per-frame std of each channel's log gain random walk [-]
+    shadows: bool = True                                # self- and cast shadows from the Gaussians' occupancy
+    shadow_resolution: int = 64                          # light-space cells across the object [count]
+    floor_shadow: bool = True                           # the object's cast shadow on the floor behind it
+    specular: float = 0.2                                # Blinn-Phong highlight strength; 0 = off [-]
+    shininess: float = 24.0                              # Blinn-Phong exponent [-]
+    exposure_step_ev: float = 0.05                        # per-frame std of the exposure random walk [EV]
+    exposure_max_ev: float = 0.3                         # |exposure| bound [EV]
+    wb_step: float = 0.01                                 # per-frame std of each channel's log gain random walk [-]
     wb_max: float = 0.05                                 # |gain - 1| bound per channel [-]
 
     def __post_init__(self) -> None:

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from gca.capture.video import CaptureVideoConfig
-from gca.config import ConfigError
+from gca.config import OPTIONAL, ConfigError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,16 +64,16 @@ class VideoConfig:
         timing: the name of the ``video.timings`` variant these came from (recorded in meta.json).
     """
 
-    n_frames: int = 400
-    substeps: int = 1
+    n_frames: int = 200
+    substeps: int = 2
     frame_every: int = 4
     resolution: int = 256
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    background: tuple[float, float, float] = (0.75, 0.75, 0.75)
     mask_threshold: float = 0.5
-    fps: float = 0.0
+    fps: float = 100.0
     duration_s: float = 0.0
     max_duration_s: float = 0.0
-    timing: str = ""
+    timing: str = "real_100fps"
 
     def video_frames(self) -> list[int]:
         """Simulated-frame indices (1-based, after each frame's steps) kept in the video."""
@@ -116,15 +116,15 @@ class SceneConfig:
     v0: tuple[float, float, float] = (0.0, -1.0, 0.0)
     w0: tuple[float, float, float] = (0.0, 0.0, 0.0)
     camera: OrbitCamera = OrbitCamera()
-    extra_train_cameras: tuple[OrbitCamera, ...] = ()
+    extra_train_cameras: tuple[OrbitCamera, ...] = dataclasses.field(default=(), metadata=OPTIONAL)
     eval_cameras: tuple[OrbitCamera, ...] = ()
     light_seed: int = 0
     methods: tuple[str, ...] = ("gca", "neuma", "nclaw")
     cpr_target: tuple[str, str] = ("corotated", "identity")
-    law_level: bool = False
-    duration_s: float = 0.0
-    calibration: bool = False
-    capture: CaptureVideoConfig | None = None
+    law_level: bool = dataclasses.field(default=False, metadata=OPTIONAL)
+    duration_s: float = dataclasses.field(default=0.0, metadata=OPTIONAL)  # 0: video.duration_s
+    calibration: bool = dataclasses.field(default=False, metadata=OPTIONAL)
+    capture: CaptureVideoConfig | None = dataclasses.field(default=None, metadata=OPTIONAL)
 
     @property
     def is_capture(self) -> bool:

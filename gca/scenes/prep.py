@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gca.io import load_array, load_arrays, reading
 from gca.scenes.store import TRAIN_VIEW, SceneDataError, ViewData
 from gca.vision.depth import silhouette_depth
 from gca.vision.segment import segment_frames
@@ -126,8 +127,9 @@ def load_prep(prep_dir: str | Path, n_frames: int) -> tuple[np.ndarray, np.ndarr
     for name in ("depth.npy", "masks.npy", "keypoints.npz"):
         if not (prep_dir / name).is_file():
             raise SceneDataError(f"{prep_dir / name}: missing (run the preprocess stage)")
-    depth, masks = np.load(prep_dir / "depth.npy"), np.load(prep_dir / "masks.npy")
-    keypoints = unpack_keypoints(np.load(prep_dir / "keypoints.npz"))
+    depth, masks = load_array(prep_dir / "depth.npy", "depth"), load_array(prep_dir / "masks.npy", "masks")
+    with reading(prep_dir / "keypoints.npz", "keypoints"):
+        keypoints = unpack_keypoints(load_arrays(prep_dir / "keypoints.npz", "keypoints"))
     for name, n in (("depth.npy", len(depth)), ("masks.npy", len(masks)), ("keypoints.npz", len(keypoints))):
         if n != n_frames:
             raise SceneDataError(f"{prep_dir / name}: has {n} frames, the video has {n_frames}")

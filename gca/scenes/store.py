@@ -29,7 +29,7 @@ from typing import Iterable
 import imageio.v3 as iio
 import numpy as np
 
-from gca.io import read_json
+from gca.io import load_array, read_json, reading
 from gca.render.camera import Camera
 
 TRAIN_VIEW = "train0"
@@ -78,7 +78,10 @@ def _read_frames(folder: Path, n: int, camera: Camera, channels: int) -> np.ndar
         path = folder / frame_name(i)
         if not path.is_file():
             raise SceneDataError(f"{path}: missing frame {i} of {n}")
-        img = iio.imread(path)
+        with reading(path, "image"):
+            img = iio.imread(path)
+        if channels > 1 and (img.ndim != 3 or img.shape[2] < channels):
+            raise SceneDataError(f"{path}: expected a colour image ({channels} channels), got shape {img.shape}")
         if img.shape[:2] != (camera.height, camera.width):
             raise SceneDataError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but the camera is "
                                  f"{camera.width}x{camera.height} (mismatched camera)")
@@ -120,7 +123,7 @@ def load_simulated_depth(scene_dir: str | Path, n_frames: int, view: str = TRAIN
     path = view_dir(scene_dir, view) / "depth_sim.npy"
     if not path.is_file():
         raise SceneDataError(f"{path}: missing (the ground_truth stage writes it for vision.depth.backend: simulated)")
-    depth = np.load(path)
+    depth = load_array(path, "simulated depth")
     if depth.ndim != 3 or len(depth) != n_frames:
         raise SceneDataError(f"{path}: shape {depth.shape}, expected [{n_frames}, H, W]")
     if not np.all(np.isfinite(depth)):

@@ -33,15 +33,15 @@ _TORCH_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 class SimConfig:
     """Knobs of the MPM simulator (params.yaml section ``sim``).
 
-    Defaults are paper scale (NeuMA synthetic setting: 32^3 grid, dt = 1e-3 s).
+    Defaults are params.yaml's values (paper profile where it differs; tests/test_schema.py checks).
     """
 
     n_grid: int = 32  # grid cells per axis on the unit cube; dx = 1 / n_grid [m]
-    dt: float = 1e-3  # time step [s]
+    dt: float = 5e-4  # time step [s]
     gravity: Sequence[float] = (0.0, -9.8, 0.0)  # body acceleration [m/s^2]
-    bound: int = 3  # wall thickness: nodes within this many cells of a face obey the wall [cells]
-    boundary: str = "sticky"  # wall condition: sticky | slip | friction
-    friction: float = 0.0  # Coulomb coefficient mu_b of the "friction" walls [-]
+    bound: int = 2  # wall thickness: nodes within this many cells of a face obey the wall [cells]
+    boundary: str = "friction"  # wall condition: sticky | slip | friction
+    friction: float = 0.4  # Coulomb coefficient mu_b of the "friction" walls [-]
     clip: float = 0.5  # positions are clamped to [clip*dx, 1 - clip*dx] [cells]
     eps_mass: float = 0.0  # added to node mass in v = mv / (m + eps) [kg]
     min_node_mass: float = 1e-15  # lighter nodes count as empty: float32 adjoint of mv/m overflows below ~1e-18 [kg]
@@ -49,7 +49,7 @@ class SimConfig:
     max_clamped_fraction: float = 0.1  # rollout raises if more particles sit on the clamp [-]
     dtype: str = "float32"  # float32 | float64 (float64 for gradient checks)
     cuda_graphs: bool = True  # replay each frame from CUDA graphs on a GPU (gca.sim.graph) [-]
-    max_refine: int = 1  # a law breaking the CFL bound at dt runs k <= max_refine times smaller steps (same frames); 1 = refuse [-]
+    max_refine: int = 4  # a law breaking the CFL bound at dt runs k <= max_refine times smaller steps (same frames); 1 = refuse [-]
 
     def __post_init__(self):
         object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from gca.config import NOT_A_PARAM
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -57,15 +59,15 @@ class TrainConfig:
     checkpoint_every: int = 10
     max_spread_growth: float = 0.5
     seeds: tuple[int, ...] = (0,)
-    seed: int | None = None
+    seed: int | None = dataclasses.field(default=None, metadata=NOT_A_PARAM)  # set per run, not in params
     max_rejections: int = 3
     backtrack_factor: float = 0.5
     keep: str = "best"
-    term_shares_every: int = 0
-    optimizer: str = "adam"
-    frame_decay_start: float = 1.0
-    frame_decay_until: float = 0.33
-    frame_decay_every: float = 0.2
+    term_shares_every: int = 20
+    optimizer: str = dataclasses.field(default="adam", metadata=NOT_A_PARAM)  # set by the method's recipe
+    frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
+    frame_decay_until: float = dataclasses.field(default=0.33, metadata=NOT_A_PARAM)  # set by the method's recipe
+    frame_decay_every: float = dataclasses.field(default=0.2, metadata=NOT_A_PARAM)  # set by the method's recipe
 
     def __post_init__(self):
         if isinstance(self.term_shares_every, bool) or not isinstance(self.term_shares_every, int) \
@@ -146,7 +148,7 @@ class VelocityConfig:
 
     iterations: int = 100
     n_video_frames: int = 8
-    lr: float = 0.2
+    lr: float = 0.5
     lambda_mask: float = 1.0
     lambda_color: float = 0.0
     angular: bool = True

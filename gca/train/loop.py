@@ -31,6 +31,7 @@ from typing import Callable
 import torch
 from tqdm import tqdm
 
+from gca import stop
 from gca.efficiency import synced_clock
 from gca.sim.cfl import CFLError
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
@@ -129,9 +130,10 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
             on_iteration(it, record)
         it += 1
         bar.update(1)
-        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations):
+        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stop.requested()):
             save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
                              seconds_before + time.perf_counter() - start)
+        stop.check()  # SIGTERM under gca.stop.deferred: stop here, checkpointed
     bar.close()
     objective.frame_weights = None  # after training the objective is the whole video, every frame at weight 1
     selected = (_select(best, undo, solver, law, data, objective, cfg, n_video, history, opt) if cfg.keep == "best"

@@ -49,7 +49,7 @@ NETWORKS = ("elasticity", "plasticity")
 class PriorTrainConfig:
     """Knobs of the prior stage (params ``prior.train``); paper-scale defaults."""
 
-    sim: SimConfig = SimConfig(n_grid=32, dt=5e-4, bound=2, boundary="friction", friction=0.4)  # simulator
+    sim: SimConfig = SimConfig(dt=4e-4, bound=2, max_refine=1)  # simulator: params `sim` + prior.train.sim
     data: PriorDataConfig = PriorDataConfig()  # how trajectories are drawn
     n_train: int = 16  # training trajectories {paper: 16, ci: 4} [count]
     n_heldout: int = 4  # held-out trajectories (other seeds) {paper: 4, ci: 2} [count]
@@ -61,7 +61,7 @@ class PriorTrainConfig:
     cosine_floor: float = 0.05  # final learning rate as a fraction of the initial one [1]
     grad_clip: float = 1.0  # global gradient-norm clip [loss units]
     warm_start: tuple[str, ...] = NETWORKS  # networks regressed onto the analytic law first ([] = none)
-    fit_elasticity: PretrainConfig = PretrainConfig(lr=1e-2)  # warm-start regression of the elasticity (stress)
+    fit_elasticity: PretrainConfig = PretrainConfig(lr=1e-2, sampling=DeformationSampling(0.2, 0.2, math.pi))  # warm-start regression of the elasticity (stress)
     # ... of the return map: one step's trial states lie near the yield surface and barely rotated (the
     # fluid's F -> J^(1/3) I drops rotations, which F + alpha R S cannot represent for R != I)
     fit_plasticity: PretrainConfig = PretrainConfig(lr=1e-2, sampling=DeformationSampling(0.05, 0.05, 0.0))

@@ -36,9 +36,9 @@ class PriorDataConfig:
     """How the pretraining trajectories are drawn (params ``prior.train.data``)."""
 
     shapes: tuple[str, ...] = SHAPES  # body shapes drawn uniformly, from SHAPES
-    particles_per_axis: int = 12  # particles across the body's largest extent {paper: 12, ci: 6} [count]
+    particles_per_axis: int = 16  # particles across the body's largest extent {paper: 12, ci: 6} [count]
     particles_per_cell: int = 2  # lattice points per grid cell and axis (spacing dx / this) [count]
-    n_steps: int = 400  # simulated steps per trajectory {paper: 400, ci: 80} [count]
+    n_steps: int = 500  # simulated steps per trajectory {paper: 400, ci: 80} [count]
     speed: tuple[float, float] = (0.5, 3.0)  # launch speed range |v_lin| [m/s]
     max_tilt_deg: float = 60.0  # largest angle between v_lin and straight down [deg]
     max_spin: float = 3.0  # angular velocity components ~ U(-max_spin, max_spin) [rad/s]

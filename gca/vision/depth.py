@@ -81,12 +81,12 @@ class SimulatedDepthConfig:
     lowfreq_sigma_px: float = 16.0
     scale_range: tuple[float, float] = (0.5, 2.0)
     shift_range: tuple[float, float] = (-0.5, 0.5)
-    texture_copy: float = 0.0
-    texture_sigma_px: float = 2.0
-    smooth_sigma_px: float = 0.0
-    thin_px: int = 0
-    thin_flatten: float = 0.0
-    flicker_tilt_std: float = 0.0
+    texture_copy: float = 0.15
+    texture_sigma_px: float = 3.0
+    smooth_sigma_px: float = 2.0
+    thin_px: int = 7
+    thin_flatten: float = 0.5
+    flicker_tilt_std: float = 0.05
 
     def __post_init__(self) -> None:
         if min(self.texture_copy, self.smooth_sigma_px, self.thin_px, self.thin_flatten, self.flicker_tilt_std) < 0 \

@@ -72,7 +72,7 @@ class SegmentConfig:
 
     backend: str = "background"
     background: str = "plate"
-    plate_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    plate_color: tuple[float, float, float] = (0.75, 0.75, 0.75)
     border_px: int = 2
     chroma_threshold: float = 0.06
     shadow_min: float = 0.5

@@ -1,0 +1,107 @@
+"""What every stage's ``__main__`` shares: ``sys.exit(cli.run(main))``.
+
+- A **user error** (bad params, an unknown scene or method, a missing or unreadable input file: the
+  classes in :data:`USER_ERRORS`) prints one line, ``<stage>: error: <message>``, and exits 2; ``--debug``
+  shows the traceback. Anything else is an internal error: its traceback is printed and the exit status
+  is 1.
+- **SIGTERM** ends the stage cleanly (``gca.stop``: temporaries removed, training checkpointed first),
+  exit status 143.
+- At start, the stale temporaries a killed run left beside this stage's outputs are swept
+  (``gca.io.sweep`` on the folders of its path arguments).
+- Progress bars (tqdm) are quiet under CI (``CI=true``) or when stderr is not a terminal.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+from gca import stop
+from gca.config import ConfigError
+from gca.io import InputError, sweep
+
+DEBUG_HELP = "show the traceback of a user error (bad params, unknown names, unreadable inputs)"
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """The exception classes that describe a user's mistake, not a bug (imported lazily)."""
+    from gca.assets.ply import PlyFormatError
+    from gca.laws.checkpoint import CheckpointError
+    from gca.scenes.store import SceneDataError
+    from gca.sim.cfl import CFLError
+    from gca.train.methods import UnknownMethodError
+
+    return (ConfigError, InputError, PlyFormatError, SceneDataError, CheckpointError, CFLError,
+            UnknownMethodError, FileNotFoundError, NotADirectoryError, IsADirectoryError)
+
+
+def quiet() -> bool:
+    """Whether progress bars stay off: under CI, or with stderr not a terminal (logs, pipes)."""
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes") or not sys.stderr.isatty()
+
+
+def _message(exc: BaseException) -> str:
+    text = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
+    return " ".join(str(text).split()) or type(exc).__name__
+
+
+def _output_folders(argv: Sequence[str]) -> list[Path]:
+    """Folders of the stage's path arguments (each ``--x value`` with a ``/`` in the value)."""
+    folders = []
+    for value in argv:
+        if not value.startswith("-") and "/" in value:
+            path = Path(value)
+            folders += [path.parent, path] if path.is_dir() else [path.parent]
+    return folders
+
+
+def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, name: str | None = None) -> int:
+    """Run a stage's ``main(argv)``; returns the exit status (0 ok, 2 user error, 143 SIGTERM)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    name = name or Path(sys.argv[0]).stem
+    debug = "--debug" in argv
+    stop.install()
+    if quiet():
+        os.environ.setdefault("TQDM_DISABLE", "1")
+    for folder in _output_folders(argv):
+        for path in sweep(folder):
+            print(f"{name}: removed the stale temporary {path} (an earlier run was killed)", file=sys.stderr)
+    try:
+        main(argv)
+    except stop.Terminated as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 143
+    except user_errors() as exc:
+        if debug:
+            traceback.print_exc()
+        print(f"{name}: error: {_message(exc)}", file=sys.stderr)
+        return 2
+    return 0
+
+
+PARAMS_HELP = "params file (default: params.yaml; under `dvc repro`, DVC's view of it)"
+DEVICE_HELP = "torch device (default: cuda when a GPU is visible, else cpu)"
+
+
+def add_common(parser, device: str | None = None) -> None:
+    """``--params``, ``--debug`` and (``device`` given: its default) ``--device``, each with its help."""
+    from pathlib import Path as _Path
+
+    parser.add_argument("--params", type=_Path, default=_Path("params.yaml"), help=PARAMS_HELP)
+    if device is not None:
+        parser.add_argument("--device", default=device, help=DEVICE_HELP)
+    parser.add_argument("--debug", action="store_true", help=DEBUG_HELP)
+
+
+@contextlib.contextmanager
+def phase(stage: str, what: str) -> Iterator[None]:
+    """One line when a long step starts and one with its time when it ends (stderr; kept under CI)."""
+    start = time.perf_counter()
+    print(f"{stage}: {what} ...", file=sys.stderr, flush=True)
+    yield
+    print(f"{stage}: {what}: done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
