@@ -28,8 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gca.pipeline.settings import Settings  # noqa: E402
-from gca.scenes.groundtruth import scene_cameras, simulate_scene  # noqa: E402
-from gca.scenes.prep import load_prep  # noqa: E402
+from gca.scenes.ground_truth import scene_cameras, simulate_scene  # noqa: E402
+from gca.scenes.preprocess import load_prep  # noqa: E402
 from gca.scenes.world import render_body  # noqa: E402
 from gca.laws import material_from_preset  # noqa: E402
 from gca.vision import MatchConfig  # noqa: E402

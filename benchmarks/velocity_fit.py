@@ -27,7 +27,7 @@ from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the 
 
 from gca import config  # noqa: E402
 from gca.pipeline.settings import Settings  # noqa: E402
-from gca.scenes.groundtruth import scene_cameras  # noqa: E402
+from gca.scenes.ground_truth import scene_cameras  # noqa: E402
 from gca.pipeline.train import default_device, estimate_scene_velocity  # noqa: E402
 
 

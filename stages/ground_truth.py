@@ -28,7 +28,7 @@ from gca.io import atomic_path, write_json
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
 from gca.scenes.capture import write_capture
-from gca.scenes.groundtruth import generate
+from gca.scenes.ground_truth import generate
 from gca.scenes.store import SceneDataError
 from gca.vision.depth import DepthConfig
 

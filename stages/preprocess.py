@@ -25,7 +25,7 @@ from gca.scenes.store import load_plate
 from gca.capture.cameras import CaptureError
 from gca.config import ConfigError
 from gca.scenes.capture import is_capture, load_heldout
-from gca.scenes.prep import preprocess_capture, preprocess_view, synthetic_pair_precision, write_prep
+from gca.scenes.preprocess import preprocess_capture, preprocess_view, synthetic_pair_precision, write_prep
 from gca.scenes.store import SceneDataError
 
 

@@ -91,8 +91,8 @@ def test_nuisance_statistics_of_a_generated_scene(tmp_path):
     from gca.render.shading import LightingConfig
     from gca.scenes import load_simulated_depth, load_view
     from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
-    from gca.scenes.groundtruth import generate
-    from gca.scenes.prep import preprocess_view, write_prep
+    from gca.scenes.ground_truth import generate
+    from gca.scenes.preprocess import preprocess_view, write_prep
     from gca.scenes.store import load_plate
     from gca.sim.solver import SimConfig
     from gca.vision import VisionConfig

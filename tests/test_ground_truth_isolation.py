@@ -12,7 +12,7 @@ import yaml
 from gca.render.shading import LightingConfig
 from gca.scenes import SceneDataError, load_trajectory, load_view, read_meta, truth
 from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig
-from gca.scenes.groundtruth import generate
+from gca.scenes.ground_truth import generate
 from gca.sim.solver import SimConfig
 from gca.vision.depth import SimulatedDepthConfig
 

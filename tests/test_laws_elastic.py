@@ -8,7 +8,7 @@ from torch.autograd import gradcheck
 
 from gca.laws.base import lame
 from gca.laws.elastic import corotated_tau, sigma_tau, stvk_tau, volume_tau
-from gca.laws.ground_truth import neo_hookean_tau
+from gca.laws.ood import neo_hookean_tau
 
 f64 = torch.float64
 import sys

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
-from gca.laws.ground_truth import viscoplastic_plastic
+from gca.laws.ood import viscoplastic_plastic
 from gca.laws.plastic import (drucker_prager_alpha, drucker_prager_plastic, identity_plastic, sigma_plastic,
                               von_mises_plastic)
 from gca.laws.svd import det3, polar_rotation, svd

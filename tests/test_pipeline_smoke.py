@@ -103,7 +103,7 @@ def test_true_alpha_matches_the_rendered_alpha(pipeline):
     from gca.laws.presets import material_from_preset
     from gca.pipeline.settings import Settings
     from gca.scenes import load_view, read_meta, truth
-    from gca.scenes.groundtruth import simulate_scene
+    from gca.scenes.ground_truth import simulate_scene
     from gca.scenes.world import gaussians_at, render_gaussians
 
     settings = Settings(config.load(path=pipeline / "params.yaml", via_dvc=False))

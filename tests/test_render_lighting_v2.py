@@ -69,7 +69,7 @@ def test_floor_points_and_the_shadowed_background():
 
 
 def test_exposure_and_white_balance_drift_change_image_means_but_not_masks():
-    from gca.scenes.groundtruth import _render_view
+    from gca.scenes.ground_truth import _render_view
     from gca.vision.segment import iou, segment_frames
     from synthetic import tiny_body, tiny_camera
 
@@ -121,7 +121,7 @@ def test_specular_adds_a_highlight_toward_the_mirror_direction_only():
 
 
 def test_unexplained_share_is_zero_for_a_global_colour_change_and_grows_with_shadows():
-    from gca.scenes.groundtruth import unexplained_colour_share
+    from gca.scenes.ground_truth import unexplained_colour_share
 
     rng = np.random.default_rng(0)
     unlit = rng.uniform(0.1, 0.9, (3, 16, 16, 3))

@@ -144,7 +144,7 @@ def test_objective_aligned_depth_row_ignores_the_estimates_scale_and_shift_raw_r
 import yaml  # noqa: E402
 
 from gca.config import ConfigError  # noqa: E402
-from gca.laws.ground_truth import NeoHookeanElasticity, ViscoplasticPlasticity  # noqa: E402
+from gca.laws.ood import NeoHookeanElasticity, ViscoplasticPlasticity  # noqa: E402
 from gca.laws.plastic import DruckerPragerPlasticity, IdentityPlasticity, VonMisesPlasticity  # noqa: E402
 from gca.laws.presets import material_category  # noqa: E402
 from gca.train.law import NU_RANGE, LaunchVelocity, _Interval, category_law  # noqa: E402

@@ -44,7 +44,7 @@ from gca.laws.base import CompositeMaterial, Material
 from gca.render.camera import Camera
 from gca.render.follow import Binding
 from gca.scenes.config import OrbitCamera
-from gca.scenes.groundtruth import make_camera
+from gca.scenes.ground_truth import make_camera
 from gca.scenes.world import Body, initial_velocity, render_body
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver

@@ -9,7 +9,7 @@ Per scene, on the monocular view ``train0``:
   the true camera-space depth, over the pixels inside the true object;
 - ``lighting_unexplained_share``: the share of the lit video's in-object colour variance that the best
   per-frame affine colour map of the unlit render cannot explain
-  (:func:`gca.scenes.groundtruth.unexplained_colour_share`).
+  (:func:`gca.scenes.ground_truth.unexplained_colour_share`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ import numpy as np
 import scipy.stats
 
 from gca.scenes import TRAIN_VIEW, load_view, truth
-from gca.scenes.groundtruth import unexplained_colour_share
-from gca.scenes.prep import load_prep
+from gca.scenes.ground_truth import unexplained_colour_share
+from gca.scenes.preprocess import load_prep
 from gca.vision.segment import iou
 
 

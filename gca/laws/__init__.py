@@ -8,7 +8,7 @@ CompositeMaterial), ``presets`` (materials from params). Neural laws live in ``n
 
 from gca.laws.base import CompositeMaterial, Elasticity, Material, Plasticity, lame
 from gca.laws.elastic import ELASTIC_FORMS, corotated_tau, sigma_tau, stvk_tau, volume_tau
-from gca.laws.ground_truth import neo_hookean_tau, viscoplastic_plastic
+from gca.laws.ood import neo_hookean_tau, viscoplastic_plastic
 from gca.laws.plastic import (PLASTIC_FORMS, drucker_prager_plastic, identity_plastic, sigma_plastic,
                               von_mises_plastic)
 from gca.laws.presets import MaterialPreset, material_from_preset

@@ -18,7 +18,7 @@ from typing import Mapping
 from gca.config import ConfigError, build
 from gca.laws.base import CompositeMaterial, Elasticity, Material, Plasticity
 from gca.laws.elastic import CorotatedElasticity, SigmaElasticity, StVKElasticity, VolumeElasticity
-from gca.laws.ground_truth import NeoHookeanElasticity, ViscoplasticPlasticity
+from gca.laws.ood import NeoHookeanElasticity, ViscoplasticPlasticity
 from gca.laws.plastic import DruckerPragerPlasticity, IdentityPlasticity, SigmaPlasticity, VonMisesPlasticity
 
 ELASTICITIES = ("corotated", "stvk", "volume", "sigma", "neo_hookean")

@@ -28,7 +28,7 @@ from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_pri
 from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
 from gca.scenes import SceneConfig, read_meta, load_views
-from gca.scenes.prep import load_prep
+from gca.scenes.preprocess import load_prep
 from gca.scenes.world import Body, initial_velocity
 from gca.sim.solver import MPMSolver
 from gca.train.config import TrainConfig, neuma_recipe, run_dir_name

@@ -76,7 +76,7 @@ def viscoplastic_plastic(F: torch.Tensor, mu, sigma_y, eta, n, dt: float,
     """
     check_F(F, "viscoplastic_plastic")
     if not dt > 0:
-        raise ValueError(f"gca/laws/ground_truth.py: viscoplastic_plastic needs a time step dt > 0 s, got {dt}")
+        raise ValueError(f"gca/laws/ood.py: viscoplastic_plastic needs a time step dt > 0 s, got {dt}")
     mu, sigma_y = per_particle(mu, F, "mu", 1), per_particle(sigma_y, F, "sigma_y", 1)
     eta, n = per_particle(eta, F, "eta", 1), per_particle(n, F, "n", 1)
     F_proj, sigma = svd_map(F, _viscoplastic_map, mu, sigma_y, eta, n, float(dt), sigma_min)
@@ -111,7 +111,7 @@ class ViscoplasticPlasticity(YoungPoisson, Plasticity):
         for name, value in {"yield_stress": yield_stress, "viscosity": viscosity, "flow_index": flow_index,
                             "dt": dt}.items():
             if not value > 0:
-                raise ValueError(f"gca/laws/ground_truth.py: ViscoplasticPlasticity: {name} must be > 0, got {value}")
+                raise ValueError(f"gca/laws/ood.py: ViscoplasticPlasticity: {name} must be > 0, got {value}")
         dtype = self.log_E.dtype
         self.register_buffer("yield_stress", torch.as_tensor(float(yield_stress), dtype=dtype))
         self.register_buffer("viscosity", torch.as_tensor(float(viscosity), dtype=dtype))
