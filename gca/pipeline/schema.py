@@ -142,10 +142,9 @@ def validate(params: Mapping, stage: str | None = None) -> None:
     for table, spec in RECORD_TABLES.items():
         if _has(params, table):
             for name, raw in section(params, table).items():
-                if table == "objects" and capture.is_capture(raw):  # a user's scan: the capture object kind
-                    capture.capture_config(raw, name)
-                else:
-                    build(dataclass_of(spec), raw, f"{table}.{name}")
+                if table == "objects" and capture.is_capture(raw):
+                    continue  # a user's scan: the assets stage checks it with its files (one line naming them)
+                build(dataclass_of(spec), raw, f"{table}.{name}")
     cross_check(params, demo=stage is None or stage.split("@")[0] == "demo")
 
 
