@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
 from gca.report import ReportConfig, build_reports
 from gca.report import figures, tables
@@ -208,7 +209,8 @@ def _load_stage(repo_root: Path):
 
 def test_stage_main_end_to_end(metrics, tmp_path, repo_root):
     params = tmp_path / "params.yaml"
-    params.write_text("profile: ci\nreport:\n  dpi: {paper: 120, ci: 60}\n")
+    shipped = yaml.safe_load((Path(__file__).resolve().parents[1] / "params.yaml").read_text())
+    params.write_text(yaml.safe_dump({"profile": "ci", "report": shipped["report"]}))  # every report key is required
     stage = _load_stage(repo_root)
     runs_before = load_runs(metrics)
     written = stage.main(["--metrics", str(metrics), "--out", str(tmp_path / "reports"),
