@@ -57,7 +57,7 @@ def pipeline(tmp_path_factory):
     (tmp / "data/gt").rename(hidden)
     common = ["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
               "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"), "--params", params]
-    from test_ground_truth_isolation import recorder
+    from test_scenes_truth_isolation import recorder
     with recorder() as rec:
         preprocess.main(["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--out", d("data/prep", SCENE),
                          "--metrics", d("metrics/prep.json"), "--params", params])

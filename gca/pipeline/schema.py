@@ -13,7 +13,7 @@ Three kinds of check, all raising :class:`gca.config.ConfigError`:
   exist; the demo's scenes and objects exist; the particles' floor gap lies above the walls' zone.
 
 Which dataclass a section builds is :data:`KNOB_SECTIONS` (strict) and :data:`RECORD_TABLES` (a table of
-records such as ``objects.<name>``). ``tests/test_schema.py`` compares every config built from the
+records such as ``objects.<name>``). ``tests/test_pipeline_schema.py`` compares every config built from the
 shipped ``params.yaml`` (both profiles) with its dataclass's defaults field by field: one source of truth.
 
 ``prior.train.sim`` is not a section of its own: it lists the keys where the prior's simulator departs

@@ -33,7 +33,7 @@ _TORCH_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 class SimConfig:
     """Knobs of the MPM simulator (params.yaml section ``sim``).
 
-    Defaults are params.yaml's values (paper profile where it differs; tests/test_schema.py checks).
+    Defaults are params.yaml's values (paper profile where it differs; tests/test_pipeline_schema.py checks).
     """
 
     n_grid: int = 32  # grid cells per axis on the unit cube; dx = 1 / n_grid [m]

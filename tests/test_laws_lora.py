@@ -10,7 +10,7 @@ from gca.laws.lora import (LoRALinear, apply_lora, count_trainable, full_finetun
                            lora_parameters, lora_state_dict, merge_lora, set_lora_scale)
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 
-from test_neural_laws import random_F
+from test_laws_neural import random_F
 
 
 def lora_count(widths, rank):

@@ -1,6 +1,6 @@
 """gca/pipeline/grid.py: the dvc.yaml stages expanded for a scene grid, ordered by deps/outs; its command line
 through the engine's local executor. Running the jobs (failures, GPU slots, requeue, deadline, resume):
-tests/test_dispatch.py."""
+tests/test_pipeline_dispatch.py."""
 
 import argparse
 import tarfile

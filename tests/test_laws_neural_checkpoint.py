@@ -8,8 +8,8 @@ from gca.laws.checkpoint import (CheckpointError, load_adapter, load_prior, prio
 from gca.laws.lora import apply_lora, lora_layers
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 
-from test_neural_laws import random_F
-from test_neural_lora import perturb_B
+from test_laws_neural import random_F
+from test_laws_lora import perturb_B
 
 CFG = NeuralLawConfig(widths=(16, 8), stress_scale=5e3)
 

@@ -10,7 +10,7 @@ from gca.laws.lora import apply_lora
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity, invariant_features
 from gca.laws.svd import bmm3, svd
 
-from test_neural_laws import eye, random_F, random_rotations, scramble
+from test_laws_neural import eye, random_F, random_rotations, scramble
 
 f64 = torch.float64
 

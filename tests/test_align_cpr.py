@@ -13,7 +13,7 @@ from gca.laws.elastic import corotated_tau, sigma_tau, stvk_tau, volume_tau
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 from gca.laws.plastic import drucker_prager_plastic, identity_plastic, von_mises_plastic
 
-from test_neural_laws import scramble
+from test_laws_neural import scramble
 
 N = 320
 MU, LAM = lame(1e5, 0.2)  # NCLaw jelly: mu = 4.167e4 Pa, lam = 2.778e4 Pa
