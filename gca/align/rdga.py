@@ -42,7 +42,7 @@ Choices made where the paper is silent or ambiguous (each a switch in :class:`RD
   derivative is ~0 plus discretisation noise (the weights' and the positions' parts cancel); held
   weights give ``d P_render_i / d mu_g = w_g / sum w * d pi / d mu_g``, i.e. the image motion of
   the material seen at p_i, which is what moving that feature towards q_i needs. ``"full"`` keeps
-  the rasterizer's full derivative (sessions <= 6; benchmarks/NOTES.md, session 6).
+  the rasterizer's full derivative (measured ~0 on dense splats: benchmarks/NOTES.md, session 6).
   ``global_reduction="norm"`` is the paper's ``||.||_2`` of the whole [M,2] difference (Frobenius,
   grows like sqrt(M)); ``"mean"`` is the mean per-match distance [px]; ``"mean_sq"`` the mean squared
   per-match distance [px^2], whose gradient vanishes as the residual does (the two others push with a

@@ -194,8 +194,7 @@ def build_law(method: Method, prior_path: str | Path, family: str, rho: float, l
     """Build the law ``method`` trains, starting from the prior at ``prior_path`` (family ``family``).
 
     LoRA's A matrices are drawn from generators seeded by ``seed`` (``train.seed``; elasticity 2 seed,
-    plasticity 2 seed + 1), so a run is reproducible; they were drawn from torch's unseeded global RNG until
-    session 8, which made every training run (Table 1 of session 8 included) one random draw of them.
+    plasticity 2 seed + 1), so a run is reproducible (the history of this choice: benchmarks/NOTES.md).
 
     An explicit method needs the scene's material ``category`` (:func:`category_law`; its E, nu and plastic
     constants start from the prior family's preset) and learns the launch from ``velocity`` = (v0, w0), the
