@@ -13,6 +13,19 @@ from gca.scenes.world import Body
 from gca.train.config import run_dir_name
 
 
+def _trained_run(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path, device: str,
+                 seed: int | None):
+    """(scene, seed, run name, train.json, the run's learned law, its launch velocity [v0, w0]) of one trained run;
+    an explicit row's launch is its own learned one, every other row's the scene's estimate."""
+    scene = settings.scene(scene_name)
+    seed = settings.train_for(seed).seed
+    name = run_dir_name(method.name, seed)
+    train = read_json(runs_dir / name / "train.json")
+    law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
+                           float(body.mass.sum() / body.vol.sum()), device, seed)
+    return scene, seed, name, train, law, law.launch_velocity(read_velocity(runs_dir / "velocity.json"))
+
+
 def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path, out_dir: Path,
                      device: str = "cpu", seed: int | None = None) -> dict:
     """The metrics JSON of one trained run (``runs_dir/<run>``: ``method`` with ``seed``) on its scene, as the
@@ -27,14 +40,9 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
         seed: one of ``train.seeds`` (None: the first); ``<run>`` is
             :func:`gca.train.config.run_dir_name` of (method, seed).
     """
-    scene = settings.scene(scene_name)
-    seed = settings.train_for(seed).seed
-    name = run_dir_name(method.name, seed)
-    train = read_json(runs_dir / name / "train.json")
-    law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
-                           float(body.mass.sum() / body.vol.sum()), device, seed)
+    scene, seed, name, train, law, velocity = _trained_run(settings, scene_name, method, inputs, body, runs_dir,
+                                                           device, seed)
     cfg = settings.metrics
-    velocity = law.launch_velocity(read_velocity(runs_dir / "velocity.json"))  # an explicit row's learned launch
     metrics = evaluate_run(solver_for(settings, scene, device), law.material, body, velocity,
                            inputs.scene_dir, settings.video.background, out_dir / name, cfg)
     if train["status"] != "ok":
@@ -51,14 +59,10 @@ def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs
                              out_dir: Path, device: str = "cpu", seed: int | None = None) -> dict:
     """:func:`evaluate_trained` for a capture scene (no ground truth): :func:`gca.eval.capture.evaluate_capture`
     on the held-out frames, CPR's nearest classical law; ``inputs.prep_dir`` holds the held-out masks."""
-    scene = settings.scene(scene_name)
-    seed = settings.train_for(seed).seed
-    name = run_dir_name(method.name, seed)
-    train = read_json(runs_dir / name / "train.json")
-    law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
-                           float(body.mass.sum() / body.vol.sum()), device, seed)
+    scene, seed, name, train, law, velocity = _trained_run(settings, scene_name, method, inputs, body, runs_dir,
+                                                           device, seed)
     metrics = evaluate_capture(solver_for(settings, scene, device), law.material, body,
-                               read_velocity(runs_dir / "velocity.json"), inputs.scene_dir, inputs.prep_dir,
+                               velocity, inputs.scene_dir, inputs.prep_dir,
                                settings.video.background, out_dir / name, settings.metrics, settings.cpr, seed)
     if train["status"] != "ok":
         metrics["status"] = train["status"]
