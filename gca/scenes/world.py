@@ -21,7 +21,7 @@ from gca.assets.ply import GaussianCloud, covariances, opacities, read_ply, sh0_
 from gca.render.follow import Binding, follow
 from gca.render.camera import Camera
 from gca.render.rasterize import RasterConfig, render
-from gca.render.backend import CHOICES, choose, gsplat_version
+from gca.render.backend import choose
 from gca.sh import view_term
 
 
@@ -95,9 +95,6 @@ def load_body(particles_path: str | Path, gaussians_path: str | Path, device: st
                 sh_rest=as_t(kept.sh_rest) if np.any(kept.sh_rest) else None)
 
 
-BACKEND_CHOICES = CHOICES
-
-
 def resolve_backend(requested: str, device: str | torch.device | None = None) -> str:
     """The rasterizer that runs for ``render.backend = requested`` on ``device`` (default: cuda when available).
 
@@ -107,11 +104,6 @@ def resolve_backend(requested: str, device: str | torch.device | None = None) ->
     """
     on_cuda = torch.cuda.is_available() if device is None else torch.device(device).type == "cuda"
     return choose(requested, on_cuda)[0]
-
-
-def gsplat_available() -> bool:
-    """Whether the optional gsplat package can be imported (not imported here: it JIT-compiles CUDA)."""
-    return gsplat_version() is not None
 
 
 def initial_velocity(x0: torch.Tensor, v0: torch.Tensor, w0: torch.Tensor | None = None) -> torch.Tensor:
