@@ -7,7 +7,7 @@
 #
 # On the device tool, nvidia-h200-x2, one machine for the whole series (it stays warm between calls):
 #   call 1, carry [".wpa"]:                              sh .wpa/stage.sh
-#   call 2.., carry [".wpb", ".whl", ".priors"] (and ".whl_render" where gsplat or shapely are there) on EVERY call:
+#   call 2.., carry [".wpb", ".whl"] (".priors" to skip the prior jobs; and ".whl_render" where gsplat or shapely are there) on EVERY call:
 #       . .wpb/activate.sh && sh benchmarks/dispatch_x2.sh two    # repeat until "nothing left to run"
 #       . .wpb/activate.sh && sh benchmarks/dispatch_x2.sh one    # repeat until "nothing left to run"
 # .whl holds the gsplat wheel (shared/gpu/README.md) and the engine's two pure-Python wheels, made here with
@@ -15,10 +15,12 @@
 # Two GPUs run first, so the warp kernels they compile count against them (the speedup is a lower bound).
 # A call runs the grid for at most DEADLINE s (default 450: with the first call's ~100 s gsplat build and the
 # stop grace, under the tool's 600 s); what still runs then is stopped and resumes on the next call.
-# Knobs: SCENES (default "duck cat pawn fish"), ITERS (training iterations, 20), SLOTS (jobs per GPU, 2).
+# Knobs: SCENES (default "ball duck pudding composite": one prior family, jelly), ITERS (training iterations, 10),
+# SLOTS (jobs per GPU, 2), PRIOR_ITERS (prior.train.iterations when no .priors folder is carried: the grid then
+# trains the prior as one of its jobs, in both runs; 100, a timing prior).
 set -eu
 MODE=$1
-SCENES=${SCENES:-"duck cat pawn fish"}; ITERS=${ITERS:-20}; SLOTS=${SLOTS:-2}; DEADLINE=${DEADLINE:-450}
+SCENES=${SCENES:-"ball duck pudding composite"}; ITERS=${ITERS:-10}; PRIOR_ITERS=${PRIOR_ITERS:-100}; SLOTS=${SLOTS:-2}; DEADLINE=${DEADLINE:-450}
 case $MODE in
   two) W=/tmp/dispatch_two; GPUS=2 ;;
   one) W=/tmp/dispatch_one; GPUS=0, ;;
@@ -31,10 +33,12 @@ if [ ! -f /tmp/gca-warp/.dispatch_wheels ]; then  # once per machine: the carrie
   touch /tmp/gca-warp/.dispatch_wheels
 fi
 export PYTHONPATH=".:${PYTHONPATH:-}" PYTHONUNBUFFERED=1
+if [ -d .priors ]; then PRIOR="--priors .priors"; STAGES="assets particles ground_truth preprocess train evaluate"
+else PRIOR="--set prior.train.iterations=$PRIOR_ITERS"; STAGES="assets particles prior ground_truth preprocess train evaluate"; fi
 # shellcheck disable=SC2086
 python3 -m gca.pipeline.grid --work "$W" --scenes $SCENES --methods nclaw neuma gca --profile paper \
-    --priors .priors --set train.iterations="$ITERS" --gpus "$GPUS" --slots "$SLOTS" --deadline "$DEADLINE" \
-    --stages assets particles ground_truth preprocess train evaluate \
+    $PRIOR --set train.iterations="$ITERS" --gpus "$GPUS" --slots "$SLOTS" --deadline "$DEADLINE" \
+    --stages $STAGES \
     --before "python3 -c 'from gsplat.cuda._backend import _C'" >> "$W.log" 2>&1 || echo "grid exited $?"
 grep -E "jobs \(|FAIL|stop |after [0-9]+ s" "$W.log" | tail -n 30
 python3 - "$W" <<'EOF'
