@@ -6,6 +6,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -506,6 +507,50 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name):
         value2, stats2 = objective(1e-3).gradient(traj(), n_video, law)
         assert stats2["prior_scale"] < 1 and float(value2) == pytest.approx(float(value), rel=1e-5)
         assert any(not torch.allclose(p.grad, r) for p, r in zip(params, g_ref) if r is not None)
+
+
+def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
+    """Objective.gradient starts the SIFT matching of train0's frames before CPR's gradient (the host threads
+    overlap CPR's work) and feeds the losses the same matches as matching each rendered frame on its own."""
+    import gca.train.objective as objective_module
+    from gca.sim.rollout import rollout
+    from gca.vision.matching import match_cached
+
+    scene, method = textured_scene, get_method("gca")
+    cfg = TrainConfig(curriculum_start=1.0, cpr_every=1)
+    data = _data(scene, method)
+    law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    b, n_video = data.body, len(data.video_frames)
+    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
+                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+    objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
+                          MatchConfig())
+    events, seen = [], {}
+    start, prior, losses = objective._start_matching, objective.prior_gradient, objective._frame_losses
+
+    def start_spy(renders):
+        events.append("match")
+        seen["frames"] = [objective_module.to_uint8(r["train0"]["rgb"]).numpy() for r in renders]
+        seen["futures"] = start(renders)
+        return seen["futures"]
+
+    def losses_spy(traj_, renders, matching):
+        seen["matches"] = [f.result() for f in matching]
+        return losses(traj_, renders, matching)
+
+    monkeypatch.setattr(objective, "_start_matching", start_spy)
+    monkeypatch.setattr(objective, "prior_gradient", lambda *a: (events.append("cpr"), prior(*a))[1])
+    monkeypatch.setattr(objective, "_frame_losses", losses_spy)
+    objective.gradient(traj, n_video, law)
+    assert events == ["match", "cpr"] and len(seen["futures"]) == n_video
+    direct = [match_cached(f, *kp, objective.match) for f, kp in zip(seen["frames"], data.keypoints)]
+    assert sum(len(p) for p, _ in direct) > 0  # the scene has matches (else the comparison is empty)
+    for (p, q), (p_ref, q_ref) in zip(seen["matches"], direct):
+        np.testing.assert_array_equal(p, p_ref)
+        np.testing.assert_array_equal(q, q_ref)
+    # a method without matching terms starts none (NeuMA: colour only)
+    assert Objective(get_method("neuma"), _data(scene, get_method("neuma")), cfg, RDGAConfig(r=5, k=5),
+                     CPRConfig(subset_size=16, n_groups=2), MatchConfig())._start_matching([]) is None
 
 
 def test_methods_declare_their_terms():

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -66,9 +66,9 @@ def position_image_ref(body: Body, means: torch.Tensor, covs: torch.Tensor, came
     return render_gaussians(body, means, covs, xyz_cam, camera, means.new_zeros(3))["rgb"]
 
 
-def to_uint8(rgb: torch.Tensor) -> np.ndarray:
-    """RGB in [0, 1] [..., 3] -> uint8 on the host (converted on the tensor's device, copied once)."""
-    return (rgb.detach().clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+def to_uint8(rgb: torch.Tensor) -> torch.Tensor:
+    """RGB in [0, 1] [..., 3] -> uint8 (rounded), on the tensor's device and without its graph."""
+    return (rgb.detach().clamp(0, 1) * 255 + 0.5).to(torch.uint8)
 
 
 class Objective:
@@ -138,11 +138,16 @@ class Objective:
         """
         params = law.trainable()
         prior = self.cpr is not None
-        # CPR first, chunk by chunk, so its activations are gone before the frames are rendered
-        prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior else (0.0, None, {})
         self._terms = {} if shares else None
         try:
-            data_loss, stats = self.data_loss(traj, n_video)
+            # the frames first, then CPR chunk by chunk while the host matches train0's frames (the SIFT
+            # threads overlap CPR's GPU work instead of following it); then the frames' losses
+            renders = self._render_frames(traj, n_video)
+            matching = self._start_matching(renders)
+            prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior \
+                else (0.0, None, {})
+            data_loss, mean_stats = self._frame_losses(traj, renders, matching)
+            stats = mean_stats.read()
         finally:
             collected, self._terms = self._terms, None
         stats.update(prior_stats)
@@ -186,10 +191,21 @@ class Objective:
         Three passes, so the GPU is never waited on frame by frame: render every frame (all views)
         back to back; copy the frames that need feature matching to the host at once and match them
         in a thread pool (OpenCV releases the GIL); then the per-frame losses. The stats are read
-        back in one transfer at the end.
+        back in one transfer at the end. (:meth:`gradient` runs CPR between the second and the third.)
         """
-        renders = [self._render_frame(traj, j) for j in range(n_video)]
-        matches = self._match_frames([r["train0"] for r in renders]) if self._needs_matches() else [None] * n_video
+        renders = self._render_frames(traj, n_video)
+        return self._frame_losses(traj, renders, self._start_matching(renders))
+
+    def _render_frames(self, traj: Rollout, n_video: int) -> list[dict[str, dict]]:
+        """Every view's render outputs at video frames ``0 .. n_video - 1``, back to back (with their graphs)."""
+        return [self._render_frame(traj, j) for j in range(n_video)]
+
+    def _frame_losses(self, traj: Rollout, renders: list[dict], matching: list[Future] | None
+                      ) -> tuple[torch.Tensor, "_MeanStats"]:
+        """The per-frame losses of ``renders`` summed over the frames (``frame_weights`` applied), with the
+        train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats."""
+        n_video = len(renders)
+        matches = [f.result() for f in matching] if matching is not None else [None] * n_video
         loss, stats = traj.x.new_zeros(()), _MeanStats(n_video)
         for j in range(n_video):
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
@@ -275,13 +291,33 @@ class Objective:
         rdga = self.train0_rdga
         return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
 
-    def _match_frames(self, outs: list[dict]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Matches (p [M, 2] in the render, q [M, 2] in the GT frame) of every frame's train0 render,
-        from one host copy of all frames and a thread pool of SIFT detections."""
-        frames = to_uint8(torch.stack([o["rgb"] for o in outs]))
-        keypoints = self.data.keypoints
-        work = lambda j: match_cached(frames[j], *keypoints[j], self.match)  # noqa: E731
-        return list(_match_pool().map(work, range(len(frames))))
+    def _start_matching(self, renders: list[dict]) -> list[Future] | None:
+        """Start matching every frame's train0 render with its video frame's cached keypoints; None when the
+        method's terms need no matches. Returns one future per frame, each giving (p [M, 2] in the render,
+        q [M, 2] in the video frame) [px].
+
+        The frames go to the host in one copy, asynchronous on CUDA (pinned memory and an event: the caller
+        goes on queueing GPU work, e.g. CPR, while the copy and the SIFT threads run; OpenCV releases the GIL).
+        """
+        if not self._needs_matches():
+            return None
+        u8 = to_uint8(torch.stack([r["train0"]["rgb"] for r in renders]))
+        ready = None
+        if u8.is_cuda:
+            host = torch.empty(u8.shape, dtype=torch.uint8, pin_memory=True)
+            host.copy_(u8, non_blocking=True)
+            ready = torch.cuda.Event()
+            ready.record()
+        else:
+            host = u8
+        frames, keypoints = host.numpy(), self.data.keypoints
+
+        def work(j: int) -> tuple[np.ndarray, np.ndarray]:
+            if ready is not None:
+                ready.synchronize()
+            return match_cached(frames[j], *keypoints[j], self.match)
+
+        return [_match_pool().submit(work, j) for j in range(len(renders))]
 
     def _render(self, means, covs, view: ViewData, with_positions: bool) -> dict:
         """RGB/alpha/depth; with ``with_positions`` also the premultiplied camera-frame positions
