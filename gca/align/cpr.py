@@ -92,7 +92,7 @@ class CPRConfig:
     refine_rounds: int = 3  # zoom rounds of the 1-D plastic fits [count]
     stress_floor: float = 1e2  # s_e >= stress_floor^2: frames at rest weigh in absolute terms [Pa]
     strain_floor: float = 1e-3  # s_p >= strain_floor^2 [1]
-    chunk_frames: int = 2  # training: CPR's gradient taken this many frames at a time, each chunk's graph
+    chunk_frames: int = 10  # training: CPR's gradient taken this many frames at a time, each chunk's graph
     #                        freed before the next (the neural law's activations on all particles); 0 = one call
     max_grad_ratio: float = 0.3  # > 0: the gradient of R_e + R_p is scaled to at most this multiple of the
     #                              data terms' gradient norm (a soft prior, not the objective); 0: as written
