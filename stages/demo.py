@@ -20,6 +20,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from gca.config import section
 from gca.pipeline import cli
 from gca.io import atomic_path, write_json
 from gca.pipeline.demo import DemoInputs, capture_demo, demo_config, interaction_demo, new_shape_demo
@@ -44,7 +45,8 @@ def main(argv=None) -> dict:
     settings = Settings.load(f"demo_capture@{args.capture}" if args.capture else "demo", args.params)
     cfg = demo_config(settings)
     inputs = DemoInputs(args.runs, args.data, args.prior_dir, args.device)
-    background = settings.video.background
+    # the one key of `video` the demos read (DVC's view holds only what dvc.yaml declares: video.background)
+    background = tuple(float(c) for c in section(settings.params, "video.background"))
     if args.capture:
         return _capture(settings, cfg, inputs, args, background)
     with stage_run("demo", settings.params) as run:

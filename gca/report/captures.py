@@ -1,11 +1,21 @@
 """One report page per capture scene (``reports/<profile>/captures/<scene>.md``), from its evaluate metrics and its
 new-scene demo only: held-out PSNR/SSIM, mask IoU and silhouette Chamfer distance, CPR's nearest classical law
 in words, the launch velocity, the re-simulation video beside the input and the new-scene demo (both copied next
-to the page)."""
+to the page).
+
+The ``report`` stage writes them with every table (``dvc repro report``: the whole grid). For one capture without
+the synthetic grid, after ``dvc repro evaluate@<scene> demo_capture@<scene>``::
+
+    python -m gca.report.captures --metrics metrics/eval --demos metrics/demo_capture --out reports/ci
+
+writes only ``reports/ci/captures/`` (the next ``report`` run rewrites the folder as a whole).
+"""
 
 from __future__ import annotations
 
+import argparse
 import shutil
+import sys
 from pathlib import Path
 
 from gca.io import read_json
@@ -112,3 +122,21 @@ def write_capture_pages(metrics_dir: str | Path, out_dir: str | Path, demos_dir:
         page.write_text("\n".join(lines) + "\n")
         written.append(page)
     return written
+
+
+def main(argv=None) -> list[Path]:
+    ap = argparse.ArgumentParser(description="write reports/<profile>/captures/<scene>.md from the capture stages' metrics")
+    ap.add_argument("--metrics", type=Path, default=Path("metrics/eval"), help="the evaluate stages' folder")
+    ap.add_argument("--demos", type=Path, default=Path("metrics/demo_capture"), help="the demo_capture stages' folder")
+    ap.add_argument("--out", type=Path, required=True, help="reports/<profile>")
+    args = ap.parse_args(argv)
+    written = write_capture_pages(args.metrics, args.out, args.demos)
+    pages = [p for p in written if p.suffix == ".md"]
+    if not pages:
+        raise SystemExit(f"{args.metrics}: no capture records (kind: capture); run `dvc repro evaluate@<scene>` first")
+    print("\n".join(f"wrote {p}" for p in pages))
+    return written
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
