@@ -122,8 +122,9 @@ def test_new_scene_demo_threw_the_learned_law_elsewhere(capture):
     tmp, _, _ = capture
     d = json.loads((tmp / "metrics/demo_capture" / f"{SCENE}.json").read_text())
     assert d["status"] == "ok" and d["finite"] and d["law_source"].endswith(f"runs/{SCENE}/gca/law.pt")
-    assert d["lift_m"] > 0 and d["v0"][1] > 0  # raised and thrown upwards: not the video's throw
-    assert d["com_drop_m"] > 0.0 and 0.0 < d["max_strain"] < 1.0
+    video_v0 = json.loads((tmp / "runs" / SCENE / "velocity.json").read_text())["v0"]
+    assert d["lift_m"] > 0 and max(abs(a - b) for a, b in zip(d["v0"], video_v0)) > 0.5  # not the video's throw
+    assert d["com_drop_m"] > d["lift_m"] and 0.0 < d["max_strain"] < 1.0  # it fell to the floor and deformed
     frames = iio.imread(tmp / d["gif"], index=None)
     assert frames.shape[1:3] == (48, 64) and len(frames) == d["gif_frames"] >= 2
     assert (frames[0] != frames[-1]).any()  # it moved

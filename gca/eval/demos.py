@@ -1,11 +1,14 @@
 """Generalization demos: a learned law on a new shape, and two learned laws meeting in one simulation.
 
-Two demos show what a law learned from one video can do beyond its training scene:
+Three demos show what a law learned from one video can do beyond its training scene:
 
 - **new shape**: the law learned on scene ``law_scene`` (e.g. the gel duck) drives another object's
   particles (e.g. the ball), launched with a chosen velocity;
 - **interaction**: two objects, each driven by the law learned on its own scene, are placed side by
-  side (or stacked) in ONE MLS-MPM simulation, launched towards each other; the grid couples them.
+  side (or stacked) in ONE MLS-MPM simulation, launched towards each other; the grid couples them;
+- **capture** (``demo.captures.<scene>``): the law learned on a capture scene (the user's video) drives its
+  object raised, turned (:func:`place_body`) and thrown anew, filmed by the capture's own camera over its plate
+  at the video's frame rate (:func:`run_capture_demo`).
 
 Both are simulated without gradients, rendered from an orbit camera (optionally sweeping in
 azimuth) to an animated GIF and a frame strip PNG, and summarised by metrics a user can check at a
@@ -115,9 +118,9 @@ class CaptureDemoConfig:
 
     object: str = "example_capture"  # object the law drives (data/particles/<object>.npz): the captured one, or another
     method: str = "gca"  # method whose learned law is used (runs/<scene>/<method>/law.pt)
-    lift: float = 0.15  # raised this much above where the particles stage rests it [m, sim]
+    lift: float = 0.1  # raised this much above where the particles stage rests it [m, sim]
     rotation_deg: tuple[float, float, float] = (0.0, 0.0, 30.0)  # turned about its centre: x, then y, then z [deg]
-    v0: tuple[float, float, float] = (-0.6, 1.0, 0.0)  # launch velocity [m/s], sim frame
+    v0: tuple[float, float, float] = (-0.8, -1.0, 0.0)  # launch velocity [m/s], sim frame
     w0: tuple[float, float, float] = (0.0, 3.0, 0.0)  # launch angular velocity about the centre of mass [rad/s]
 
     def __post_init__(self):

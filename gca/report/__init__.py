@@ -21,7 +21,6 @@ from typing import Sequence
 
 from gca.io import atomic_path
 from gca.report import claims as claims_mod, figures, paper
-from gca.report.captures import write_capture_pages
 from gca.report.claims import ClaimsConfig
 from gca.report.nuisance import write_nuisance_table
 from gca.report.runs import DivergenceRule, Runs, load_runs, mark_divergence
@@ -165,6 +164,8 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
             titles_extra = {"benchmark_nuisance": "Benchmark nuisance statistics per scene"}
         else:
             titles_extra = {}
+        from gca.report.captures import write_capture_pages  # here: `python -m gca.report.captures` runs it as main
+
         captures = write_capture_pages(metrics_dir, tmp, capture_demos_dir)  # captures/<scene>.md and media
         written += captures
         titles_extra |= {p.stem: f"capture `{p.stem}`: held-out PSNR, SSIM, mask IoU, silhouette CD, the learned "
