@@ -230,6 +230,11 @@ def coerce(hint: Any, value: Any, key: str, *, partial: bool = False) -> Any:
         if not isinstance(value, str):
             raise ConfigError(f"params: {key}={value!r} must be a string")
         return value
+    if origin in (dict, collections.abc.Mapping):  # a table of records keyed by name (e.g. demo.captures)
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"params: {key}={value!r} must be a mapping")
+        item = args[1] if len(args) == 2 else Any
+        return {str(k): coerce(item, v, f"{key}.{k}", partial=partial) for k, v in value.items()}
     if origin in (tuple, list, collections.abc.Sequence):
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"params: {key}={value!r} must be a list")

@@ -12,7 +12,6 @@ from pathlib import Path
 from gca import config
 from gca.pipeline import cli
 from gca.pipeline import schema
-from gca.report.captures import write_capture_pages
 from gca.io import write_json
 from gca.report import ReportConfig, build_reports, summary
 from gca.report.runs import load_runs
@@ -26,6 +25,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--summary", type=Path, default=Path("metrics/report.json"), help="summary metrics JSON")
     parser.add_argument("--media", type=Path, nargs="*", default=[], help="GIF/PNG folders to include (demos)")
     parser.add_argument("--nuisance", type=Path, help="the nuisance stage's folder (metrics/nuisance)")
+    parser.add_argument("--capture-demos", type=Path,
+                        help="the demo_capture stages' folder (metrics/demo_capture), linked from each capture page")
     cli.add_common(parser)
     return parser.parse_args(argv)
 
@@ -37,8 +38,7 @@ def main(argv: list[str] | None = None) -> list[Path]:
     with stage_run("report", params, table="all") as run:
         written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()],
                                 benchmark_version=str(params.get("benchmark", {}).get("version", "")),
-                                nuisance_dir=args.nuisance)
-        written += write_capture_pages(args.metrics, args.out)  # reports/<profile>/captures/<scene>.md
+                                nuisance_dir=args.nuisance, capture_demos_dir=args.capture_demos)
         headline = summary(load_runs(args.metrics), cfg)
         write_json(args.summary, headline)
         run.log_metrics({"n_records": headline["n_records"],

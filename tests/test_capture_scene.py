@@ -74,3 +74,46 @@ def test_silhouette_metrics_and_depth():
     assert mask_iou(a, b) == pytest.approx(70 / 130)
     d = silhouette_depth(a[None])[0]
     assert d[0, 0] == 1.5 and d[10, 10] < d[5, 5] <= 1.0  # nearest in the middle
+
+
+def test_capture_page_from_metrics_only_and_indexed(tmp_path):
+    """build_reports writes captures/<scene>.md from a capture record and its demo JSON, copies both videos next to
+    it and lists it in the README; a capture without a demo says how to make one."""
+    import json
+
+    import imageio.v3 as iio
+
+    from gca.report import build_reports
+
+    gif = np.zeros((2, 8, 8, 3), np.uint8)
+    for scene, with_demo in (("mine", True), ("other", False)):
+        run = tmp_path / "metrics/eval" / scene / "gca"
+        run.mkdir(parents=True)
+        iio.imwrite(run / "resim.gif", gif, extension=".gif")
+        law = {"sentence": "behaves like von Mises plasticity: E = 1.2e+05 Pa, yield stress = 3e+03 Pa",
+               "weights": {"e/sigma": 0.7, "e/corotated": 0.3, "p/von_mises": 0.9, "p/identity": 0.1}}
+        (run.parent / "gca.json").write_text(json.dumps({
+            "kind": "capture", "status": "ok", "scene": scene, "method": "gca", "n_heldout_frames": 2,
+            "psnr_heldout": 21.234, "ssim_heldout": 0.81, "mask_iou_heldout": 0.77, "silhouette_cd_px_heldout": 1.9,
+            "nearest_law": law, "velocity": {"v0": [0.1, -1.0, 0.0]}, "resim_gif": str(run / "resim.gif")}))
+        if with_demo:
+            demo = tmp_path / "metrics/demo_capture" / scene
+            demo.mkdir(parents=True)
+            iio.imwrite(demo / "demo.gif", gif, extension=".gif")
+            (demo.parent / f"{scene}.json").write_text(json.dumps({
+                "status": "ok", "method": "gca", "law_source": "runs/mine/gca/law.pt", "object": scene, "lift_m": 0.15,
+                "rotation_deg": [0, 0, 30], "v0": [-0.6, 1.0, 0.0], "w0": [0, 3, 0], "frames": 12, "fps": 50.0,
+                "seconds_simulated": 0.24, "finite": True, "com_drop_m": 0.2, "max_strain": 0.05,
+                "gif": str(demo / "demo.gif")}))
+    out = tmp_path / "reports/ci"
+    build_reports(tmp_path / "metrics/eval", out, capture_demos_dir=tmp_path / "metrics/demo_capture")
+    page = (out / "captures/mine.md").read_text()
+    assert "| gca | ok | 2 | 21.2 | 0.81 | 0.77 | 1.9 | (0.10, -1.00, 0.00) |" in page
+    assert "the learned law behaves like von Mises plasticity: E = 1.2e+05 Pa, yield stress = 3e+03 Pa" in page
+    assert "p/von_mises 0.90" in page
+    assert "](mine_gca_resim.gif)" in page and (out / "captures/mine_gca_resim.gif").is_file()
+    assert "](mine_demo.gif)" in page and (out / "captures/mine_demo.gif").is_file()
+    assert "raised 0.15 m" in page and "12 frames at 50 fps" in page
+    assert "`dvc repro demo_capture@other`" in (out / "captures/other.md").read_text()
+    index = (out / "README.md").read_text()
+    assert "(captures/mine.md)" in index and "(captures/other.md)" in index

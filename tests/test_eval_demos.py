@@ -15,9 +15,10 @@ import warp as wp
 from gca.assets.objects import gaussians_from_mesh, make_object
 from gca.assets.particles import ParticleConfig, convert, save_particles
 from gca.assets.ply import write_ply
-from gca.eval.demos import (DemoConfig, InteractionConfig, NewShapeConfig, arrange_pair, concat_bodies, density,
-                            max_strain, motion_metrics, shown_frames, body_bounds, run_interaction, run_new_shape,
-                            simulate, transform_body)
+from gca.eval.demos import (CaptureDemoConfig, DemoConfig, InteractionConfig, NewShapeConfig, arrange_pair,
+                            concat_bodies, density, max_strain, motion_metrics, place_body, shown_frames, body_bounds,
+                            run_capture_demo, run_interaction, run_new_shape, simulate, transform_body)
+from gca.render.camera import look_at
 from gca.laws.base import Elasticity, Material
 from gca.laws.plastic import IdentityPlasticity
 from gca.laws.presets import material_from_preset
@@ -184,3 +185,36 @@ def test_demo_config_rejects_bad_values():
     with pytest.raises(ConfigError, match="v0"):
         NewShapeConfig(v0=(1.0, 2.0))
     assert dataclasses.replace(DemoConfig(), n_frames=3).n_frames == 3
+
+
+def test_place_body_turns_about_the_centre_and_raises_by_lift(bodies):
+    body = bodies["pawn"]
+    placed = place_body(body, (0.0, 0.0, 90.0), 0.1)
+    low = lambda b: float(torch.cat([b.x0, b.means0])[:, 1].min())  # noqa: E731
+    assert abs(low(placed) - low(body) - 0.1) < 1e-5  # turned, set back on its old lowest height, then raised
+    d0, d1 = (torch.cdist(b.x0.double(), b.x0.double(), compute_mode="donot_use_mm_for_euclid_dist") for b in (body, placed))
+    assert torch.allclose(d0, d1, atol=1e-4)  # rigid
+    ext0, ext1 = np.ptp(body.x0.numpy(), 0), np.ptp(placed.x0.numpy(), 0)
+    assert abs(ext1[0] - ext0[1]) < 1e-5 and abs(ext1[1] - ext0[0]) < 1e-5  # 90 deg about z swaps x and y extents
+    assert torch.allclose(torch.linalg.eigvalsh(placed.covs0), torch.linalg.eigvalsh(body.covs0), atol=1e-9)
+    assert torch.equal(placed.mass, body.mass) and torch.equal(placed.vol, body.vol)
+    assert not torch.allclose(placed.covs0, body.covs0)
+
+
+def test_capture_demo_renders_from_the_given_camera_over_the_plate(bodies, solver, tmp_path):
+    body = bodies["ball"]
+    centre = body.x0.mean(0).numpy()
+    camera = look_at(eye=centre + np.array([0.0, 0.2, 1.2]), target=centre, up=np.array([0.0, 1.0, 0.0]),
+                     fov_deg=60.0, width=40, height=30)
+    plate = np.full((30, 40, 3), 0.25, np.float32)
+    cd = CaptureDemoConfig(object="ball", lift=0.1, rotation_deg=(0.0, 0.0, 30.0), v0=(0.3, 1.0, 0.0))
+    m = run_capture_demo(solver, material_from_preset(SOFT), body, cd, camera, plate, 6, 4, _cfg(), tmp_path / "cd",
+                         frame_ms=80.0)
+    assert m["status"] == "ok" and m["finite"] and m["frames"] == 6 and m["lift_m"] == 0.1
+    assert m["com_start"][1] > float(body.x0[:, 1].mean()) + 0.09  # raised
+    frames = iio.imread(tmp_path / "cd" / "demo.gif", index=None)
+    assert frames.shape[1:3] == (30, 40)
+    corner = frames[0][0, 0, :3].astype(int)
+    assert np.all(np.abs(corner - 64) <= 1)  # the plate shows where the object is not
+    with pytest.raises(Exception, match="lift"):
+        CaptureDemoConfig(lift=-0.1)

@@ -52,6 +52,7 @@ frame_ms: 40.0
 margin: 0.1
 floor_gap: 0.15
 missing_law: prior
+captures: {}
 """)
 
 

@@ -30,6 +30,7 @@ def _params(tmp: Path) -> Path:
     raw["demo"]["new_shape"].update(law_scene=SCENE, object=OBJECT)  # the demo refers to scenes that exist
     for side in ("a", "b"):
         raw["demo"]["interaction"][side]["scene"] = SCENE
+    raw["demo"]["captures"] = {}  # no capture scene here (tests/test_capture_e2e.py)
     path = tmp / "params.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path

@@ -11,7 +11,8 @@ background, and exported exactly as a user's capture comes:
 
     python -m gca.capture.example --out captures/example
 
-The defaults match ``scenes.example_capture`` of params.yaml (dt, fps, particles at the CI profile).
+The defaults match ``scenes.example_capture`` of params.yaml (fps; dt at the paper profile; particles at the CI
+profile).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ class ExampleConfig:
     law: tuple = (("elasticity", "corotated"), ("plasticity", "identity"), ("E", 5.0e4), ("nu", 0.3), ("rho", 1000.0))
     v0: tuple[float, float, float] = (0.3, -1.5, 0.0)  # launch velocity [m/s, sim frame]
     fps: float = 50.0  # video frame rate [1/s]
-    dt: float = 1.0e-3  # MPM step [s] (scenes.example_capture.dt)
+    dt: float = 1.0e-3  # MPM step it is filmed with [s] (scenes.example_capture.dt at the paper profile; CI: 2e-3)
     n_frames: int = 10
     width: int = 64  # [px]
     height: int = 48

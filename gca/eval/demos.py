@@ -1,11 +1,14 @@
 """Generalization demos: a learned law on a new shape, and two learned laws meeting in one simulation.
 
-Two demos show what a law learned from one video can do beyond its training scene:
+Three demos show what a law learned from one video can do beyond its training scene:
 
 - **new shape**: the law learned on scene ``law_scene`` (e.g. the gel duck) drives another object's
   particles (e.g. the ball), launched with a chosen velocity;
 - **interaction**: two objects, each driven by the law learned on its own scene, are placed side by
-  side (or stacked) in ONE MLS-MPM simulation, launched towards each other; the grid couples them.
+  side (or stacked) in ONE MLS-MPM simulation, launched towards each other; the grid couples them;
+- **capture** (``demo.captures.<scene>``): the law learned on a capture scene (the user's video) drives its
+  object raised, turned (:func:`place_body`) and thrown anew, filmed by the capture's own camera over its plate
+  at the video's frame rate (:func:`run_capture_demo`).
 
 Both are simulated without gradients, rendered from an orbit camera (optionally sweeping in
 azimuth) to an animated GIF and a frame strip PNG, and summarised by metrics a user can check at a
@@ -108,6 +111,26 @@ class InteractionConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class CaptureDemoConfig:
+    """A capture's new-scene demo (``demo.captures.<scene>``, README "Your own object"): the law learned on the
+    capture scene drives an object placed elsewhere (raised, turned) and launched anew, filmed by the capture's
+    own camera over its plate at the video's frame rate."""
+
+    object: str = "example_capture"  # object the law drives (data/particles/<object>.npz): the captured one, or another
+    method: str = "gca"  # method whose learned law is used (runs/<scene>/<method>/law.pt)
+    lift: float = 0.1  # raised this much above where the particles stage rests it [m, sim]
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 30.0)  # turned about its centre: x, then y, then z [deg]
+    v0: tuple[float, float, float] = (-0.8, -1.0, 0.0)  # launch velocity [m/s], sim frame
+    w0: tuple[float, float, float] = (0.0, 3.0, 0.0)  # launch angular velocity about the centre of mass [rad/s]
+
+    def __post_init__(self):
+        for name in ("rotation_deg", "v0", "w0"):
+            object.__setattr__(self, name, _vec3(getattr(self, name), f"captures.{name}"))
+        if not 0 <= self.lift < 0.5:
+            raise config.ConfigError(f"{_WHERE}: demo.captures lift={self.lift} must lie in [0, 0.5) m")
+
+
+@dataclasses.dataclass(frozen=True)
 class DemoConfig:
     """Knobs of the demo stage (params.yaml section ``demo``). Defaults are paper scale."""
 
@@ -125,6 +148,8 @@ class DemoConfig:
     margin: float = 0.1  # interaction: min distance of the pair to the side walls and the ceiling [m, sim]
     floor_gap: float = 0.15  # interaction: the pair's lowest point above the floor at launch [m, sim]
     missing_law: str = "prior"  # no law.pt: "prior" (warn, use the scene's prior) | "error" (raise)
+    captures: Mapping[str, CaptureDemoConfig] = dataclasses.field(  # capture scene -> its new-scene demo
+        default_factory=lambda: {"example_capture": CaptureDemoConfig()})
 
     def __post_init__(self):
         problems = []
@@ -413,6 +438,74 @@ def run_new_shape(solver: MPMSolver, material: Material, body: Body, cfg: DemoCo
                          torch.tensor(cfg.new_shape.w0, dtype=dtype, device=device))
     metrics, _ = _run(solver, material.to(dtype=dtype, device=device), body, v, cfg, out_dir, background,
                       {"": slice(None)})
+    return metrics
+
+
+def rotation_matrix(degrees: Sequence[float]) -> np.ndarray:
+    """The rotation [3, 3] about x, then y, then z by ``degrees`` [deg] (extrinsic: R = Rz Ry Rx)."""
+    ax, ay, az = np.radians(np.asarray(degrees, dtype=np.float64))
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def place_body(body: Body, rotation_deg: Sequence[float], lift: float) -> Body:
+    """The body turned by ``rotation_deg`` about its particles' centre, then raised ``lift`` [m] and set back on
+    its old lowest height (so a turn alone never sinks it into the floor): particles, Gaussian centres and
+    covariances (``R Sigma R^T``) move; volumes, masses, the binding and colours stay (SH bands 1-3 are not
+    rotated, as with each Gaussian's deformation)."""
+    dtype, device = body.x0.dtype, body.x0.device
+    R = torch.as_tensor(rotation_matrix(rotation_deg), dtype=dtype, device=device)
+    centre = body.x0.mean(0, keepdim=True)
+    x0 = (body.x0 - centre) @ R.T + centre
+    means0 = (body.means0 - centre) @ R.T + centre
+    low_before = torch.cat([body.x0, body.means0])[:, 1].min()
+    shift = torch.zeros(3, dtype=dtype, device=device)
+    shift[1] = low_before - torch.cat([x0, means0])[:, 1].min() + float(lift)
+    return dataclasses.replace(body, x0=x0 + shift, means0=means0 + shift, covs0=R @ body.covs0 @ R.T)
+
+
+def run_capture_demo(solver: MPMSolver, material: Material, body: Body, cfg: CaptureDemoConfig, camera: Camera,
+                     plate: np.ndarray | None, n_frames: int, steps_per_frame: int, demo: DemoConfig, out_dir: Path,
+                     background=(1.0, 1.0, 1.0), frame_ms: float | None = None) -> dict:
+    """A capture's new-scene demo: ``material`` drives ``body`` placed by :func:`place_body` and launched with
+    ``cfg.v0, w0``, filmed from ``camera`` over ``plate`` (the capture's empty scene; None: ``background``).
+
+    Args:
+        solver: MPM solver (the capture scene's dt).
+        n_frames, steps_per_frame: simulated frames and MPM steps per frame (the video's frame rate).
+        demo: the demo section (render_every, strip_frames).
+        out_dir: receives ``demo.gif`` and ``strip.png``.
+        frame_ms: GIF frame duration [ms] (None: ``demo.frame_ms``).
+
+    Returns:
+        Metrics as :func:`run_new_shape`'s, plus the placement (``lift_m``, ``rotation_deg``).
+    """
+    dtype, device = body.x0.dtype, body.x0.device
+    placed = place_body(body, cfg.rotation_deg, cfg.lift)
+    v = initial_velocity(placed.x0, torch.tensor(cfg.v0, dtype=dtype, device=device),
+                         torch.tensor(cfg.w0, dtype=dtype, device=device))
+    head = {"n_particles": body.n_particles, "n_gaussians": body.n_gaussians, "dt": solver.cfg.dt,
+            "steps_per_frame": steps_per_frame, "lift_m": cfg.lift, "rotation_deg": list(cfg.rotation_deg)}
+    try:
+        traj, seconds = simulate(solver, material.to(dtype=dtype, device=device), placed, v, n_frames, steps_per_frame)
+    except SimulationDiverged as exc:
+        warnings.warn(f"{_WHERE}: capture demo diverged: {exc}", RuntimeWarning, stacklevel=2)
+        return {**head, "status": "diverged", "finite": False, "message": str(exc)}
+    metrics = {**head, "status": "ok", "rollout_seconds": seconds, "max_clamped": int(max(traj.clamped)),
+               **motion_metrics(traj.x, traj.F, placed.mass)}
+    bg = torch.zeros(3, dtype=dtype, device=device)
+    back = plate if plate is not None else np.broadcast_to(np.asarray(background, np.float32),
+                                                           (camera.height, camera.width, 3))
+    frames = []
+    with torch.no_grad():
+        for f in shown_frames(n_frames, demo.render_every):
+            out = render_body(placed, traj.x[f], traj.F[f], camera, bg)
+            a = out["alpha"].cpu().numpy()[..., None]
+            frames.append((np.clip(out["rgb"].cpu().numpy() + (1 - a) * back, 0, 1) * 255 + 0.5).astype(np.uint8))
+    metrics.update(write_animation(out_dir, np.stack(frames), demo.strip_frames,
+                                   demo.frame_ms if frame_ms is None else frame_ms), gif_frames=len(frames))
     return metrics
 
 

@@ -13,10 +13,11 @@ from typing import Sequence
 
 import torch
 
-from gca.eval.demos import (MISSING_LAW, DemoConfig, density, run_interaction, run_new_shape)
+from gca.eval.demos import (MISSING_LAW, DemoConfig, density, run_capture_demo, run_interaction, run_new_shape)
 from gca.laws.base import Material
 from gca.pipeline.settings import Settings
 from gca.pipeline.train import SceneInputs, load_learned_law
+from gca.scenes.store import TRAIN_VIEW, load_plate, read_cameras, read_meta
 from gca.scenes.world import Body, load_body
 from gca.sim.solver import MPMSolver
 from gca.train.config import run_dir_name
@@ -111,3 +112,27 @@ def interaction_demo(settings: Settings, cfg: DemoConfig, inputs: DemoInputs, ou
         metrics.setdefault(key, {}).update(scene=ref.scene, method=ref.method, object=obj, law_source=source)
     metrics.update(v0_a=list(cfg.interaction.v0_a), v0_b=list(cfg.interaction.v0_b))
     return metrics
+
+
+def capture_demo(settings: Settings, scene: str, cfg: DemoConfig, inputs: DemoInputs, out_dir: Path,
+                 background=(1.0, 1.0, 1.0)) -> dict:
+    """A capture scene's new-scene demo (``demo.captures.<scene>``): the law learned on ``scene`` drives its
+    object raised, turned and launched anew, filmed by the capture's camera over its plate
+    (``data/scenes/<scene>``) at the video's frame rate (``round(1 / (fps dt))`` MPM steps per frame)."""
+    if scene not in cfg.captures:
+        raise ValueError(f"{_WHERE}: demo.captures has no entry {scene!r} (known: {', '.join(cfg.captures) or 'none'})")
+    if not settings.scene(scene).is_capture:
+        raise ValueError(f"{_WHERE}: demo.captures.{scene}: scenes.{scene} is not a capture scene (kind: capture)")
+    cd = cfg.captures[scene]
+    scene_dir = Path(inputs.data) / "scenes" / scene
+    meta = read_meta(scene_dir)
+    body = inputs.body(cd.object)
+    material, source = load_demo_law(settings, scene, cd.method, inputs, density(body), cfg.missing_law)
+    solver = demo_solver(settings, [scene], inputs.device)
+    steps = int(meta["substeps"])
+    metrics = run_capture_demo(solver, material, body, cd, read_cameras(scene_dir)[TRAIN_VIEW],
+                               load_plate(scene_dir, TRAIN_VIEW), cfg.n_frames, steps, cfg, out_dir, background,
+                               frame_ms=1000.0 * cfg.render_every / float(meta["fps"]))
+    return {**metrics, "scene": scene, "method": cd.method, "object": cd.object, "law_source": source,
+            "v0": list(cd.v0), "w0": list(cd.w0), "fps": float(meta["fps"]),
+            "seconds_simulated": cfg.n_frames * steps * solver.cfg.dt}

@@ -252,6 +252,7 @@ def grid_params(profile: str, scenes: list[str], methods: list[str] | None, over
     raw["objects"] = {k: v for k, v in raw["objects"].items() if k in objects}
     families = {spec["prior"] for spec in raw["scenes"].values()}
     raw["prior"]["families"] = {k: v for k, v in raw["prior"]["families"].items() if k in families}
+    raw["demo"]["captures"] = {k: v for k, v in raw["demo"].get("captures", {}).items() if k in raw["scenes"]}
     return apply_overrides(raw, overrides)
 
 

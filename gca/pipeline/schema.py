@@ -10,7 +10,8 @@ Three kinds of check, all raising :class:`gca.config.ConfigError`:
   ``1e-3`` as a string) or refused, floats are finite.
 - **Ranges** (:data:`RANGES`): counts >= 1, positive sizes and rates, and each dataclass's own checks.
 - **Cross-references** (:func:`cross_check`): a scene's object, material, prior family and methods
-  exist; the demo's scenes and objects exist; the particles' floor gap lies above the walls' zone.
+  exist; the demo's scenes and objects exist (``demo.captures``' keys are capture scenes); the particles'
+  floor gap lies above the walls' zone.
 
 Which dataclass a section builds is :data:`KNOB_SECTIONS` (strict) and :data:`RECORD_TABLES` (a table of
 records such as ``objects.<name>``). ``tests/test_pipeline_schema.py`` compares every config built from the
@@ -135,7 +136,8 @@ def validate(params: Mapping, stage: str | None = None) -> None:
     """Check every section of resolved ``params`` that is present (a DVC stage sees only its own).
 
     ``stage`` (``"train@duck"``; None: all checks): the demo's references to scenes are checked for the
-    ``demo`` stage only, so a params file cut down to a few scenes still runs their other stages."""
+    ``demo`` stage only (``demo.captures``': also for ``demo_capture``), so a params file cut down to a few
+    scenes still runs their other stages."""
     for dotted in KNOB_SECTIONS:
         if _has(params, dotted) and (dotted != "prior.train" or _has(params, "sim")):
             build_section(params, dotted)
@@ -145,7 +147,8 @@ def validate(params: Mapping, stage: str | None = None) -> None:
                 if table == "objects" and capture.is_capture(raw):
                     continue  # a user's scan: the assets stage checks it with its files (one line naming them)
                 build(dataclass_of(spec), raw, f"{table}.{name}")
-    cross_check(params, demo=stage is None or stage.split("@")[0] == "demo")
+    which = None if stage is None else stage.split("@")[0]
+    cross_check(params, demo=which in (None, "demo"), captures=which in (None, "demo", "demo_capture"))
 
 
 def _refs(params: Mapping, what: str, name: Any, table: str) -> list[str]:
@@ -157,8 +160,9 @@ def _refs(params: Mapping, what: str, name: Any, table: str) -> list[str]:
     return []
 
 
-def cross_check(params: Mapping, demo: bool = True) -> None:
-    """References between sections, checked where both sides are visible (``demo``: the demo's too)."""
+def cross_check(params: Mapping, demo: bool = True, captures: bool = True) -> None:
+    """References between sections, checked where both sides are visible (``demo``: the demo's too;
+    ``captures``: ``demo.captures``')."""
     problems: list[str] = []
     if _has(params, "scenes"):
         from gca.train.methods import METHODS
@@ -180,6 +184,13 @@ def cross_check(params: Mapping, demo: bool = True) -> None:
         problems += _refs(params, "demo.new_shape.object", demo["new_shape"]["object"], "objects")
         for side in ("a", "b"):
             problems += _refs(params, f"demo.interaction.{side}.scene", demo["interaction"][side]["scene"], "scenes")
+    if captures and _has(params, "demo.captures") and _has(params, "scenes"):
+        for name, entry in (section(params, "demo.captures") or {}).items():  # a capture scene's new-scene demo
+            problems += _refs(params, f"demo.captures.{name}", name, "scenes")
+            if isinstance(entry, Mapping):
+                problems += _refs(params, f"demo.captures.{name}.object", entry.get("object"), "objects")
+            if name in section(params, "scenes") and section(params, f"scenes.{name}").get("kind") != "capture":
+                problems.append(f"demo.captures.{name}: scenes.{name} is not a capture scene (kind: capture)")
     if _has(params, "particles.floor_gap") and _has(params, "sim.bound") and _has(params, "sim.n_grid"):
         gap, bound, n_grid = (section(params, k) for k in ("particles.floor_gap", "sim.bound", "sim.n_grid"))
         if section(params, "particles.placement") == "floor" and float(gap) <= float(bound) / float(n_grid):

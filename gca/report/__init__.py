@@ -5,6 +5,7 @@
     <out_dir>/table1_synthetic_cd.{md,csv}  ... table6_ood.{md,csv}, table_law_level.{md,csv}, table_render_metrics.{md,csv}
     <out_dir>/claims.{md,csv}   each claim of the paper: measured effect, bootstrap interval, verdict (gca.report.claims)
     <out_dir>/figures/cd_time_<scene>.png, render_metrics.png, law_curves.png, strip_<scene>.png
+    <out_dir>/captures/<scene>.md   one page per capture scene (gca.report.captures)
     <out_dir>/README.md   one line per file
 
 Published numbers live in :mod:`gca.report.paper`; seeds are reduced in :mod:`gca.report.runs`.
@@ -128,7 +129,8 @@ def _copy_media(media_dirs: Sequence[Path], dest: Path) -> list[Path]:
 
 def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
                   cfg: ReportConfig | None = None, media_dirs: Sequence[str | os.PathLike] = (),
-                  benchmark_version: str = "", nuisance_dir: str | os.PathLike | None = None) -> list[Path]:
+                  benchmark_version: str = "", nuisance_dir: str | os.PathLike | None = None,
+                  capture_demos_dir: str | os.PathLike | None = None) -> list[Path]:
     """Write every table (Markdown + CSV), figure and the README index into ``out_dir``.
 
     The folder is replaced atomically as a whole (stale figures of an earlier run disappear).
@@ -141,6 +143,8 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
             copied to ``out_dir/<folder name>/``.
         benchmark_version: params ``benchmark.version``, in the README header (each table states its metrics').
         nuisance_dir: the ``nuisance`` stage's folder (``metrics/nuisance``): the benchmark_nuisance table.
+        capture_demos_dir: the ``demo_capture`` stages' folder (``metrics/demo_capture``): each capture page
+            (``captures/<scene>.md``, :func:`gca.report.captures.write_capture_pages`) links its new-scene demo.
 
     Returns:
         The written paths (under ``out_dir``), README last.
@@ -160,6 +164,13 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
             titles_extra = {"benchmark_nuisance": "Benchmark nuisance statistics per scene"}
         else:
             titles_extra = {}
+        from gca.report.captures import write_capture_pages  # here: `python -m gca.report.captures` runs it as main
+
+        captures = write_capture_pages(metrics_dir, tmp, capture_demos_dir)  # captures/<scene>.md and media
+        written += captures
+        titles_extra |= {p.stem: f"capture `{p.stem}`: held-out PSNR, SSIM, mask IoU, silhouette CD, the learned "
+                         "law's nearest classical law, re-simulation and new-scene demo"
+                         for p in captures if p.suffix == ".md"}
         media = _copy_media([Path(m) for m in media_dirs], tmp)
         titles = {table.name: table.title for table, _ in tables} | titles_extra
         titles["claims"] = "each claim of the paper: measured effect, 95% bootstrap interval and verdict"
