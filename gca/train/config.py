@@ -73,10 +73,7 @@ class TrainConfig:
         if isinstance(self.term_shares_every, bool) or not isinstance(self.term_shares_every, int) \
                 or self.term_shares_every < 0:
             raise ValueError(f"train.term_shares_every must be an integer >= 0, got {self.term_shares_every!r}")
-        seeds = tuple(self.seeds) if isinstance(self.seeds, (list, tuple)) else (self.seeds,)
-        if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) \
-                or len(set(seeds)) != len(seeds):
-            raise ValueError(f"train.seeds must be a non-empty list of distinct integers >= 0, got {self.seeds!r}")
+        seeds = check_seeds(self.seeds)
         object.__setattr__(self, "seeds", seeds)
         if self.seed is None:
             object.__setattr__(self, "seed", seeds[0])
@@ -125,6 +122,15 @@ def frame_weights(cfg: TrainConfig, it: int, n_video: int) -> list[float] | None
     decay = cfg.frame_decay_start + (1.0 - cfg.frame_decay_start) * min(1.0, it / ramp)
     group = max(1, round(cfg.frame_decay_every * n_video))
     return [decay ** (j // group) for j in range(n_video)]
+
+
+def check_seeds(value) -> tuple[int, ...]:
+    """``train.seeds`` as a tuple: a non-empty list of distinct integers >= 0 (a ValueError otherwise)."""
+    seeds = tuple(value) if isinstance(value, (list, tuple)) else (value,)
+    if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) \
+            or len(set(seeds)) != len(seeds):
+        raise ValueError(f"train.seeds must be a non-empty list of distinct integers >= 0, got {value!r}")
+    return seeds
 
 
 def run_dir_name(method: str, seed: int) -> str:
