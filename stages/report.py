@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> list[Path]:
     with stage_run("report", params, table="all") as run:
         written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()],
                                 benchmark_version=str(params.get("benchmark", {}).get("version", "")),
-                                nuisance_dir=args.nuisance)
+                                nuisance_dir=args.nuisance,
+                                tuning_record=str(params.get("tuning", {}).get("record", "")) if "tuning" in params else None)
         written += write_capture_pages(args.metrics, args.out)  # reports/<profile>/captures/<scene>.md
         headline = summary(load_runs(args.metrics), cfg)
         write_json(args.summary, headline)
