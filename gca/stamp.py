@@ -27,22 +27,24 @@ KEY = "stamp"
 _CHUNK = 1 << 20
 
 
-def _files(path: Path) -> list[Path]:
+def _files(path: Path, skip: Callable[[Path], bool] | None = None) -> list[Path]:
     if path.is_dir():  # hidden names are temporaries or litter, never inputs
         return sorted(p for p in path.rglob("*") if p.is_file()
-                      and not any(part.startswith(".") for part in p.relative_to(path).parts))
+                      and not any(part.startswith(".") for part in p.relative_to(path).parts)
+                      and not (skip and skip(p.relative_to(path))))
     return [path] if path.is_file() else []
 
 
 def fingerprint(params: Mapping, keys: Iterable[str], inputs: Iterable[str | os.PathLike] = (),
-                extra: Any = None) -> str:
+                extra: Any = None, skip: Callable[[Path], bool] | None = None) -> str:
     """A 16-hex-digit hash of params sections ``keys`` (dotted), the content of ``inputs`` (files or
-    folders; a missing one hashes as missing) and the JSON-able ``extra``."""
+    folders; a missing one hashes as missing) and the JSON-able ``extra``. ``skip``: files of a folder (their
+    path relative to it) that are not part of the input (e.g. other seeds' observations nested in seed 0's)."""
     digest = hashlib.sha256()
     digest.update(json.dumps({k: section(params, k) for k in keys}, sort_keys=True, default=str).encode())
     digest.update(json.dumps(extra, sort_keys=True, default=str).encode())
     for root in map(Path, inputs):
-        files = _files(root)
+        files = _files(root, skip)
         digest.update(f"\0{root.name}:{len(files)}".encode())
         for path in files:
             digest.update(f"\0{path.relative_to(root) if path != root else path.name}\0".encode())

@@ -5,7 +5,9 @@
         --metrics metrics/ground_truth/duck.json
 
 ``--out`` gets what a monocular method observes (frames, cameras, timing); ``--gt`` the ground-truth-only
-data (trajectory, true alpha and depth, the unlit render, the true law) that only evaluation reads.
+data (trajectory, true alpha and depth, the unlit render, the true law) that only evaluation reads. The scene is
+simulated once; each seed k > 0 of ``train.seeds`` gets its own nuisance draw of the training views in
+``--out``/seed<k> (:mod:`gca.scenes.ground_truth`), from the same trajectory.
 
 A capture scene (``scenes.<name>.capture``: the user's video) is imported instead (:mod:`gca.scenes.capture`):
 its frames, plate and camera (brought to the sim frame) into ``--out``; ``--gt`` only says there is none.
@@ -61,7 +63,7 @@ def main(argv=None) -> dict:
                 cli.phase("ground_truth", f"{args.scene}: simulating, then rendering"):
             metrics = generate(tmp, gt_tmp, body, args.scene, scene, settings.video, settings.sim,
                                settings.material(scene.material), settings.lighting, depth_cfg, settings.seed,
-                               args.device)
+                               args.device, seeds=settings.seeds)
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)
         run.log_artifact(args.out / "preview.gif")

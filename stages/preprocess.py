@@ -1,7 +1,9 @@
 """DVC stage ``preprocess``: what a monocular method extracts from the training video.
 
 It reads the scene directory only (frames, cameras, the simulated estimator's depth); the ground-truth
-directory ``data/gt/<scene>`` is not among its dependencies and is never opened.
+directory ``data/gt/<scene>`` is not among its dependencies and is never opened. Each seed k > 0 of
+``train.seeds`` has its own observations (``data/scenes/<scene>/seed<k>``, its own nuisance draw) and gets its own
+``data/prep/<scene>/seed<k>``; seed 0's are the top level.
 
     python stages/preprocess.py --scene duck --scene-dir data/scenes/duck --out data/prep/duck \
         --metrics metrics/preprocess/duck.json
@@ -21,7 +23,7 @@ from gca.io import atomic_path, write_json
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import stage_run
 from gca.scenes import TRAIN_VIEW, load_simulated_depth, load_view
-from gca.scenes.store import load_plate
+from gca.scenes.store import load_plate, nuisance_seed, seed_dir
 from gca.capture.cameras import CaptureError
 from gca.config import ConfigError
 from gca.scenes.capture import is_capture, load_heldout
@@ -47,17 +49,24 @@ def main(argv=None) -> dict:
     cfg = settings.vision
     if is_capture(args.scene_dir):
         return _capture(args, settings)
-    view = load_view(args.scene_dir, TRAIN_VIEW)
-    sim_depth = load_simulated_depth(args.scene_dir, len(view.rgb)) if cfg.depth.backend == "simulated" else None
     with stage_run("preprocess", settings.params, scene=args.scene) as run:
-        prep = preprocess_view(view, cfg, seed=settings.seed, simulated_depth=sim_depth,
-                               plate=load_plate(args.scene_dir, TRAIN_VIEW))
+        metrics = {}
         with atomic_path(args.out, is_dir=True) as tmp:
-            write_prep(tmp, prep)
-        n_kpts = np.diff(prep["keypoints"]["offsets"])
-        metrics = {"n_frames": int(len(prep["depth"])), "keypoints_per_frame": float(n_kpts.mean()),
-                   "mask_coverage": float(prep["masks"].mean()),
-                   **synthetic_pair_precision(view.rgb[0], cfg, seed=settings.seed)}
+            for k in [0] + sorted(set(settings.seeds) - {0}):  # seed 0's draw at the top, seed k's in seed<k>/
+                scene_dir, out = seed_dir(args.scene_dir, k), seed_dir(tmp, k)
+                view = load_view(scene_dir, TRAIN_VIEW)
+                sim_depth = load_simulated_depth(scene_dir, len(view.rgb)) if cfg.depth.backend == "simulated" else None
+                prep = preprocess_view(view, cfg, seed=nuisance_seed(settings.seed, k), simulated_depth=sim_depth,
+                                       plate=load_plate(scene_dir, TRAIN_VIEW))
+                out.mkdir(parents=True, exist_ok=True)
+                write_prep(out, prep)
+                n_kpts = np.diff(prep["keypoints"]["offsets"])
+                one = {"n_frames": int(len(prep["depth"])), "keypoints_per_frame": float(n_kpts.mean()),
+                       "mask_coverage": float(prep["masks"].mean())}
+                if k == 0:
+                    metrics.update({**one, **synthetic_pair_precision(view.rgb[0], cfg, seed=settings.seed)})
+                else:
+                    metrics.update({f"seed{k}/{key}": v for key, v in one.items()})
         write_json(args.metrics, metrics)
         run.log_metrics(metrics)
     return metrics

@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> list[Path]:
     with stage_run("report", params, table="all") as run:
         written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()],
                                 benchmark_version=str(params.get("benchmark", {}).get("version", "")),
-                                nuisance_dir=args.nuisance, capture_demos_dir=args.capture_demos)
+                                nuisance_dir=args.nuisance, capture_demos_dir=args.capture_demos,
+                                tuning_record=str(params.get("tuning", {}).get("record", "")) if "tuning" in params else None)
         headline = summary(load_runs(args.metrics), cfg)
         write_json(args.summary, headline)
         run.log_metrics({"n_records": headline["n_records"],

@@ -48,10 +48,16 @@ def test_seeds_split_training_into_one_job_per_run():
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
     jobs = grid.link(grid.split_train(grid.expand(dvc, params, ["train", "evaluate"]), params))
     train = {n: j for n, j in jobs.items() if n.startswith("train@")}
-    assert set(train) == {"train@ball:nclaw", "train@ball:gca", "train@ball:gca@seed2"}  # nclaw: one seed
-    assert train["train@ball:gca@seed2"].cmd.endswith("--methods gca --seeds 2 --velocity runs/ball/velocity.json")
+    # every method runs every seed (the prior's launch velocity comes from the seed's own nuisance draw)
+    assert set(train) == {"train@ball:nclaw", "train@ball:gca", "train@ball:nclaw@seed2", "train@ball:gca@seed2"}
+    # each seed's cheapest run estimates that seed's launch velocity from its observations; the seed's others reuse it
+    assert train["train@ball:nclaw"].cmd.endswith("--methods nclaw --seeds 0")
+    assert train["train@ball:nclaw@seed2"].cmd.endswith("--methods nclaw --seeds 2")
+    assert train["train@ball:nclaw@seed2"].outs == ["runs/ball/nclaw@seed2", "runs/ball/velocity@seed2.json"]
+    assert train["train@ball:gca@seed2"].cmd.endswith("--methods gca --seeds 2 --velocity runs/ball/velocity@seed2.json")
     assert train["train@ball:gca@seed2"].outs == ["runs/ball/gca@seed2"]
-    assert train["train@ball:nclaw"].cmd.endswith("--methods nclaw --seeds 0")  # it estimates the velocity
+    assert train["train@ball:gca@seed2"].after == {"train@ball:nclaw@seed2"}
+    assert train["train@ball:gca"].after == {"train@ball:nclaw"}
     assert set(train) <= jobs["evaluate@ball"].after
 
 

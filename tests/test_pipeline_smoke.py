@@ -229,11 +229,16 @@ def test_a_checkpoint_of_other_params_is_not_resumed(pipeline, tmp_path, monkeyp
 
 
 def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
-    """``train.seeds: [0, 3]``: a trained method runs once per seed (``gca``, ``gca@seed3``), one that does not
-    train once; evaluation writes one record per run and the report reduces them to mean and std."""
+    """``train.seeds: [0, 3]``: every method runs once per seed (``gca``, ``gca@seed3``, ``nclaw@seed3``), each seed
+    on its own nuisance draw (issue 22 item 4) of the one simulated trajectory: the ground_truth and preprocess stages
+    write seed 3's observations beside seed 0's, which stay byte for byte those of ``train.seeds: [0]``; training
+    opens seed 3's and never the ground truth; evaluation writes one record per run and the report reduces them to
+    mean and std."""
     import shutil
 
     import evaluate
+    import ground_truth
+    import preprocess
     import torch
     import train
 
@@ -243,43 +248,66 @@ def test_seeds_are_separate_runs_that_the_report_averages(pipeline, tmp_path):
     from gca.train.methods import get_method
     from gca.pipeline.settings import Settings
     from gca.pipeline.train import SceneInputs, load_learned_law
+    from test_scenes_truth_isolation import recorder
 
     raw = yaml.safe_load((pipeline / "params.yaml").read_text())
     raw["train"]["seeds"] = [0, 3]
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump(raw, sort_keys=False))
     d = lambda *p: str(pipeline.joinpath(*p))  # noqa: E731
-    common = ["--scene", SCENE, "--scene-dir", d("data/scenes", SCENE), "--particles", d("data/particles/duck.npz"),
+    t = lambda *p: str(tmp_path.joinpath(*p))  # noqa: E731
+    ground_truth.main(["--scene", SCENE, "--assets", d("data/assets", OBJECT), "--particles", d("data/particles/duck.npz"),
+                       "--out", t("scenes"), "--gt", t("gt"), "--metrics", t("gt.json"), "--params", str(params)])
+    preprocess.main(["--scene", SCENE, "--scene-dir", t("scenes"), "--out", t("prep"), "--metrics", t("prep.json"),
+                     "--params", str(params)])
+
+    def files(root: Path) -> dict:
+        return {p.relative_to(root).as_posix(): p.read_bytes() for p in root.rglob("*")
+                if p.is_file() and not p.relative_to(root).parts[0].startswith("seed")}
+
+    # seed 0's observations and the ground truth: the same bytes as the pipeline's, made with train.seeds [0]
+    for ours, theirs in (("scenes", "data/scenes"), ("prep", "data/prep"), ("gt", "data/gt")):
+        assert files(tmp_path / ours) == files(pipeline / theirs / SCENE), ours
+    assert (tmp_path / "scenes/seed3/views/train0/depth_sim.npy").is_file() and (tmp_path / "prep/seed3/masks.npy").is_file()
+    assert not np.array_equal(np.load(tmp_path / "prep/seed3/masks.npy"), np.load(tmp_path / "prep/masks.npy"))
+    common = ["--scene", SCENE, "--scene-dir", t("scenes"), "--particles", d("data/particles/duck.npz"),
               "--gaussians", d("data/assets", OBJECT, "gaussians.ply"), "--prior-dir", d("models/prior"),
               "--params", str(params), "--methods", "gca", "nclaw"]
-    gt = ["--gt", d("data/gt", SCENE)]
+    gt = ["--gt", t("gt")]
     runs, metrics = tmp_path / "runs", tmp_path / "eval" / SCENE
-    runs.mkdir()
-    shutil.copyfile(pipeline / "runs" / SCENE / "velocity.json", runs / "velocity.json")  # the scene's, reused
-    trained = train.main(common + ["--prep", d("data/prep", SCENE), "--out", str(runs),
-                                   "--velocity", str(runs / "velocity.json")])
-    assert list(trained) == ["gca", "nclaw", "gca@seed3"]  # seeds outermost
-    assert {p.name for p in runs.iterdir() if p.is_dir()} == {"gca", "gca@seed3", "nclaw"}
+    hidden = tmp_path / "hidden"
+    (tmp_path / "gt").rename(hidden)
+    with recorder() as rec:
+        trained = train.main(common + ["--prep", t("prep"), "--out", str(runs)])
+    hidden.rename(tmp_path / "gt")
+    assert not [p for p in rec.paths if str(hidden) in p or "/gt/" in p]
+    assert any("/scenes/seed3/" in p for p in rec.paths) and any("/prep/seed3/" in p for p in rec.paths)
+    assert list(trained) == ["gca", "nclaw", "gca@seed3", "nclaw@seed3"]  # seeds outermost
+    assert {p.name for p in runs.iterdir() if p.is_dir()} == {"gca", "gca@seed3", "nclaw", "nclaw@seed3"}
     assert [json.loads((runs / n / "train.json").read_text())["seed"] for n in ("gca", "gca@seed3")] == [0, 3]
+    # one launch velocity per seed, each fitted to its own observations
+    velocities = [json.loads((runs / n).read_text()) for n in ("velocity.json", "velocity@seed3.json")]
+    assert velocities[0]["v0"] != velocities[1]["v0"]
     # both laws rebuilt the same way (seed 0's init), so only their law.pt files can make them differ
     loaded = Settings(config.load(path=params, via_dvc=False))
     prior = SceneInputs(None, None, None, None, pipeline / "models/prior" / f"{FAMILY}.pt")
     flat = [torch.cat([t.detach().flatten() for t in load_learned_law(loaded, SCENE, get_method("gca"), prior,
                                                                       runs / n, 1000.0).trainable()])
             for n in ("gca", "gca@seed3")]
-    assert not torch.equal(flat[0], flat[1])  # another seed, another LoRA init, another trained law
+    assert not torch.equal(flat[0], flat[1])  # another seed, another LoRA init and draw, another trained law
 
     evaluated = evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics)])
-    assert list(evaluated) == ["gca", "nclaw", "gca@seed3"]
-    assert {p.name for p in metrics.glob("*.json")} == {"gca.json", "gca@seed3.json", "nclaw.json"}
+    assert list(evaluated) == ["gca", "nclaw", "gca@seed3", "nclaw@seed3"]
+    assert {p.name for p in metrics.glob("*.json")} == {"gca.json", "gca@seed3.json", "nclaw.json", "nclaw@seed3.json"}
     assert (metrics / "gca@seed3" / "strip.png").is_file()
     read = load_runs(metrics.parent)
-    assert [r["seed"] for r in read[SCENE, "gca"]] == [0, 3] and [r["seed"] for r in read[SCENE, "nclaw"]] == [0]
+    assert [r["seed"] for r in read[SCENE, "gca"]] == [0, 3] and [r["seed"] for r in read[SCENE, "nclaw"]] == [0, 3]
     cell = reduce_seeds(read[SCENE, "gca"], "chamfer_mean")
     cds = [json.loads((metrics / f"{n}.json").read_text())["chamfer_mean"] for n in ("gca", "gca@seed3")]
     assert cell.n == 2 and cell.mean == pytest.approx(np.mean(cds)) and cell.std == pytest.approx(np.std(cds, ddof=1))
 
-    assert list(evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics), "--seeds", "3"])) == ["gca@seed3"]
+    assert list(evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics), "--seeds", "3"])) == \
+        ["gca@seed3", "nclaw@seed3"]
     with pytest.raises(ConfigError, match=r"seeds \[5\] are not in train.seeds \[0, 3\]"):
         evaluate.main(common + gt + ["--runs", str(runs), "--out", str(metrics), "--seeds", "5"])
 

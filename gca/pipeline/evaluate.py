@@ -8,7 +8,7 @@ from gca.eval.capture import evaluate_capture
 from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json
 from gca.pipeline.settings import Settings
-from gca.pipeline.train import load_learned_law, read_velocity, solver_for
+from gca.pipeline.train import load_learned_law, read_velocity, solver_for, velocity_path
 from gca.scenes.world import Body
 from gca.train.config import run_dir_name
 
@@ -16,14 +16,15 @@ from gca.train.config import run_dir_name
 def _trained_run(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path, device: str,
                  seed: int | None):
     """(scene, seed, run name, train.json, the run's learned law, its launch velocity [v0, w0]) of one trained run;
-    an explicit row's launch is its own learned one, every other row's the scene's estimate."""
+    an explicit row's launch is its own learned one, every other row's the estimate from its seed's observations
+    (:func:`gca.pipeline.train.velocity_path`)."""
     scene = settings.scene(scene_name)
     seed = settings.train_for(seed).seed
     name = run_dir_name(method.name, seed)
     train = read_json(runs_dir / name / "train.json")
     law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
                            float(body.mass.sum() / body.vol.sum()), device, seed)
-    return scene, seed, name, train, law, law.launch_velocity(read_velocity(runs_dir / "velocity.json"))
+    return scene, seed, name, train, law, law.launch_velocity(read_velocity(velocity_path(runs_dir, seed)))
 
 
 def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path, out_dir: Path,
@@ -35,7 +36,7 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
         settings: the stage's typed params; scene_name: key of ``scenes``; method: a registry :class:`Method`.
         inputs: the scene's :class:`gca.pipeline.train.SceneInputs` (the prior checkpoint).
         body: the scene's particles and Gaussians on ``device``.
-        runs_dir: ``runs/<scene>`` (velocity.json and the method's trained law).
+        runs_dir: ``runs/<scene>`` (the seed's velocity estimate and the method's trained law).
         out_dir: ``metrics/eval/<scene>``; the strip, GIF and CD plot go to ``out_dir/<run>/``.
         seed: one of ``train.seeds`` (None: the first); ``<run>`` is
             :func:`gca.train.config.run_dir_name` of (method, seed).
@@ -67,5 +68,5 @@ def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs
     if train["status"] != "ok":
         metrics["status"] = train["status"]
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "seed": seed,
-            "profile": settings.profile, "device": device_name(body.x0.device), "velocity": read_json(runs_dir / "velocity.json"),
+            "profile": settings.profile, "device": device_name(body.x0.device), "velocity": read_json(velocity_path(runs_dir, seed)),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}

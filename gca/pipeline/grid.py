@@ -2,8 +2,8 @@
 
 What ``dvc repro`` runs, as separate jobs: the stage commands are read from ``dvc.yaml`` and expanded for
 the scenes, their objects and prior families; the order comes from the stages' deps and outs. A scene's
-``train`` stage is split into one job per (method, seed) run (the first estimates the launch velocity, the
-others reuse it with ``--velocity``; ``--runs-per-job N`` puts N runs in one job), so one scene's runs
+``train`` stage is split into one job per (method, seed) run (each seed's first estimates its launch velocity, the
+seed's others reuse it with ``--velocity``; ``--runs-per-job N`` puts N runs in one job), so one scene's runs
 train on several GPUs at once. Each job runs through the engine (``--engine``): ``local`` (submitit's local
 executor: one process per GPU slot, ``--slots`` jobs per GPU, pinned with ``CUDA_VISIBLE_DEVICES``) or
 ``slurm`` (one SLURM job of one GPU per stage command, ordered by ``afterok`` dependencies). The outputs
@@ -129,12 +129,13 @@ def expand(dvc: dict, params: dict, stages: list[str] | None = None) -> dict[str
 
 def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     """``train@<scene>`` -> one job per (method, seed of ``train.seeds``): ``train@<scene>:<run>`` with the run's
-    name (``gca``, ``gca@seed1``; a method that does not train runs the first seed only); the first (the cheapest
-    method's first seed) estimates the velocity."""
+    name (``gca``, ``gca@seed1``); the first job of each seed (the cheapest method's) estimates that seed's launch
+    velocity from its own observations (``velocity.json``, ``velocity@seed<k>.json``), the seed's other jobs
+    reuse it."""
     from gca.config import resolve
     from gca.train.methods import get_method
     from gca.pipeline.settings import Settings
-    from gca.pipeline.train import seed_runs
+    from gca.pipeline.train import seed_runs, velocity_path
 
     resolved = Settings(resolve(params, params["profile"]))
     several = len(resolved.train.seeds) > 1
@@ -146,17 +147,19 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
         scene = name.split("@", 1)[1]
         methods = sorted(params["scenes"][scene]["methods"], key=lambda m: COST.get(f"train:{m}", COST["train"]))
         run_dir = re.search(r"--out (\S+)", job.cmd).group(1)
-        first = None
+        firsts: dict[int, str] = {}  # seed -> the job that estimates its launch velocity (from its own observations)
         for method, s, run in seed_runs(resolved, [get_method(m) for m in methods]):
             m = method.name
+            first = firsts.get(s)
+            velocity = velocity_path(Path(run_dir), s).as_posix()
             cmd = f"{job.cmd} --methods {m}" + (f" --seeds {s}" if several else "")
             if first is not None:
-                cmd += f" --velocity {run_dir}/velocity.json"
-            j = Job(f"{name}:{run}", cmd, list(job.deps), [f"{run_dir}/{run}"] + ([] if first else [f"{run_dir}/velocity.json"]),
+                cmd += f" --velocity {velocity}"
+            j = Job(f"{name}:{run}", cmd, list(job.deps), [f"{run_dir}/{run}"] + ([] if first else [velocity]),
                     COST.get(f"train:{m}", COST["train"]))
             if first is not None:
                 j.after.add(first)
-            first = first or j.name
+            firsts.setdefault(s, j.name)
             out[j.name] = j
     return out
 
@@ -296,7 +299,7 @@ def collect(work: Path, out: Path) -> Path:
     (~40 kB each: a run can be evaluated again elsewhere), priors, logs."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / "grid_results.tar.gz"
-    keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity\.json|"
+    keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
                       r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/.*|params\.yaml)$")
     with tarfile.open(path, "w:gz") as tar:
         for f in sorted(work.rglob("*")):

@@ -49,6 +49,7 @@ KNOB_SECTIONS: dict[str, str] = {
     "eval.metrics": "gca.eval.config:MetricsConfig",
     "demo": "gca.eval.demos:DemoConfig",
     "report": "gca.report:ReportConfig",
+    "tuning": "gca.pipeline.tuning:TuningConfig",
 }
 
 # params table -> the dataclass each of its entries builds

@@ -17,7 +17,7 @@ import torch
 
 from gca.align.cpr import CPRConfig
 from gca.align.rdga import RDGAConfig
-from gca.config import build, entry, section
+from gca.config import ConfigError, build, entry, section
 from gca.pipeline import schema
 from gca.pipeline.schema import scene_config
 from gca.eval.config import MetricsConfig
@@ -27,7 +27,7 @@ from gca.render.shading import LightingConfig
 from gca.scenes.config import SceneConfig, VideoConfig
 from gca.scenes.world import Body, load_body, resolve_backend
 from gca.sim.solver import SimConfig
-from gca.train.config import TrainConfig, VelocityConfig
+from gca.train.config import TrainConfig, VelocityConfig, check_seeds
 from gca.vision import VisionConfig
 from gca.vision.matching import MatchConfig
 
@@ -94,6 +94,15 @@ class Settings:
     def train(self) -> TrainConfig:
         """``train`` for the first of ``train.seeds``; :meth:`train_for` gives another seed's."""
         return self.section_as(TrainConfig, "train")
+
+    @functools.cached_property
+    def seeds(self) -> tuple[int, ...]:
+        """``train.seeds`` alone (the ground_truth and preprocess stages declare only this key of ``train``: each
+        seed draws its own nuisances, :func:`gca.scenes.store.seed_dir`)."""
+        try:
+            return check_seeds(section(self.params, "train.seeds"))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
 
     def train_for(self, seed: int | None = None) -> TrainConfig:
         """``train`` for the run of ``seed`` (one of ``train.seeds``; None: the first)."""

@@ -1,6 +1,7 @@
 """Assemble a scene's training data from the pipeline's files and train one method on it.
 
-    runs/<scene>/velocity.json           the shared initial velocity estimate (prior law, first frames)
+    runs/<scene>/velocity.json           seed 0's initial velocity estimate (prior law, first frames of its observations)
+    runs/<scene>/velocity@seed<k>.json   seed k's, from seed k's own observations (:func:`velocity_path`)
     runs/<scene>/<run>/law.pt            what training changed (adapter / full weights / explicit params)
     runs/<scene>/<run>/checkpoint.pt     resumable optimiser state (removed when the run completes)
     runs/<scene>/<run>/train.json        status, seconds, peak memory, MLflow run id, last losses
@@ -8,7 +9,10 @@
     runs/<scene>/<run>/loss.png          loss curve
 
 ``<run>`` is the method's name for seed 0 and ``<method>@seed<k>`` for seed k (``train.seeds``,
-:func:`gca.train.config.run_dir_name`).
+:func:`gca.train.config.run_dir_name`). The seed fixes the law's initialisation and the nuisance draw the run
+observes: seed k's runs (every method's, the launch velocity's) read seed k's observations,
+``data/scenes/<scene>/seed<k>`` and ``data/prep/<scene>/seed<k>`` (:func:`observed_inputs`; seed 0: the top
+level); evaluation stays against the one true trajectory.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
 from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.preprocess import load_prep
+from gca.scenes.store import seed_dir
 from gca.scenes.world import Body, initial_velocity
 from gca.sim.solver import MPMSolver
 from gca.train.config import TrainConfig, neuma_recipe, run_dir_name
@@ -50,6 +55,22 @@ class SceneInputs:
     particles: Path
     gaussians: Path
     prior: Path
+
+
+def observed_inputs(settings: Settings, scene_name: str, inputs: SceneInputs, seed: int) -> SceneInputs:
+    """``inputs`` with the observations of training seed ``seed``: its nuisance draw's scene and preprocessing
+    directories (:func:`gca.scenes.store.seed_dir`). A capture scene has one real video, so every seed observes
+    it (its seeds differ in the law's initialisation only)."""
+    if settings.scene(scene_name).is_capture:
+        return inputs
+    return dataclasses.replace(inputs, scene_dir=seed_dir(inputs.scene_dir, seed),
+                               prep_dir=None if inputs.prep_dir is None else seed_dir(inputs.prep_dir, seed))
+
+
+def velocity_path(runs_dir: Path, seed: int) -> Path:
+    """The launch-velocity estimate the runs of ``seed`` start from: ``runs/<scene>/velocity.json`` (seed 0) or
+    ``velocity@seed<k>.json``, each fitted to that seed's own observations."""
+    return Path(runs_dir) / ("velocity.json" if seed == 0 else f"velocity@seed{seed}.json")
 
 
 def default_device() -> str:
@@ -94,14 +115,14 @@ def estimate_scene_velocity(settings: Settings, scene_name: str, inputs: SceneIn
 
 
 def run_seeds(settings: Settings, method: Method, chosen: Sequence[int] | None = None) -> list[int]:
-    """The seeds ``method`` runs with: ``chosen`` (checked against ``train.seeds``) or all of ``train.seeds``;
-    only the first for a method that does not train (its law, the prior, does not depend on the seed)."""
+    """The seeds ``method`` runs with: ``chosen`` (checked against ``train.seeds``) or all of ``train.seeds``.
+    A method that does not train (the prior as is) runs every seed too: its law does not depend on the seed, but
+    its launch velocity is estimated from the seed's own nuisance draw (:func:`velocity_path`)."""
     seeds = list(settings.train.seeds)
     unknown = sorted(set(chosen or ()) - set(seeds))
     if unknown:
         raise config.ConfigError(f"seeds {unknown} are not in train.seeds {seeds}")
-    runs = seeds if method.trains else seeds[:1]
-    return [s for s in runs if s in chosen] if chosen else runs
+    return [s for s in seeds if s in chosen] if chosen else seeds
 
 
 def seed_runs(settings: Settings, methods: Sequence[Method], chosen: Sequence[int] | None = None
@@ -154,10 +175,14 @@ def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
 def train_method(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
                  out_dir: Path, run=None, device="cpu", seed: int | None = None) -> dict:
     """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
-    (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json."""
+    (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json.
+
+    ``inputs`` are the scene's (seed 0's directories); the run reads its seed's observations
+    (:func:`observed_inputs`), and ``velocity`` must be its seed's estimate (:func:`velocity_path`)."""
     scene = settings.scene(scene_name)
     tcfg = train_config(settings, method, scene, seed)
-    data = load_train_data(settings, inputs, method, velocity, settings.video.background, device)
+    data = load_train_data(settings, observed_inputs(settings, scene_name, inputs, tcfg.seed), method, velocity,
+                           settings.video.background, device)
     law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
                   velocity)
     objective = objective_for(settings, method, data, scene, tcfg.seed)

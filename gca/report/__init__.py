@@ -23,6 +23,7 @@ from gca.io import atomic_path
 from gca.report import claims as claims_mod, figures, paper
 from gca.report.claims import ClaimsConfig
 from gca.report.nuisance import write_nuisance_table
+from gca.report.tuning import write_tuning_tables
 from gca.report.runs import DivergenceRule, Runs, load_runs, mark_divergence
 from gca.report.tables import build_tables, markdown_table, provenance, scene_average, write_table
 
@@ -130,7 +131,8 @@ def _copy_media(media_dirs: Sequence[Path], dest: Path) -> list[Path]:
 def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
                   cfg: ReportConfig | None = None, media_dirs: Sequence[str | os.PathLike] = (),
                   benchmark_version: str = "", nuisance_dir: str | os.PathLike | None = None,
-                  capture_demos_dir: str | os.PathLike | None = None) -> list[Path]:
+                  capture_demos_dir: str | os.PathLike | None = None,
+                  tuning_record: str | os.PathLike | None = None) -> list[Path]:
     """Write every table (Markdown + CSV), figure and the README index into ``out_dir``.
 
     The folder is replaced atomically as a whole (stale figures of an earlier run disappear).
@@ -145,6 +147,8 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
         nuisance_dir: the ``nuisance`` stage's folder (``metrics/nuisance``): the benchmark_nuisance table.
         capture_demos_dir: the ``demo_capture`` stages' folder (``metrics/demo_capture``): each capture page
             (``captures/<scene>.md``, :func:`gca.report.captures.write_capture_pages`) links its new-scene demo.
+        tuning_record: params ``tuning.record`` (the cited tuning record; "": none yet): the tuning_calibration page
+            (the chosen knobs and each RDGA term's gradient share on the calibration scenes); None: no page.
 
     Returns:
         The written paths (under ``out_dir``), README last.
@@ -171,6 +175,9 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
         titles_extra |= {p.stem: f"capture `{p.stem}`: held-out PSNR, SSIM, mask IoU, silhouette CD, the learned "
                          "law's nearest classical law, re-simulation and new-scene demo"
                          for p in captures if p.suffix == ".md"}
+        if tuning_record is not None:
+            written += write_tuning_tables(tuning_record, tmp)
+            titles_extra["tuning_calibration"] = "Tuning on the calibration scenes: chosen knobs, RDGA term shares"
         media = _copy_media([Path(m) for m in media_dirs], tmp)
         titles = {table.name: table.title for table, _ in tables} | titles_extra
         titles["claims"] = "each claim of the paper: measured effect, 95% bootstrap interval and verdict"

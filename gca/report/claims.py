@@ -4,8 +4,9 @@ Every claim is a statistic of paired per-unit measurements with a seeded percent
 verdict computed from that interval; nothing here is written by hand.
 
 - **Units.** A unit is one (scene, seed) where both methods of a comparison left a finite value (the measured
-  value, diverged runs included: their kept law's CD). A method that does not train (``nclaw``, one record
-  per scene) is paired with every seed of the other method on that scene. The bootstrap resamples units
+  value, diverged runs included: their kept law's CD). A method that does not train (``nclaw``) runs every seed
+  too (its launch velocity is estimated from the seed's own nuisance draw); a single record of it (results made
+  before that) is paired with every seed of the other method on that scene. The bootstrap resamples units
   with replacement (``ClaimsConfig.resamples`` times, ``numpy.random.default_rng(ClaimsConfig.seed)``).
 - **Kinds** (the statistic, and how its ``confidence`` interval [lo, hi] decides):
   - ``less``: mean of the paired differences d = a - b; *holds* when hi < 0, *does not hold* when lo > 0.

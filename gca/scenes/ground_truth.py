@@ -5,13 +5,21 @@ per-frame light direction/intensity/colour shading the Gaussians at their deform
 shadows from their occupancy, optional highlights, per-frame exposure and white-balance drift, so pixel
 colour is not a reliable signal; (2) a reduced frame rate (every k-th simulated frame); (3) composite
 materials. Observations go to the scene directory, ground truth to the ground-truth directory.
+
+Seeds (issue 22 item 4): the scene is simulated once; each training seed k of ``train.seeds`` also gets its own
+nuisance draw of the training views, rendered from that one true trajectory into ``<scene dir>/seed<k>``
+(:func:`gca.scenes.store.seed_dir`): its lights, exposure and white-balance walk from
+``nuisance_seed(light_seed, k)``, its depth-estimator noise from ``nuisance_seed(seed, k)``; the segmentation
+noise follows, since preprocessing segments each seed's own lit frames against its own plate. Seed 0's draw is
+the top level, unchanged. The ground truth (trajectory, true alpha and depth, unlit render) does not depend on
+the draw and is written once.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import imageio.v3 as iio
 import numpy as np
@@ -25,7 +33,7 @@ from gca.render.follow import smallest_axis_normal
 from gca.render.camera import Camera, look_at
 from gca.render.shadow import light_visibility
 from gca.scenes.config import OrbitCamera, SceneConfig, VideoConfig, scene_video
-from gca.scenes.store import TRAIN_VIEW, frame_name, view_dir
+from gca.scenes.store import TRAIN_VIEW, frame_name, nuisance_seed, seed_dir, view_dir
 from gca.scenes.truth import write_truth, write_view_truth
 from gca.vision.depth import SimulatedDepth, SimulatedDepthConfig
 from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
@@ -133,15 +141,42 @@ def _write_view(out_dir: Path, name: str, images: dict) -> None:
         iio.imwrite(folder / "rgb" / frame_name(i), (rgb * 255 + 0.5).astype(np.uint8))
 
 
+def _observe(out_dir: Path, name: str, images: dict, camera: Camera, lights, bg, depth_cfg: SimulatedDepthConfig,
+             depth_seed: int, mask_threshold: float) -> None:
+    """What the camera of view ``name`` records under one nuisance draw (``lights``; ``depth_seed`` for the
+    simulated estimator of the monocular view): the lit frames, the clean plate and, for ``train0``, the
+    estimator's depth (an observation the ground truth makes: it needs the true depth)."""
+    _write_view(out_dir, name, images)
+    plate = shading.camera_response(shading.background_image(camera, bg, lights[0]), lights[0])
+    iio.imwrite(view_dir(out_dir, name) / "plate.png", (plate.cpu().numpy() * 255 + 0.5).astype(np.uint8))
+    if name == TRAIN_VIEW:
+        mask = images["alpha"] > mask_threshold
+        rgb8 = (images["rgb"] * 255 + 0.5).astype(np.uint8)
+        est = SimulatedDepth(depth_cfg, depth_seed).estimate(rgb8, np.where(mask, images["depth"], 0.0), mask)
+        np.save(view_dir(out_dir, name) / "depth_sim.npy", est.astype(np.float32))
+
+
+def _lighting_stats(images: dict, unlit: np.ndarray, mask: np.ndarray) -> dict:
+    return {"lighting_unexplained_share": unexplained_colour_share(images["rgb"], unlit, mask),
+            "image_mean_range": float(np.ptp(images["rgb"].mean(axis=(1, 2, 3))))}
+
+
 def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: SceneConfig, video: VideoConfig,
              sim: SimConfig, material_preset: Mapping, light_cfg: "shading.LightingConfig",
              depth_cfg: SimulatedDepthConfig = SimulatedDepthConfig(), seed: int = 0,
-             device: str | torch.device = "cpu") -> dict:
+             device: str | torch.device = "cpu", seeds: Sequence[int] = (0,)) -> dict:
     """Simulate and render every view of a scene: observations into ``out_dir``, ground truth into ``gt_dir``
     (two empty directories; layouts in :mod:`gca.scenes.store` and :mod:`gca.scenes.truth`).
 
+    Args:
+        seed: the global seed (seed 0's depth-estimator draw; the lighting's is ``scene.light_seed``).
+        seeds: the training seeds (``train.seeds``); each k > 0 gets its own nuisance draw of the training views
+            in ``out_dir/seed<k>`` (module doc), from the same simulated trajectory. Seed 0's draw is the top level
+            whether or not 0 is among them (evaluation views, nuisance statistics).
+
     Returns:
-        Summary metrics (counts, mean mask coverage, displacement of the centre of mass).
+        Summary metrics (counts, mean mask coverage, displacement of the centre of mass); seed k's lighting
+        statistics as ``seed<k>/<name>``.
     """
     video = scene_video(video, scene)
     material = material_from_preset(material_preset, dt=scene.dt, n_particles=body.n_particles).to(device=device, dtype=body.x0.dtype)
@@ -150,21 +185,16 @@ def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: Sc
     cameras = scene_cameras(scene, video.resolution)
     lights = shading.sample_lights(light_cfg, len(frames), seed=scene.light_seed)
     bg = torch.tensor(video.background, dtype=body.x0.dtype, device=body.x0.device)
-    coverage, stats = {}, {}
+    coverage, stats, unlit = {}, {}, None
     for name, camera in tqdm(cameras.items(), desc=f"render {scene_name}", unit="view"):
         images = _render_view(body, traj, frames, camera, lights, bg, light_cfg, unlit=name == TRAIN_VIEW)
-        _write_view(out_dir, name, images)
-        plate = shading.camera_response(shading.background_image(camera, bg, lights[0]), lights[0])
-        iio.imwrite(view_dir(out_dir, name) / "plate.png", (plate.cpu().numpy() * 255 + 0.5).astype(np.uint8))
+        _observe(out_dir, name, images, camera, lights, bg, depth_cfg, seed, video.mask_threshold)
         write_view_truth(gt_dir, name, images["alpha"], images["depth"], video.mask_threshold, images.get("unlit"))
         mask = images["alpha"] > video.mask_threshold
         coverage[name] = float(mask.mean())
-        if name == TRAIN_VIEW:  # the simulated estimator's output: an observation the ground truth makes
-            stats["lighting_unexplained_share"] = unexplained_colour_share(images["rgb"], images["unlit"], mask)
-            stats["image_mean_range"] = float(np.ptp(images["rgb"].mean(axis=(1, 2, 3))))
-            rgb8 = (images["rgb"] * 255 + 0.5).astype(np.uint8)
-            est = SimulatedDepth(depth_cfg, seed).estimate(rgb8, np.where(mask, images["depth"], 0.0), mask)
-            np.save(view_dir(out_dir, name) / "depth_sim.npy", est.astype(np.float32))
+        if name == TRAIN_VIEW:
+            unlit = images["unlit"]
+            stats.update(_lighting_stats(images, unlit, mask))
     x = traj.x[[0] + frames].cpu().numpy().astype(np.float32)
     write_truth(gt_dir, x, {"scene": scene_name, "material": scene.material, "preset": dict(material_preset),
                             "v0": list(scene.v0), "w0": list(scene.w0), "light_seed": scene.light_seed})
@@ -180,6 +210,18 @@ def generate(out_dir: Path, gt_dir: Path, body: Body, scene_name: str, scene: Sc
                       "eval": [n for n in cameras if n.startswith("eval")]}}
     write_json(out_dir / "meta.json", meta)
     _write_preview(out_dir)
+    for k in sorted(set(seeds) - {0}):  # the other seeds' draws of the training views, from the same trajectory
+        folder = seed_dir(out_dir, k)
+        lights_k = shading.sample_lights(light_cfg, len(frames), seed=nuisance_seed(scene.light_seed, k))
+        train_views = {n: c for n, c in cameras.items() if n.startswith("train")}
+        for name, camera in tqdm(train_views.items(), desc=f"render {scene_name} seed {k}", unit="view"):
+            images = _render_view(body, traj, frames, camera, lights_k, bg, light_cfg)
+            _observe(folder, name, images, camera, lights_k, bg, depth_cfg, nuisance_seed(seed, k), video.mask_threshold)
+            if name == TRAIN_VIEW:
+                mask = images["alpha"] > video.mask_threshold
+                stats.update({f"seed{k}/{key}": v for key, v in _lighting_stats(images, unlit, mask).items()})
+        write_json(folder / "cameras.json", {n: c.to_dict() for n, c in train_views.items()})
+        write_json(folder / "meta.json", {**meta, "views": {"train": list(train_views), "eval": []}, "seed": k})
     com = x.mean(axis=1)
     return {"n_particles": body.n_particles, "n_gaussians": body.n_gaussians, "n_video_frames": len(frames),
             "mask_coverage_train0": coverage[TRAIN_VIEW], "com_drop_m": float(com[0, 1] - com[:, 1].min()),

@@ -10,6 +10,11 @@
                                          relative; ``vision.depth.backend: simulated``): an observation made in
                                          the ground_truth stage, because the estimator model needs the true depth
       preview.gif          the monocular video
+      seed<k>/             training seed k's own nuisance draw (k in ``train.seeds``, k > 0; synthetic scenes):
+                           meta.json, cameras.json and the training views (``views/train*/``: lit frames, plate,
+                           ``depth_sim.npy``) rendered from the same true trajectory under seed k's lighting,
+                           exposure and white-balance drift, with seed k's depth-estimator noise
+                           (:func:`seed_dir`, :func:`nuisance_seed`); the top level is seed 0's draw
 
 Only what a monocular method observes is here: no masks, no true depth, no trajectory. Those are
 ground-truth-only and live in ``data/gt/<scene>/`` (:mod:`gca.scenes.truth`); :func:`load_view`
@@ -33,6 +38,27 @@ from gca.io import load_array, read_json, reading
 from gca.render.camera import Camera
 
 TRAIN_VIEW = "train0"
+
+
+def seed_dir(root: str | Path, seed: int) -> Path:
+    """Training seed ``seed``'s observations under a per-scene directory ``root`` (``data/scenes/<scene>`` or
+    ``data/prep/<scene>``): ``root`` itself for seed 0 (the layout before seeds drew their own nuisances, so
+    its data are unchanged), ``root/seed<k>`` for seed k > 0."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"a training seed is an integer >= 0, got {seed!r}")
+    return Path(root) if seed == 0 else Path(root) / f"seed{seed}"
+
+
+def nuisance_seed(base: int, seed: int) -> int:
+    """The generator seed of one nuisance stream (lighting: ``scenes.<name>.light_seed``; depth-estimator noise:
+    the global ``seed``) for training seed ``seed``: ``base`` itself for seed 0 (the benchmark's draw as made
+    before the seeds covered the nuisances), else a 63-bit integer of numpy's ``SeedSequence([base, seed])``
+    (a stream independent of seed 0's and of every other seed's). Only the draw changes with the seed, never
+    the distribution it is drawn from (the ``render.lighting`` and ``vision.depth`` conditions)."""
+    seed_dir(".", seed)  # validates the seed
+    if seed == 0:
+        return int(base)
+    return int(np.random.SeedSequence([int(base), int(seed)]).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
 class SceneDataError(ValueError):

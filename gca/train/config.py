@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from gca.config import NOT_A_PARAM
 
@@ -40,6 +41,8 @@ class TrainConfig:
         frame_decay_start, frame_decay_until, frame_decay_every: NeuMA's rollout weighting (:func:`frame_weights`):
             video frame j weighs ``decay ** (j // (frame_decay_every * n_video))``, decay rising linearly from
             ``frame_decay_start`` to 1 over the first ``frame_decay_until`` of the iterations; start 1 = off.
+        neuma_lr_scale: multiplies NeuMA's published learning rates (:func:`neuma_recipe`); 1 = as published. A
+            tuning knob (``gca.pipeline.tuning``): NeuMA's rates are its recipe's, not ``lr_elasticity``'s.
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
@@ -64,6 +67,7 @@ class TrainConfig:
     backtrack_factor: float = 0.5
     keep: str = "best"
     term_shares_every: int = 20
+    neuma_lr_scale: float = 1.0
     optimizer: str = dataclasses.field(default="adam", metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_until: float = dataclasses.field(default=0.33, metadata=NOT_A_PARAM)  # set by the method's recipe
@@ -73,10 +77,7 @@ class TrainConfig:
         if isinstance(self.term_shares_every, bool) or not isinstance(self.term_shares_every, int) \
                 or self.term_shares_every < 0:
             raise ValueError(f"train.term_shares_every must be an integer >= 0, got {self.term_shares_every!r}")
-        seeds = tuple(self.seeds) if isinstance(self.seeds, (list, tuple)) else (self.seeds,)
-        if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) \
-                or len(set(seeds)) != len(seeds):
-            raise ValueError(f"train.seeds must be a non-empty list of distinct integers >= 0, got {self.seeds!r}")
+        seeds = check_seeds(self.seeds)
         object.__setattr__(self, "seeds", seeds)
         if self.seed is None:
             object.__setattr__(self, "seed", seeds[0])
@@ -87,6 +88,8 @@ class TrainConfig:
             raise ValueError(f"train.optimizer must be 'adam' or 'radam', got {self.optimizer!r}")
         if not 0.0 < self.frame_decay_start <= 1.0 or not 0.0 < self.frame_decay_every <= 1.0:
             raise ValueError("train.frame_decay_start and frame_decay_every must be in (0, 1]")
+        if not (math.isfinite(self.neuma_lr_scale) and self.neuma_lr_scale > 0):
+            raise ValueError(f"train.neuma_lr_scale must be > 0, got {self.neuma_lr_scale}")
         if self.keep not in ("best", "last"):
             raise ValueError(f"train.keep must be 'best' or 'last', got {self.keep!r}")
         if self.max_rejections < 0:
@@ -110,8 +113,10 @@ NEUMA_LR: dict[str, tuple[float, float, float]] = {"jelly": (8e-3, 8e-4, 0.025),
 
 
 def neuma_recipe(cfg: TrainConfig, family: str) -> TrainConfig:
-    """``cfg`` with NeuMA's optimiser, schedule and rollout weighting (:data:`NEUMA_LR`) for prior ``family``."""
+    """``cfg`` with NeuMA's optimiser, schedule and rollout weighting (:data:`NEUMA_LR`) for prior ``family``; its
+    learning rates x ``cfg.neuma_lr_scale`` (1: as published)."""
     lr_e, lr_p, floor = NEUMA_LR.get(family, (cfg.lr_elasticity, cfg.lr_plasticity, cfg.cosine_floor))
+    lr_e, lr_p = lr_e * cfg.neuma_lr_scale, lr_p * cfg.neuma_lr_scale
     return dataclasses.replace(cfg, optimizer="radam", lr_elasticity=lr_e, lr_plasticity=lr_p, cosine_floor=floor,
                                grad_clip=1.0, curriculum_start=1.0, frame_decay_start=0.5, frame_decay_until=0.33,
                                frame_decay_every=0.2)
@@ -125,6 +130,15 @@ def frame_weights(cfg: TrainConfig, it: int, n_video: int) -> list[float] | None
     decay = cfg.frame_decay_start + (1.0 - cfg.frame_decay_start) * min(1.0, it / ramp)
     group = max(1, round(cfg.frame_decay_every * n_video))
     return [decay ** (j // group) for j in range(n_video)]
+
+
+def check_seeds(value) -> tuple[int, ...]:
+    """``train.seeds`` as a tuple: a non-empty list of distinct integers >= 0 (a ValueError otherwise)."""
+    seeds = tuple(value) if isinstance(value, (list, tuple)) else (value,)
+    if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) \
+            or len(set(seeds)) != len(seeds):
+        raise ValueError(f"train.seeds must be a non-empty list of distinct integers >= 0, got {value!r}")
+    return seeds
 
 
 def run_dir_name(method: str, seed: int) -> str:

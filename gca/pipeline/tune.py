@@ -1,0 +1,304 @@
+"""Tune the learned methods' knobs on the calibration scenes only (issue 22 items 1-2; the protocol:
+:mod:`gca.pipeline.tuning`; the GPU command and its cost: tuning/README.md).
+
+    python -m gca.pipeline.tune --work /tmp/tune --profile paper [--methods gca neuma pacnerf_depth]
+        [--set tuning.trials=8 ...] [--priors models/prior] [--deadline 540] [--shard 0/4] [--record tuning/record.json]
+
+1. The work directory gets params.yaml restricted to ``tuning.scenes`` (each ``calibration: true``, else refused;
+   their objects and prior families only), ``train.seeds = tuning.seeds``, ``train.iterations =
+   tuning.iterations``, and the code linked; the stage commands of dvc.yaml (assets, particles, prior,
+   ground_truth, preprocess) make the calibration scenes' inputs there (a finished one is not redone).
+2. Every (method, trial, scene, seed) unit: the launch velocity (once per scene and seed, from that seed's
+   observations), :func:`gca.pipeline.train.train_method` and :func:`gca.pipeline.evaluate.evaluate_trained`
+   with the trial's knob values, its CD and term shares into ``<work>/tuning/<method>/trial<i>/<scene>@seed<k>.json``.
+   A unit done is not redone (resumable); ``--shard k/n`` runs every n-th unit (one process per GPU);
+   ``--deadline`` [s] starts no unit its measured cost would not finish in time.
+3. When every unit is there: the record (``--record``, default ``tuning/record.json``) and the params.yaml change
+   to apply (printed); else the units left, and the command to repeat.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from gca import config
+from gca.config import ConfigError, resolve
+from gca.io import read_json, write_json
+from gca.pipeline import cli, grid
+from gca.pipeline.tuning import (TuningConfig, apply_values, check_scenes, choose, param_values, params_change,
+                                 score, trial_values)
+
+ROOT = grid.ROOT
+PREPARE_STAGES = ["assets", "particles", "prior", "ground_truth", "preprocess"]
+
+
+def load_config(params_path: Path, profile: str | None, overrides: list[str]) -> tuple[dict, dict, TuningConfig]:
+    """(raw params with ``profile`` and the overrides, their resolution, the typed ``tuning`` section)."""
+    raw = config.read_yaml(params_path)
+    raw["profile"] = profile or raw.get("profile", "paper")
+    grid.apply_overrides(raw, overrides)
+    resolved = resolve(raw, raw["profile"])
+    resolved["profile"] = raw["profile"]
+    cfg = config.build(TuningConfig, config.section(resolved, "tuning"), "tuning")
+    check_scenes(resolved, cfg.scenes)
+    return raw, resolved, cfg
+
+
+def work_params(raw: dict, cfg: TuningConfig) -> dict:
+    """``raw`` restricted to the calibration scenes (and their objects and prior families), at the tuning budget."""
+    out = json.loads(json.dumps(raw))
+    out["scenes"] = {s: dict(raw["scenes"][s]) for s in cfg.scenes}
+    objects = {spec["object"] for spec in out["scenes"].values()}
+    out["objects"] = {k: v for k, v in raw["objects"].items() if k in objects}
+    families = {spec["prior"] for spec in out["scenes"].values()}
+    out["prior"]["families"] = {k: v for k, v in raw["prior"]["families"].items() if k in families}
+    out["train"]["seeds"] = list(cfg.seeds)
+    out["train"]["iterations"] = cfg.iterations
+    return out
+
+
+def _order(jobs: dict) -> list:
+    """The jobs in an order that respects ``after`` (Kahn's algorithm, names sorted for a stable order)."""
+    done, order = set(), []
+    while len(order) < len(jobs):
+        ready = sorted(n for n, j in jobs.items() if n not in done and j.after <= done)
+        if not ready:
+            raise RuntimeError(f"dvc.yaml: a cycle among {sorted(set(jobs) - done)}")
+        for name in ready:
+            done.add(name)
+            order.append(jobs[name])
+    return order
+
+
+def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print) -> None:
+    """Run the stage commands that make the calibration scenes' inputs in ``work`` (each once per params)."""
+    grid.prepare(work, params)
+    stamp = hashlib.sha256((work / "params.yaml").read_bytes()).hexdigest()[:16]
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    jobs = grid.link(grid.expand(dvc, params, PREPARE_STAGES))
+    if priors is not None:
+        for family in params["prior"]["families"]:
+            target = work / "models/prior" / f"{family}.pt"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(priors / f"{family}.pt", target)
+            jobs.pop(f"prior@{family}", None)
+        for job in jobs.values():
+            job.after = {a for a in job.after if a in jobs}
+    marks = work / ".tune"
+    marks.mkdir(exist_ok=True)
+    for job in _order(jobs):
+        mark = marks / f"{job.name}.done"
+        if mark.is_file() and mark.read_text().strip() == stamp:
+            continue
+        log(f"tune: {job.name}: {job.cmd}")
+        cmd = job.cmd.replace("python ", f"{sys.executable} ", 1) if job.cmd.startswith("python ") else job.cmd
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+        result = subprocess.run(cmd, shell=True, cwd=work, env=env)
+        if result.returncode != 0:
+            raise SystemExit(f"tune: {job.name} failed (exit {result.returncode}): {job.cmd}")
+        mark.write_text(stamp + "\n")
+
+
+def unit_path(work: Path, method: str, trial: int, scene: str, seed: int) -> Path:
+    return work / "tuning" / method / f"trial{trial}" / f"{scene}@seed{seed}.json"
+
+
+def units_of(cfg: TuningConfig, methods: list[str]) -> list[tuple[str, int, str, int]]:
+    """Every (method, trial, scene, seed), trials outermost within a method (a deadline leaves whole trials)."""
+    return [(m, i, s, k) for m in methods for i in range(cfg.trials) for s in cfg.scenes for k in cfg.seeds]
+
+
+def launch_velocity(work: Path, params: dict, scene: str, seed: int, device: str) -> Path:
+    """The launch velocity of (scene, seed), fitted once to that seed's observations (the knobs do not touch it)."""
+    from gca.pipeline.settings import Settings
+    from gca.pipeline.train import estimate_scene_velocity, observed_inputs, velocity_path
+
+    shared = velocity_path(work / "tuning" / "velocity" / scene, seed)
+    if not shared.is_file():
+        base = Settings(params)
+        shared.parent.mkdir(parents=True, exist_ok=True)
+        estimate_scene_velocity(base, scene, observed_inputs(base, scene, grid.scene_inputs(work, scene, params), seed),
+                                shared, device)
+    return shared
+
+
+def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, trial: int, values: dict, scene: str,
+             seed: int, device: str) -> dict:
+    """Train and evaluate one (method, trial, scene, seed) with the trial's knob values; its result record."""
+    from gca.pipeline.evaluate import evaluate_trained
+    from gca.pipeline.settings import Settings
+    from gca.pipeline.train import train_method, velocity_path
+    from gca.scenes import truth
+    from gca.train.config import run_dir_name
+    from gca.train.methods import get_method
+
+    inputs = grid.scene_inputs(work, scene, params)
+    shared = launch_velocity(work, params, scene, seed, device)
+    settings = Settings(apply_values(params, cfg, method_name, values))
+    method = get_method(method_name)
+    runs_dir = work / "tuning" / method_name / f"trial{trial}" / scene
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(shared, velocity_path(runs_dir, seed))
+    velocity = tuple(read_json(shared)[k] for k in ("v0", "w0"))
+    name = run_dir_name(method_name, seed)
+    train = train_method(settings, scene, method, inputs, velocity, runs_dir / name, device=device, seed=seed)
+    body = settings.load_body(inputs.particles, inputs.gaussians, device)
+    with truth.bind(inputs.scene_dir, work / "data/gt" / scene):
+        metrics = evaluate_trained(settings, scene, method, inputs, body, runs_dir, runs_dir / "eval", device, seed)
+    return {"method": method_name, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
+            "status": metrics["status"], "chamfer_mean": metrics.get("chamfer_mean"),
+            "term_shares": train.get("term_shares", {}), "train_seconds": train["train_seconds"],
+            "iterations": train["iterations"]}
+
+
+def _git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10).stdout.strip()
+        return out.stdout.strip() + ("+dirty" if dirty else "") if out.returncode == 0 else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _device_name(device: str) -> str:
+    import torch
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        return torch.cuda.get_device_name(torch.device(device))
+    return "cpu"
+
+
+def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str], device: str,
+                 overrides: list[str]) -> tuple[dict, int]:
+    """The tuning record from the unit files in ``work`` and the number of units still missing."""
+    missing = 0
+    record = {"protocol": "issue 22 items 1-2: tuning on calibration scenes only, the same budget for every method",
+              "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+              "commit": _git_commit(), "device": _device_name(device), "profile": params["profile"],
+              "benchmark_version": str(params.get("benchmark", {}).get("version", "")),
+              "overrides": list(overrides), "budget": cfg.budget(),
+              "search": {"kind": "latin_hypercube", "space": "log-uniform per knob", "sampler_seed": cfg.sampler_seed,
+                         "trial_0": "the frozen params"},
+              "objective": {"metric": "chamfer_mean (mean over calibration scenes and seeds; failed = inf)",
+                            "constraint": "each RDGA term's mean norm share |g_T|/|g| >= share_floor_norm and mean "
+                                          "cosine with the total >= share_floor_cos (methods with RDGA terms)",
+                            "share_floor_norm": cfg.share_floor_norm, "share_floor_cos": cfg.share_floor_cos},
+              "methods": {}}
+    for method in methods:
+        knobs = cfg.knobs(method)
+        trials = []
+        for i, values in enumerate(trial_values(cfg, method, params)):
+            units = []
+            for scene in cfg.scenes:
+                for seed in cfg.seeds:
+                    path = unit_path(work, method, i, scene, seed)
+                    if path.is_file():
+                        units.append(read_json(path))
+                    else:
+                        missing += 1
+            trials.append({"trial": i, "values": values, "params": param_values(params, cfg, method, values),
+                           "units": units, "score": score(cfg, method, units)})
+        entry = {"knobs": [{"name": k.name, "keys": list(k.keys), "range": [k.low, k.high], "factor": k.factor}
+                           for k in knobs], "trials": trials}
+        if all(t["score"]["complete"] for t in trials):
+            best = choose(trials)
+            entry["chosen"] = {"trial": best, "values": trials[best]["values"], "params": trials[best]["params"],
+                               "feasible": trials[best]["score"]["feasible"],
+                               "objective": trials[best]["score"]["objective"]}
+        record["methods"][method] = entry
+    return record, missing
+
+
+def parse_args(argv):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, required=True, help="work directory (created; resumable)")
+    ap.add_argument("--params", type=Path, default=ROOT / "params.yaml", help="params file (default: the checkout's)")
+    ap.add_argument("--profile", choices=config.PROFILES, help="scale profile (default: params.yaml's)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a params key (YAML value), e.g. tuning.trials=2; recorded")
+    ap.add_argument("--methods", nargs="*", help="tuned methods (default: every key of tuning.methods)")
+    ap.add_argument("--priors", type=Path, help="take <family>.pt from this folder instead of pretraining")
+    ap.add_argument("--deadline", type=float, help="seconds: start no unit that would not finish by then")
+    ap.add_argument("--shard", default="0/1", help="k/n: run every n-th unit from the k-th (one process per GPU)")
+    ap.add_argument("--record", type=Path, default=ROOT / "tuning" / "record.json", help="the tuning record written")
+    ap.add_argument("--device", default=None, help="cuda or cpu (default: cuda when visible)")
+    ap.add_argument("--no-prepare", action="store_true", help="the work directory's inputs exist: run no stage")
+    ap.add_argument("--prepare-only", action="store_true", help="make the inputs and launch velocities, then stop")
+    return ap.parse_args(argv)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    start = time.monotonic()
+    from gca.pipeline.train import default_device
+
+    device = args.device or default_device()
+    raw, _, cfg = load_config(args.params, args.profile, args.overrides)
+    methods = args.methods or list(cfg.methods)
+    for m in methods:
+        cfg.knobs(m)
+    k, _, n = args.shard.partition("/")
+    shard, shards = int(k), int(n or 1)
+    if not 0 <= shard < shards:
+        raise ConfigError(f"--shard {args.shard}: expected k/n with 0 <= k < n")
+    params_raw = work_params(raw, cfg)
+    params = resolve(params_raw, params_raw["profile"])
+    params["profile"] = params_raw["profile"]
+    from gca.pipeline import schema
+    schema.validate(params, "tune")
+    if not args.no_prepare:
+        prepare_inputs(args.work, params_raw, args.priors)
+    if args.prepare_only:
+        for scene in cfg.scenes:
+            for seed in cfg.seeds:
+                launch_velocity(args.work, params, scene, seed, device)
+        print(f"tune: inputs and launch velocities of {', '.join(cfg.scenes)} ready in {args.work}")
+        return {}
+    todo = [u for j, u in enumerate(units_of(cfg, methods)) if j % shards == shard]
+    trials = {m: trial_values(cfg, m, params) for m in methods}
+    costs = []
+    for j, (method, trial, scene, seed) in enumerate(todo):
+        path = unit_path(args.work, method, trial, scene, seed)
+        if path.is_file():
+            continue
+        elapsed = time.monotonic() - start
+        if args.deadline and costs and elapsed + max(costs) > args.deadline:
+            print(f"tune: deadline: {elapsed:.0f} s used, a unit takes up to {max(costs):.0f} s; stopping (repeat the command)")
+            break
+        t0 = time.monotonic()
+        result = run_unit(args.work, params, cfg, method, trial, trials[method][trial], scene, seed, device)
+        write_json(path, result)
+        costs.append(time.monotonic() - t0)
+        cd = result["chamfer_mean"]
+        print(f"tune {method} trial {trial}/{cfg.trials - 1} {scene} seed {seed}: {result['status']} "
+              f"CD={cd if cd is None else f'{cd:.4g}'} in {costs[-1]:.0f} s ({j + 1}/{len(todo)} units of this shard)",
+              flush=True)
+    record, missing = build_record(args.work, params, cfg, methods, device, args.overrides)
+    write_json(args.work / "tuning" / "record.partial.json", record)
+    if missing:
+        print(f"tune: {missing} units left (all shards); repeat the command (done units are kept)")
+        return record
+    args.record.parent.mkdir(parents=True, exist_ok=True)
+    write_json(args.record, record)
+    try:
+        shown = args.record.resolve().relative_to(ROOT).as_posix()
+    except ValueError:
+        shown = str(args.record)
+    print(f"tune: wrote {args.record}; the params.yaml change to apply (and cite):\n{params_change(record, shown)}")
+    return record
+
+
+if __name__ == "__main__":
+    sys.exit(cli.run(main))
