@@ -56,14 +56,9 @@ def main(argv=None) -> dict:
                 out["new_shape"] = new_shape_demo(settings, cfg, inputs, tmp / "new_shape", background)
             with cli.phase("demo", f"interaction ({cfg.n_frames} frames)"):
                 out["interaction"] = interaction_demo(settings, cfg, inputs, tmp / "interaction", background)
-        for demo in out.values():  # point at the final folder, not the temporary one
-            for key in ("gif", "strip_png"):
-                if key in demo:
-                    demo[key] = str(args.out / Path(demo[key]).relative_to(tmp))
-        out.update(profile=settings.profile, seed=settings.seed)
-        write_json(args.metrics, out)
-        run.log_metrics(out)
-        run.log_artifact(args.out)
+        for demo in out.values():
+            _relocate(demo, tmp, args.out)
+        _record(run, out, settings, args)
     for name in ("new_shape", "interaction"):
         print(f"demo {name}: {out[name]['status']} -> {args.out / name}")
     return out
@@ -75,15 +70,25 @@ def _capture(settings, cfg, inputs, args, background) -> dict:
         with atomic_path(args.out, is_dir=True) as tmp:
             with cli.phase("demo", f"capture {args.capture} thrown anew ({cfg.n_frames} frames)"):
                 out = capture_demo(settings, args.capture, cfg, inputs, tmp, background)
-        for key in ("gif", "strip_png"):
-            if key in out:
-                out[key] = str(args.out / Path(out[key]).relative_to(tmp))
-        out.update(profile=settings.profile, seed=settings.seed)
-        write_json(args.metrics, out)
-        run.log_metrics(out)
-        run.log_artifact(args.out)
+        _relocate(out, tmp, args.out)
+        _record(run, out, settings, args)
     print(f"demo capture {args.capture}: {out['status']} -> {args.out}")
     return out
+
+
+def _relocate(demo: dict, tmp: Path, final: Path) -> None:
+    """Point a demo's media paths at the final folder ``final``, not the temporary one ``tmp`` they were written in."""
+    for key in ("gif", "strip_png"):
+        if key in demo:
+            demo[key] = str(final / Path(demo[key]).relative_to(tmp))
+
+
+def _record(run, out: dict, settings, args) -> None:
+    """The demo's metrics JSON and its MLflow metrics and artifacts."""
+    out.update(profile=settings.profile, seed=settings.seed)
+    write_json(args.metrics, out)
+    run.log_metrics(out)
+    run.log_artifact(args.out)
 
 
 if __name__ == "__main__":
