@@ -12,7 +12,6 @@ from pathlib import Path
 from gca import config
 from gca.pipeline import cli
 from gca.pipeline import schema
-from gca.report.captures import write_capture_pages
 from gca.io import write_json
 from gca.report import ReportConfig, build_reports, summary
 from gca.report.runs import load_runs
@@ -38,7 +37,6 @@ def main(argv: list[str] | None = None) -> list[Path]:
         written = build_reports(args.metrics, args.out, cfg, media_dirs=[m for m in args.media if m.is_dir()],
                                 benchmark_version=str(params.get("benchmark", {}).get("version", "")),
                                 nuisance_dir=args.nuisance)
-        written += write_capture_pages(args.metrics, args.out)  # reports/<profile>/captures/<scene>.md
         headline = summary(load_runs(args.metrics), cfg)
         write_json(args.summary, headline)
         run.log_metrics({"n_records": headline["n_records"],

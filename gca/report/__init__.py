@@ -5,6 +5,7 @@
     <out_dir>/table1_synthetic_cd.{md,csv}  ... table6_ood.{md,csv}, table_law_level.{md,csv}, table_render_metrics.{md,csv}
     <out_dir>/claims.{md,csv}   each claim of the paper: measured effect, bootstrap interval, verdict (gca.report.claims)
     <out_dir>/figures/cd_time_<scene>.png, render_metrics.png, law_curves.png, strip_<scene>.png
+    <out_dir>/captures/<scene>.md and its media   a capture scene's page (gca.report.captures)
     <out_dir>/README.md   one line per file
 
 Published numbers live in :mod:`gca.report.paper`; seeds are reduced in :mod:`gca.report.runs`.
@@ -20,6 +21,7 @@ from typing import Sequence
 
 from gca.io import atomic_path
 from gca.report import claims as claims_mod, figures, paper
+from gca.report.captures import write_capture_pages
 from gca.report.claims import ClaimsConfig
 from gca.report.nuisance import write_nuisance_table
 from gca.report.runs import DivergenceRule, Runs, load_runs, mark_divergence
@@ -143,7 +145,8 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
         nuisance_dir: the ``nuisance`` stage's folder (``metrics/nuisance``): the benchmark_nuisance table.
 
     Returns:
-        The written paths (under ``out_dir``), README last.
+        The written paths (under ``out_dir``): what the README indexes, the README, then the capture scenes'
+        pages and media (``captures/``, :func:`gca.report.captures.write_capture_pages`).
     """
     cfg = cfg or ReportConfig()
     metrics_dir, out_dir = Path(metrics_dir), Path(out_dir)
@@ -166,6 +169,7 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
         written += media
         written.append(_write_index(written, tmp, titles, sum(len(r) for r in runs.values()), set(media),
                                     benchmark_version))
+        written += write_capture_pages(metrics_dir, tmp)  # inside the folder replaced as one (not in the index)
         result = [out_dir / p.relative_to(tmp) for p in written]
     return result
 
