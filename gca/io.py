@@ -109,6 +109,7 @@ def atomic_path(path: str | os.PathLike, is_dir: bool = False) -> Iterator[Path]
         os.close(fd)
         tmp = Path(name)
         os.chmod(tmp, 0o666 & ~mask)
+    old = None
     try:
         yield tmp
         if is_dir:
@@ -116,15 +117,23 @@ def atomic_path(path: str | os.PathLike, is_dir: bool = False) -> Iterator[Path]
                 old = path.with_name(f".{path.name}.old{os.getpid()}")
                 _remove(old)
                 path.rename(old)
-                tmp.rename(path)
-                _remove(old)
-            else:
-                tmp.rename(path)
+            tmp.rename(path)
         else:
             os.replace(tmp, path)
-    except BaseException:
+    except BaseException:  # the previous version stays (or is put back when the swap was cut between its renames)
         _remove(tmp)
+        if old is not None and old.exists():
+            if path.exists():
+                _remove(old)
+            else:
+                old.rename(path)
         raise
+    if old is not None:
+        try:
+            _remove(old)
+        except BaseException:  # SIGTERM while the previous version is deleted: finish deleting it, then stop
+            _remove(old)
+            raise
 
 
 class InputError(ValueError):

@@ -28,6 +28,46 @@ def test_atomic_dir_replaces_whole_directory(tmp_path):
     assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
 
 
+@pytest.mark.parametrize("cut", ["between the renames", "while the previous version is deleted"])
+def test_a_stop_inside_a_folder_swap_leaves_one_complete_version_and_nothing_parked(tmp_path, monkeypatch, cut):
+    """Issue 24 item 7: SIGTERM (``gca.stop.Terminated``) inside the swap of a folder: cut between parking the
+    previous version and renaming the new one in, the previous version is put back; cut while the parked one
+    is deleted, the new version stays and the parked one is deleted all the same. No ``.scene.old<pid>`` is
+    left either way (before, both cuts left it, and the first one no output)."""
+    import shutil
+    from pathlib import Path
+
+    from gca import stop
+
+    target = tmp_path / "scene"
+    with io.atomic_path(target, is_dir=True) as tmp:
+        (tmp / "old.txt").write_text("previous")
+    rename, rmtree, cuts = Path.rename, shutil.rmtree, []
+
+    def rename_cut(self, to):
+        if cut == "between the renames" and Path(to) == target and not cuts:
+            cuts.append(self)
+            raise stop.Terminated()
+        return rename(self, to)
+
+    def rmtree_cut(path, *args, **kwargs):
+        if cut == "while the previous version is deleted" and ".old" in Path(path).name and not cuts:
+            cuts.append(path)
+            (Path(path) / "old.txt").unlink()  # part of it deleted
+            raise stop.Terminated()
+        return rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "rename", rename_cut)
+    monkeypatch.setattr(io.shutil, "rmtree", rmtree_cut)
+    with pytest.raises(stop.Terminated):
+        with io.atomic_path(target, is_dir=True) as tmp:
+            (tmp / "new.txt").write_text("next")
+    assert cuts, "the cut was not reached"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+    expected = ["old.txt"] if cut == "between the renames" else ["new.txt"]
+    assert sorted(p.name for p in target.iterdir()) == expected
+
+
 def test_write_json_is_byte_stable_and_maps_nonfinite_to_null(tmp_path):
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     io.write_json(a, {"y": float("nan"), "x": [1.0, float("inf")]})

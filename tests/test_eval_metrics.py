@@ -159,3 +159,25 @@ def test_metrics_config_builds_and_validates():
     assert cfg.response_sweeps == ("shear",) and cfg.ssim_window == 7
     with pytest.raises(ValueError, match="eval/config.py"):
         MetricsConfig(response_sweeps=("torsion",))
+
+
+def test_a_stop_while_an_evaluation_image_is_written_leaves_no_half_written_file(tmp_path, monkeypatch):
+    """Issue 24 item 7 (found by tests/test_fault_injection.py): SIGTERM (``gca.stop.Terminated``) in the middle
+    of writing the strip, the rollout GIF or the CD plot leaves neither a half-written file nor a temporary."""
+    import matplotlib.figure
+
+    from gca import stop
+    from gca.eval import evaluate
+
+    def cut(path, *args, **kwargs):  # half of a file, then the signal
+        open(path, "wb").write(b"\x89PNG\r\n\x1a\n half")
+        raise stop.Terminated()
+
+    monkeypatch.setattr(evaluate.iio, "imwrite", cut)
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda self, path, **kwargs: cut(path))
+    frames = np.zeros((2, 4, 4, 3))
+    for write in (lambda: evaluate.write_strip(tmp_path / "strip.png", frames, frames),
+                  lambda: evaluate.plot_chamfer(tmp_path / "cd_time.png", [0.0, 0.01], [0.1, 0.2])):
+        with pytest.raises(stop.Terminated):
+            write()
+        assert sorted(p.name for p in tmp_path.iterdir()) == []

@@ -213,6 +213,17 @@ def test_sigterm_ends_a_stage_cleanly(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_sigterm_while_the_stage_start_sweeps_is_a_clean_stop_too(tmp_path, capsys, monkeypatch):
+    """Issue 24 item 7: the start's sweep of stale temporaries is inside the clean-stop handling (it was
+    before it: a SIGTERM there ended the stage with 143 and no message)."""
+    def sweeping(folder):
+        raise stop.Terminated()
+
+    monkeypatch.setattr(cli, "sweep", sweeping)
+    assert cli.run(lambda argv: None, ["--out", str(tmp_path / "out")], name="assets") == 143
+    assert capsys.readouterr().err == "assets: stopped by SIGTERM\n"
+
+
 def test_sigterm_in_training_waits_for_the_checkpoint():
     saved = []
     previous = signal.getsignal(signal.SIGTERM)

@@ -243,3 +243,30 @@ def test_strips_come_from_the_reported_runs_not_the_current_checkout(tmp_path, m
     mpimg.imsave(kept / rel, np.ones((8, 32, 3)))
     written = build_reports(kept / "metrics" / "eval", tmp_path / "r2")
     assert "strip_ball.png" in {p.name for p in written}
+
+
+def test_a_report_stopped_while_it_copies_capture_media_keeps_the_previous_one(metrics, tmp_path, monkeypatch):
+    """Issue 24 item 7: a capture scene's page and media are written inside the report folder replaced as one;
+    stopped (SIGTERM) while copying them, the previous report stays as it was and nothing is left beside it."""
+    from gca import stop
+    from gca.report import captures
+
+    out = tmp_path / "reports"
+    build_reports(metrics, out, ReportConfig(dpi=40))
+    before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    gif = tmp_path / "resim.gif"
+    gif.write_bytes(b"GIF89a")
+    _write(metrics, {"scene": "mine", "method": "gca", "kind": "capture", "status": "ok", "resim_gif": str(gif)})
+
+    def cut(src, dst):
+        Path(dst).write_bytes(b"GIF")
+        raise stop.Terminated()
+
+    monkeypatch.setattr(captures.shutil, "copyfile", cut)
+    with pytest.raises(stop.Terminated):
+        build_reports(metrics, out, ReportConfig(dpi=40))
+    assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    monkeypatch.undo()
+    written = build_reports(metrics, out, ReportConfig(dpi=40))
+    assert out / "captures" / "mine.md" in written and (out / "captures" / "mine_gca_resim.gif").read_bytes() == b"GIF89a"

@@ -355,6 +355,27 @@ class CPR:
         self.group_ids = torch.arange(len(self.subset)) % self.n_groups  # S is already a random order
         self._calls, self._fits, self._on_device = 0, None, {}
 
+    def state(self) -> dict:
+        """What the run has changed: its call count and the most recent fits (the calls between two refits,
+        ``refit_every`` > 1, reuse them). A training checkpoint holds it (tensors, numbers and names only),
+        so a resumed run refits, and reuses, where the uninterrupted run would."""
+        def fits(table):
+            return {n: {"name": f.name, **{k: getattr(f, k) for k in HypothesisFit._TENSORS}} for n, f in table.items()}
+
+        cached = self._fits
+        return {"calls": self._calls, "fits": None if cached is None else {
+            "elastic": fits(cached["elastic"]), "plastic": fits(cached["plastic"]), "lam_over_mu": cached["lam_over_mu"]}}
+
+    def load_state(self, state: dict) -> None:
+        """Continue from :meth:`state` (of a CPR of the same configuration and particles)."""
+        def fits(table):
+            return {n: HypothesisFit(**f) for n, f in table.items()}
+
+        cached = state["fits"]
+        self._calls = int(state["calls"])
+        self._fits = None if cached is None else {"elastic": fits(cached["elastic"]), "plastic": fits(cached["plastic"]),
+                                                  "lam_over_mu": cached["lam_over_mu"]}
+
     def _indices(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """(S, group ids) on ``device``, copied once per device."""
         if device not in self._on_device:

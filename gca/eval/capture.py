@@ -23,6 +23,7 @@ from gca.align.cpr import CPR, CPRConfig, ELASTIC_PARAMS
 from gca.eval.config import MetricsConfig
 from gca.eval.evaluate import predict
 from gca.eval.image import psnr, ssim
+from gca.io import atomic_path
 from gca.scenes.capture import all_frames
 from gca.scenes.store import SceneDataError, TRAIN_VIEW, load_plate, read_meta
 from gca.scenes.world import Body, gaussians_at, render_gaussians
@@ -142,10 +143,13 @@ def evaluate_capture(solver, material, body: Body, velocity: tuple[list, list], 
         metrics["nearest_law"] = nearest_law(material, traj.F[frames[k]], traj.F_trial[frames[k]], cpr_cfg, seed)
     out_dir.mkdir(parents=True, exist_ok=True)
     side = np.concatenate([rgb, pred], axis=2)  # input | re-simulation
-    iio.imwrite(out_dir / "resim.gif", (side * 255 + 0.5).astype(np.uint8),
-                duration=1000.0 / float(meta["fps"]), loop=0)
+    with atomic_path(out_dir / "resim.gif") as tmp:  # a stage stopped while it writes leaves no half-written file
+        iio.imwrite(tmp, (side * 255 + 0.5).astype(np.uint8), extension=".gif", duration=1000.0 / float(meta["fps"]),
+                    loop=0)
     idx = np.linspace(0, len(frames) - 1, min(4, len(frames))).round().astype(int)
-    iio.imwrite(out_dir / "strip.png", (np.concatenate([np.concatenate(list(rgb[idx]), 1),
-                                                        np.concatenate(list(pred[idx]), 1)], 0) * 255 + 0.5).astype(np.uint8))
+    with atomic_path(out_dir / "strip.png") as tmp:
+        iio.imwrite(tmp, (np.concatenate([np.concatenate(list(rgb[idx]), 1),
+                                          np.concatenate(list(pred[idx]), 1)], 0) * 255 + 0.5).astype(np.uint8),
+                    extension=".png")
     metrics.update(resim_gif=str(out_dir / "resim.gif"), strip_png=str(out_dir / "strip.png"))
     return metrics

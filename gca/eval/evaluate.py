@@ -19,6 +19,7 @@ import torch
 
 from gca.eval.config import MetricsConfig
 from gca.efficiency import synced_clock
+from gca.io import atomic_path
 from gca.eval.geometry import CHAMFER_DEFINITION, CHAMFER_DEFINITION_SQUARED, chamfer_over_time
 from gca.eval.image import lpips_or_reason, psnr, ssim
 from gca.eval.law_response import law_response_curve, law_response_error
@@ -103,7 +104,8 @@ def write_strip(path: Path, frames: np.ndarray, gt: np.ndarray, n: int = 4) -> N
     idx = np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int)
     top = np.concatenate([gt[i] for i in idx], axis=1)
     bottom = np.concatenate([frames[i] for i in idx], axis=1)
-    iio.imwrite(path, (np.concatenate([top, bottom], axis=0) * 255 + 0.5).astype(np.uint8))
+    with atomic_path(path) as tmp:  # a stage stopped while it writes leaves no half-written image
+        iio.imwrite(tmp, (np.concatenate([top, bottom], axis=0) * 255 + 0.5).astype(np.uint8), extension=".png")
 
 
 def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], scene_dir: Path, background,
@@ -133,7 +135,8 @@ def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, 
     gt_rgb = load_views(scene_dir, ["train0"])["train0"].rgb
     out_dir.mkdir(parents=True, exist_ok=True)
     write_strip(out_dir / "strip.png", rendered["train0"], gt_rgb)
-    iio.imwrite(out_dir / "rollout.gif", (rendered["train0"] * 255 + 0.5).astype(np.uint8), duration=80, loop=0)
+    with atomic_path(out_dir / "rollout.gif") as tmp:
+        iio.imwrite(tmp, (rendered["train0"] * 255 + 0.5).astype(np.uint8), extension=".gif", duration=80, loop=0)
     metrics["strip_png"] = str(out_dir / "strip.png")
     plot_chamfer(out_dir / "cd_time.png", meta["times"], metrics["chamfer_per_frame"][1:])
     return metrics
@@ -149,5 +152,6 @@ def plot_chamfer(path: Path, times: list[float], cd: list[float]) -> None:
     ax.plot(times, cd, marker="o", ms=3)
     ax.set(xlabel="time [s]", ylabel="Chamfer distance [m]", title="CD over time")
     fig.tight_layout()
-    fig.savefig(path, format="png", metadata={"Software": None})
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", metadata={"Software": None})
     plt.close(fig)

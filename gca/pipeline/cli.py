@@ -68,10 +68,10 @@ def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, 
     stop.install()
     if quiet():
         os.environ.setdefault("TQDM_DISABLE", "1")
-    for folder in _output_folders(argv):
-        for path in sweep(folder):
-            print(f"{name}: removed the stale temporary {path} (an earlier run was killed)", file=sys.stderr)
     try:
+        for folder in _output_folders(argv):  # inside: a SIGTERM that comes while it sweeps is a clean stop too
+            for path in sweep(folder):
+                print(f"{name}: removed the stale temporary {path} (an earlier run was killed)", file=sys.stderr)
         main(argv)
     except stop.Terminated as exc:
         print(f"{name}: {exc}", file=sys.stderr)

@@ -151,7 +151,8 @@ def build_reports(metrics_dir: str | os.PathLike, out_dir: str | os.PathLike,
             (the chosen knobs and each RDGA term's gradient share on the calibration scenes); None: no page.
 
     Returns:
-        The written paths (under ``out_dir``), README last.
+        The written paths (under ``out_dir``), README last (the capture scenes' pages and media, ``captures/``,
+        are written inside the folder that replaces ``out_dir`` as a whole).
     """
     cfg = cfg or ReportConfig()
     metrics_dir, out_dir = Path(metrics_dir), Path(out_dir)

@@ -84,7 +84,7 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
         return TrainResult("ok", 0, [], "nothing to train", 0.0)
     opt, sched = make_optimizer(law, cfg)
     best = BestLaw()
-    it0, history, rejected, seconds_before = resume_checkpoint(checkpoint_path, law, opt, sched, best)
+    it0, history, rejected, seconds_before = resume_checkpoint(checkpoint_path, law, opt, sched, best, objective)
     resumed = {"resumed_at": it0, "seconds_before": seconds_before}
     n_video = len(data.video_frames)
     undo, in_a_row = None, 0  # the last update (none yet after a resume: it is not in the checkpoint)
@@ -132,7 +132,7 @@ def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Object
         bar.update(1)
         if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stop.requested()):
             save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
-                             seconds_before + time.perf_counter() - start)
+                             seconds_before + time.perf_counter() - start, objective)
         stop.check()  # SIGTERM under gca.stop.deferred: stop here, checkpointed
     bar.close()
     objective.frame_weights = None  # after training the objective is the whole video, every frame at weight 1

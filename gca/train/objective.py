@@ -103,6 +103,16 @@ class Objective:
         self.est_depth = torch.as_tensor(data.est_depth, dtype=x0.dtype, device=x0.device)
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
+    def state(self) -> dict:
+        """What the objective carries from one iteration to the next (CPR's call count and fits), for a
+        training checkpoint: without it a resumed run would refit CPR where the uninterrupted one reuses."""
+        return {"cpr": None if self.cpr is None else self.cpr.state()}
+
+    def load_state(self, state: dict | None) -> None:
+        """Continue from :meth:`state` (None or no CPR state: nothing to restore)."""
+        if state and state.get("cpr") is not None and self.cpr is not None:
+            self.cpr.load_state(state["cpr"])
+
     def gradient(self, traj: Rollout, n_video: int, law: LearnedLaw,
                  lap: Callable[[str], None] = lambda phase: None, shares: bool = False) -> tuple[torch.Tensor, dict]:
         """The training loss over video frames ``0 .. n_video - 1`` and its gradient, left in the law's

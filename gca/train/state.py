@@ -119,14 +119,18 @@ class BestLaw:
 
 
 def save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list,
-                     best: BestLaw, seconds: float) -> None:
+                     best: BestLaw, seconds: float, objective=None) -> None:
+    """Everything a resumed run needs to go on as the uninterrupted one would (``objective``: an
+    :class:`gca.train.objective.Objective`, whose CPR fits carry over between iterations)."""
     save_torch({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(), "iteration": it,
-                "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds}, path)
+                "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds,
+                "objective": None if objective is None else objective.state()}, path)
 
 
-def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: BestLaw) -> tuple[int, list, list, float]:
-    """Load a checkpoint into the law, optimiser, schedule and best-law tracker; returns
-    ``(iteration, history, rejected updates, training seconds spent before it)``."""
+def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: BestLaw,
+                      objective=None) -> tuple[int, list, list, float]:
+    """Load a checkpoint into the law, optimiser, schedule, best-law tracker and (given) the objective;
+    returns ``(iteration, history, rejected updates, training seconds spent before it)``."""
     if path is None or not path.is_file():
         return 0, [], [], 0.0
     ckpt = torch.load(path, weights_only=False, map_location=law.trainable()[0].device)
@@ -134,5 +138,7 @@ def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: Best
     opt.load_state_dict(ckpt["opt"])
     sched.load_state_dict(ckpt["sched"])
     best.load(ckpt.get("best"))
+    if objective is not None:
+        objective.load_state(ckpt.get("objective"))
     return (int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", [])),
             float(ckpt.get("seconds", 0.0)))
