@@ -91,18 +91,21 @@ def test_deadline_submits_nothing_that_would_end_late(tmp_path):
 
 
 def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):
+    # a stage that, stopped (SIGTERM), takes 1 s to save the iteration it was in, as training checkpoints first
     (tmp_path / "fake_train.py").write_text(
-        "import os, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
-        "for i in range(n, 12):\n    open('ckpt', 'w').write(str(i + 1))\n    time.sleep(0.5)\n")
+        "import os, signal, sys, time\nn = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
+        "i = n\n"
+        "def stop(*_):\n    time.sleep(1.0)\n    open('ckpt', 'w').write(str(i + 1))\n    sys.exit(143)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "for i in range(n, 12):\n    time.sleep(0.5)\n    open('ckpt', 'w').write(str(i + 1))\n")
     job = grid.Job("train@s:gca", "python fake_train.py", [], [], cost=10.0)
     monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
     lines = []
     assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=4.0,
                         poll_s=0.1) == {job.name: "todo"}
     assert any(ln.startswith(f"stop  {job.name} at the deadline") for ln in lines)
-    time.sleep(1.5)  # the cancelled job's processes are gone: its checkpoint no longer moves
-    stopped_at = int((tmp_path / "ckpt").read_text())
-    time.sleep(1.0)
+    stopped_at = int((tmp_path / "ckpt").read_text())  # run returns once the job has ended: nothing moves after
+    time.sleep(1.5)
     assert int((tmp_path / "ckpt").read_text()) == stopped_at and 1 <= stopped_at < 12
     assert not dispatch.marker(tmp_path, job.name).exists()
     assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, poll_s=0.1) == {job.name: "done"}

@@ -412,12 +412,28 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             return state
         if end is not None and time.monotonic() >= end:
             reap()
-            for n in list(handles):
-                engine.cancel(handles.pop(n))
+            stopping = {n: handles.pop(n) for n in list(handles)}
+            for n, handle in stopping.items():
+                engine.cancel(handle)
                 state[n] = "todo"
                 log(f"stop  {n} at the deadline (resumes next time)")
+            _wait_stopped(engine, stopping, log, poll_s)
             return state
         time.sleep(poll_s)
+
+
+def _wait_stopped(engine: Engine, stopping: dict, log, poll_s: float) -> None:
+    """Wait until the cancelled jobs ``stopping`` (name -> handle) have ended (a stage stopped with SIGTERM
+    checkpoints first; SIGKILL follows after ``STOP_GRACE_S``), at most ``STOP_GRACE_S`` + 10 s, so that the next
+    call never starts a job whose previous process still writes its outputs."""
+    t_end = time.monotonic() + STOP_GRACE_S + 10.0
+    left = dict(stopping)
+    while left and time.monotonic() < t_end:
+        left = {n: h for n, h in left.items() if engine.state(h) == RUNNING}
+        if left:
+            time.sleep(min(poll_s, 0.2))
+    for n in left:
+        log(f"stop  {n}: still running {STOP_GRACE_S + 10.0:.0f} s after it was stopped")
 
 
 def dvc_stages(done: dict[str, str]) -> list[str]:
