@@ -308,3 +308,19 @@ def test_pipeline_script_leaves_params_yaml_as_it_found_it(tmp_path):
     assert (work / "params.yaml").read_text() == original
     assert ("pipeline: params.yaml put back as it was (dvc exp run -S profile=ci had written the override into it; "
             "this run used profile=ci, recorded in dvc.lock and dvc exp show)") in proc.stderr
+
+
+def test_progress_bars_are_quiet_under_ci_although_tqdm_was_imported_first(tmp_path):
+    """Issue 24 item 5: under CI a stage prints no progress bar, although tqdm read its environment when the
+    library imported it (before cli.run); the same script run without cli.run prints the bar (control)."""
+    script = tmp_path / "stage.py"
+    script.write_text(
+        "import sys\nfrom tqdm import tqdm\nfrom gca.pipeline import cli\n"
+        "def main(argv):\n    for _ in tqdm(range(3), desc='work-bar'):\n        pass\n"
+        "if sys.argv[1:] == ['bare']:\n    main([])\nelse:\n    sys.exit(cli.run(main, []))\n")
+    env = {**os.environ, "CI": "true"}
+    env.pop("TQDM_DISABLE", None)
+    quiet = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
+    bare = subprocess.run([sys.executable, str(script), "bare"], capture_output=True, text=True, env=env, timeout=120)
+    assert quiet.returncode == 0 and "work-bar" not in quiet.stderr
+    assert bare.returncode == 0 and "work-bar" in bare.stderr

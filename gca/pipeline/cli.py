@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import sys
 import time
@@ -45,6 +46,27 @@ def quiet() -> bool:
     return os.environ.get("CI", "").lower() in ("1", "true", "yes") or not sys.stderr.isatty()
 
 
+def quiet_progress() -> None:
+    """Turn every tqdm bar of this process off. ``TQDM_DISABLE`` alone does not do it: tqdm reads its environment
+    variables when it is imported, and a stage script has imported it (through the library) before :func:`run`;
+    so ``disable`` defaults to True on the class as well (a bar that passes ``disable`` itself still decides)."""
+    import tqdm.std
+
+    os.environ.setdefault("TQDM_DISABLE", "1")
+    cls = tqdm.std.tqdm
+    init = cls.__init__
+    if getattr(init, "_gca_quiet", False):
+        return
+
+    @functools.wraps(init)
+    def quiet_init(self, *args, **kwargs):
+        kwargs.setdefault("disable", True)
+        init(self, *args, **kwargs)
+
+    quiet_init._gca_quiet = True
+    cls.__init__ = quiet_init
+
+
 def _message(exc: BaseException) -> str:
     text = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
     return " ".join(str(text).split()) or type(exc).__name__
@@ -67,7 +89,7 @@ def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, 
     debug = "--debug" in argv
     stop.install()
     if quiet():
-        os.environ.setdefault("TQDM_DISABLE", "1")
+        quiet_progress()
     try:
         for folder in _output_folders(argv):  # inside: a SIGTERM that comes while it sweeps is a clean stop too
             for path in sweep(folder):
