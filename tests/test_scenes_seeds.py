@@ -246,3 +246,26 @@ def test_each_seeds_runs_read_that_seeds_observations(scenes, tmp_path, monkeypa
                           "--out", str(runs), "--methods", "gca", "--velocity", str(velocity_path(runs, 0)),
                           "--params", str(params)])
     assert get_method("nclaw").trains is False
+
+
+def test_nuisance_measures_every_seeds_own_draws(scenes, tmp_path):
+    """The nuisance stage measures seed 0's observations (the headline numbers, as before) and each other seed's
+    own draws under ``seeds``; with train.seeds [0] there is no ``seeds`` entry."""
+    import nuisance
+    import preprocess
+
+    tmp, _, _, _ = scenes
+    params = _params(tmp_path, SEEDS)
+    prep = tmp_path / "prep"
+    preprocess.main(["--scene", "tiny", "--scene-dir", str(tmp / "three/scene"), "--out", str(prep),
+                     "--metrics", str(tmp_path / "prep.json"), "--params", str(params)])
+    args = ["--scene", "tiny", "--scene-dir", str(tmp / "three/scene"), "--gt", str(tmp / "three/gt"),
+            "--prep", str(prep)]
+    three = nuisance.main(args + ["--out", str(tmp_path / "n3.json"), "--params", str(params)])
+    one = nuisance.main(args + ["--out", str(tmp_path / "n1.json"), "--params", str(_params(tmp_path, (0,)))])
+    assert "seeds" not in one and one["mask_iou_mean"] == three["mask_iou_mean"]
+    assert sorted(three["seeds"]) == ["1", "2"]
+    for k in ("1", "2"):
+        m = three["seeds"][k]
+        assert 0.0 < m["mask_iou_mean"] <= 1.0 and "image_mean_per_frame" not in m
+        assert m["lighting_unexplained_share"] != three["lighting_unexplained_share"]  # its own lighting draw
