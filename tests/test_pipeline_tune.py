@@ -120,6 +120,28 @@ def test_the_objective_is_cd_with_each_rdga_term_carrying_a_share():
     assert not tuning.score(cfg, "neuma", [])["complete"]
 
 
+def test_a_result_made_under_another_setup_is_not_this_units(tmp_path):
+    """A unit's result counts only under the stamp of its own setup (the trial's values applied to the params,
+    method, scene, seed): re-run with other trials (tuning.sampler_seed) or other params, the old files are not
+    taken for the new units, and the record counts them as missing (negative control: the same setup counts)."""
+    params, cfg = _shipped()
+    values = tuning.trial_values(cfg, "gca", params)[1]
+    path = tune.unit_path(tmp_path, "gca", 1, "calib_torus", 0)
+    made = tune.unit_stamp(params, cfg, "gca", values, "calib_torus", 0)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({**_unit(0.01), "stamp": made}))
+    assert tune.done_unit(path, made) is not None  # the same setup: done
+    other_cfg = config.build(TuningConfig, {**params["tuning"], "sampler_seed": cfg.sampler_seed + 1}, "tuning")
+    other_values = tuning.trial_values(other_cfg, "gca", params)[1]
+    assert other_values != values
+    assert tune.done_unit(path, tune.unit_stamp(params, other_cfg, "gca", other_values, "calib_torus", 0)) is None
+    changed = {**params, "sim": {**params["sim"], "friction": 0.5}}
+    assert tune.done_unit(path, tune.unit_stamp(changed, cfg, "gca", values, "calib_torus", 0)) is None
+    assert tune.done_unit(path, tune.unit_stamp(params, cfg, "gca", values, "calib_torus", 1)) is None
+    path.write_text(json.dumps(_unit(0.01)))  # an unstamped (older) result
+    assert tune.done_unit(path, made) is None
+
+
 def test_frozen_params_are_the_cited_records_choice():
     """params.yaml's tuned knobs cannot drift from the record it cites (and a record cannot sit uncited)."""
     params, cfg = _shipped()

@@ -417,7 +417,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 engine.cancel(handle)
                 state[n] = "todo"
                 log(f"stop  {n} at the deadline (resumes next time)")
-            _wait_stopped(engine, stopping, log, poll_s)
+            if not engine.dependencies:  # a local job: its process ends here (SLURM's end is SLURM's to see)
+                _wait_stopped(engine, stopping, log, poll_s)
             return state
         time.sleep(poll_s)
 

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import yaml
 
-from gca import config
+from gca import config, stamp
 from gca.config import ConfigError, resolve
 from gca.io import read_json, write_json
 from gca.pipeline import cli, grid
@@ -114,6 +114,26 @@ def unit_path(work: Path, method: str, trial: int, scene: str, seed: int) -> Pat
     return work / "tuning" / method / f"trial{trial}" / f"{scene}@seed{seed}.json"
 
 
+def _stamp(params: dict, extra) -> str:
+    """A hash of every params section but ``tuning`` (the trial's knob values are already set in ``params``) and
+    ``extra``: what a unit's result, checkpoint or shared launch velocity was made under (gca.stamp)."""
+    return stamp.fingerprint(params, sorted(k for k in params if k != "tuning"), extra=extra)
+
+
+def unit_stamp(params: dict, cfg: TuningConfig, method: str, values: dict, scene: str, seed: int) -> str:
+    """The stamp of one unit: the params with the trial's values applied, the method, scene and seed."""
+    return _stamp(apply_values(params, cfg, method, values), ["unit", method, scene, seed])
+
+
+def done_unit(path: Path, expected: str) -> dict | None:
+    """The unit's result when ``path`` holds one made under the stamp ``expected`` (another trial setup, another
+    profile or other params give another stamp: that result is not this unit's), else None."""
+    if not path.is_file():
+        return None
+    result = read_json(path)
+    return result if stamp.matches(result, expected) else None
+
+
 def units_of(cfg: TuningConfig, methods: list[str]) -> list[tuple[str, int, str, int]]:
     """Every (method, trial, scene, seed), trials outermost within a method (a deadline leaves whole trials)."""
     return [(m, i, s, k) for m in methods for i in range(cfg.trials) for s in cfg.scenes for k in cfg.seeds]
@@ -125,11 +145,13 @@ def launch_velocity(work: Path, params: dict, scene: str, seed: int, device: str
     from gca.pipeline.train import estimate_scene_velocity, observed_inputs, velocity_path
 
     shared = velocity_path(work / "tuning" / "velocity" / scene, seed)
-    if not shared.is_file():
+    expected = _stamp(params, ["velocity", scene, seed])
+    if not (shared.is_file() and stamp.matches(read_json(shared), expected)):
         base = Settings(params)
         shared.parent.mkdir(parents=True, exist_ok=True)
         estimate_scene_velocity(base, scene, observed_inputs(base, scene, grid.scene_inputs(work, scene, params), seed),
                                 shared, device)
+        write_json(shared, {**read_json(shared), stamp.KEY: expected})
     return shared
 
 
@@ -152,14 +174,18 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
     shutil.copyfile(shared, velocity_path(runs_dir, seed))
     velocity = tuple(read_json(shared)[k] for k in ("v0", "w0"))
     name = run_dir_name(method_name, seed)
+    expected = unit_stamp(params, cfg, method_name, values, scene, seed)
+    (runs_dir / name).mkdir(parents=True, exist_ok=True)
+    stamp.guard_checkpoint(runs_dir / name / "checkpoint.pt", expected)  # a killed unit resumes only its own setup
     train = train_method(settings, scene, method, inputs, velocity, runs_dir / name, device=device, seed=seed)
+    stamp.clear_checkpoint(runs_dir / name / "checkpoint.pt")
     body = settings.load_body(inputs.particles, inputs.gaussians, device)
     with truth.bind(inputs.scene_dir, work / "data/gt" / scene):
         metrics = evaluate_trained(settings, scene, method, inputs, body, runs_dir, runs_dir / "eval", device, seed)
     return {"method": method_name, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
             "status": metrics["status"], "chamfer_mean": metrics.get("chamfer_mean"),
             "term_shares": train.get("term_shares", {}), "train_seconds": train["train_seconds"],
-            "iterations": train["iterations"]}
+            "iterations": train["iterations"], stamp.KEY: expected}
 
 
 def _git_commit() -> str:
@@ -203,9 +229,10 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
             units = []
             for scene in cfg.scenes:
                 for seed in cfg.seeds:
-                    path = unit_path(work, method, i, scene, seed)
-                    if path.is_file():
-                        units.append(read_json(path))
+                    result = done_unit(unit_path(work, method, i, scene, seed),
+                                       unit_stamp(params, cfg, method, values, scene, seed))
+                    if result is not None:
+                        units.append(result)
                     else:
                         missing += 1
             trials.append({"trial": i, "values": values, "params": param_values(params, cfg, method, values),
@@ -271,7 +298,7 @@ def main(argv=None) -> dict:
     costs = []
     for j, (method, trial, scene, seed) in enumerate(todo):
         path = unit_path(args.work, method, trial, scene, seed)
-        if path.is_file():
+        if done_unit(path, unit_stamp(params, cfg, method, trials[method][trial], scene, seed)) is not None:
             continue
         elapsed = time.monotonic() - start
         if args.deadline and costs and elapsed + max(costs) > args.deadline:

@@ -38,7 +38,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from gca.config import ConfigError, section
-from gca.train.methods import _RDGA_TERMS, get_method
+from gca.train.methods import RDGA_TERMS, get_method
 
 
 DEFAULT_METHODS: dict[str, dict[str, dict]] = {
@@ -202,7 +202,7 @@ def param_values(params: Mapping, cfg: TuningConfig, method: str, values: Mappin
 
 def rdga_terms(method: str) -> list[str]:
     """The RDGA terms the method declares (GCA: silhouette, global, anchor), whose shares are constrained."""
-    return [t for t in get_method(method).terms if t in _RDGA_TERMS]
+    return [t for t in get_method(method).terms if t in RDGA_TERMS]
 
 
 def score(cfg: TuningConfig, method: str, units: list[dict]) -> dict:

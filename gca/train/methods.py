@@ -56,7 +56,7 @@ TERMS: dict[str, str] = {
     "anchor_l1": "the anchor term with an L1 depth difference in place of the rank correlation (Table 3 ablation)",
     "cpr": "R_e + R_p of the constitutive prior regularizer (Algorithm 2)",
 }
-_RDGA_TERMS = ("silhouette", "global", "anchor", "anchor_l1")
+RDGA_TERMS = ("silhouette", "global", "anchor", "anchor_l1")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,7 +114,7 @@ class Method:
         A method with alignment terms but no ``silhouette`` weighs L_mask 0 (``lambda_mask``): RDGA still
         renders the mask, which the alignment terms need (only ``benchmarks/grad_terms.py`` does this).
         """
-        if not any(t in self.terms for t in _RDGA_TERMS):
+        if not any(t in self.terms for t in RDGA_TERMS):
             return None
         switches = {"enabled": True, "use_global": "global" in self.terms,
                     "use_anchor": "anchor" in self.terms or "anchor_l1" in self.terms,

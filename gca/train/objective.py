@@ -246,7 +246,7 @@ class Objective:
                        params: list[torch.Tensor]) -> tuple[torch.Tensor, list, dict[str, float]]:
         """CPR's value and gradient, ``chunk_frames`` frames at a time, each chunk's graph freed before
         the next: the neural law evaluated on every particle of every CPR frame keeps its activations for
-        backward (127k particles x 25 frames: ~9 GiB), a chunk only its share.
+        backward (ball, ~30k particles: ~0.08 GiB per frame on the H100, NOTES s12), a chunk only its share.
 
         Returns ``(R_e + R_p detached [], [grad of each param or None], {"R_e", "R_p"} as the stats
         report them: divided by ``n_video``)``. Equal to differentiating :meth:`_cpr_terms` (test).
@@ -316,8 +316,8 @@ class Objective:
         if u8.is_cuda:
             host = torch.empty(u8.shape, dtype=torch.uint8, pin_memory=True)
             host.copy_(u8, non_blocking=True)
-            ready = torch.cuda.Event()
-            ready.record()
+            ready = torch.cuda.Event(blocking=True)  # the waiting threads sleep instead of spinning on the host
+            ready.record(torch.cuda.current_stream(u8.device))
         else:
             host = u8
         frames, keypoints = host.numpy(), self.data.keypoints
