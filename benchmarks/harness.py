@@ -127,6 +127,22 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
     return rows
 
 
+def keep_stopped(work: Path, out: Path, tag: str) -> list[Path]:
+    """A run stopped by SIGTERM: each training checkpoint's iterations so far (history with the per-iteration phase
+    times, ``sim_refine``, rejected updates) as ``stopped_<run>[_tag].json`` in ``out``, so a run cut by a time limit
+    still says where its time went."""
+    written = []
+    for ckpt in sorted((work / "runs").glob("*/checkpoint.pt")):
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        path = out / f"stopped_{ckpt.parent.name}{'_' + tag if tag else ''}.json"
+        path.write_text(json.dumps({"run": ckpt.parent.name, "iterations_done": len(state.get("history", [])),
+                                    "history": state.get("history", []), "rejected": state.get("rejected", []),
+                                    "seconds": state.get("seconds")}, indent=1, default=float) + "\n")
+        print(f"[harness] stopped: {path} ({len(state.get('history', []))} iterations)", flush=True)
+        written.append(path)
+    return written
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="duck")
@@ -145,7 +161,14 @@ def main(argv=None) -> list[dict]:
     os.environ.setdefault("MLFLOW_TRACKING_URI", f"sqlite:///{args.work / 'mlflow.db'}")
     params = args.work / "params.yaml"
     raw = make_params(args.scene, args.methods, args.profile, args.overrides, params)
-    stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data)
+    from gca import stop
+
+    stop.install()  # SIGTERM (`timeout`, the device tool's limit): training checkpoints, then what ran is kept
+    try:
+        stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data)
+    except stop.Terminated:
+        keep_stopped(args.work, args.out, args.tag)
+        raise
     rows = collect(raw, args.scene, args.work, args.device, stage_seconds, args.overrides)
     for row in rows:
         (args.out / result_name(row["profile"], row["scene"], row["method"], args.device, args.tag)).write_text(json.dumps(row, indent=2, sort_keys=True) + "\n")
