@@ -50,10 +50,20 @@ def marker(work: Path, name: str, suffix: str = ".done") -> Path:
 
 def _ignore_usr_signal() -> None:
     """In the stage process: ignore submitit's time-limit/preemption signal (SLURM's ``--signal`` reaches
-    every process of the job): the job process handles it and stops the stage itself (``checkpoint``)."""
+    every process of the job): the job process handles it and stops the stage itself (``checkpoint``). On Linux
+    the stage also gets SIGTERM (a clean stop: training checkpoints) when the job process dies: submitit's local
+    cancel ends the job process with SIGKILL a second after its SIGINT, which would otherwise leave the stage
+    running on its own."""
     import signal
 
     signal.signal(getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")), signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
 
 
 def is_done(work: Path, name: str, stamp: str = "") -> bool:
@@ -104,10 +114,14 @@ class StageCommand:
         print(f"[gca job {self.name}] {self.cmd}  (cwd {self.work}, CUDA_VISIBLE_DEVICES="
               f"{os.environ.get('CUDA_VISIBLE_DEVICES', '')!r})", flush=True)
         self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment(), preexec_fn=_ignore_usr_signal)
+        pid_file = marker(Path(self.work), self.name, ".pid")  # what a deadline stop waits on (_wait_stopped)
+        pid_file.parent.mkdir(parents=True, exist_ok=True)
+        pid_file.write_text(f"{self._proc.pid}\n")
         try:
             rc = self._proc.wait()
         finally:
             self.stop()  # an exception (a requeue's SystemExit, Ctrl-C) never leaves the stage running
+            pid_file.unlink(missing_ok=True)
         if rc != 0:
             raise StageFailed(f"{self.name}: exit {rc}")
         took = time.monotonic() - t0
@@ -418,19 +432,32 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 state[n] = "todo"
                 log(f"stop  {n} at the deadline (resumes next time)")
             if not engine.dependencies:  # a local job: its process ends here (SLURM's end is SLURM's to see)
-                _wait_stopped(engine, stopping, log, poll_s)
+                _wait_stopped(engine, stopping, log, poll_s, work)
             return state
         time.sleep(poll_s)
 
 
-def _wait_stopped(engine: Engine, stopping: dict, log, poll_s: float) -> None:
-    """Wait until the cancelled jobs ``stopping`` (name -> handle) have ended (a stage stopped with SIGTERM
-    checkpoints first; SIGKILL follows after ``STOP_GRACE_S``), at most ``STOP_GRACE_S`` + 10 s, so that the next
-    call never starts a job whose previous process still writes its outputs."""
+def _alive(pid_file: Path) -> bool:
+    """Whether the stage process named in ``pid_file`` (``.grid/<job>.pid``, written by the job) still runs; a
+    stale file (the process is gone) is removed."""
+    try:
+        pid = int(pid_file.read_text())
+        os.kill(pid, 0)
+        return True
+    except (OSError, ValueError):
+        pid_file.unlink(missing_ok=True)
+        return False
+
+
+def _wait_stopped(engine: Engine, stopping: dict, log, poll_s: float, work: Path) -> None:
+    """Wait until the cancelled jobs ``stopping`` (name -> handle) have ended, their stage processes included (a
+    stage stopped with SIGTERM checkpoints first; SIGKILL follows after ``STOP_GRACE_S``), at most ``STOP_GRACE_S``
+    + 10 s, so that the next call never starts a job whose previous process still writes its outputs."""
     t_end = time.monotonic() + STOP_GRACE_S + 10.0
     left = dict(stopping)
     while left and time.monotonic() < t_end:
-        left = {n: h for n, h in left.items() if engine.state(h) == RUNNING}
+        left = {n: h for n, h in left.items()
+                if engine.state(h) == RUNNING or _alive(marker(work, n, ".pid"))}
         if left:
             time.sleep(min(poll_s, 0.2))
     for n in left:
