@@ -428,6 +428,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             reap()
             stopping = {n: handles.pop(n) for n in list(handles)}
             for n, handle in stopping.items():
+                if not engine.dependencies:  # the stage first, directly: the engine's own cancel is a SIGINT, which a
+                    _terminate(marker(work, n, ".pid"))  # job started from a background shell (nohup, &) ignores
                 engine.cancel(handle)
                 state[n] = "todo"
                 log(f"stop  {n} at the deadline (resumes next time)")
@@ -447,6 +449,17 @@ def _alive(pid_file: Path) -> bool:
     except (OSError, ValueError):
         pid_file.unlink(missing_ok=True)
         return False
+
+
+def _terminate(pid_file: Path) -> None:
+    """SIGTERM to the stage process named in ``pid_file`` (a clean stop: training checkpoints), if it runs."""
+    import signal
+
+    if _alive(pid_file):
+        try:
+            os.kill(int(pid_file.read_text()), signal.SIGTERM)
+        except (OSError, ValueError):
+            pass
 
 
 def _wait_stopped(engine: Engine, stopping: dict, log, poll_s: float, work: Path) -> None:
