@@ -194,6 +194,12 @@ class Engine(abc.ABC):
     def cancel(self, handle) -> None:
         """Stop the job (queued or running)."""
 
+    def stop_jobs(self, handles: dict, work: Path, log, poll_s: float) -> None:
+        """Stop the jobs ``handles`` (name -> handle) at a deadline: cancel each (an engine whose jobs run on
+        this machine also waits for them to end)."""
+        for handle in handles.values():
+            self.cancel(handle)
+
     def attach(self, job: StageCommand):
         """The handle of ``job`` submitted by an earlier call and still queued or running, else None
         (then it is submitted again)."""
@@ -270,6 +276,19 @@ class SubmititEngine(Engine):
             handle.cancel(check=False)
         except Exception:  # noqa: BLE001 - already gone
             pass
+
+    def stop_jobs(self, handles: dict, work: Path, log, poll_s: float) -> None:
+        """Local jobs: SIGTERM to each stage process first (``.grid/<job>.pid``: submitit's cancel is a SIGINT to its
+        controller, which did not always stop the stage: in fresh-clone CI runs a job ran on to its end after the
+        deadline stop), then the cancel, then wait for them to end (at most ``STOP_GRACE_S`` + 10 s), so that the next
+        call never starts a job whose stopped process still writes its outputs. SLURM jobs: the cancel (their end is
+        SLURM's to see)."""
+        if not self.slurm:
+            for name in handles:
+                _terminate(marker(work, name, ".pid"))
+        super().stop_jobs(handles, work, log, poll_s)
+        if not self.slurm:
+            _wait_stopped(self, handles, log, poll_s, work)
 
 
 def local_engine(folder: Path, gpus: int | list[int], slots: int, timeout_min: float, max_requeue: int,
@@ -427,38 +446,35 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         if end is not None and time.monotonic() >= end:
             reap()
             stopping = {n: handles.pop(n) for n in list(handles)}
-            for n, handle in stopping.items():
-                if not engine.dependencies:  # the stage first, directly: the engine's own cancel is a SIGINT, which a
-                    _terminate(marker(work, n, ".pid"))  # job started from a background shell (nohup, &) ignores
-                engine.cancel(handle)
+            for n in stopping:
                 state[n] = "todo"
                 log(f"stop  {n} at the deadline (resumes next time)")
-            if not engine.dependencies:  # a local job: its process ends here (SLURM's end is SLURM's to see)
-                _wait_stopped(engine, stopping, log, poll_s, work)
+            engine.stop_jobs(stopping, work, log, poll_s)
             return state
         time.sleep(poll_s)
 
 
-def _alive(pid_file: Path) -> bool:
-    """Whether the stage process named in ``pid_file`` (``.grid/<job>.pid``, written by the job) still runs; a
+def _running_pid(pid_file: Path) -> int | None:
+    """The stage process named in ``pid_file`` (``.grid/<job>.pid``, written by the job) if it still runs; a
     stale file (the process is gone) is removed."""
     try:
         pid = int(pid_file.read_text())
         os.kill(pid, 0)
-        return True
+        return pid
     except (OSError, ValueError):
         pid_file.unlink(missing_ok=True)
-        return False
+        return None
 
 
 def _terminate(pid_file: Path) -> None:
     """SIGTERM to the stage process named in ``pid_file`` (a clean stop: training checkpoints), if it runs."""
     import signal
 
-    if _alive(pid_file):
+    pid = _running_pid(pid_file)
+    if pid is not None:
         try:
-            os.kill(int(pid_file.read_text()), signal.SIGTERM)
-        except (OSError, ValueError):
+            os.kill(pid, signal.SIGTERM)
+        except OSError:  # ended in between
             pass
 
 
@@ -470,7 +486,7 @@ def _wait_stopped(engine: Engine, stopping: dict, log, poll_s: float, work: Path
     left = dict(stopping)
     while left and time.monotonic() < t_end:
         left = {n: h for n, h in left.items()
-                if engine.state(h) == RUNNING or _alive(marker(work, n, ".pid"))}
+                if engine.state(h) == RUNNING or _running_pid(marker(work, n, ".pid")) is not None}
         if left:
             time.sleep(min(poll_s, 0.2))
     for n in left:
