@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from gca.laws.lora import (LoRALinear, apply_lora, count_trainable, full_finetune, lora_layers,
+from gca.laws.lora import (LoRALinear, apply_lora, count_trainable, full_finetune, lora_layers, merged_weights,
                            lora_parameters, lora_state_dict, merge_lora, set_lora_scale)
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 
@@ -135,3 +135,77 @@ def test_merged_forward_equals_lowrank_path_float64():
     merged = lambda x, A, B: torch.func.functional_call(layer, {"lora_A": A, "lora_B": B}, (x,))  # noqa: E731
     assert torch.autograd.gradcheck(merged, (x[:3].detach().requires_grad_(), layer.lora_A.detach().requires_grad_(),
                                              layer.lora_B.detach().requires_grad_()))
+
+
+def _count_merges(monkeypatch):
+    """Count calls of LoRALinear.delta_weight (one per formed merged weight)."""
+    calls = []
+    original = LoRALinear.delta_weight
+
+    def counting(self):
+        calls.append(self)
+        return original(self)
+
+    monkeypatch.setattr(LoRALinear, "delta_weight", counting)
+    return calls
+
+
+def test_merged_weights_block_forms_each_merge_once_with_the_same_values_and_gradients(monkeypatch):
+    torch.manual_seed(0)
+    law = apply_lora(NeuralElasticity(NeuralLawConfig(widths=(8, 8))).double(), rank=2, alpha=2.0)
+    perturb_B(law, 1)
+    Fs = [random_F(20, seed, torch.float64) for seed in (1, 2, 3)]
+    params = list(lora_parameters(law))
+    calls = _count_merges(monkeypatch)
+    ref_loss = sum((law(F) ** 2).sum() for F in Fs)  # the per-call merge: 3 layers x 3 calls
+    assert len(calls) == 9
+    ref = torch.autograd.grad(ref_loss, params)
+    calls.clear()
+    with merged_weights(law):
+        with merged_weights(law):  # nested: reuses the outer merge
+            loss = sum((law(F) ** 2).sum() for F in Fs)
+    assert len(calls) == 3
+    assert all(layer._merged is None for layer in lora_layers(law))  # cleared on exit
+    torch.testing.assert_close(loss, ref_loss, rtol=1e-13, atol=0)
+    for a, b in zip(torch.autograd.grad(loss, params), ref):
+        assert float(b.abs().max()) > 0
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+
+
+def test_a_simulated_frame_merges_once_not_per_step(monkeypatch):
+    import gca.sim.frame as frame
+    from gca.laws.base import Material
+    from gca.sim import MPMSolver, SimConfig
+
+    torch.manual_seed(0)
+    cfg = NeuralLawConfig(widths=(8, 8), stress_scale=2e3, alpha=1e-2)
+    el, pl = (apply_lora(net, rank=2, alpha=2.0) for net in (NeuralElasticity(cfg), NeuralPlasticity(cfg)))
+    perturb_B(el, 1)
+    perturb_B(pl, 2)
+    material = Material(el, pl, 1000.0).double()
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, dtype="float64", max_refine=1))
+    g = torch.Generator().manual_seed(3)
+    x = (0.4 + 0.2 * torch.rand(30, 3, generator=g)).double()
+    v = (0.3 * torch.randn(30, 3, generator=g)).double().requires_grad_(True)
+    vol = torch.full((30,), 2e-6, dtype=torch.float64)
+    C = torch.zeros(30, 3, 3, dtype=torch.float64)
+    F = torch.eye(3, dtype=torch.float64).expand(30, 3, 3).contiguous()
+    params = [v, *lora_parameters(material)]
+
+    def run():
+        out = frame.simulate_frame_trial(solver, material, 4, x, v, C, F, vol, vol * 1000.0)
+        loss = (out[0] ** 2).sum() + (out[3] ** 2).sum() + out[4].sum()
+        return loss, torch.autograd.grad(loss, params)
+
+    calls = _count_merges(monkeypatch)
+    loss, grads = run()
+    assert len(calls) == 6  # 3 layers x 2 networks, once for the frame's 4 steps
+    import contextlib
+    monkeypatch.setattr(frame, "merged_weights", lambda m: contextlib.nullcontext())  # the per-step merge
+    calls.clear()
+    ref_loss, ref = run()
+    assert len(calls) == 24  # negative control: 6 layers x 4 steps
+    torch.testing.assert_close(loss, ref_loss, rtol=1e-13, atol=0)
+    for a, b in zip(grads, ref):
+        assert float(b.abs().max()) > 0
+        torch.testing.assert_close(a, b, rtol=1e-11, atol=1e-15)

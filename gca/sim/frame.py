@@ -8,6 +8,8 @@ The lowest module of ``gca.sim`` above the kernels: ``graph`` replays these step
 
 from __future__ import annotations
 
+from gca.laws.lora import merged_weights
+
 
 def law_name(material) -> str:
     """Readable name of a material and its laws, for diagnostics."""
@@ -25,10 +27,15 @@ def simulate_frame(solver, material, n_steps: int, x, v, C, F, vol, mass):
 
 
 def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
-    """:func:`simulate_frame` that also returns the last step's trial F [N,3,3] (before plasticity)."""
+    """:func:`simulate_frame` that also returns the last step's trial F [N,3,3] (before plasticity).
+
+    A LoRA-adapted law forms its merged weights once for the frame (:func:`gca.laws.lora.merged_weights`),
+    not once per step: same values and gradients, ~60 fewer small kernels per step forward and backward.
+    """
     F_trial = F
-    for _ in range(n_steps):
-        tau = material.stress(F)
-        x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
-        F = material.project(F_trial)
+    with merged_weights(material):
+        for _ in range(n_steps):
+            tau = material.stress(F)
+            x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
+            F = material.project(F_trial)
     return x, v, C, F, F_trial
