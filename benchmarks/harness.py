@@ -123,7 +123,9 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
             "peak_memory_gib": train["peak_memory_gib"], "phase_seconds": phases,
             "render_backend": train.get("render_backend"),
             "seconds_per_iteration": train["train_seconds"] / max(train["iterations"], 1),
-            "chamfer_mean": metrics.get("chamfer_mean"), "stage_seconds": stage_seconds})
+            "chamfer_mean": metrics.get("chamfer_mean"), "stage_seconds": stage_seconds,
+            # per iteration: losses, gradient norm, horizon, sim_refine, phase times; and every rejected update
+            "history": history, "rejected": train.get("rejected_updates", [])})
     return rows
 
 

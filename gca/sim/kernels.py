@@ -112,6 +112,42 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                     wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
                     wp.atomic_add(grid_m, I, J, K, w * m_p)
 
+    @wp.kernel(module=module)
+    def p2g_nodes(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        tau: wp.array(dtype=mat33),
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+    ):
+        """:func:`p2g` with one thread per (particle, stencil node) pair: thread ``27 p + 9 i + 3 j + k``
+        scatters particle ``p``'s share to node ``base + (i, j, k)``. Same sums in the same order on a CPU
+        (bitwise equal to ``p2g``); on a GPU 27x more threads carry the atomics, which a few tens of thousands
+        of particles (a few warps per SM) cannot keep in flight. Forward only: the step's backward uses the
+        adjoint of ``p2g``, which reads the same inputs and never the grid."""
+        t = wp.tid()
+        p = t // 27
+        node = t - 27 * p
+        i = node // 9
+        j = (node // 3) % 3
+        k = node % 3
+        base, fx, W = stencil(x[p], inv_dx, n_grid)
+        m_p = mass[p]
+        affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau[p] + m_p * C[p]
+        w = W[i, 0] * W[j, 1] * W[k, 2]
+        dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+        I = base[0] + i + PAD
+        J = base[1] + j + PAD
+        K = base[2] + k + PAD
+        wp.atomic_add(grid_mv, I, J, K, w * (m_p * v[p] + affine @ dpos))
+        wp.atomic_add(grid_m, I, J, K, w * m_p)
+
     @wp.func
     def wall(v: vec3, n_out: vec3, inside: int, kind: int, mu_b: T):
         """Velocity of a node after the wall whose outward unit normal is ``n_out``."""
@@ -199,7 +235,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         F_out[p] = (wp.identity(3, dtype=T) + dt * C_new) @ F[p]
         x_out[p] = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
 
-    return types.SimpleNamespace(p2g=p2g, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T)
+    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

@@ -111,6 +111,7 @@ class MPMSolver:
     """
 
     keep_grid: bool = True  # backward from the forward's kept grid; False: recompute the step under a tape
+    split_p2g: bool = True  # forward P2G with a thread per (particle, node) (kernels.p2g_nodes); False: per particle
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -231,9 +232,12 @@ class MPMSolver:
 
     def _launch(self, args, outs, requires_grad: bool, grid=None):
         """P2G, grid update, G2P from the wrapped inputs ``args`` into the wrapped ``outs`` (on ``grid``, or on
-        the reused scratch buffers)."""
+        the reused scratch buffers). Under a tape (``requires_grad``, the reference backward) P2G is the
+        per-particle kernel, whose adjoint the tape replays."""
         grid = self._scratch(requires_grad) if grid is None else grid
         for kernel, dim, kargs in self._kernel_args(args, grid, outs):
+            if kernel is self.k.p2g and self.split_p2g and not requires_grad:
+                kernel, dim = self.k.p2g_nodes, 27 * dim  # same inputs, a thread per (particle, node)
             wp.launch(kernel, dim=dim, inputs=kargs, device=self.wp_device)
 
     def _new_grid(self):
