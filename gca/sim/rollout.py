@@ -56,6 +56,7 @@ class Rollout:
     clamped: list
     F_trial: torch.Tensor | None = None
     refine: int = 1  # each step was taken as this many steps of dt / refine (CFL refinement)
+    wave_speed: float | None = None  # the material's wave speed estimate the CFL check used [m/s]
 
 
 def check_state(solver: MPMSolver, x, v, F, step: int, law: str) -> int:
@@ -138,7 +139,9 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
     eye = torch.eye(3, dtype=x0.dtype, device=x0.device)
     C = torch.zeros(x0.shape[0], 3, 3, dtype=x0.dtype, device=x0.device) if C0 is None else C0
     F = eye.expand(x0.shape[0], 3, 3).contiguous() if F0 is None else F0
-    x, v, law = x0, v0, law_name(material)
+    # the CFL estimate and the refinement in every diagnostic: a law stiffer under large strain than its estimate
+    # (taken at small strain) shows as a blow-up at refine 1
+    x, v, law = x0, v0, f"{law_name(material)} (CFL: wave speed estimate {c:.4g} m/s, {k} sub-step(s) per step)"
     xs, vs, Fs, Ftrs, clamped = [x], [v], [F], [F], [check_state(solver, x, v, F, 0, law)]
     if graph is None:
         graph = solver.cfg.cuda_graphs and solver.device.type == "cuda"
@@ -159,4 +162,4 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         Fs.append(F)
         Ftrs.append(F_trial)
     return Rollout(x=torch.stack(xs), F=torch.stack(Fs), v=torch.stack(vs), C=C, clamped=clamped,
-                   F_trial=torch.stack(Ftrs), refine=k)
+                   F_trial=torch.stack(Ftrs), refine=k, wave_speed=c)

@@ -204,7 +204,8 @@ def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) 
     _check_gradients(law, probe)
     params = law.trainable()
     grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine, **stats,
+    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine,
+            "wave_speed": traj.wave_speed, **stats,
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
