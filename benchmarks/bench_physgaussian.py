@@ -11,7 +11,7 @@ squash with a spin about z; c = the block's centre).
 
 For each ``particles:n_grid`` size it runs, in one process on one device:
 
-- ``ours``: ``MPMSolver.step`` + ``Material(CorotatedElasticity, IdentityPlasticity)`` (torch law),
+- ``ours``: ``MPMSolver.step`` + ``Material(CorotatedElasticity, IdentityPlasticity)`` (fused warp law where warp runs, ``gca.laws.fused.corotated_tau``),
   launched step by step;
 - ``ours_graph``: the same through ``gca.sim.graph`` frames of ``--steps-per-frame`` steps (CUDA
   graphs on a GPU; on the CPU the eager twin);
@@ -36,7 +36,7 @@ bitwise):
   grad w_ip^T) F``). Both: quadratic B-splines, APIC momentum ``m (v + C (x_i - x_p))``, C from
   ``4/dx^2 sum w v (x_i - x_p)^T``, v = mv/m on nodes with m > 1e-15 plus dt g.
 - stress: the same Kirchhoff fixed-corotated ``2 mu (F - R) F^T + lam J (J - 1) I`` with
-  mu, lam from (E, nu); theirs in a warp kernel (wp.svd3, then symmetrised), ours in torch.
+  mu, lam from (E, nu); theirs in a warp kernel (wp.svd3, then symmetrised), ours in warp kernels (the SVD kernel and one stress kernel, session 13; torch before).
 - walls: theirs ``add_bounding_box`` (nodes with index < 3 or >= n_grid - 3 lose the outward normal
   velocity); ours ``boundary="slip"``, ``bound=3`` (index < 3 or > n_grid - 3): the same condition,
   except that the top wall regions start one node further out on ours. Our grid is padded by one node

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import torch
 
+from gca.laws import fused
 from gca.laws.base import Elasticity, YoungPoisson, lame, per_particle
-from gca.laws.svd import bmm3, check_F, det3, polar_rotation, svd_map
+from gca.laws.svd import bmm3, check_F, det3, polar_rotation, svd_map, warp_runs
 
 __all__ = ["lame", "corotated_tau", "stvk_tau", "volume_tau", "sigma_tau", "ELASTIC_FORMS",
            "CorotatedElasticity", "StVKElasticity", "VolumeElasticity", "SigmaElasticity"]
@@ -110,13 +111,24 @@ ELASTIC_FORMS = {"corotated": corotated_tau, "stvk": stvk_tau, "volume": volume_
 
 
 class CorotatedElasticity(YoungPoisson, Elasticity):
-    """Fixed corotated elasticity (see :func:`corotated_tau`) with learnable log_E, fixed nu."""
+    """Fixed corotated elasticity (see :func:`corotated_tau`) with learnable log_E, fixed nu.
+
+    ``fast_path`` (default True): the stress in warp kernels with a hand-written adjoint
+    (:func:`gca.laws.fused.corotated_tau`: the SVD kernel and one stress kernel instead of ~15 torch kernels
+    per step) where warp runs; False, or elsewhere, the torch reference :func:`corotated_tau`. Same values and
+    gradients to rounding (tested); an implementation choice, not part of the law.
+    """
+
+    fast_path: bool = True
 
     def __init__(self, E: float = 1e5, nu: float = 0.2, learnable: bool = True):
         super().__init__()
         self._init_young_poisson(E, nu, learnable)
 
     def forward(self, F: torch.Tensor) -> torch.Tensor:
+        if self.fast_path and warp_runs(F):
+            check_F(F, "CorotatedElasticity")
+            return fused.corotated_tau(F, self.mu, self.lam)
         return corotated_tau(F, self.mu, self.lam)
 
 

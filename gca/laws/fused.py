@@ -144,7 +144,51 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         v_R[p] = alpha * v_Fe[p] @ sym_of_row(X, p)
         store_sym(alpha * wp.transpose(R[p]) @ v_Fe[p], v_X, p)
 
+    @wp.func
+    def polar_vjp(u: mat33, sv: vec3, vh: mat33, v_R: mat33, eps: T):
+        """v_F of R = U Vh given v_R (the rotation term of ``features_adjoint``)."""
+        X = wp.transpose(u) @ v_R @ wp.transpose(vh)
+        K = mat33()
+        for i in range(3):
+            for j in range(3):
+                if i != j:
+                    K[i, j] = (X[i, j] - X[j, i]) * safe_recip(sv[i] + sv[j], eps)
+        return u @ K @ vh
+
+    @wp.kernel(module=module)
+    def corotated(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), Vh: wp.array(dtype=mat33),
+                  mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int, tau: wp.array(dtype=mat33)):
+        p = wp.tid()
+        f = F[p]
+        J = wp.determinant(f)
+        tau[p] = (T(2.0) * mu[p * per]) * (f - U[p] @ Vh[p]) @ wp.transpose(f) + \
+            (lam[p * per] * J * (J - T(1.0))) * wp.identity(3, dtype=T)
+
+    @wp.kernel(module=module)
+    def corotated_adjoint(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
+                          Vh: wp.array(dtype=mat33), mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int,
+                          v_tau: wp.array(dtype=mat33), eps: T, v_F: wp.array(dtype=mat33), v_mu: wp.array(dtype=T),
+                          v_lam: wp.array(dtype=T)):
+        p = wp.tid()
+        f = F[p]
+        G = v_tau[p]
+        R = U[p] @ Vh[p]
+        J = wp.determinant(f)
+        m2 = T(2.0) * mu[p * per]
+        trG = wp.trace(G)
+        grad = m2 * ((G + wp.transpose(G)) @ f - wp.transpose(G) @ R)
+        grad += (lam[p * per] * (T(2.0) * J - T(1.0)) * trG) * cofactor(f)
+        v_F[p] = grad + polar_vjp(U[p], s[p], Vh[p], -m2 * G @ f, eps)
+        D = (f - R) @ wp.transpose(f)
+        acc = T(0.0)
+        for i in range(3):
+            for j in range(3):
+                acc += G[i, j] * D[i, j]
+        v_mu[p] = T(2.0) * acc
+        v_lam[p] = trG * J * (J - T(1.0))
+
     return types.SimpleNamespace(features=features, features_adjoint=features_adjoint, elastic_head=elastic_head,
+                                 corotated=corotated, corotated_adjoint=corotated_adjoint,
                                  elastic_head_adjoint=elastic_head_adjoint, plastic_head=plastic_head,
                                  plastic_head_adjoint=plastic_head_adjoint, mat33=mat33, vec3=vec3, T=T)
 
@@ -250,6 +294,63 @@ class _PlasticHead(torch.autograd.Function):
             _launch(k.plastic_head_adjoint, R.shape[0], R.device,
                     [_a(X), _m(R, k), k.T(ctx.alpha), _m(v_Fe, k), _a(v_X), _m(v_R, k)])
         return v_X, v_R, v_Fe, None
+
+
+class _Corotated(torch.autograd.Function):
+    """(F [N,3,3], mu, lam [1] or [N]) -> tau = 2 mu (F - R) F^T + lam J (J - 1) I [N,3,3]."""
+
+    @staticmethod
+    def forward(ctx, F, mu, lam):
+        F = F.detach().contiguous()
+        mu, lam = mu.detach().contiguous(), lam.detach().contiguous()
+        U, sigma, Vh = _svd_rotations(F)
+        k = make_law_kernels(F.dtype)
+        tau = torch.empty_like(F)
+        per = int(mu.shape[0] > 1)
+        if F.shape[0]:
+            _launch(k.corotated, F.shape[0], F.device, [_m(F, k), _m(U, k), _m(Vh, k), _a(mu), _a(lam), per, _m(tau, k)])
+        ctx.save_for_backward(F, U, sigma, Vh, mu, lam)
+        ctx.per = per
+        return tau
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_tau):
+        F, U, sigma, Vh, mu, lam = ctx.saved_tensors
+        k = make_law_kernels(F.dtype)
+        n = F.shape[0]
+        v_F = torch.empty_like(F)
+        v_mu, v_lam = (torch.zeros(n, dtype=F.dtype, device=F.device) for _ in range(2))
+        if n:
+            _launch(k.corotated_adjoint, n, F.device,
+                    [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _a(mu), _a(lam), ctx.per, _m(v_tau, k),
+                     k.T(default_eps(F.dtype)), _m(v_F, k), _a(v_mu), _a(v_lam)])
+        if not ctx.per:  # one modulus for every particle: the sum of the particles' shares
+            v_mu, v_lam = v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
+        return v_F, v_mu, v_lam
+
+
+def corotated_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """Fixed corotated Kirchhoff stress ``2 mu (F - R) F^T + lam J (J - 1) I`` [N,3,3] (Pa) in two warp kernels
+    (the SVD, then the stress), with a hand-written adjoint; the same law as
+    :func:`gca.laws.elastic.corotated_tau` (tested in values and gradients, float64 gradchecks).
+
+    Args:
+        F: elastic deformation gradients [N, 3, 3] (float32/float64).
+        mu, lam: Lame parameters [Pa] as tensors of shape [] or [N] (differentiable; no host read, so the
+            law is capturable in a CUDA graph).
+
+    Adjoint: with G = v_tau, v_F = 2 mu ((G + G^T) F - G^T R) + lam (2J - 1) tr(G) cof(F) + polar_vjp(-2 mu G F),
+    v_mu = 2 <G, (F - R) F^T>, v_lam = tr(G) J (J - 1).
+    """
+    if F.dtype not in WARP_FLOATS:
+        raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
+    n = F.shape[0]
+    mu_v, lam_v = mu.reshape(-1).to(F.dtype), lam.reshape(-1).to(F.dtype)
+    if mu_v.shape[0] != lam_v.shape[0] or mu_v.shape[0] not in (1, n):
+        raise ValueError(f"{_WHERE}: corotated_tau: mu and lam must both be scalars or both of shape [N={n}], got "
+                         f"{tuple(mu.shape)} and {tuple(lam.shape)}")
+    return _Corotated.apply(F, mu_v, lam_v)
 
 
 def features(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
