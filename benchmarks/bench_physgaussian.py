@@ -145,11 +145,12 @@ def _sync(device: torch.device) -> None:
 
 
 def initial_state(n: int, n_grid: int, dt: float, device: torch.device, v_drop: float, strain_rate: float,
-                  spin: float):
+                  spin: float, order: str = "random"):
     """Shared initial state: (cfg, x, v, C, F, vol, mass, side) in float32 on ``device``."""
     cfg = SimConfig(n_grid=n_grid, dt=dt, gravity=GRAVITY, bound=BOUND, boundary="slip", dtype="float32",
                     max_refine=1)
-    x, vol, mass = block(n, cfg, device)
+    x, vol, mass = block(n, cfg, device, order=order)
+    n = x.shape[0]
     A = strain_rate * torch.diag(torch.tensor([1.0, -2.0, 1.0])) + spin * torch.tensor(
         [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     A = A.to(x)
@@ -253,9 +254,9 @@ def run_theirs(mod, state, steps: int, device, variant: str):
 
 
 def measure(mod, n, n_grid, args, device) -> dict:
-    state = initial_state(n, n_grid, args.dt, device, args.v_drop, args.strain_rate, args.spin)
+    state = initial_state(n, n_grid, args.dt, device, args.v_drop, args.strain_rate, args.spin, args.order)
     x0, side = state[1], state[7]
-    row = {"particles": n, "n_grid": n_grid, "steps": args.steps, "dt": args.dt, "block_side": side,
+    row = {"particles": int(x0.shape[0]), "n_grid": n_grid, "steps": args.steps, "dt": args.dt, "block_side": side,
            "ms_per_step": {}, "final_x": {}}
     cache: dict = {}
     variants = ["ours", "ours_graph", "theirs", "theirs_nosync"] + (["theirs_graph"] if device.type == "cuda" else [])
@@ -326,6 +327,8 @@ def _parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--sizes", nargs="+", default=["30000:32", "100000:64"], help="particles:n_grid pairs")
+    p.add_argument("--order", default="random", choices=["random", "lattice"],
+                   help="particles at random in the block, or on a lattice in meshgrid order (as objects are sampled)")
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--repeats", type=int, default=2, help="timed runs per variant after one warm-up (best kept)")
     p.add_argument("--dt", type=float, default=2e-4, help="time step [s]")
@@ -349,7 +352,7 @@ def main(argv=None) -> dict:
                "warp": wp.__version__, "torch": torch.__version__, "physgaussian_commit": their_commit(),
                "job": {"law": "fixed corotated", "E": E, "nu": NU, "rho": RHO, "gravity": GRAVITY, "bound": BOUND,
                        "dt": args.dt, "steps": args.steps, "v_drop": args.v_drop, "strain_rate": args.strain_rate,
-                       "spin": args.spin, "dtype": "float32"},
+                       "spin": args.spin, "dtype": "float32", "order": args.order},
                "runs": []}
     t_all = time.perf_counter()
     for spec in args.sizes:

@@ -44,19 +44,30 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def block(n: int, cfg: SimConfig, device: torch.device, seed: int = 0):
-    """n particles uniformly at random in a centred cube holding about PPC per cell."""
+def block(n: int, cfg: SimConfig, device: torch.device, seed: int = 0, order: str = "random"):
+    """n particles in a centred cube holding about PPC per cell: uniformly at random (``order="random"``), or
+    ``"lattice"``: round(n^(1/3))^3 particles on a regular lattice in meshgrid order, the way
+    ``gca.assets.particles`` samples objects (the order decides how P2G's atomics collide: ``bench_p2g.py``)."""
     g = torch.Generator().manual_seed(seed)
     side = min((n / PPC) ** (1 / 3), cfg.n_grid - 2 * cfg.bound - 4) * cfg.dx
     lo = torch.tensor([0.5 - side / 2, (cfg.bound + 2) * cfg.dx, 0.5 - side / 2], dtype=torch.float64)
-    x = lo + side * torch.rand(n, 3, generator=g, dtype=torch.float64)  # just above the floor wall
+    if order == "lattice":
+        k = round(n ** (1 / 3))
+        n = k ** 3
+        axis = (torch.arange(k, dtype=torch.float64) + 0.5) / k
+        x = lo + side * torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    elif order == "random":
+        x = lo + side * torch.rand(n, 3, generator=g, dtype=torch.float64)  # just above the floor wall
+    else:
+        raise ValueError(f"benchmarks/bench_sim.py: order must be random or lattice, got {order!r}")
     vol = torch.full((n,), side**3 / n, dtype=torch.float64)
     to = dict(dtype=cfg.torch_dtype, device=device)
     return x.to(**to), vol.to(**to), (vol * RHO).to(**to)
 
 
-def _state(n, cfg, device):
-    x, vol, mass = block(n, cfg, device)
+def _state(n, cfg, device, order: str = "random"):
+    x, vol, mass = block(n, cfg, device, order=order)
+    n = x.shape[0]
     to = dict(dtype=cfg.torch_dtype, device=device)
     v = torch.zeros(n, 3, **to)
     C = torch.zeros(n, 3, 3, **to)
@@ -92,7 +103,7 @@ class FixedStress(Elasticity):
 
 
 def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str, repeats: int = 3,
-               law: str = "none", graph: bool = False, steps_per_frame: int = 10) -> dict:
+               law: str = "none", graph: bool = False, steps_per_frame: int = 10, order: str = "random") -> dict:
     """Forward and forward+backward particle-steps per second (best of ``repeats``).
 
     ``law="none"``: the bare step with a fixed stress; otherwise the law is evaluated every step
@@ -102,7 +113,8 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
     """
     cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
-    x, v, C, F, tau, vol, mass = _state(n, cfg, device)
+    x, v, C, F, tau, vol, mass = _state(n, cfg, device, order)
+    n = x.shape[0]
     if law == "none":
         material = Material(FixedStress(tau), IdentityPlasticity(), RHO) if graph else None
     else:
@@ -128,7 +140,7 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
             (xs.sum() + vs.sum() + Fs.sum()).backward()
         _sync(device)
 
-    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law, "graph": graph,
+    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law, "graph": graph, "order": order,
               "captured": bool(runner is not None and runner.capture)}
     for name, grad in (("fwd", False), ("fwd_bwd", True)):
         with torch.set_grad_enabled(grad):
@@ -196,14 +208,16 @@ def _parse(argv=None):
     p.add_argument("--graph", nargs="+", default=["off"], choices=["off", "on"],
                    help="step launches one by one (off) and/or frames replayed from CUDA graphs (on)")
     p.add_argument("--json", default=None, help="output path (default benchmarks/results/sim_<device>.json)")
+    p.add_argument("--order", nargs="+", default=["random"], choices=["random", "lattice"],
+                   help="particle orders of the block (throughput rows; each one side by side)")
     return p.parse_args(argv)
 
 
 def _table(results: dict) -> str:
-    lines = ["| law | graph | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| law | graph | order | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results["throughput"]:
-        lines.append(f"| {r['law']} | {'on' if r.get('captured') else 'twin' if r.get('graph') else 'off'} | "
+        lines.append(f"| {r['law']} | {'on' if r.get('captured') else 'twin' if r.get('graph') else 'off'} | {r.get('order', 'random')} | "
                      f"{r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
                      f"{r['fwd_particle_steps_per_s'] / 1e6:.3f} | {r['fwd_bwd_ms_per_step']:.2f} | "
                      f"{r['fwd_bwd_particle_steps_per_s'] / 1e6:.3f} |")
@@ -226,8 +240,9 @@ def main(argv=None) -> dict:
         for spec in args.sizes:
             for graph in graphs:  # side by side in one run
                 n, n_grid = (int(s) for s in spec.split(":"))
-                results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats, law,
-                                                        graph, args.steps_per_frame))
+                for order in args.order:
+                    results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats,
+                                                            law, graph, args.steps_per_frame, order))
                 print(results["throughput"][-1], flush=True)
     if not args.skip_rollout:
         for checkpoint in (True, False) if args.no_checkpoint else (True,):

@@ -111,7 +111,10 @@ class MPMSolver:
     """
 
     keep_grid: bool = True  # backward from the forward's kept grid; False: recompute the step under a tape
-    split_p2g: bool = True  # forward P2G with a thread per (particle, node) (kernels.p2g_nodes); False: per particle
+    # forward P2G with a thread per (particle, node) (kernels.p2g_nodes) instead of per particle. Off: measured on the
+    # H100 (benchmarks/bench_p2g.py, NOTES session 13) it is faster only for particles in random order (30k: 60 vs
+    # 82 us) and 2x slower for the lattice-ordered particles the pipeline samples (70 vs 35 us); ~7x slower on a CPU
+    split_p2g: bool = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg

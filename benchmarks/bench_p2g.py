@@ -1,0 +1,140 @@
+"""P2G and G2P kernel times by particle order and kernel layout (a script, not a test).
+
+For each ``particles:n_grid`` size and each particle order of the same block of particles (``random``: uniform at
+random, as ``bench_sim.block``; ``lattice``: a regular lattice in meshgrid order, as ``gca.assets.particles``
+samples objects; ``cell``: the random particles sorted by grid cell; ``morton``: sorted by the Morton code of their
+cell), times on one device, side by side in one run:
+
+- ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
+- ``p2g_nodes``: one thread per (particle, node) pair (the solver's forward default since session 13),
+- ``g2p``: the per-particle gather,
+
+as the best of ``--repeats`` averages over ``--iters`` launches (CUDA events around the loop).
+
+Usage::
+
+    python benchmarks/bench_p2g.py --device cuda --sizes 30000:32 100000:64 --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+import warp as wp
+
+from gca.sim.kernels import KERNELS, PAD, grid_size
+
+ORDERS = ("random", "lattice", "cell", "morton")
+
+
+def _cells(x: torch.Tensor, n_grid: int) -> torch.Tensor:
+    return (x * n_grid).floor().long().clamp(0, n_grid - 1)
+
+
+def _morton(c: torch.Tensor) -> torch.Tensor:
+    """Interleaved bits of 3 cell indices < 1024 (30-bit Morton code)."""
+    code = torch.zeros(c.shape[0], dtype=torch.long, device=c.device)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((c[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.Tensor:
+    """n positions [n, 3] in a centred cube of ~8 particles per cell, in the given order."""
+    side = min((n / 8) ** (1 / 3), n_grid - 8) / n_grid
+    lo = 0.5 - side / 2
+    if order == "lattice":
+        k = round(n ** (1 / 3))
+        axis = lo + (torch.arange(k, dtype=torch.float64) + 0.5) * side / k
+        x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    else:
+        g = torch.Generator().manual_seed(seed)
+        x = lo + side * torch.rand(n, 3, generator=g, dtype=torch.float64)
+        if order == "cell":
+            c = _cells(x, n_grid)
+            x = x[torch.argsort((c[:, 0] * n_grid + c[:, 1]) * n_grid + c[:, 2])]
+        elif order == "morton":
+            x = x[torch.argsort(_morton(_cells(x, n_grid)))]
+    return x.to(device=device, dtype=torch.float32).contiguous()
+
+
+def _time(fn, device, iters: int, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats + 1):  # the first round warms up
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        for _ in range(iters):
+            fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        best = min(best, (time.perf_counter() - t0) / iters)
+    return best * 1e6  # us per launch
+
+
+def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int) -> dict:
+    k = KERNELS["float32"]
+    wd = wp.device_from_torch(device)
+    x = particles(n, n_grid, order, device)
+    n = x.shape[0]
+    g = torch.Generator().manual_seed(1)
+    to = dict(dtype=torch.float32, device=device)
+    v = torch.randn(n, 3, generator=g).to(**to)
+    C = torch.randn(n, 3, 3, generator=g).to(**to)
+    tau = (1e3 * torch.randn(n, 3, 3, generator=g)).to(**to)
+    vol = torch.full((n,), 1e-6, **to)
+    mass = vol * 1e3
+    G = grid_size(n_grid)
+    mv = wp.zeros((G, G, G), dtype=k.vec3, device=wd)
+    m = wp.zeros((G, G, G), dtype=k.T, device=wd)
+    wx, wv = wp.from_torch(x, dtype=k.vec3), wp.from_torch(v, dtype=k.vec3)
+    wC, wtau = wp.from_torch(C, dtype=k.mat33), wp.from_torch(tau, dtype=k.mat33)
+    wvol, wmass = wp.from_torch(vol), wp.from_torch(mass)
+    args = [wx, wv, wC, wtau, wvol, wmass, 1e-4, float(n_grid), n_grid, mv, m]
+    F = torch.eye(3, **to).expand(n, 3, 3).contiguous()
+    outs = [wp.zeros(n, dtype=t, device=wd) for t in (k.vec3, k.vec3, k.mat33, k.mat33)]
+    g2p_args = [wx, wp.from_torch(F, dtype=k.mat33), mv, 1e-4, float(n_grid), n_grid, 0.0, 1.0, *outs]
+    row = {"particles": n, "n_grid": n_grid, "order": order}
+    row["p2g_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
+    row["p2g_nodes_us"] = _time(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
+                                repeats)
+    row["g2p_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd), device, iters, repeats)
+    return row
+
+
+def main(argv=None) -> list[dict]:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--sizes", nargs="+", default=["30000:32", "100000:64"])
+    p.add_argument("--orders", nargs="+", default=list(ORDERS), choices=ORDERS)
+    p.add_argument("--iters", type=int, default=200)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--json", default=None)
+    a = p.parse_args(argv)
+    wp.config.quiet = True
+    wp.init()
+    device = torch.device(a.device)
+    if device.type == "cuda" and device.index is None:  # warp needs an explicit ordinal
+        device = torch.device("cuda", torch.cuda.current_device())
+    rows = []
+    print("| particles | grid | order | p2g us | p2g_nodes us | g2p us |\n| --- | --- | --- | --- | --- | --- |")
+    for spec in a.sizes:
+        n, n_grid = (int(s) for s in spec.split(":"))
+        for order in a.orders:
+            r = measure(n, n_grid, order, device, a.iters, a.repeats)
+            rows.append(r)
+            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
+                  f"{r['g2p_us']:.1f} |", flush=True)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump({"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+                       "rows": rows}, f, indent=2)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
