@@ -24,6 +24,7 @@ import warp as wp
 from torch.profiler import ProfilerActivity, profile
 
 from benchmarks.bench_sim import _state, make_material
+from gca.laws.lora import merged_weights
 from gca.sim import MPMSolver, SimConfig
 
 GROUPS = (  # (group, regex on the kernel name), first match wins
@@ -82,7 +83,8 @@ def main(argv=None) -> dict:
         material = make_material(law, device, torch.float32)
 
         def run():
-            with torch.set_grad_enabled(args.backward):
+            # one frame of steps: a LoRA law's merged weights formed once, as gca.sim.frame does in training
+            with torch.set_grad_enabled(args.backward), merged_weights(material):
                 xs, vs, Cs, Fs = x, v.clone().requires_grad_(args.backward), C, F
                 for _ in range(args.steps):
                     xs, vs, Cs, Ftr = solver.step(xs, vs, Cs, Fs, material.stress(Fs), vol, mass)

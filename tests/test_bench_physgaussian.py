@@ -31,10 +31,11 @@ def test_missing_their_code_says_how_to_prepare_it(tmp_path, monkeypatch):
 
 @pytest.mark.skipif(not (THEIRS / "mpm_solver_warp.py").exists(),
                     reason=".physgaussian/ absent: run benchmarks/physgaussian/prepare.sh (needs a PhysGaussian mirror)")
-def test_same_job_same_trajectories_on_cpu(tmp_path):
+@pytest.mark.parametrize("order", ["random", "lattice"])
+def test_same_job_same_trajectories_on_cpu(tmp_path, order):
     out = tmp_path / "pg.json"
     res = _bench().main(["--device", "cpu", "--sizes", "1000:16", "--steps", "20", "--repeats", "1",
-                         "--json", str(out)])
+                         "--order", order, "--json", str(out)])
     assert json.loads(out.read_text())["physgaussian_commit"] == res["physgaussian_commit"]
     (run,) = res["runs"]
     assert "errors" not in run, run.get("errors")
