@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from gca import stamp
 from gca.pipeline import cli
 from gca.io import write_json
 from gca.laws.checkpoint import save_prior
@@ -45,7 +46,12 @@ def main(argv=None) -> dict:
             if phase == "train" and (i % cfg.log_every == 0 or i == n):
                 run.log_metrics({"train_loss_cells2": values["loss"]}, step=i)
 
-        result = pretrain_prior(preset, law_cfg, cfg, settings.seed, device, progress)
+        # an interrupted run (SIGTERM: a deadline, a 10-minute device command) goes on from its checkpoint
+        checkpoint = args.out.with_name(args.out.name + ".checkpoint")
+        keys = ("profile", "seed", "laws.neural", f"prior.families.{args.family}", "prior.train", "sim")  # dvc.yaml's
+        stamp.guard_checkpoint(checkpoint, stamp.fingerprint(settings.params, keys, extra=[args.family, str(device)]))
+        # SIGTERM in teacher forcing: checkpoint at the end of the step, then stop (before it: stop at once)
+        result = pretrain_prior(preset, law_cfg, cfg, settings.seed, device, progress, checkpoint=checkpoint)
         save_prior(args.out, result.elasticity, result.plasticity, args.family,
                    metadata={"preset": preset, "seed": settings.seed, "profile": settings.profile,
                              "heldout_ratio": result.metrics["heldout_ratio"]})
@@ -54,6 +60,7 @@ def main(argv=None) -> dict:
         plot_prior(result, args.plots, args.family)
         run.log_metrics({k: v for k, v in metrics.items() if k not in ("data", "family", "device")})
         run.log_artifact(args.plots)
+        stamp.clear_checkpoint(checkpoint)
     print(f"prior {args.family}: held-out RMSE {metrics['heldout_rmse_cells']['untrained']:.3g} -> "
           f"{metrics['heldout_rmse_cells']['trained']:.3g} cells (x{metrics['heldout_ratio']:.1f}), response error "
           f"{metrics['response_error_pct']['trained']['mean']:.1f} % in {metrics['seconds']['total']:.0f} s")

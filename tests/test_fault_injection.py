@@ -361,6 +361,9 @@ def test_a_killed_stage_reruns_to_the_uninterrupted_outputs(pipeline, stage, tmp
     if stage == "train":  # it went on from the checkpoint, to the same law
         assert json.loads((run / "train.json").read_text())["resumed_at"] == checkpoint["iteration"]
         assert not (run / "checkpoint.pt").exists() and not (run / "checkpoint.pt.stamp").exists()
+    if stage == "prior":  # a stop in teacher forcing left a checkpoint, which the re-run used and removed
+        out = work / job.outs[0]
+        assert not list(out.parent.glob(out.name + ".checkpoint*")), sorted(out.parent.iterdir())
 
 
 def test_the_checks_catch_litter_and_partial_output(tmp_path):

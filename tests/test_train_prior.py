@@ -18,6 +18,8 @@ wp.config.quiet = True
 JELLY = {"elasticity": "corotated", "plasticity": "identity", "E": 1.0e5, "nu": 0.2, "rho": 1000}
 SIM = SimConfig(n_grid=16, dt=6e-4, bound=2, boundary="friction", friction=0.4, max_refine=1)
 DATA = PriorDataConfig(particles_per_axis=6, n_steps=120, speed=(1.5, 3.0), max_tilt_deg=45.0, floor_gap=(0.0, 0.03))
+DataConfigSmall = PriorDataConfig(particles_per_axis=4, n_steps=20, speed=(1.5, 3.0), max_tilt_deg=45.0,
+                                  floor_gap=(0.0, 0.03))
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -89,3 +91,42 @@ def test_config_refusals_name_the_problem():
         PriorTrainConfig(warm_start=("stress",))
     with pytest.raises(ValueError, match="window=500 exceeds"):
         PriorTrainConfig(window=500, data=PriorDataConfig(n_steps=100, particles_per_axis=12))
+
+
+def test_an_interrupted_prior_resumes_to_the_uninterrupted_one(tmp_path):
+    # SIGTERM inside gca.stop.deferred at iteration 3 of 6: the checkpoint is saved and the run stops; the next run
+    # finds it, skips the warm start and the earlier evaluations, makes the data again and goes on: its networks,
+    # losses and metrics (but the seconds) equal the uninterrupted run's, bitwise on the CPU.
+    from gca import stop
+    from gca.laws.pretrain import PretrainConfig
+    from gca.train.prior import pretrain_prior
+
+    fit = PretrainConfig(lr=1e-2, steps=3, n_samples=64, batch_size=32)
+    cfg = PriorTrainConfig(sim=SIM, data=DataConfigSmall, n_train=2, n_heldout=1, window=4, batch=1, iterations=6,
+                           fit_elasticity=fit, fit_plasticity=fit)
+    law = NeuralLawConfig(widths=(8, 8))
+    whole = pretrain_prior(JELLY, law, cfg, seed=3)
+
+    ckpt = tmp_path / "prior.pt.checkpoint"
+
+    def sigterm_at_3(phase, i, n, **values):  # what gca.stop's handler does inside stop.deferred
+        if phase == "train" and i == 3:
+            stop._state["requested"] = True
+
+    try:
+        with pytest.raises(stop.Terminated):
+            pretrain_prior(JELLY, law, cfg, seed=3, checkpoint=ckpt, callback=sigterm_at_3)
+    finally:
+        stop.reset()
+    assert ckpt.is_file() and torch.load(ckpt, weights_only=False)["loop"]["iteration"] == 3
+    phases = []
+    resumed = pretrain_prior(JELLY, law, cfg, seed=3, checkpoint=ckpt,
+                             callback=lambda phase, i, n, **v: phases.append((phase, i)))
+    assert ("resume", 3) in phases and ("train", 4) in phases and ("train", 1) not in phases
+    assert resumed.history == whole.history
+    for a, b in ((resumed.elasticity, whole.elasticity), (resumed.plasticity, whole.plasticity)):
+        for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+            assert torch.equal(x, y), name
+    drop = lambda m: {k: v for k, v in m.items() if k != "seconds"}  # noqa: E731
+    assert drop(resumed.metrics) == drop(whole.metrics)
+    assert resumed.curves == whole.curves

@@ -26,11 +26,13 @@ import copy
 import dataclasses
 import math
 import time
+from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import torch
 
-from gca.io import atomic_path
+from gca import stop
+from gca.io import atomic_path, save_torch
 from gca.laws.base import Material
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
 from gca.laws.pretrain import (DeformationSampling, PretrainConfig, fit_elasticity, fit_plasticity, response_error,
@@ -155,8 +157,17 @@ def sample_windows(trajectories: Sequence[Trajectory], k: int, n: int, generator
 
 def train_teacher_forced(material: Material, solver: MPMSolver, trajectories: Sequence[Trajectory],
                          cfg: PriorTrainConfig, seed: int,
-                         on_step: Callable[[int, float], None] | None = None) -> list[tuple[int, float]]:
+                         on_step: Callable[[int, float], None] | None = None,
+                         save: Callable[[dict], None] | None = None, resume: dict | None = None,
+                         checkpoint_every: int = 100) -> list[tuple[int, float]]:
     """Adam on :func:`window_loss` over random windows (in place on ``material``'s networks).
+
+    Args:
+        save: called with the loop's state (``{"iteration", "opt", "generator", "history"}``, the networks' own
+            state is the caller's) every ``checkpoint_every`` iterations and when SIGTERM arrived inside
+            :func:`gca.stop.deferred`, after which the loop stops (:func:`gca.stop.check`).
+        resume: such a state: the loop goes on from its iteration with its optimiser and window sampler, so the
+            result equals the uninterrupted run's (bitwise on a CPU, tested).
 
     Returns:
         The loss history [(iteration, mean window loss [cells^2])], every iteration.
@@ -167,8 +178,13 @@ def train_teacher_forced(material: Material, solver: MPMSolver, trajectories: Se
     opt = _optimizer(material, cfg)
     g = torch.Generator().manual_seed(int(seed) + 17)
     history: list[tuple[int, float]] = []
+    start = 0
+    if resume is not None:
+        opt.load_state_dict(resume["opt"])
+        g.set_state(resume["generator"])
+        history, start = [tuple(h) for h in resume["history"]], int(resume["iteration"])
     params = [p for group in opt.param_groups for p in group["params"]]
-    for it in range(cfg.iterations):
+    for it in range(start, cfg.iterations):
         windows = sample_windows(trajectories, cfg.window, cfg.batch, g)
         last = history[-1][1] if history else None
         try:
@@ -192,6 +208,9 @@ def train_teacher_forced(material: Material, solver: MPMSolver, trajectories: Se
         history.append((it, loss.item()))
         if on_step is not None:
             on_step(it, loss.item())
+        if save is not None and ((it + 1) % checkpoint_every == 0 or stop.requested()):
+            save({"iteration": it + 1, "opt": opt.state_dict(), "generator": g.get_state(), "history": history})
+        stop.check()
     return history
 
 
@@ -301,7 +320,8 @@ def _cpu_threads(device: torch.device, n: int):
 
 
 def pretrain_prior(preset: Mapping, law_cfg: NeuralLawConfig, cfg: PriorTrainConfig, seed: int = 0,
-                   device: str | torch.device = "cpu", callback=None) -> PriorResult:
+                   device: str | torch.device = "cpu", callback=None, checkpoint=None,
+                   checkpoint_every: int = 100) -> PriorResult:
     """The whole prior stage for one family: data, warm start, teacher forcing, evaluation.
 
     The held-out RMSE and the response error are measured after each phase: ``untrained`` (the
@@ -314,15 +334,21 @@ def pretrain_prior(preset: Mapping, law_cfg: NeuralLawConfig, cfg: PriorTrainCon
         seed: seeds the data, the network initialisation and the window sampling.
         device: torch device of the simulation.
         callback: optional ``callback(phase, i, n, **values)`` for progress bars and logging.
+        checkpoint: a file path: teacher forcing saves its state there every ``checkpoint_every`` iterations and,
+            on SIGTERM, at the end of the step in progress before stopping (:func:`gca.stop.deferred` around the
+            loop; a SIGTERM before it stops at once); a run finding one goes on from it: the data are made
+            again (from the seed), the warm start and the earlier evaluations come from the checkpoint. The
+            caller removes it when the stage is done and guards it against other params
+            (:func:`gca.stamp.guard_checkpoint`).
 
     Returns:
         :class:`PriorResult` (networks on the CPU in float32).
     """
     with _cpu_threads(torch.device(device), cfg.cpu_threads):
-        return _pretrain(preset, law_cfg, cfg, seed, device, callback)
+        return _pretrain(preset, law_cfg, cfg, seed, device, callback, checkpoint, checkpoint_every)
 
 
-def _pretrain(preset, law_cfg, cfg, seed, device, callback) -> PriorResult:
+def _pretrain(preset, law_cfg, cfg, seed, device, callback, checkpoint=None, checkpoint_every=100) -> PriorResult:
     seconds: dict[str, float] = {}
     say = callback or (lambda *a, **k: None)
     solver = MPMSolver(cfg.sim, device)
@@ -338,14 +364,33 @@ def _pretrain(preset, law_cfg, cfg, seed, device, callback) -> PriorResult:
             evaluation[phase] = {"rmse": heldout_rmse(solver, material, data["heldout"]),
                                  "response": response_error_pct(material.elasticity, reference.elasticity,
                                                                 cfg.response_max_strain)}
-    evaluate("untrained")
-    with _timed(seconds, "warm_start"):
-        fit = warm_start(material, reference, cfg) if cfg.warm_start else {}
-    if cfg.warm_start:
-        evaluate("warm")
-    with _timed(seconds, "train"):
+    resume = torch.load(checkpoint, map_location=solver.device, weights_only=False) \
+        if checkpoint is not None and Path(checkpoint).is_file() else None
+    if resume is None:
+        evaluate("untrained")
+        with _timed(seconds, "warm_start"):
+            fit = warm_start(material, reference, cfg) if cfg.warm_start else {}
+        if cfg.warm_start:
+            evaluate("warm")
+    else:  # the phases before teacher forcing as the interrupted run did them
+        material.load_state_dict(resume["material"])
+        untrained.load_state_dict(resume["untrained"])
+        evaluation, fit = resume["evaluation"], resume["fit"]
+        for phase, value in resume["seconds"].items():
+            if phase != "train":
+                seconds[phase] = seconds.get(phase, 0.0) + value
+        say("resume", int(resume["loop"]["iteration"]), cfg.iterations)
+
+    def save(loop: dict) -> None:
+        save_torch({"loop": loop, "material": material.state_dict(), "untrained": untrained.state_dict(),
+                    "evaluation": evaluation, "fit": fit, "seconds": dict(seconds)}, checkpoint)
+
+    with _timed(seconds, "train"), (stop.deferred() if checkpoint is not None else contextlib.nullcontext()):
         history = train_teacher_forced(material, solver, data["train"], cfg, seed,
-                                       lambda it, loss: say("train", it + 1, cfg.iterations, loss=loss))
+                                       lambda it, loss: say("train", it + 1, cfg.iterations, loss=loss),
+                                       save=None if checkpoint is None else save,
+                                       resume=None if resume is None else resume["loop"],
+                                       checkpoint_every=checkpoint_every)
     evaluate("trained")
     metrics = {**_metrics(evaluation, fit, history, data, cfg), "seconds": seconds}
     seconds["total"] = sum(seconds.values())
