@@ -94,10 +94,11 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int) -
     wx, wv = wp.from_torch(x, dtype=k.vec3), wp.from_torch(v, dtype=k.vec3)
     wC, wtau = wp.from_torch(C, dtype=k.mat33), wp.from_torch(tau, dtype=k.mat33)
     wvol, wmass = wp.from_torch(vol), wp.from_torch(mass)
-    args = [wx, wv, wC, wtau, wvol, wmass, 1e-4, float(n_grid), n_grid, mv, m]
+    run = wp.zeros(n, dtype=wp.int32, device=wd)  # one run
+    args = [wx, wv, wC, wtau, wvol, wmass, run, 1e-4, float(n_grid), n_grid, mv, m]
     F = torch.eye(3, **to).expand(n, 3, 3).contiguous()
     outs = [wp.zeros(n, dtype=t, device=wd) for t in (k.vec3, k.vec3, k.mat33, k.mat33)]
-    g2p_args = [wx, wp.from_torch(F, dtype=k.mat33), mv, 1e-4, float(n_grid), n_grid, 0.0, 1.0, *outs]
+    g2p_args = [wx, wp.from_torch(F, dtype=k.mat33), run, mv, 1e-4, float(n_grid), n_grid, 0.0, 1.0, *outs]
     row = {"particles": n, "n_grid": n_grid, "order": order}
     row["p2g_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
     row["p2g_nodes_us"] = _time(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,

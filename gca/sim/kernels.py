@@ -22,6 +22,11 @@ uses ``lo = clip * dx``, ``hi = 1 - clip * dx``) and the base index is additiona
 integer, so even a non-finite position cannot index out of bounds (it produces non-finite state,
 which the rollout driver detects instead).
 
+Runs. Several independent simulations (runs) can share one launch: ``run[p]`` is particle ``p``'s run, and
+the runs' grids are stacked along the first axis (run ``r``'s node ``(I, J, K)`` at index ``I + PAD + r G``,
+``G = n_grid + 1 + 2 PAD``), so no particle ever reaches another run's nodes. One run: ``run`` all zeros and
+one grid, the plain step.
+
 Walls. Nodes with ``I < bound`` or ``I > n_grid - bound`` on an axis are in that axis' wall
 region; ``bound`` is in cells. The floor is the bottom wall y = 0. ``sticky`` zeroes the whole
 node velocity in a wall region (whatever its direction); ``slip`` removes the normal component
@@ -82,6 +87,13 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         w2 = T(0.5) * wp.cw_mul(fx - vec3(T(0.5)), fx - vec3(T(0.5)))
         return base, fx, wp.matrix_from_rows(w0, w1, w2)
 
+    @wp.func
+    def run_offset(run: wp.array(dtype=int), p: int, n_grid: int, n_first: int):
+        """Index offset along the first grid axis of particle ``p``'s run: runs' grids are stacked there,
+        ``n_grid + 1 + 2 PAD`` nodes each; the run index is clamped to the grids present."""
+        G = n_grid + 1 + 2 * PAD
+        return wp.clamp(run[p], 0, n_first // G - 1) * G
+
     @wp.kernel(module=module)
     def p2g(
         x: wp.array(dtype=vec3),
@@ -90,6 +102,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         tau: wp.array(dtype=mat33),
         vol: wp.array(dtype=T),
         mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
         dt: T,
         inv_dx: T,
         n_grid: int,
@@ -98,6 +111,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     ):
         p = wp.tid()
         base, fx, W = stencil(x[p], inv_dx, n_grid)
+        off = run_offset(run, p, n_grid, grid_m.shape[0])
         m_p = mass[p]
         affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau[p] + m_p * C[p]
         mv_p = m_p * v[p]
@@ -106,7 +120,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                 for k in range(3):
                     w = W[i, 0] * W[j, 1] * W[k, 2]
                     dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-                    I = base[0] + i + PAD
+                    I = base[0] + i + PAD + off
                     J = base[1] + j + PAD
                     K = base[2] + k + PAD
                     wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
@@ -120,6 +134,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         tau: wp.array(dtype=mat33),
         vol: wp.array(dtype=T),
         mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
         dt: T,
         inv_dx: T,
         n_grid: int,
@@ -142,7 +157,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau[p] + m_p * C[p]
         w = W[i, 0] * W[j, 1] * W[k, 2]
         dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-        I = base[0] + i + PAD
+        I = base[0] + i + PAD + run_offset(run, p, n_grid, grid_m.shape[0])
         J = base[1] + j + PAD
         K = base[2] + k + PAD
         wp.atomic_add(grid_mv, I, J, K, w * (m_p * v[p] + affine @ dpos))
@@ -189,7 +204,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
             grid_v[s0, s1, s2] = vec3(T(0.0))
             return
         v = grid_mv[s0, s1, s2] / (m + eps) + dt * gravity
-        I = s0 - PAD
+        I = s0 % (n_grid + 1 + 2 * PAD) - PAD  # the node's index within its run's grid
         J = s1 - PAD
         K = s2 - PAD
         hi = n_grid - bound
@@ -205,6 +220,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     def g2p(
         x: wp.array(dtype=vec3),
         F: wp.array(dtype=mat33),
+        run: wp.array(dtype=int),
         grid_v: wp.array3d(dtype=vec3),
         dt: T,
         inv_dx: T,
@@ -218,6 +234,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     ):
         p = wp.tid()
         base, fx, W = stencil(x[p], inv_dx, n_grid)
+        off = run_offset(run, p, n_grid, grid_v.shape[0])
         v_new = vec3(T(0.0))
         B = mat33(T(0.0))
         for i in range(3):
@@ -225,7 +242,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                 for k in range(3):
                     w = W[i, 0] * W[j, 1] * W[k, 2]
                     dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-                    v_i = grid_v[base[0] + i + PAD, base[1] + j + PAD, base[2] + k + PAD]
+                    v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
                     v_new += w * v_i
                     B += w * wp.outer(v_i, dpos)
         C_new = (T(4.0) * inv_dx * inv_dx) * B

@@ -125,7 +125,8 @@ class MPMSolver:
         self.wp_device = wp.device_from_torch(self.device)
         self.k = KERNELS[cfg.dtype]
         self.dtype = cfg.torch_dtype
-        self._grids: dict[bool, tuple] = {}
+        self._grids: dict[tuple, tuple] = {}
+        self._zero_runs: dict[int, torch.Tensor] = {}
         self._graphs = GraphCache()
         self._refined: dict[int, "MPMSolver"] = {}
 
@@ -141,7 +142,7 @@ class MPMSolver:
         """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""
         return self._graphs.get(self, material, n_steps, n)
 
-    def step(self, x, v, C, F, tau, vol, mass):
+    def step(self, x, v, C, F, tau, vol, mass, run=None, n_runs: int = 1):
         """Advance the particles by one step of ``cfg.dt``.
 
         Args:
@@ -152,14 +153,19 @@ class MPMSolver:
             tau: Kirchhoff stresses of F [N, 3, 3] (Pa).
             vol: initial particle volumes [N] (m^3).
             mass: particle masses [N] (kg).
+            run: int32 run index of each particle [N] in [0, n_runs) (default: all 0): ``n_runs`` independent
+                simulations in one launch, each on its own grid (``gca.sim.kernels``: runs), equal to stepping
+                each run's particles alone (tested). Indices outside the range are clamped to it.
+            n_runs: number of runs (grids).
 
         Returns:
             ``(x', v', C', F_trial)`` with the shapes of ``x, v, C, F``; ``F_trial = (I + dt C') F``
             still has to go through the plasticity projection.
         """
         self._check(x, v, C, F, tau, vol, mass)
+        run = self._runs(run, x.shape[0], n_runs)
         keep = self.keep_grid and torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, tau))
-        return _MPMStep.apply(self, keep, x, v, C, F, tau, vol, mass)
+        return _MPMStep.apply(self, keep, n_runs, run, x, v, C, F, tau, vol, mass)
 
     def grid(self, x, v, C, tau, vol, mass):
         """P2G only (diagnostics and tests): node masses and momenta of the padded grid.
@@ -172,8 +178,9 @@ class MPMSolver:
         self._check(x, v, C, eye, tau, vol, mass)
         with torch.no_grad(), _stream(self.device):
             args = self._wrap(x, v, C, eye.contiguous(), tau, vol, mass)
+            run = wp.from_torch(self._runs(None, x.shape[0], 1), dtype=wp.int32)
             mv, m, _ = self._scratch(requires_grad=False)
-            wp.launch(self.k.p2g, dim=x.shape[0], inputs=self._p2g_args(args, mv, m), device=self.wp_device)
+            wp.launch(self.k.p2g, dim=x.shape[0], inputs=self._p2g_args(args, run, mv, m), device=self.wp_device)
             return wp.to_torch(m).clone(), wp.to_torch(mv).clone()
 
     # -- internals -------------------------------------------------------------------------------
@@ -198,56 +205,76 @@ class MPMSolver:
         return [wp.from_torch(t.contiguous(), dtype=ty, grad=g, requires_grad=g is not None)
                 for t, ty, g in zip(tensors, types, grads)]
 
-    def _scratch(self, requires_grad: bool):
-        """Zeroed grid buffers (mv, m, v) reused across steps; never needed after a step."""
-        if requires_grad not in self._grids:
+    def _runs(self, run, n: int, n_runs: int) -> torch.Tensor:
+        """The particles' run indices as a contiguous int32 tensor [N] (all 0 when ``run`` is None; cached per N)."""
+        if int(n_runs) != n_runs or n_runs < 1:
+            raise ValueError(f"{_WHERE}: n_runs={n_runs} must be an integer >= 1")
+        if run is None:
+            if n_runs != 1:
+                raise ValueError(f"{_WHERE}: n_runs={n_runs} needs the particles' run indices (run=)")
+            if n not in self._zero_runs:
+                self._zero_runs[n] = torch.zeros(n, dtype=torch.int32, device=self.device)
+            return self._zero_runs[n]
+        if not isinstance(run, torch.Tensor) or tuple(run.shape) != (n,) or run.dtype != torch.int32 \
+                or run.device.type != self.device.type:
+            got = f"{tuple(run.shape)} {run.dtype} on {run.device}" if isinstance(run, torch.Tensor) else type(run).__name__
+            raise ValueError(f"{_WHERE}: run must be an int32 tensor of shape ({n},) on {self.device}, got {got}")
+        return run.contiguous()
+
+    def _scratch(self, requires_grad: bool, n_runs: int = 1):
+        """Zeroed grid buffers (mv, m, v) of ``n_runs`` stacked grids, reused across steps; never needed after a step."""
+        key = (requires_grad, n_runs)
+        if key not in self._grids:
             G = grid_size(self.cfg.n_grid)
-            shape = (G, G, G)
-            self._grids[requires_grad] = tuple(
+            shape = (n_runs * G, G, G)
+            self._grids[key] = tuple(
                 wp.zeros(shape, dtype=ty, device=self.wp_device, requires_grad=requires_grad)
                 for ty in (self.k.vec3, self.k.T, self.k.vec3))
-        for a in self._grids[requires_grad]:
+        for a in self._grids[key]:
             a.zero_()
             if requires_grad:
                 a.grad.zero_()
-        return self._grids[requires_grad]
+        return self._grids[key]
 
-    def _p2g_args(self, args, mv, m):
+    def _p2g_args(self, args, run, mv, m):
         x, v, C, _, tau, vol, mass = args
-        return [x, v, C, tau, vol, mass, self.cfg.dt, 1.0 / self.cfg.dx, self.cfg.n_grid, mv, m]
+        return [x, v, C, tau, vol, mass, run, self.cfg.dt, 1.0 / self.cfg.dx, self.cfg.n_grid, mv, m]
 
-    def _kernel_args(self, args, grid, outs) -> list[tuple]:
+    def _kernel_args(self, args, run, grid, outs) -> list[tuple]:
         """(kernel, dim, arguments) of P2G, grid update and G2P, in launch order.
 
         Args:
             args: the wrapped inputs (x, v, C, F, tau, vol, mass).
-            grid: the wrapped grid buffers (mv, m, v_grid), zeroed where P2G accumulates.
+            run: the wrapped run indices [N] (int32).
+            grid: the wrapped grid buffers (mv, m, v_grid) of the stacked runs' grids, zeroed where P2G accumulates.
             outs: the wrapped outputs (x', v', C', F_trial).
         """
         cfg, k = self.cfg, self.k
         mv, m, gv = grid
         lo, hi = cfg.clamp_range
         n = args[0].shape[0]
-        return [(k.p2g, n, self._p2g_args(args, mv, m)),
+        return [(k.p2g, n, self._p2g_args(args, run, mv, m)),
                 (k.grid_update, mv.shape, [mv, m, k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass,
                                            cfg.n_grid, cfg.bound, BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]),
-                (k.g2p, n, [args[0], args[3], gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])]
+                (k.g2p, n, [args[0], args[3], run, gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])]
 
-    def _launch(self, args, outs, requires_grad: bool, grid=None):
+    def _launch(self, args, run, outs, requires_grad: bool, grid=None, n_runs: int = 1):
         """P2G, grid update, G2P from the wrapped inputs ``args`` into the wrapped ``outs`` (on ``grid``, or on
         the reused scratch buffers). Under a tape (``requires_grad``, the reference backward) P2G is the
         per-particle kernel, whose adjoint the tape replays."""
-        grid = self._scratch(requires_grad) if grid is None else grid
-        for kernel, dim, kargs in self._kernel_args(args, grid, outs):
+        grid = self._scratch(requires_grad, n_runs) if grid is None else grid
+        for kernel, dim, kargs in self._kernel_args(args, run, grid, outs):
             if kernel is self.k.p2g and self.split_p2g and not requires_grad:
                 kernel, dim = self.k.p2g_nodes, 27 * dim  # same inputs, a thread per (particle, node)
             wp.launch(kernel, dim=dim, inputs=kargs, device=self.wp_device)
 
-    def _new_grid(self):
-        """Fresh grid tensors (mv [G,G,G,3] and m [G,G,G] zeroed, v_grid [G,G,G,3] uninitialised)."""
+    def _new_grid(self, n_runs: int = 1):
+        """Fresh grid tensors of ``n_runs`` stacked grids (mv [R G,G,G,3] and m [R G,G,G] zeroed, v_grid [R G,G,G,3]
+        uninitialised)."""
         G = grid_size(self.cfg.n_grid)
         to = dict(dtype=self.dtype, device=self.device)
-        return torch.zeros(G, G, G, 3, **to), torch.zeros(G, G, G, **to), torch.empty(G, G, G, 3, **to)
+        R = n_runs * G
+        return torch.zeros(R, G, G, 3, **to), torch.zeros(R, G, G, **to), torch.empty(R, G, G, 3, **to)
 
     def _wrap_grid(self, grid, grads=None):
         """Warp views of grid tensors (mv, m, v_grid); ``grads`` (same order, or None) become their ``.grad``."""
@@ -255,19 +282,20 @@ class MPMSolver:
         return [wp.from_torch(t, dtype=ty, grad=g, requires_grad=g is not None)
                 for t, ty, g in zip(grid, (self.k.vec3, self.k.T, self.k.vec3), grads)]
 
-    def _forward(self, x, v, C, F, tau, vol, mass, keep_grid: bool = False):
+    def _forward(self, x, v, C, F, tau, vol, mass, run, n_runs: int = 1, keep_grid: bool = False):
         """The step's outputs (x', v', C', F_trial), and its grid tensors (mv, m, v_grid) if ``keep_grid``
         (else None)."""
         outs = [torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F)]
-        grid = self._new_grid() if keep_grid else None
+        grid = self._new_grid(n_runs) if keep_grid else None
         with _stream(self.device):
             args = self._wrap(x, v, C, F, tau, vol, mass)
             wouts = [wp.from_torch(o, dtype=ty, requires_grad=False)
                      for o, ty in zip(outs, (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33))]
-            self._launch(args, wouts, requires_grad=False, grid=None if grid is None else self._wrap_grid(grid))
+            self._launch(args, wp.from_torch(run, dtype=wp.int32), wouts, requires_grad=False,
+                         grid=None if grid is None else self._wrap_grid(grid), n_runs=n_runs)
         return tuple(outs), grid
 
-    def _backward_from_grid(self, inputs, grid, v_outs):
+    def _backward_from_grid(self, inputs, run, grid, v_outs):
         """Adjoints of G2P, the grid update and P2G, in reverse order, on the forward's kept ``grid``; return the
         gradients for (x, v, C, F, tau). The same launches as ``wp.Tape.backward`` of :meth:`_launch`, without
         replaying the forward first."""
@@ -282,12 +310,13 @@ class MPMSolver:
                                   grad=g.contiguous().clone(), requires_grad=True)
                     for t, ty, g in zip((x, v, C, F), types, v_outs)]
             wgrid = self._wrap_grid(grid, grads=v_grid)
-            for kernel, dim, kargs in reversed(self._kernel_args(args, wgrid, outs)):
+            wrun = wp.from_torch(run, dtype=wp.int32)
+            for kernel, dim, kargs in reversed(self._kernel_args(args, wrun, wgrid, outs)):
                 wp.launch(kernel, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs], adjoint=True,
                           device=self.wp_device)
         return tuple(v_ins)
 
-    def _backward(self, inputs, v_outs):
+    def _backward(self, inputs, run, v_outs, n_runs: int = 1):
         """Recompute the step under a tape; return the gradients for (x, v, C, F, tau)."""
         x, v, C, F, tau, vol, mass = inputs
         v_ins = [torch.zeros(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F, tau)]
@@ -299,7 +328,7 @@ class MPMSolver:
                     for t, ty, g in zip((x, v, C, F), types, v_outs)]
             tape = wp.Tape()
             with tape:
-                self._launch(args, outs, requires_grad=True)
+                self._launch(args, wp.from_torch(run, dtype=wp.int32), outs, requires_grad=True, n_runs=n_runs)
             tape.backward()
         return tuple(v_ins)
 
@@ -308,21 +337,23 @@ class _MPMStep(torch.autograd.Function):
     """torch.autograd bridge of :meth:`MPMSolver.step` (backward recomputes the step)."""
 
     @staticmethod
-    def forward(ctx, solver, keep_grid, x, v, C, F, tau, vol, mass):
-        ctx.solver = solver
+    def forward(ctx, solver, keep_grid, n_runs, run, x, v, C, F, tau, vol, mass):
+        ctx.solver, ctx.n_runs = solver, n_runs
         inputs = tuple(t.contiguous() for t in (x, v, C, F, tau, vol, mass))
-        outs, grid = solver._forward(*inputs, keep_grid=keep_grid)
-        ctx.save_for_backward(*inputs, *(grid or ()))
+        outs, grid = solver._forward(*inputs, run, n_runs=n_runs, keep_grid=keep_grid)
+        ctx.save_for_backward(*inputs, run, *(grid or ()))
         return outs
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_x, v_v, v_C, v_F):
         saved = ctx.saved_tensors
-        inputs, grid = saved[:7], saved[7:]
+        inputs, run, grid = saved[:7], saved[7], saved[8:]
         cot = (v_x, v_v, v_C, v_F)
-        v_ins = ctx.solver._backward_from_grid(inputs, grid, cot) if grid else ctx.solver._backward(inputs, cot)
-        return (None, None, *v_ins, None, None)
+        solver = ctx.solver
+        v_ins = solver._backward_from_grid(inputs, run, grid, cot) if grid else \
+            solver._backward(inputs, run, cot, ctx.n_runs)
+        return (None, None, None, None, *v_ins, None, None)
 
 
 def _adjoint(a):
