@@ -157,3 +157,48 @@ def test_capture_survives_unreachable_warp_memory():
     finally:
         gc.set_threshold(*threshold)
         gc.enable()
+
+
+@pytest.mark.parametrize("graph", [False, True])
+def test_runs_rolled_out_together_equal_each_run_alone(graph):
+    # issue 20's batched trainer, its simulation: two runs (their own LoRA laws, particle sets and launches) in one
+    # launch per step (MPMSolver.with_runs + a CompositeMaterial of the runs' materials) give each run's trajectory
+    # (bitwise on the CPU) and gradients (launch velocity and its law's adapters, to rounding) as when it is rolled
+    # out alone, through the checkpointed rollout and through the CUDA-graph runner's eager twin.
+    from gca.laws.base import CompositeMaterial
+
+    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float64",
+                                 max_refine=1))
+    laws = [_law(seed=0), _law(seed=5)]
+    scenes = [_scene(n=30, seed=1), _scene(n=22, seed=2)]
+
+    def loss_and_grads(material, solver, x0, v0, vol, mass, params):
+        v0 = v0.clone().requires_grad_(True)
+        out = rollout(solver, material, x0, v0, vol, mass, 8, 2, checkpoint=True, graph=graph)
+        loss = (out.x[-1] ** 2).sum() + (out.F[-1] ** 2).sum() + (out.v[3] ** 2).sum()
+        return out, loss, torch.autograd.grad(loss, [v0, *params])
+
+    alone = []
+    for law, scene in zip(laws, scenes):
+        params = [p for p in law.parameters() if p.requires_grad]
+        out, _, grads = loss_and_grads(law, solver, *scene, params)
+        alone.append((out, grads))
+    counts = [s[0].shape[0] for s in scenes]
+    run = torch.cat([torch.full((c,), r, dtype=torch.int32) for r, c in enumerate(counts)])
+    batch = solver.with_runs(run, 2)
+    both = CompositeMaterial(laws, counts)
+    params = [p for law in laws for p in law.parameters() if p.requires_grad]
+    cat = [torch.cat([s[i] for s in scenes]) for i in range(4)]
+    out, _, grads = loss_and_grads(both, batch, *cat, params)
+    n_params = len(params) // 2
+    for r, (ref, ref_grads) in enumerate(alone):
+        rows = slice(0, counts[0]) if r == 0 else slice(counts[0], None)
+        for a, b in ((out.x, ref.x), (out.v, ref.v), (out.F, ref.F), (out.F_trial, ref.F_trial)):
+            assert torch.equal(a[:, rows], b)
+        # gradients to rounding (torch's CPU kernels may vectorise a slice of a batch differently): float64 1e-12
+        torch.testing.assert_close(grads[0][rows], ref_grads[0], rtol=1e-12, atol=1e-14)  # d loss / d v0 of this run
+        for a, b in zip(grads[1 + r * n_params:1 + (r + 1) * n_params], ref_grads[1:]):
+            assert float(b.abs().max()) > 0
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-16)
+    shared = rollout(solver.with_runs(torch.zeros_like(run), 1), both, *cat, 8, 2, graph=graph)  # control: one grid
+    assert not torch.equal(shared.x[-1, :counts[0]], alone[0][0].x[-1])

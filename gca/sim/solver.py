@@ -22,6 +22,7 @@ third pass of the transfers at the price of one frame's grids in memory.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Sequence
 
@@ -127,6 +128,7 @@ class MPMSolver:
         self.dtype = cfg.torch_dtype
         self._grids: dict[tuple, tuple] = {}
         self._zero_runs: dict[int, torch.Tensor] = {}
+        self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
         self._refined: dict[int, "MPMSolver"] = {}
 
@@ -135,8 +137,20 @@ class MPMSolver:
         if k == 1:
             return self
         if k not in self._refined:
-            self._refined[k] = MPMSolver(dataclasses.replace(self.cfg, dt=self.cfg.dt / k, max_refine=1), self.device)
+            fine = MPMSolver(dataclasses.replace(self.cfg, dt=self.cfg.dt / k, max_refine=1), self.device)
+            self._refined[k] = fine if self._batch is None else fine.with_runs(*self._batch)
         return self._refined[k]
+
+    def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
+        """This solver for a batch of ``n_runs`` independent runs in one launch: every :meth:`step` (and so a
+        rollout, a frame, its CUDA graphs) takes ``run`` [N] int32 as the particles' run indices. Pair it with a
+        :class:`gca.laws.base.CompositeMaterial` of the runs' materials over the same contiguous slices; each run
+        then evolves as it would alone (tested), except that they share the CFL refinement and the health checks.
+        """
+        batched = copy.copy(self)
+        batched._batch = (self._runs(run, run.shape[0], n_runs), int(n_runs))
+        batched._graphs, batched._refined = GraphCache(), {}
+        return batched
 
     def frame_graphs(self, material, n_steps: int, n: int) -> FrameGraphs:
         """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""
@@ -163,6 +177,8 @@ class MPMSolver:
             still has to go through the plasticity projection.
         """
         self._check(x, v, C, F, tau, vol, mass)
+        if run is None and self._batch is not None:
+            run, n_runs = self._batch
         run = self._runs(run, x.shape[0], n_runs)
         keep = self.keep_grid and torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, tau))
         return _MPMStep.apply(self, keep, n_runs, run, x, v, C, F, tau, vol, mass)
