@@ -6,7 +6,8 @@ backward, as training does:
 
 - ``sequential``: one rollout per run, one after another (what B trainings in one process would do today);
 - ``batched``: one rollout over all runs' particles (``MPMSolver.with_runs``: one P2G / grid update / G2P launch per
-  step with a grid per run; the laws still evaluated run by run through a ``CompositeMaterial``).
+  step with a grid per run), the laws evaluated run by run (``--laws composite``: a ``CompositeMaterial``) or as one
+  batch (``--laws batched``: ``gca.laws.batched``, one ``bmm`` per layer, features and heads over all particles).
 
 Reports seconds per run and the speed-up. On CUDA the frames replay from CUDA graphs (``gca.sim.graph``).
 
@@ -26,6 +27,7 @@ import warp as wp
 
 from benchmarks.bench_sim import RHO, block
 from gca.laws.base import CompositeMaterial, Material
+from gca.laws.batched import runs_material
 from gca.laws.lora import apply_lora
 from gca.laws.neural import NeuralElasticity, NeuralPlasticity
 from gca.sim import MPMSolver, SimConfig, rollout
@@ -48,7 +50,8 @@ def _sync(device):
         torch.cuda.synchronize(device)
 
 
-def measure(n_runs: int, n: int, n_grid: int, steps: int, per_frame: int, device, repeats: int) -> dict:
+def measure(n_runs: int, n: int, n_grid: int, steps: int, per_frame: int, device, repeats: int,
+            laws_mode: str = "composite") -> dict:
     cfg = SimConfig(n_grid=n_grid, dt=2e-4, dtype="float32", max_refine=1)
     solver = MPMSolver(cfg, device)
     x, vol, mass = block(n, cfg, device, order="lattice")
@@ -67,13 +70,14 @@ def measure(n_runs: int, n: int, n_grid: int, steps: int, per_frame: int, device
             one(solver, law, x, v0, vol, mass)
 
     run = torch.arange(n_runs, device=device, dtype=torch.int32).repeat_interleave(n)
-    batch, both = solver.with_runs(run, n_runs), CompositeMaterial(laws, [n] * n_runs)
+    both = CompositeMaterial(laws, [n] * n_runs) if laws_mode == "composite" else runs_material(laws, [n] * n_runs)
+    batch = solver.with_runs(run, n_runs)
     cat = [x.repeat(n_runs, 1), torch.cat(v0s), vol.repeat(n_runs), mass.repeat(n_runs)]
 
     def batched():
         one(batch, both, *cat)
 
-    row = {"runs": n_runs, "particles_per_run": n, "n_grid": n_grid, "steps": steps}
+    row = {"runs": n_runs, "particles_per_run": n, "n_grid": n_grid, "steps": steps, "laws": laws_mode}
     for name, fn in (("sequential", sequential), ("batched", batched)):
         fn()  # warm-up: capture, kernel loads
         best = float("inf")
@@ -98,6 +102,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--steps-per-frame", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--laws", nargs="+", default=["composite"], choices=["composite", "batched"])
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     wp.config.quiet = True
@@ -105,13 +110,15 @@ def main(argv=None) -> list[dict]:
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    print("| runs | particles per run | grid | sequential s | batched s | s per run, sequential -> batched | speed-up |\n"
-          "| --- | --- | --- | --- | --- | --- | --- |")
-    for b in a.runs:
-        r = measure(b, a.particles, a.n_grid, a.steps, a.steps_per_frame, device, a.repeats)
-        rows.append(r)
-        print(f"| {b} | {r['particles_per_run']} | {a.n_grid}^3 | {r['sequential_s']:.3f} | {r['batched_s']:.3f} | "
-              f"{r['sequential_s_per_run']:.3f} -> {r['batched_s_per_run']:.3f} | {r['speedup']:.2f}x |", flush=True)
+    print("| laws | runs | particles per run | grid | sequential s | batched s | s per run, sequential -> batched | "
+          "speed-up |\n| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for mode in a.laws:
+        for b in a.runs:
+            r = measure(b, a.particles, a.n_grid, a.steps, a.steps_per_frame, device, a.repeats, mode)
+            rows.append(r)
+            print(f"| {mode} | {b} | {r['particles_per_run']} | {a.n_grid}^3 | {r['sequential_s']:.3f} | "
+                  f"{r['batched_s']:.3f} | {r['sequential_s_per_run']:.3f} -> {r['batched_s_per_run']:.3f} | "
+                  f"{r['speedup']:.2f}x |", flush=True)
     if a.json:
         with open(a.json, "w") as f:
             json.dump({"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "rows": rows},

@@ -41,7 +41,9 @@ def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
 
 def test_bench_runs_times_sequential_and_batched_rollouts_on_the_cpu():
     rows = _load("bench_runs").main(["--device", "cpu", "--runs", "2", "--particles", "200", "--n-grid", "12",
-                                     "--steps", "4", "--steps-per-frame", "2", "--repeats", "1"])
-    (row,) = rows
-    assert row["runs"] == 2 and row["particles_per_run"] == 216  # 6^3 lattice
-    assert row["sequential_s"] > 0 and row["batched_s"] > 0 and row["speedup"] > 0
+                                     "--steps", "4", "--steps-per-frame", "2", "--repeats", "1",
+                                     "--laws", "composite", "batched"])
+    assert [r["laws"] for r in rows] == ["composite", "batched"]
+    for row in rows:
+        assert row["runs"] == 2 and row["particles_per_run"] == 216  # 6^3 lattice
+        assert row["sequential_s"] > 0 and row["batched_s"] > 0 and row["speedup"] > 0

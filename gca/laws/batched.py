@@ -1,0 +1,114 @@
+"""Several runs' neural laws evaluated as one batch (issue 20's batched trainer: the laws of B runs in one launch).
+
+B runs of the same neural architecture, each with its own weights (its LoRA adapters), on B equal contiguous
+particle slices (run r owns rows r n .. (r + 1) n - 1). Per call, instead of B x (~20 kernels per network):
+
+    R, z = features(F)                      one warp kernel (and one SVD kernel) over all B n particles
+    h = z.reshape(B, n, 13)
+    h = act(bmm(h, W_l^T))                  one batched product per layer, W_l = stack of the runs' merged weights
+    tau = elastic_head(X, R, F)  |  F_e = plastic_head(X, R, F)   one warp kernel over all particles
+
+Each run's rows see only its own weights, so run r's outputs and gradients are those of its law alone (to rounding:
+a batched product may sum in another order; tested against :class:`gca.laws.base.CompositeMaterial`). Inside
+:func:`gca.laws.lora.merged_weights` (a simulated frame) the merged weights are formed once per frame, as for one run.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from gca.laws import fused
+from gca.laws.base import CompositeMaterial, Elasticity, Material, Plasticity
+from gca.laws.lora import LoRALinear
+from gca.laws.neural import NeuralElasticity, NeuralPlasticity
+from gca.laws.svd import warp_runs
+
+_WHERE = "gca/laws/batched.py"
+
+
+def effective_weight(layer: nn.Module) -> torch.Tensor:
+    """The weight a linear layer applies now [out, in]: a plain ``nn.Linear``'s, or a LoRA layer's merged one
+    (``W + scale (alpha / r) B A``; the frame's merge inside ``merged_weights``; ``W`` at scale 0)."""
+    if isinstance(layer, LoRALinear):
+        if layer._merged is not None:
+            return layer._merged
+        return layer.weight if layer.scale == 0.0 else layer.weight + layer.delta_weight()
+    return layer.weight
+
+
+def batched_mlp(nets: Sequence[nn.Module], z: torch.Tensor) -> torch.Tensor:
+    """The runs' MLPs on their row blocks of ``z`` [B n, in] -> [B n, out], one ``bmm`` per layer."""
+    B = len(nets)
+    h = z.reshape(B, z.shape[0] // B, z.shape[1])
+    for layers in zip(*(net.mlp for net in nets)):
+        if isinstance(layers[0], (nn.Linear, LoRALinear)):
+            h = torch.bmm(h, torch.stack([effective_weight(layer) for layer in layers]).transpose(1, 2))
+            if layers[0].bias is not None:
+                h = h + torch.stack([layer.bias for layer in layers])[:, None, :]
+        else:  # the activation: the same parameter-free module in every run (checked at construction)
+            h = layers[0](h)
+    return h.reshape(z.shape[0], -1)
+
+
+class _Batched(nn.Module):
+    def __init__(self, nets: Sequence[nn.Module], count: int):
+        super().__init__()
+        nets = list(nets)
+        if not nets or len({type(n) for n in nets}) != 1 or len({n.cfg for n in nets}) != 1 or count < 0:
+            raise ValueError(f"{_WHERE}: batched laws need >= 1 networks of one class and one NeuralLawConfig and a "
+                             f"count >= 0, got {[type(n).__name__ for n in nets]}, count {count}")
+        self.nets, self.count = nn.ModuleList(nets), int(count)
+
+    def _check(self, F: torch.Tensor) -> None:
+        if F.shape[0] != self.count * len(self.nets):
+            raise ValueError(f"{_WHERE}: {len(self.nets)} runs x {self.count} particles expected, got F of shape "
+                             f"{tuple(F.shape)}")
+
+    def _fast(self, F: torch.Tensor) -> bool:
+        return all(n.fast_path for n in self.nets) and warp_runs(F)
+
+    def _per_run(self, F: torch.Tensor) -> torch.Tensor:
+        """Reference: each run's network on its slice (the torch path, or where warp does not run)."""
+        return torch.cat([net(Fk) for net, Fk in zip(self.nets, F.split(self.count))])
+
+
+class BatchedElasticity(_Batched, Elasticity):
+    """B runs' :class:`NeuralElasticity` on B equal particle slices: tau [B n, 3, 3] (Pa)."""
+
+    def forward(self, F: torch.Tensor) -> torch.Tensor:
+        self._check(F)
+        if not self._fast(F):
+            return self._per_run(F)
+        R, z = fused.features(F)
+        return fused.elastic_head(batched_mlp(self.nets, z), R, F, self.nets[0].cfg.stress_scale)
+
+    def wave_speed(self, rho) -> float:
+        return max(net.wave_speed(rho) for net in self.nets)
+
+
+class BatchedPlasticity(_Batched, Plasticity):
+    """B runs' :class:`NeuralPlasticity` on B equal particle slices: F_e [B n, 3, 3]."""
+
+    def forward(self, F: torch.Tensor) -> torch.Tensor:
+        self._check(F)
+        if not self._fast(F):
+            return self._per_run(F)
+        R, z = fused.features(F)
+        return fused.plastic_head(batched_mlp(self.nets, z), R, F, self.nets[0].cfg.alpha)
+
+
+def runs_material(materials: Sequence[Material], counts: Sequence[int]) -> Material:
+    """One material for B runs on contiguous particle slices: the neural laws batched (:class:`BatchedElasticity`,
+    :class:`BatchedPlasticity`) when every run has a neural elasticity and plasticity of one architecture on slices
+    of equal size, else a :class:`gca.laws.base.CompositeMaterial` (each run's law on its slice)."""
+    counts = [int(c) for c in counts]
+    neural = all(isinstance(m.elasticity, NeuralElasticity) and isinstance(m.plasticity, NeuralPlasticity)
+                 for m in materials)
+    if not (neural and len(set(counts)) == 1 and len({m.elasticity.cfg for m in materials}) == 1):
+        return CompositeMaterial(materials, counts)
+    rho = torch.cat([m.rho.reshape(-1).expand(c) for m, c in zip(materials, counts)])
+    return Material(BatchedElasticity([m.elasticity for m in materials], counts[0]),
+                    BatchedPlasticity([m.plasticity for m in materials], counts[0]), rho)
