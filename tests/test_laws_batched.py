@@ -72,3 +72,14 @@ def test_a_batch_that_mixed_the_runs_weights_would_be_caught(monkeypatch):
     with pytest.raises(AssertionError):
         torch.testing.assert_close(runs_material(mats, [20] * 3).stress(F), CompositeMaterial(mats, [20] * 3).stress(F),
                                    rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.grad
+def test_batched_linear_gradcheck_float64():
+    from gca.laws.batched import batched_linear
+
+    g = torch.Generator().manual_seed(0)
+    h = torch.randn(3, 7, 5, generator=g, dtype=F64, requires_grad=True)
+    W = torch.randn(3, 4, 5, generator=g, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(batched_linear, (h, W))
+    torch.testing.assert_close(batched_linear(h, W), torch.bmm(h, W.transpose(1, 2)), rtol=1e-14, atol=0)

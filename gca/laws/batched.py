@@ -39,13 +39,40 @@ def effective_weight(layer: nn.Module) -> torch.Tensor:
     return layer.weight
 
 
+class _BatchedLinear(torch.autograd.Function):
+    """h [B, n, in], W [B, out, in] -> h W^T [B, n, out] with the weights' gradient taken run by run.
+
+    The weight gradient of run r is dY_r^T h_r, a [out, n] x [n, in] product with n ~ 3e4: cuBLAS splits that long
+    sum over many thread blocks for one product (``mm``), but a batched product over B such runs (the autograd of
+    ``bmm``) ran on a handful of blocks, 10x slower than the whole rest of a step on an H100 (session 13). So the
+    forward and the input gradient are batched products, the weight gradient B plain ones.
+    """
+
+    @staticmethod
+    def forward(ctx, h, W):
+        ctx.save_for_backward(h, W)
+        return torch.bmm(h, W.transpose(1, 2))
+
+    @staticmethod
+    def backward(ctx, dY):
+        h, W = ctx.saved_tensors
+        dh = torch.bmm(dY, W) if ctx.needs_input_grad[0] else None
+        dW = torch.stack([dY[r].T @ h[r] for r in range(h.shape[0])]) if ctx.needs_input_grad[1] else None
+        return dh, dW
+
+
+def batched_linear(h: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """h [B, n, in] times the runs' weights W [B, out, in]: [B, n, out] (differentiable in both)."""
+    return _BatchedLinear.apply(h, W)
+
+
 def batched_mlp(nets: Sequence[nn.Module], z: torch.Tensor) -> torch.Tensor:
     """The runs' MLPs on their row blocks of ``z`` [B n, in] -> [B n, out], one ``bmm`` per layer."""
     B = len(nets)
     h = z.reshape(B, z.shape[0] // B, z.shape[1])
     for layers in zip(*(net.mlp for net in nets)):
         if isinstance(layers[0], (nn.Linear, LoRALinear)):
-            h = torch.bmm(h, torch.stack([effective_weight(layer) for layer in layers]).transpose(1, 2))
+            h = batched_linear(h, torch.stack([effective_weight(layer) for layer in layers]))
             if layers[0].bias is not None:
                 h = h + torch.stack([layer.bias for layer in layers])[:, None, :]
         else:  # the activation: the same parameter-free module in every run (checked at construction)
