@@ -4,29 +4,19 @@ layer) against each run's law on its slice (CompositeMaterial), in values and gr
 import pytest
 import torch
 
-from gca.laws.base import CompositeMaterial, Material
+from gca.laws.base import CompositeMaterial
 from gca.laws.batched import BatchedElasticity, runs_material
-from gca.laws.lora import apply_lora, lora_parameters, merged_weights
-from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity
+from gca.laws.lora import lora_parameters, merged_weights
 
 from test_laws_neural import random_F
+from test_sim_graph import _law
 
 F64 = torch.float64
 
 
 def _runs(n_runs=3, seed=0):
-    cfg = NeuralLawConfig(widths=(8, 8), stress_scale=2e3, alpha=1e-2)
-    mats = []
-    for r in range(n_runs):
-        torch.manual_seed(seed + r)
-        e, p = NeuralElasticity(cfg), NeuralPlasticity(cfg)
-        for net in (e, p):
-            apply_lora(net, rank=2, alpha=2.0)
-            for name, param in net.named_parameters():
-                if name.endswith("lora_B"):
-                    torch.nn.init.normal_(param, std=0.3)
-        mats.append(Material(e, p, 1000.0).to(F64))
-    return mats
+    """Runs' LoRA-adapted neural materials (float64), each with its own base weights and adapters."""
+    return [_law(seed=seed + r) for r in range(n_runs)]
 
 
 @pytest.mark.parametrize("merged", [False, True])

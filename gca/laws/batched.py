@@ -30,13 +30,9 @@ _WHERE = "gca/laws/batched.py"
 
 
 def effective_weight(layer: nn.Module) -> torch.Tensor:
-    """The weight a linear layer applies now [out, in]: a plain ``nn.Linear``'s, or a LoRA layer's merged one
-    (``W + scale (alpha / r) B A``; the frame's merge inside ``merged_weights``; ``W`` at scale 0)."""
-    if isinstance(layer, LoRALinear):
-        if layer._merged is not None:
-            return layer._merged
-        return layer.weight if layer.scale == 0.0 else layer.weight + layer.delta_weight()
-    return layer.weight
+    """The weight a linear layer applies now [out, in]: a plain ``nn.Linear``'s, or
+    :meth:`gca.laws.lora.LoRALinear.effective_weight`."""
+    return layer.effective_weight() if isinstance(layer, LoRALinear) else layer.weight
 
 
 class _BatchedLinear(torch.autograd.Function):
@@ -94,23 +90,19 @@ class _Batched(nn.Module):
             raise ValueError(f"{_WHERE}: {len(self.nets)} runs x {self.count} particles expected, got F of shape "
                              f"{tuple(F.shape)}")
 
-    def _fast(self, F: torch.Tensor) -> bool:
-        return all(n.fast_path for n in self.nets) and warp_runs(F)
-
-    def _per_run(self, F: torch.Tensor) -> torch.Tensor:
-        """Reference: each run's network on its slice (the torch path, or where warp does not run)."""
-        return torch.cat([net(Fk) for net, Fk in zip(self.nets, F.split(self.count))])
+    def forward(self, F: torch.Tensor) -> torch.Tensor:
+        self._check(F)
+        if not (all(n.fast_path for n in self.nets) and warp_runs(F)):  # reference: each run on its slice
+            return torch.cat([net(Fk) for net, Fk in zip(self.nets, F.split(self.count))])
+        R, z = fused.features(F)
+        return self._head(batched_mlp(self.nets, z), R, F)
 
 
 class BatchedElasticity(_Batched, Elasticity):
     """B runs' :class:`NeuralElasticity` on B equal particle slices: tau [B n, 3, 3] (Pa)."""
 
-    def forward(self, F: torch.Tensor) -> torch.Tensor:
-        self._check(F)
-        if not self._fast(F):
-            return self._per_run(F)
-        R, z = fused.features(F)
-        return fused.elastic_head(batched_mlp(self.nets, z), R, F, self.nets[0].cfg.stress_scale)
+    def _head(self, X, R, F):
+        return fused.elastic_head(X, R, F, self.nets[0].cfg.stress_scale)
 
     def wave_speed(self, rho) -> float:
         return max(net.wave_speed(rho) for net in self.nets)
@@ -119,12 +111,8 @@ class BatchedElasticity(_Batched, Elasticity):
 class BatchedPlasticity(_Batched, Plasticity):
     """B runs' :class:`NeuralPlasticity` on B equal particle slices: F_e [B n, 3, 3]."""
 
-    def forward(self, F: torch.Tensor) -> torch.Tensor:
-        self._check(F)
-        if not self._fast(F):
-            return self._per_run(F)
-        R, z = fused.features(F)
-        return fused.plastic_head(batched_mlp(self.nets, z), R, F, self.nets[0].cfg.alpha)
+    def _head(self, X, R, F):
+        return fused.plastic_head(X, R, F, self.nets[0].cfg.alpha)
 
 
 def runs_material(materials: Sequence[Material], counts: Sequence[int]) -> Material:

@@ -97,11 +97,14 @@ class LoRALinear(nn.Module):
         and five through the low-rank path; A and B get their gradients from the merged weight's.
         Inside :func:`merged_weights` the merged weight is the one formed on entering the block.
         """
+        return TF.linear(x, self.effective_weight(), self.bias)
+
+    def effective_weight(self) -> torch.Tensor:
+        """The weight this layer applies now [out, in]: the block's merge inside :func:`merged_weights`, else
+        ``W + scale (alpha / r) B A`` (``W`` itself at scale 0)."""
         if self._merged is not None:
-            return TF.linear(x, self._merged, self.bias)
-        if self.scale == 0.0:
-            return TF.linear(x, self.weight, self.bias)
-        return TF.linear(x, self.weight + self.delta_weight(), self.bias)
+            return self._merged
+        return self.weight if self.scale == 0.0 else self.weight + self.delta_weight()
 
     def forward_lowrank(self, x: torch.Tensor) -> torch.Tensor:
         """Reference of :meth:`forward` through the rank-r path ``W x + b + scale (alpha / r) B (A x)``
