@@ -52,8 +52,15 @@ def versions() -> dict:
             "numpy": numpy.__version__, "cuda": torch.version.cuda}
 
 
+STAGES = ("assets", "particles", "prior", "ground_truth", "preprocess", "train", "evaluate")
+
+
 def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, skip_prior: bool,
-               reuse_data: bool = False) -> dict:
+               reuse_data: bool = False, stages: tuple[str, ...] = STAGES) -> dict:
+    """Run the ``stages`` of one scene in order in ``work``; returns each stage's wall time [s].
+
+    A subset lets several processes share one lease: e.g. the prior in one work directory while others make
+    their scenes' data (``assets particles ground_truth preprocess``), then ``train evaluate`` on both."""
     import assets, evaluate, ground_truth, particles, preprocess, prior, train  # noqa: E401
     spec = raw["scenes"][scene]
     obj, family = spec["object"], spec["prior"]
@@ -62,6 +69,8 @@ def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, ski
     seconds = {}
 
     def timed(name, fn, argv):
+        if name not in stages:
+            return
         if reuse_data and name in ("assets", "particles", "ground_truth", "preprocess") and (work / "m" / f"{name}.done").is_file():
             print(f"[harness] {name}: reused", flush=True)
             return
@@ -75,7 +84,7 @@ def run_stages(raw: dict, scene: str, work: Path, params: Path, device: str, ski
     timed("assets", assets.main, ["--object", obj, "--out", d("assets", obj), "--metrics", d("m/assets.json")] + p)
     timed("particles", particles.main, ["--object", obj, "--assets", d("assets", obj), "--out", d("particles.npz"),
                                         "--metrics", d("m/particles.json")] + p)
-    if not (skip_prior and (work / "prior" / f"{family}.pt").is_file()):
+    if "prior" in stages and not (skip_prior and (work / "prior" / f"{family}.pt").is_file()):
         argv = ["--family", family, "--out", d("prior", f"{family}.pt"), "--metrics", d("m/prior.json"),
                 "--plots", d("m/prior.png")] + p
         try:
@@ -157,6 +166,8 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--reuse-prior", action="store_true", help="keep a prior already in the work directory")
     ap.add_argument("--reuse-data", action="store_true", help="keep assets/particles/scene/prep already made there")
     ap.add_argument("--tag", default="", help="suffix of the JSON names (side-by-side runs in one --out)")
+    ap.add_argument("--stages", nargs="+", choices=STAGES, default=list(STAGES),
+                    help="run only these stages (in pipeline order); the table needs train and evaluate")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -167,10 +178,14 @@ def main(argv=None) -> list[dict]:
 
     stop.install()  # SIGTERM (`timeout`, the device tool's limit): training checkpoints, then what ran is kept
     try:
-        stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data)
+        stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data,
+                                   tuple(args.stages))
     except stop.Terminated:
         keep_stopped(args.work, args.out, args.tag)
         raise
+    if "evaluate" not in args.stages:
+        print(f"[harness] stages {args.stages} done in {args.work} (no table without evaluate)", flush=True)
+        return []
     rows = collect(raw, args.scene, args.work, args.device, stage_seconds, args.overrides)
     for row in rows:
         (args.out / result_name(row["profile"], row["scene"], row["method"], args.device, args.tag)).write_text(json.dumps(row, indent=2, sort_keys=True) + "\n")
