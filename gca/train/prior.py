@@ -364,7 +364,9 @@ def _pretrain(preset, law_cfg, cfg, seed, device, callback, checkpoint=None, che
             evaluation[phase] = {"rmse": heldout_rmse(solver, material, data["heldout"]),
                                  "response": response_error_pct(material.elasticity, reference.elasticity,
                                                                 cfg.response_max_strain)}
-    resume = torch.load(checkpoint, map_location=solver.device, weights_only=False) \
+    # loaded onto the CPU whatever the solver's device: the window sampler's RNG state must be a CPU ByteTensor (a
+    # CUDA-mapped load failed the first resume on the H100, session 14); load_state_dict moves the rest
+    resume = torch.load(checkpoint, map_location="cpu", weights_only=False) \
         if checkpoint is not None and Path(checkpoint).is_file() else None
     if resume is None:
         evaluate("untrained")
