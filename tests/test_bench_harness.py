@@ -1,0 +1,53 @@
+"""benchmarks/harness.py's stage subsets (how a device bundle runs a prior beside other scenes' data) and
+benchmarks/paperprior_summary.py on the CPU."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_harness_runs_only_the_stages_asked(tmp_path, monkeypatch):
+    harness = _load("harness")
+    called = []
+    for name in harness.STAGES:  # each stage module's main records its call (the real stages have their own tests)
+        module = type(sys)(name)
+        module.main = (lambda n: lambda argv: called.append(n))(name)
+        monkeypatch.setitem(sys.modules, name, module)
+    raw = harness.make_params("ball", ["gca"], "ci", [], tmp_path / "params.yaml")
+    work = tmp_path / "w"
+    harness.run_stages(raw, "ball", work, tmp_path / "params.yaml", "cpu", False, stages=("assets", "particles", "prior"))
+    assert called == ["assets", "particles", "prior"]
+    called.clear()
+    harness.run_stages(raw, "ball", work, tmp_path / "params.yaml", "cpu", False, reuse_data=True,
+                       stages=("assets", "particles", "ground_truth", "preprocess"))
+    assert called == ["ground_truth", "preprocess"]  # the data stages already done there are reused
+    called.clear()
+    harness.run_stages(raw, "ball", work, tmp_path / "params.yaml", "cpu", True, reuse_data=True)
+    assert called == ["prior", "train", "evaluate"]  # control: every stage not done (no prior file was written)
+
+
+def test_summary_lists_finished_and_stopped_runs(tmp_path):
+    summary = _load("paperprior_summary")
+    history = [{"iteration": i, "horizon": 12 + i, "loss": 1e4 * (i + 1), "grad_norm": 10.0 ** i, "wave_speed": 10.6,
+                "sim_refine": 1} for i in range(7)]
+    (tmp_path / "harness_paper_ball_gca_cuda.json").write_text(json.dumps({
+        "scene": "ball", "method": "gca", "status": "diverged", "iterations": 7, "seconds_per_iteration": 1.2,
+        "peak_memory_gib": 2.2, "chamfer_mean": None, "rejected_updates": 1, "message": "SimulationDiverged: x",
+        "history": history, "rejected": [{"iteration": 6, "lr_scale": 0.5, "message": "after step 120"}]}))
+    (tmp_path / "stopped_gca_t.json").write_text(json.dumps({"iterations_done": 3, "history": history[:3],
+                                                             "rejected": []}))
+    text = summary.summarize(tmp_path, every=5)
+    assert "ball gca: diverged, 7 its" in text and "rejected at it 6 (lr x0.5)" in text
+    assert "it    0" in text and "it    5" in text and "it    6" in text and "it    3" not in text  # every 5th + last
+    assert "stopped_gca_t: stopped after 3 iterations" in text
+    assert "no harness results" in summary.summarize(tmp_path / "empty")
