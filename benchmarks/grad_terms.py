@@ -73,7 +73,7 @@ def _scene_and_law(params, scene_name: str, inputs: SceneInputs, velocity, law_p
     """The scene's config, its training data (GCA's view of it) and the law: the prior or ``law_path``."""
     scene = params.scene(scene_name)
     gca = get_method("gca")
-    data = load_train_data(params, inputs, gca, velocity, params.video.background, device)
+    data = load_train_data(params, inputs, gca, velocity, params.video.background, device, dt=scene.dt)
     law = law_for(params, gca, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device)
     if law_path is not None:
         load_law(law_path, law, scene.prior)

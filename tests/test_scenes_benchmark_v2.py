@@ -125,3 +125,15 @@ def test_nuisance_statistics_of_a_generated_scene(tmp_path):
     assert stats["lighting_unexplained_share"] == pytest.approx(metrics["lighting_unexplained_share"], abs=0.02)
     z = np.random.default_rng(0).uniform(1, 2, (2, 8, 8))
     np.testing.assert_allclose(depth_spearman(3 * z + 1, z, np.ones_like(z, bool)), 1.0)
+
+
+def test_a_scene_made_at_another_dt_is_refused_not_resimulated_at_the_wrong_interval(tmp_path):
+    """meta.json's substeps cover the frame interval at the dt the scene was made with; simulating them at another dt
+    would compare every frame with the wrong instant (session 14: a dt/2 run on reused data did so silently)."""
+    from gca.scenes.store import SceneDataError, frame_substeps
+
+    meta = {"dt": 5e-4, "substeps": 20}
+    assert frame_substeps(meta, 5e-4, tmp_path) == 20
+    assert frame_substeps(meta, 5e-4 * (1 + 1e-9), tmp_path) == 20  # rounding of a YAML float is not a change
+    with pytest.raises(SceneDataError, match=r"meta\.json: the video was made at dt=0\.0005 s \(20 MPM steps.*0\.5x"):
+        frame_substeps(meta, 2.5e-4, tmp_path)

@@ -217,7 +217,7 @@ def test_each_seeds_runs_read_that_seeds_observations(scenes, tmp_path, monkeypa
         out_dir.mkdir(parents=True, exist_ok=True)
         return {"status": "ok", "train_seconds": 0.0}
 
-    def fake_load(settings, inputs, method, velocity, background, device="cpu"):
+    def fake_load(settings, inputs, method, velocity, background, device="cpu", dt=None):
         loaded.append((inputs.scene_dir, inputs.prep_dir))
         raise RuntimeError("seen")
 

@@ -25,7 +25,7 @@ from gca.eval.evaluate import predict
 from gca.eval.image import psnr, ssim
 from gca.io import atomic_path
 from gca.scenes.capture import all_frames
-from gca.scenes.store import SceneDataError, TRAIN_VIEW, load_plate, read_meta
+from gca.scenes.store import SceneDataError, TRAIN_VIEW, frame_substeps, load_plate, read_meta
 from gca.scenes.world import Body, gaussians_at, render_gaussians
 from gca.sim.cfl import CFLError
 from gca.sim.rollout import SimulationDiverged
@@ -112,7 +112,7 @@ def evaluate_capture(solver, material, body: Body, velocity: tuple[list, list], 
         raise SceneDataError(f"{held_path}: {len(held_masks)} masks for {len(frames) - n_train} held-out frames")
     metrics: dict = {"kind": "capture", "n_train_frames": n_train, "n_heldout_frames": len(frames) - n_train}
     try:
-        traj, seconds = predict(solver, material, body, velocity, frames, int(meta["substeps"]))
+        traj, seconds = predict(solver, material, body, velocity, frames, frame_substeps(meta, solver.cfg.dt, scene_dir))
     except (SimulationDiverged, CFLError) as exc:
         return {**metrics, "status": "diverged", "message": str(exc)}
     plate = load_plate(scene_dir, TRAIN_VIEW)

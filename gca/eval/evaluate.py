@@ -25,6 +25,7 @@ from gca.eval.image import lpips_or_reason, psnr, ssim
 from gca.eval.law_response import law_response_curve, law_response_error
 from gca.laws.presets import material_from_preset
 from gca.scenes import load_trajectory, load_views, read_meta
+from gca.scenes.store import frame_substeps
 from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
 from gca.sim.cfl import CFLError
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
@@ -115,7 +116,8 @@ def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, 
     frames_idx = list(meta["video_frames"])
     metrics: dict = {"chamfer_definition": CHAMFER_DEFINITION_SQUARED if cfg.chamfer_squared else CHAMFER_DEFINITION}
     try:
-        traj, seconds = predict(solver, material, body, velocity, frames_idx, int(meta["substeps"]))
+        traj, seconds = predict(solver, material, body, velocity, frames_idx,
+                                frame_substeps(meta, solver.cfg.dt, scene_dir))
     except (SimulationDiverged, CFLError) as exc:  # CFL: the law is too stiff for the scene's dt
         return {**metrics, "status": "diverged", "message": str(exc)}
     gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype, device=body.x0.device)

@@ -33,7 +33,7 @@ from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
 from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.preprocess import load_prep
-from gca.scenes.store import seed_dir
+from gca.scenes.store import frame_substeps, seed_dir
 from gca.scenes.world import Body, initial_velocity
 from gca.sim.solver import MPMSolver
 from gca.train.config import TrainConfig, neuma_recipe, run_dir_name
@@ -84,15 +84,18 @@ def solver_for(settings: Settings, scene: SceneConfig, device="cpu") -> MPMSolve
 
 
 def load_train_data(settings: Settings, inputs: SceneInputs, method: Method, velocity: tuple[list, list], background,
-                    device="cpu") -> TrainData:
-    """Everything the method may observe: training views, preprocessed depth/masks/keypoints."""
+                    device="cpu", *, dt: float) -> TrainData:
+    """Everything the method may observe: training views, preprocessed depth/masks/keypoints.
+
+    ``dt``: the training simulation's time step [s]; the scene must have been made at it
+    (:func:`gca.scenes.store.frame_substeps`)."""
     meta = read_meta(inputs.scene_dir)
     names = MULTI_VIEWS if method.views == "multi" else MULTI_VIEWS[:1]
     views = load_views(inputs.scene_dir, [n for n in names if n in meta["views"]["train"]])
     depth, masks, keypoints = load_prep(inputs.prep_dir, len(meta["video_frames"]))
     views["train0"].mask = masks  # a monocular method sees its own masks, not the renderer's alpha
     body = settings.load_body(inputs.particles, inputs.gaussians, device)
-    return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=int(meta["substeps"]),
+    return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=frame_substeps(meta, dt, inputs.scene_dir),
                      est_depth=depth, keypoints=keypoints, v_init=velocity_field(body, velocity),
                      background=tuple(background))
 
@@ -107,7 +110,7 @@ def estimate_scene_velocity(settings: Settings, scene_name: str, inputs: SceneIn
     prior = load_prior(inputs.prior, family=scene.prior)
     material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum())).to(device)
     v0, w0, history = estimate_velocity(solver_for(settings, scene, device), material, body, view, meta["video_frames"],
-                                        int(meta["substeps"]), settings.velocity, settings.video.background)
+                                        frame_substeps(meta, scene.dt, inputs.scene_dir), settings.velocity, settings.video.background)
     result = {"v0": v0.tolist(), "w0": w0.tolist(), "loss_first": history[0] if history else None,
               "loss_last": history[-1] if history else None, "iterations": len(history)}
     write_json(out, result)
@@ -182,7 +185,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     scene = settings.scene(scene_name)
     tcfg = train_config(settings, method, scene, seed)
     data = load_train_data(settings, observed_inputs(settings, scene_name, inputs, tcfg.seed), method, velocity,
-                           settings.video.background, device)
+                           settings.video.background, device, dt=scene.dt)
     law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
                   velocity)
     objective = objective_for(settings, method, data, scene, tcfg.seed)

@@ -93,6 +93,27 @@ def read_meta(scene_dir: str | Path) -> dict:
     return read_json(scene_dir / "meta.json")
 
 
+def frame_substeps(meta: dict, dt: float, scene_dir: str | Path) -> int:
+    """MPM steps per video frame of a scene (``meta["substeps"]``), for a simulation at time step ``dt`` [s].
+
+    The video's frame interval is ``substeps * meta["dt"]``; simulated at another ``dt`` the same substeps would
+    cover another interval and every frame would be compared with the wrong instant, silently. So a scene made at
+    another ``dt`` than the one asked is refused with one line (a stale scene after ``scenes.<scene>.dt`` changed,
+    or data reused by hand across a change).
+
+    Raises:
+        SceneDataError: ``meta["dt"]`` differs from ``dt`` (relative 1e-6).
+    """
+    substeps = int(meta["substeps"])
+    made = meta.get("dt")
+    if made is not None and abs(float(made) - float(dt)) > 1e-6 * float(dt):
+        raise SceneDataError(f"{Path(scene_dir) / 'meta.json'}: the video was made at dt={float(made):g} s ({substeps} "
+                             f"MPM steps per frame) but the simulation runs at dt={float(dt):g} s, so each frame would "
+                             f"cover {float(dt) / float(made):g}x its interval; remake the scene (its ground_truth "
+                             f"stage) or set scenes.<scene>.dt back")
+    return substeps
+
+
 def read_cameras(scene_dir: str | Path) -> dict[str, Camera]:
     raw = read_json(Path(scene_dir) / "cameras.json")
     return {name: Camera.from_dict(c) for name, c in raw.items()}
