@@ -286,6 +286,16 @@ def test_neuma_recipe_by_prior_family_and_gca_untouched():
     assert get_method("gca").recipe == "gca" and frame_weights(base, 0, 10) is None  # negative control
 
 
+def test_gca_optimiser_comes_from_params_and_neuma_keeps_radam(scene):
+    """``train.optimizer`` picks the GCA-recipe methods' optimiser; NeuMA's recipe is RAdam whatever it says."""
+    law = build_law(get_method("gca"), _prior(), "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 8e-3, 8e-4, 1e-2)
+    assert type(make_optimizer(law, TrainConfig(optimizer="adam"))[0]) is torch.optim.Adam
+    assert type(make_optimizer(law, TrainConfig(optimizer="radam"))[0]) is torch.optim.RAdam
+    assert neuma_recipe(TrainConfig(optimizer="adam"), "jelly").optimizer == "radam"
+    with pytest.raises(ValueError, match="train.optimizer must be 'adam' or 'radam'"):
+        TrainConfig(optimizer="sgd")
+
+
 def test_neuma_frame_weights_decay_then_reach_one():
     cfg = neuma_recipe(TrainConfig(iterations=30), "jelly")
     w0 = frame_weights(cfg, 0, 10)  # groups of 2 frames, decay 0.5
