@@ -8,6 +8,9 @@
 #   call 1 carry [".wpa"]:                                   sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:            . .wpb/activate.sh && OUT=$OUT sh benchmarks/paperprior_bundle.sh
 #   calls 3.. (no carry; send each at once, the machine is released after 30 s idle): OUT=$OUT sh benchmarks/paperprior_bundle.sh
+# With session 14's prior carried in the tree, call 2 alone does the rest (~2 min of data, then the trainings):
+#   . .wpb/activate.sh && PRIOR=benchmarks/results/paperprior_s14/prior_jelly.pt OUT=$OUT sh benchmarks/paperprior_bundle.sh
+# The result JSONs are tarred into one file ($OUT/res.tgz): the device tool returns a capped number of files.
 # Each call does what is left within LIMIT seconds: gsplat's build, then the prior and the data at once, then the four
 # trainings at once; what a call returns: logs, the prior and its checkpoint (to carry back if the machine went cold),
 # each finished run's harness JSON (history kept) and each stopped run's history.
@@ -34,16 +37,21 @@ harness() {  # work scene method tag stages...
       $C --work "$w" --reuse-prior --reuse-data --out "$OUT/res" --tag "$tag" --stages "$@" >> "$OUT/$tag.log" 2>&1
   say "$tag ($*) rc=$?"
 }
+# 0. a prior made earlier (PRIOR=benchmarks/results/paperprior_s14/prior_jelly.pt: session 14's, 2000 steps) saves ~17 min
+if [ -n "${PRIOR:-}" ] && [ ! -f "$W/prior/prior/jelly.pt" ]; then
+  mkdir -p "$W/prior/prior" && cp "$PRIOR" "$W/prior/prior/jelly.pt" && say "prior: $PRIOR"
+fi
 # 1. the prior (one, in its own work directory) and the data of the three scenes, at once
+for s in ball duck calib_torus; do
+  [ -f "$W/$s/m/preprocess.done" ] || harness "$W/$s" "$s" gca "data_$s" assets particles ground_truth preprocess &
+done
 if [ ! -f "$W/prior/prior/jelly.pt" ]; then
   harness "$W/prior" ball gca prior assets particles prior &
-  for s in ball duck calib_torus; do
-    [ -f "$W/$s/m/preprocess.done" ] || harness "$W/$s" "$s" gca "data_$s" assets particles ground_truth preprocess &
-  done
   wait
   mkdir -p "$OUT/prior"; cp "$W"/prior/prior/* "$W"/prior/m/prior.* "$OUT/prior/" 2>/dev/null
   tail -n 3 "$OUT/prior.log"
 fi
+wait  # the data
 # 2. the four trainings at once under MPS (each resumes its checkpoint)
 if [ -f "$W/prior/prior/jelly.pt" ] && [ "$(left)" -gt 60 ]; then
   pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
@@ -56,3 +64,4 @@ if [ -f "$W/prior/prior/jelly.pt" ] && [ "$(left)" -gt 60 ]; then
   wait
 fi
 python3 benchmarks/paperprior_summary.py "$OUT/res" 2>&1 | tee "$OUT/summary.txt"
+[ -d "$OUT/res" ] && tar czf "$OUT/res.tgz" -C "$OUT" res && rm -rf "$OUT/res"

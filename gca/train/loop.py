@@ -8,8 +8,8 @@ One iteration (NeuMA stage B, with GCA's losses where the method asks for them):
    with the particles, render every training view and add the method's declared loss terms (colour L2
    for NeuMA, silhouette + RDGA geometry + CPR for GCA: eq. 8, L1 monocular depth for PAC-NeRF + depth);
    backward into the law's parameters;
-3. clip the gradient norm, step Adam with cosine decay (``gca.train.state``: schedule, undo, best law,
-   checkpoints).
+3. clip the gradient norm, step the optimiser (``train.optimizer``: RAdam, as NeuMA; or Adam) with cosine decay
+   (``gca.train.state``: schedule, undo, best law, checkpoints).
 
 An update after which the rollout diverges (non-finite loss or state, particles leaving the domain, a
 rollout drifting away from the observed silhouette) is rejected: the law and the optimiser go back to
