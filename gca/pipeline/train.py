@@ -95,7 +95,8 @@ def load_train_data(settings: Settings, inputs: SceneInputs, method: Method, vel
     depth, masks, keypoints = load_prep(inputs.prep_dir, len(meta["video_frames"]))
     views["train0"].mask = masks  # a monocular method sees its own masks, not the renderer's alpha
     body = settings.load_body(inputs.particles, inputs.gaussians, device)
-    return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]), substeps=frame_substeps(meta, dt, inputs.scene_dir),
+    return TrainData(body=body, views=views, video_frames=list(meta["video_frames"]),
+                     substeps=frame_substeps(meta, dt, inputs.scene_dir),
                      est_depth=depth, keypoints=keypoints, v_init=velocity_field(body, velocity),
                      background=tuple(background))
 
@@ -110,7 +111,8 @@ def estimate_scene_velocity(settings: Settings, scene_name: str, inputs: SceneIn
     prior = load_prior(inputs.prior, family=scene.prior)
     material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum())).to(device)
     v0, w0, history = estimate_velocity(solver_for(settings, scene, device), material, body, view, meta["video_frames"],
-                                        frame_substeps(meta, scene.dt, inputs.scene_dir), settings.velocity, settings.video.background)
+                                        frame_substeps(meta, scene.dt, inputs.scene_dir), settings.velocity,
+                                        settings.video.background)
     result = {"v0": v0.tolist(), "w0": w0.tolist(), "loss_first": history[0] if history else None,
               "loss_last": history[-1] if history else None, "iterations": len(history)}
     write_json(out, result)
