@@ -14,7 +14,8 @@ Given a prior checkpoint (``models/prior/<family>.pt`` or a timing prior) and op
 
 Usage::
 
-    python benchmarks/law_stability.py --prior models/prior/jelly.pt [--adapter runs/ball/gca/law.pt] [--rho 1000]
+    python benchmarks/law_stability.py --prior models/prior/jelly.pt [--adapter runs/ball/gca/law.pt]
+        [--checkpoint runs/ball/gca/checkpoint.pt ...] [--rho 1000]
 """
 
 from __future__ import annotations
@@ -41,6 +42,22 @@ def load(prior: str, adapter: str | None, family: str | None):
     e, pl = e.double(), pl.double()
     e.fast_path = pl.fast_path = False
     return e, pl
+
+
+def load_checkpoint(prior: str, checkpoint: str, family: str | None):
+    """(elasticity, plasticity) of a LoRA run's *training* checkpoint (``runs/<scene>/<run>/checkpoint.pt``, written
+    every ``train.checkpoint_every`` iterations): the law at that iteration, even of a run that later diverged."""
+    e, pl = load(prior, None, family)
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["law"]
+    for name, module in (("elasticity", e), ("plasticity", pl)):
+        apply_lora(module, 16, 16.0)
+        entries = {k[len(name) + 1:]: v.double() for k, v in state.items() if k.startswith(name + ".")}
+        missing = [k for k in module.state_dict() if k.rsplit(".", 1)[-1] in ("lora_A", "lora_B") and k not in entries]
+        if missing or not entries:
+            raise SystemExit(f"{checkpoint}: not a LoRA run's checkpoint of this prior ({name}: missing {missing[:2]})")
+        module.load_state_dict(entries, strict=False)
+        module.fast_path = False
+    return e.double(), pl.double()
 
 
 def tangents(law) -> dict:
@@ -85,12 +102,16 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prior", required=True)
     ap.add_argument("--adapter", default=None, help="a run's law.pt (LoRA adapter, rank 16, alpha 16)")
+    ap.add_argument("--checkpoint", action="append", default=[],
+                    help="a LoRA run's training checkpoint.pt (repeatable): the law at its last saved iteration")
     ap.add_argument("--family", default=None, help="the prior family (default: the prior's)")
     ap.add_argument("--rho", type=float, default=1000.0, help="density [kg/m^3]")
     a = ap.parse_args(argv)
     laws = {"prior": load(a.prior, None, a.family)}
     if a.adapter:
         laws["learned"] = load(a.prior, a.adapter, a.family)
+    for path in a.checkpoint:
+        laws[path] = load_checkpoint(a.prior, path, a.family)
     for name, (e, pl) in laws.items():
         print(f"== {name}: CFL wave-speed estimate {e.wave_speed(a.rho):.4g} m/s (rho {a.rho:g})")
         for path, rows in tangents(e).items():
