@@ -1,26 +1,53 @@
 #!/bin/sh
-# Issues 22/20, session 14: does GCA diverge at the paper profile with the paper's 2000-iteration jelly prior?
-# One prior (paper params) trained across commands (it checkpoints on SIGTERM and every 100 steps), the scenes' data made
-# beside it, then 200-iteration trainings run at once under CUDA MPS, each resuming across commands:
-#   ball gca, duck gca (table scenes: observed, nothing tuned on them), calib_torus gca (the calibration scene of the jelly
-#   family), ball neuma (is the divergence GCA's or the benchmark's?).
+# Paper-profile priors and 200-iteration trainings on them, in bounded device commands (issues 22/20).
+# Session 14: the jelly prior (2000 steps, resumed across commands), then GCA (Adam) on ball, duck, calib_torus and NeuMA
+# on the ball. Session 15: GCA (RAdam) on the same three, beside the plasticine and sand priors.
 #
-#   call 1 carry [".wpa"]:                                   sh .wpa/stage.sh
-#   call 2 carry [".wpb", ".whl", ".whl_render"]:            . .wpb/activate.sh && OUT=$OUT sh benchmarks/paperprior_bundle.sh
+#   RUNS    "scene:method ..." trained at once under CUDA MPS (default: ball:gca duck:gca calib_torus:gca ball:neuma)
+#   PRIORS  prior families trained beside them, each in its own work directory (default: the runs' families that have
+#           no prior); a family made earlier is taken from PRIOR_DIR/<family>.pt, a partial one resumes from
+#           PRIOR_DIR/<family>.pt.checkpoint (default benchmarks/results/priors_paper: the
+#           paper profile's priors made so far, tracked; session 14's jelly)
+#   LIMIT   seconds for this call (each process gets what is left; the priors checkpoint on SIGTERM)
+#
+#   call 1 carry [".wpa"]:                            sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:     . .wpb/activate.sh && OUT=$OUT sh benchmarks/paperprior_bundle.sh
 #   calls 3.. (no carry; send each at once, the machine is released after 30 s idle): OUT=$OUT sh benchmarks/paperprior_bundle.sh
-# With session 14's prior carried in the tree, call 2 alone does the rest (~2 min of data, then the trainings):
-#   . .wpb/activate.sh && PRIOR=benchmarks/results/paperprior_s14/prior_jelly.pt OUT=$OUT sh benchmarks/paperprior_bundle.sh
-# The result JSONs are tarred into one file ($OUT/res.tgz): the device tool returns a capped number of files.
-# Each call does what is left within LIMIT seconds: gsplat's build, then the prior and the data at once, then the four
-# trainings at once; what a call returns: logs, the prior and its checkpoint (to carry back if the machine went cold),
-# each finished run's harness JSON (history kept) and each stopped run's history.
+# Each call does what is left: MPS on, the priors started (they run to the end of the call or to 2000 steps), gsplat's
+# build, the runs' data, then the runs (each resumes its checkpoint). It returns logs, each prior's state ($OUT/prior_*:
+# the prior, or its checkpoint to carry into a later session) and the harness JSONs (history kept) tarred in
+# $OUT/res.tgz (the device tool returns a capped number of files).
 set -u
 OUT=${OUT:-/tmp/pp_out}; W=${W:-/tmp/pp_w}; LIMIT=${LIMIT:-570}
+RUNS=${RUNS:-"ball:gca duck:gca calib_torus:gca ball:neuma"}
+PRIOR_DIR=${PRIOR_DIR:-benchmarks/results/priors_paper}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
 T0=$(date +%s)
 left() { echo $((LIMIT - $(date +%s) + T0)); }
 say() { echo "[paperprior $(($(date +%s) - T0)) s] $1"; }
+family() { python3 -c "import yaml,sys; print(yaml.safe_load(open('params.yaml'))['scenes'][sys.argv[1]]['prior'])" "$1"; }
+scene_of() { case $1 in jelly) echo ball;; plasticine) echo pawn;; sand) echo fish;; *) echo "no scene for $1" >&2; false;; esac; }
+C="--profile paper --set render.backend=gsplat --set velocity.iterations=20 --set train.iterations=200"
+harness() {  # work scene method tag stages...
+  w=$1; s=$2; m=$3; tag=$4; shift 4
+  MLFLOW_TRACKING_URI=sqlite:///$w/mlflow.db timeout "$(left)" python3 benchmarks/harness.py --scene "$s" --methods "$m" \
+      $C --work "$w" --reuse-prior --reuse-data --out "$OUT/res" --tag "$tag" --stages "$@" >> "$OUT/$tag.log" 2>&1
+  say "$tag ($*) rc=$?"
+}
+pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
+# 0. the priors: taken from PRIOR_DIR, resumed from its checkpoint, or trained here (to the end of the call)
+FAMS=""; for r in $RUNS; do f=$(family "${r%%:*}"); case " $FAMS " in *" $f "*) ;; *) FAMS="$FAMS $f";; esac; done
+PRIORS=${PRIORS:-$FAMS}
+for f in $FAMS $PRIORS; do
+  p="$W/prior_$f/prior"; mkdir -p "$p"
+  [ -f "$p/$f.pt" ] || [ ! -f "$PRIOR_DIR/$f.pt" ] || { cp "$PRIOR_DIR/$f.pt" "$p/" && say "prior $f: $PRIOR_DIR/$f.pt"; }
+  [ -f "$p/$f.pt" ] || [ -f "$p/$f.pt.checkpoint" ] || [ ! -f "$PRIOR_DIR/$f.pt.checkpoint" ] ||
+    { cp "$PRIOR_DIR/$f.pt.checkpoint" "$p/" && say "prior $f resumes from $PRIOR_DIR/$f.pt.checkpoint"; }
+done
+for f in $PRIORS; do
+  [ -f "$W/prior_$f/prior/$f.pt" ] || harness "$W/prior_$f" "$(scene_of "$f")" gca "prior_$f" assets particles prior &
+done
 for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
   if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
     python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
@@ -30,38 +57,25 @@ if [ ! -f "$W/gsplat.done" ]; then
   timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"
   say "gsplat build rc=$?"
 fi
-C="--profile paper --set render.backend=gsplat --set velocity.iterations=20 --set train.iterations=200"
-harness() {  # work scene method tag stages...
-  w=$1; s=$2; m=$3; tag=$4; shift 4
-  MLFLOW_TRACKING_URI=sqlite:///$w/mlflow.db timeout "$(left)" python3 benchmarks/harness.py --scene "$s" --methods "$m" \
-      $C --work "$w" --reuse-prior --reuse-data --out "$OUT/res" --tag "$tag" --stages "$@" >> "$OUT/$tag.log" 2>&1
-  say "$tag ($*) rc=$?"
-}
-# 0. a prior made earlier (PRIOR=benchmarks/results/paperprior_s14/prior_jelly.pt: session 14's, 2000 steps) saves ~17 min
-if [ -n "${PRIOR:-}" ] && [ ! -f "$W/prior/prior/jelly.pt" ]; then
-  mkdir -p "$W/prior/prior" && cp "$PRIOR" "$W/prior/prior/jelly.pt" && say "prior: $PRIOR"
-fi
-# 1. the prior (one, in its own work directory) and the data of the three scenes, at once
-for s in ball duck calib_torus; do
-  [ -f "$W/$s/m/preprocess.done" ] || harness "$W/$s" "$s" gca "data_$s" assets particles ground_truth preprocess &
+# 1. each scene's data once, at once (beside the priors)
+SCENES=""; for r in $RUNS; do s=${r%%:*}; case " $SCENES " in *" $s "*) ;; *) SCENES="$SCENES $s";; esac; done
+DATA=""
+for s in $SCENES; do
+  [ -f "$W/$s/m/preprocess.done" ] || { harness "$W/$s" "$s" gca "data_$s" assets particles ground_truth preprocess & DATA="$DATA $!"; }
 done
-if [ ! -f "$W/prior/prior/jelly.pt" ]; then
-  harness "$W/prior" ball gca prior assets particles prior &
-  wait
-  mkdir -p "$OUT/prior"; cp "$W"/prior/prior/* "$W"/prior/m/prior.* "$OUT/prior/" 2>/dev/null
-  tail -n 3 "$OUT/prior.log"
-fi
-wait  # the data
-# 2. the four trainings at once under MPS (each resumes its checkpoint)
-if [ -f "$W/prior/prior/jelly.pt" ] && [ "$(left)" -gt 60 ]; then
-  pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
-  [ -d "$W/ball_neuma" ] || cp -r "$W/ball" "$W/ball_neuma"
-  for w in ball duck calib_torus ball_neuma; do mkdir -p "$W/$w/prior"; cp "$W/prior/prior/jelly.pt" "$W/$w/prior/"; done
-  harness "$W/ball" ball gca ball_gca train evaluate &
-  harness "$W/duck" duck gca duck_gca train evaluate &
-  harness "$W/calib_torus" calib_torus gca torus_gca train evaluate &
-  harness "$W/ball_neuma" ball neuma ball_neuma train evaluate &
-  wait
-fi
+[ -z "$DATA" ] || wait $DATA  # the data only: the priors run on
+# 2. the runs at once under MPS, each in a copy of its scene's data with its family's prior (each resumes its checkpoint)
+for r in $RUNS; do
+  s=${r%%:*}; m=${r#*:}; f=$(family "$s"); w="$W/run_${s}_$m"
+  if [ -f "$W/$s/m/preprocess.done" ] && [ -f "$W/prior_$f/prior/$f.pt" ] && [ "$(left)" -gt 60 ]; then
+    [ -d "$w" ] || cp -r "$W/$s" "$w"
+    mkdir -p "$w/prior"; cp "$W/prior_$f/prior/$f.pt" "$w/prior/"
+    harness "$w" "$s" "$m" "${s}_$m" train evaluate &
+  else
+    say "run $r skipped: data, prior $f or time missing"
+  fi
+done
+wait
+for f in $PRIORS; do mkdir -p "$OUT/prior_$f"; cp "$W/prior_$f"/prior/* "$W/prior_$f"/m/prior.* "$OUT/prior_$f/" 2>/dev/null; done
 python3 benchmarks/paperprior_summary.py "$OUT/res" 2>&1 | tee "$OUT/summary.txt"
 [ -d "$OUT/res" ] && tar czf "$OUT/res.tgz" -C "$OUT" res && rm -rf "$OUT/res"
