@@ -15,8 +15,8 @@
 #   calls 3.. (no carry; send each at once, the machine is released after 30 s idle): OUT=$OUT sh benchmarks/paperprior_bundle.sh
 # Each call does what is left: MPS on, the priors started (they run to the end of the call or to 2000 steps), gsplat's
 # build, the runs' data, then the runs (each resumes its checkpoint). It returns logs, each prior's state ($OUT/prior_*:
-# the prior, or its checkpoint to carry into a later session) and the harness JSONs (history kept) tarred in
-# $OUT/res.tgz (the device tool returns a capped number of files).
+# the prior, or its checkpoint to carry into a later session) and the harness JSONs (history kept), all in one file,
+# $OUT/all.tgz (the device tool returns at most 8 files).
 set -u
 OUT=${OUT:-/tmp/pp_out}; W=${W:-/tmp/pp_w}; LIMIT=${LIMIT:-570}
 RUNS=${RUNS:-"ball:gca duck:gca calib_torus:gca ball:neuma"}
@@ -78,4 +78,6 @@ done
 wait
 for f in $PRIORS; do mkdir -p "$OUT/prior_$f"; cp "$W/prior_$f"/prior/* "$W/prior_$f"/m/prior.* "$OUT/prior_$f/" 2>/dev/null; done
 python3 benchmarks/paperprior_summary.py "$OUT/res" 2>&1 | tee "$OUT/summary.txt"
-[ -d "$OUT/res" ] && tar czf "$OUT/res.tgz" -C "$OUT" res && rm -rf "$OUT/res"
+for f in $PRIORS; do tr '\r' '\n' < "$OUT/prior_$f.log" 2>/dev/null | grep "step/s\|response error" | tail -n 1; done
+# everything in one file: the device tool returns at most 8 files (session 15 lost a call's checkpoints to that cap)
+(cd "$OUT" && tar czf /tmp/pp_all.tgz . && find . -mindepth 1 -delete && mv /tmp/pp_all.tgz all.tgz)
