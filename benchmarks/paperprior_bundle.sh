@@ -43,7 +43,7 @@ for f in $FAMS $PRIORS; do
   p="$W/prior_$f/prior"; mkdir -p "$p"
   [ -f "$p/$f.pt" ] || [ ! -f "$PRIOR_DIR/$f.pt" ] || { cp "$PRIOR_DIR/$f.pt" "$p/" && say "prior $f: $PRIOR_DIR/$f.pt"; }
   [ -f "$p/$f.pt" ] || [ -f "$p/$f.pt.checkpoint" ] || [ ! -f "$PRIOR_DIR/$f.pt.checkpoint" ] ||
-    { cp "$PRIOR_DIR/$f.pt.checkpoint" "$p/" && say "prior $f resumes from $PRIOR_DIR/$f.pt.checkpoint"; }
+    { cp "$PRIOR_DIR/$f.pt.checkpoint" "$PRIOR_DIR/$f.pt.checkpoint.stamp" "$p/" && say "prior $f resumes from $PRIOR_DIR/$f.pt.checkpoint"; }
 done
 for f in $PRIORS; do
   [ -f "$W/prior_$f/prior/$f.pt" ] || harness "$W/prior_$f" "$(scene_of "$f")" gca "prior_$f" assets particles prior &
