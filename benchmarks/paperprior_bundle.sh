@@ -27,7 +27,10 @@ T0=$(date +%s)
 left() { echo $((LIMIT - $(date +%s) + T0)); }
 say() { echo "[paperprior $(($(date +%s) - T0)) s] $1"; }
 family() { python3 -c "import yaml,sys; print(yaml.safe_load(open('params.yaml'))['scenes'][sys.argv[1]]['prior'])" "$1"; }
-scene_of() { case $1 in jelly) echo ball;; plasticine) echo pawn;; sand) echo fish;; *) echo "no scene for $1" >&2; false;; esac; }
+scene_of() {  # the first scene of a prior family in params.yaml (the prior stage needs a scene's object, not its data)
+  python3 -c "import yaml,sys; print(next(k for k, v in yaml.safe_load(open('params.yaml'))['scenes'].items() if v['prior'] == sys.argv[1]))" "$1"
+}
+add_once() { case " $1 " in *" $2 "*) echo "$1";; *) echo "$1 $2";; esac; }  # LIST ITEM -> LIST with ITEM once
 C="--profile paper --set render.backend=gsplat --set velocity.iterations=20 --set train.iterations=200"
 harness() {  # work scene method tag stages...
   w=$1; s=$2; m=$3; tag=$4; shift 4
@@ -37,7 +40,7 @@ harness() {  # work scene method tag stages...
 }
 pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
 # 0. the priors: taken from PRIOR_DIR, resumed from its checkpoint, or trained here (to the end of the call)
-FAMS=""; for r in $RUNS; do f=$(family "${r%%:*}"); case " $FAMS " in *" $f "*) ;; *) FAMS="$FAMS $f";; esac; done
+FAMS=""; for r in $RUNS; do FAMS=$(add_once "$FAMS" "$(family "${r%%:*}")"); done
 PRIORS=${PRIORS:-$FAMS}
 for f in $FAMS $PRIORS; do
   p="$W/prior_$f/prior"; mkdir -p "$p"
@@ -58,7 +61,7 @@ if [ ! -f "$W/gsplat.done" ]; then
   say "gsplat build rc=$?"
 fi
 # 1. each scene's data once, at once (beside the priors)
-SCENES=""; for r in $RUNS; do s=${r%%:*}; case " $SCENES " in *" $s "*) ;; *) SCENES="$SCENES $s";; esac; done
+SCENES=""; for r in $RUNS; do SCENES=$(add_once "$SCENES" "${r%%:*}"); done
 DATA=""
 for s in $SCENES; do
   [ -f "$W/$s/m/preprocess.done" ] || { harness "$W/$s" "$s" gca "data_$s" assets particles ground_truth preprocess & DATA="$DATA $!"; }
