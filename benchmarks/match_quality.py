@@ -1,8 +1,13 @@
 """How reliable are the matches behind RDGA's global term? The ground-truth state, rendered the way
-training renders (unlit), matched to the lit ground-truth frames of the training view.
+training renders (unlit), matched to the lit ground-truth frames of the training view (inside the rendered
+mask and the frame's preprocessed mask, as training does).
 
-    python benchmarks/match_quality.py --work /tmp/pp --scene duck \
-        --config geometry=fundamental,ransac_px=1.0 --config geometry=homography,ransac_px=3.0
+    python benchmarks/match_quality.py --work /tmp/pp --scene calib_torus \
+        --config backend=sift --config backend=sift,geometry=fundamental --config backend=flow,flow_image=gray
+
+``--warp dx,dy,deg,scale`` moves every render (and its mask) by that similarity about the object's centre
+before matching, a stand-in for a wrong simulated state: a correct match then has ``q = W^-1 p`` and the
+distances are measured from there.
 
 ``--work`` is a pipeline (or ``gca/pipeline/grid.py``) work directory holding the scene's
 ``data/assets``, ``data/particles`` and ``data/prep``. The render shows the *exact* ground-truth
@@ -19,6 +24,7 @@ import json
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import yaml
@@ -28,12 +34,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gca.pipeline.settings import Settings  # noqa: E402
+from gca.scenes.config import scene_video  # noqa: E402
 from gca.scenes.ground_truth import scene_cameras, simulate_scene  # noqa: E402
 from gca.scenes.preprocess import load_prep  # noqa: E402
 from gca.scenes.world import render_body  # noqa: E402
 from gca.laws import material_from_preset  # noqa: E402
 from gca.vision import MatchConfig  # noqa: E402
-from gca.vision.matching import match_cached  # noqa: E402
+from gca.scenes.store import load_view  # noqa: E402
+from gca.vision.matching import match_frame  # noqa: E402
 
 
 def parse_config(text: str, base: MatchConfig) -> MatchConfig:
@@ -42,12 +50,36 @@ def parse_config(text: str, base: MatchConfig) -> MatchConfig:
     return dataclasses.replace(base, **{k: yaml.safe_load(v) for k, v in fields.items()})
 
 
-def distances(renders: list[np.ndarray], keypoints, cfg: MatchConfig) -> tuple[np.ndarray, list[int]]:
-    """Per-match |p - q| [px] over all frames, and the match count of each frame."""
+def similarity(renders: list[tuple[np.ndarray, np.ndarray]], warp: tuple[float, float, float, float]) -> np.ndarray:
+    """The 2x3 similarity (rotation ``deg`` and ``scale`` about the first render's mask centroid, then the shift
+    ``dx, dy`` [px]) that ``--warp dx,dy,deg,scale`` applies to the renders."""
+    ys, xs = np.nonzero(renders[0][1])
+    m = cv2.getRotationMatrix2D((float(xs.mean()), float(ys.mean())), warp[2], warp[3])
+    m[:, 2] += warp[:2]
+    return m
+
+
+def warped(renders: list[tuple[np.ndarray, np.ndarray]], m: np.ndarray, background) -> list:
+    """Each (RGB, mask) moved by the 2x3 map ``m`` (the background fills what it uncovers)."""
+    size = renders[0][1].shape[::-1]
+    return [(cv2.warpAffine(rgb, m, size, borderValue=tuple(float(b) for b in background)),
+             cv2.warpAffine(inside.astype(np.uint8), m, size, flags=cv2.INTER_NEAREST) > 0) for rgb, inside in renders]
+
+
+def distances(renders: list[tuple[np.ndarray, np.ndarray]], frames: np.ndarray, masks: np.ndarray, keypoints,
+              cfg: MatchConfig, m: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
+    """Per-match |p - q| [px] over all frames, and the match count of each frame.
+
+    renders: per frame (RGB [H, W, 3] in [0, 1], rendered mask [H, W] bool); frames: the video [T, H, W, 3] in
+    [0, 1]; masks: the video's masks [T, H, W]; keypoints: the video's cached SIFT keypoints per frame; m: the
+    2x3 map the renders were moved by (a correct match then has q = m^-1 p), or None."""
+    inverse = None if m is None else cv2.invertAffineTransform(m)
     d, counts = [], []
-    for rgb, (kpts, desc) in zip(renders, keypoints):
-        p, q = match_cached(rgb, kpts, desc, cfg)
-        d.append(np.linalg.norm(p - q, axis=1))
+    for (rgb, inside), frame, mask, (kpts, desc) in zip(renders, frames, masks, keypoints):
+        p, q = match_frame((rgb * 255 + 0.5).astype(np.uint8), (np.clip(frame, 0, 1) * 255 + 0.5).astype(np.uint8),
+                           kpts, desc, cfg, inside, mask)
+        truth = p if inverse is None else p @ inverse[:, :2].T + inverse[:, 2]
+        d.append(np.linalg.norm(truth - q, axis=1))
         counts.append(len(p))
     return np.concatenate(d) if d else np.zeros(0), counts
 
@@ -66,10 +98,12 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--scene", required=True)
     ap.add_argument("--view", default="train0")
     ap.add_argument("--config", action="append", default=[], help="comma-separated MatchConfig fields")
+    ap.add_argument("--warp", default="", help="dx,dy,deg,scale: move the renders by this similarity first")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     settings = Settings.load(f"match_quality@{args.scene}", args.work / "params.yaml")
-    scene, video, sim, base = settings.scene(args.scene), settings.video, settings.sim, settings.match
+    scene, sim, base = settings.scene(args.scene), settings.sim, settings.match
+    video = scene_video(settings.video, scene)  # the scene's own frames (fps > 0: from its dt and duration)
     body = settings.load_body(args.work / f"data/particles/{scene.object}.npz",
                            args.work / f"data/assets/{scene.object}/gaussians.ply", "cpu")
     preset = settings.material(scene.material)
@@ -77,15 +111,23 @@ def main(argv=None) -> list[dict]:
     traj = simulate_scene(body, material, scene, video, sim, "cpu")
     camera = scene_cameras(scene, video.resolution)[args.view]
     frames = video.video_frames()
-    _, _, keypoints = load_prep(args.work / f"data/prep/{args.scene}", len(frames))
+    _, masks, keypoints = load_prep(args.work / f"data/prep/{args.scene}", len(frames))
+    video_rgb = load_view(args.work / f"data/scenes/{args.scene}", args.view).rgb
+    threshold = settings.rdga.alpha_threshold
+    renders = []
     with torch.no_grad():
-        renders = [render_body(body, traj.x[f], traj.F[f], camera, video.background)["rgb"].clamp(0, 1).numpy()
-                   for f in tqdm(frames, desc="render", unit="frame")]
+        for f in tqdm(frames, desc="render", unit="frame"):
+            out = render_body(body, traj.x[f], traj.F[f], camera, video.background)
+            renders.append((out["rgb"].clamp(0, 1).numpy(), out["alpha"].numpy() >= threshold))
+    m = None
+    if args.warp:
+        m = similarity(renders, tuple(float(v) for v in args.warp.split(",")))
+        renders = warped(renders, m, video.background)
     rows = []
     for text in args.config or [""]:
         cfg = parse_config(text, base)
-        d, counts = distances(renders, keypoints, cfg)
-        rows.append({"config": text or "params.yaml", **summary(d, counts)})
+        d, counts = distances(renders, video_rgb, masks, keypoints, cfg, m)
+        rows.append({"config": text or "params.yaml", "warp": args.warp, **summary(d, counts)})
     print(f"{'config':42s} {'matches/frame':>13s} {'no match':>8s} {'median':>7s} {'mean':>7s} {'p90':>7s} {'<=2px':>6s}")
     for r in rows:
         print(f"{r['config']:42s} {r['matches_per_frame']:13.1f} {r['frames_without']:8d} {r['median_px']:7.2f} "

@@ -185,13 +185,15 @@ def textured_scene(tmp_path_factory):
     return body, view, frames, est, keypoints, prior
 
 
-def test_batched_objective_equals_frame_by_frame(textured_scene):
+@pytest.mark.parametrize("backend", ["sift", "flow"])
+def test_batched_objective_equals_frame_by_frame(textured_scene, backend):
     """Objective.loss (all renders first, pooled matching, CPR's frames in one batched call, one stats
-    read-back) equals the serial reference: each frame rendered, matched on the calling thread, scored
-    and given its own CPR call in turn."""
+    read-back) equals the serial reference: each frame rendered, matched on the calling thread (SIFT against
+    the cached keypoints, or flow against the video frame inside both masks), scored and given its own CPR
+    call in turn."""
     from gca.sim.rollout import rollout
     from gca.train.objective import _MeanStats
-    from gca.vision.matching import match_cached
+    from gca.vision.matching import match_frame
 
     scene = textured_scene
     method = get_method("gca")
@@ -201,7 +203,7 @@ def test_batched_objective_equals_frame_by_frame(textured_scene):
 
     def objective():
         return Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
-                         MatchConfig(geometry="none"), cpr_target=("corotated", "identity"))
+                         MatchConfig(backend=backend, geometry="none"), cpr_target=("corotated", "identity"))
 
     b = data.body
     n_video = len(data.video_frames)
@@ -212,7 +214,9 @@ def test_batched_objective_equals_frame_by_frame(textured_scene):
     for j in range(n_video):
         outs = serial_obj._render_frame(traj, j)
         rgb = (outs["train0"]["rgb"].detach().clamp(0, 1).numpy() * 255 + 0.5).astype("uint8")
-        pq = match_cached(rgb, *data.keypoints[j], serial_obj.match)
+        video = (data.views["train0"].rgb[j].clip(0, 1) * 255 + 0.5).astype("uint8")
+        inside = outs["train0"]["alpha"].detach().numpy() >= serial_obj.train0_rdga.alpha_threshold
+        pq = match_frame(rgb, video, *data.keypoints[j], serial_obj.match, inside, data.views["train0"].mask[j])
         serial = serial + serial_obj._frame_loss(traj, j, outs, pq, ref_stats)
         if j % cfg.cpr_every == 0:  # CPR frame by frame (the objective batches its frames in one call)
             f = data.video_frames[j]
@@ -535,11 +539,12 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name):
 
 
 def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
-    """Objective.gradient starts the SIFT matching of train0's frames before CPR's gradient (the host threads
-    overlap CPR's work) and feeds the losses the same matches as matching each rendered frame on its own."""
+    """Objective.gradient starts the matching of train0's frames (the default backend, dense flow) before CPR's
+    gradient (the host threads overlap CPR's work) and feeds the losses the same matches as matching each rendered
+    frame with its video frame on its own."""
     import gca.train.objective as objective_module
     from gca.sim.rollout import rollout
-    from gca.vision.matching import match_cached
+    from gca.vision.matching import match_frame
 
     scene, method = textured_scene, get_method("gca")
     cfg = TrainConfig(curriculum_start=1.0, cpr_every=1)
@@ -556,6 +561,7 @@ def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
     def start_spy(renders):
         events.append("match")
         seen["frames"] = [objective_module.to_uint8(r["train0"]["rgb"]).numpy() for r in renders]
+        seen["inside"] = [r["train0"]["alpha"].detach().numpy() >= objective.train0_rdga.alpha_threshold for r in renders]
         seen["futures"] = start(renders)
         return seen["futures"]
 
@@ -568,7 +574,10 @@ def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
     monkeypatch.setattr(objective, "_frame_losses", losses_spy)
     objective.gradient(traj, n_video, law)
     assert events == ["match", "cpr"] and len(seen["futures"]) == n_video
-    direct = [match_cached(f, *kp, objective.match) for f, kp in zip(seen["frames"], data.keypoints)]
+    view = data.views["train0"]
+    direct = [match_frame(f, (view.rgb[j].clip(0, 1) * 255 + 0.5).astype(np.uint8), *kp, objective.match, inside,
+                          view.mask[j])
+              for j, (f, kp, inside) in enumerate(zip(seen["frames"], data.keypoints, seen["inside"]))]
     assert sum(len(p) for p, _ in direct) > 0  # the scene has matches (else the comparison is empty)
     for (p, q), (p_ref, q_ref) in zip(seen["matches"], direct):
         np.testing.assert_array_equal(p, p_ref)

@@ -27,7 +27,7 @@ from gca.train.config import TrainConfig
 from gca.train.law import LearnedLaw
 from gca.train.methods import Method
 from gca.train.probe import GradProbe
-from gca.vision.matching import MatchConfig, match_cached
+from gca.vision.matching import MatchConfig, match_frame
 
 
 @dataclasses.dataclass
@@ -100,6 +100,10 @@ class Objective:
         self.bg = torch.tensor(data.background, dtype=x0.dtype, device=x0.device)
         self.rgb = {n: torch.as_tensor(v.rgb, device=x0.device) for n, v in data.views.items()}
         self.mask = torch.as_tensor(data.views["train0"].mask, device=x0.device)
+        # the matcher's side of train0 (host, once): its video frames and masks (backend "flow" matches images)
+        train0 = data.views["train0"]
+        self._gt_u8 = (np.clip(np.asarray(train0.rgb), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        self._gt_mask = np.asarray(train0.mask, bool)
         self.est_depth = torch.as_tensor(data.est_depth, dtype=x0.dtype, device=x0.device)
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}
 
@@ -302,16 +306,21 @@ class Objective:
         return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
 
     def _start_matching(self, renders: list[dict]) -> list[Future] | None:
-        """Start matching every frame's train0 render with its video frame's cached keypoints; None when the
-        method's terms need no matches. Returns one future per frame, each giving (p [M, 2] in the render,
-        q [M, 2] in the video frame) [px].
+        """Start matching every frame's train0 render with its video frame (``vision.matching.backend``: SIFT
+        against the frame's cached keypoints, or dense flow against the frame itself, inside the rendered
+        mask ``alpha >= align.rdga.alpha_threshold`` and the frame's mask); None when the method's terms need
+        no matches. Returns one future per frame, each giving (p [M, 2] in the render, q [M, 2] in the video
+        frame) [px].
 
-        The frames go to the host in one copy, asynchronous on CUDA (pinned memory and an event: the caller
-        goes on queueing GPU work, e.g. CPR, while the copy and the SIFT threads run; OpenCV releases the GIL).
+        The frames (RGB and, as a 4th channel, the rendered mask) go to the host in one copy, asynchronous on
+        CUDA (pinned memory and an event: the caller goes on queueing GPU work, e.g. CPR, while the copy and the
+        matching threads run; OpenCV releases the GIL).
         """
         if not self._needs_matches():
             return None
-        u8 = to_uint8(torch.stack([r["train0"]["rgb"] for r in renders]))
+        rgb = torch.stack([r["train0"]["rgb"] for r in renders])
+        inside = torch.stack([r["train0"]["alpha"] for r in renders]).detach() >= self.train0_rdga.alpha_threshold
+        u8 = torch.cat([to_uint8(rgb), inside.to(torch.uint8)[..., None]], -1)  # [T, H, W, 4]
         ready = None
         if u8.is_cuda:
             host = torch.empty(u8.shape, dtype=torch.uint8, pin_memory=True)
@@ -325,7 +334,8 @@ class Objective:
         def work(j: int) -> tuple[np.ndarray, np.ndarray]:
             if ready is not None:
                 ready.synchronize()
-            return match_cached(frames[j], *keypoints[j], self.match)
+            return match_frame(frames[j, ..., :3], self._gt_u8[j], *keypoints[j], self.match,
+                               render_mask=frames[j, ..., 3] > 0, gt_mask=self._gt_mask[j])
 
         return [_match_pool().submit(work, j) for j in range(len(renders))]
 

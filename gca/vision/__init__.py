@@ -13,7 +13,7 @@ from gca.vision.depth import (DepthConfig, DepthError, DepthEstimator, Simulated
                               make_depth_estimator)
 from gca.vision.masks import MaskConfig, compute_masks, load_mask_files, mask_from_alpha, mask_from_background
 from gca.vision.matching import (MatchConfig, detect_keypoints, match_cached, match_descriptors, match_features,
-                                 match_precision, pack_keypoints, unpack_keypoints)
+                                 match_flow, match_frame, match_precision, pack_keypoints, unpack_keypoints)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,4 +29,4 @@ __all__ = ["VisionConfig", "DepthConfig", "DepthError", "DepthEstimator", "Simul
            "TransformersDepth", "TransformersDepthConfig", "disparity_to_depth", "estimate_depth",
            "make_depth_estimator", "MaskConfig", "compute_masks", "load_mask_files", "mask_from_alpha",
            "mask_from_background", "MatchConfig", "detect_keypoints", "match_cached", "match_descriptors",
-           "match_features", "match_precision", "pack_keypoints", "unpack_keypoints"]
+           "match_features", "match_flow", "match_frame", "match_precision", "pack_keypoints", "unpack_keypoints"]

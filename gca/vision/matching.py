@@ -6,7 +6,7 @@ column i, row j is ``(i, j)`` (``gca.align.rdga`` uses the same). ``p`` [M, 2] l
 
 Backends (``MatchConfig.backend``):
 
-- ``"sift"`` (default, no weights): OpenCV SIFT, brute-force L2 k-NN (k = 2), Lowe's ratio test,
+- ``"sift"`` (no weights): OpenCV SIFT, brute-force L2 k-NN (k = 2), Lowe's ratio test,
   then RANSAC on a homography (default: a render and its GT frame differ by a small motion) or a
   fundamental matrix (general 3D motion; with ~10 matches an 8-point F fits outliers: on the duck's
   exact GT state F kept 20% wrong matches, mean 5.3 px, against 0.9 px for H at 3 px,
@@ -14,6 +14,14 @@ Backends (``MatchConfig.backend``):
   (:func:`detect_keypoints`), stored (:func:`pack_keypoints`) and reused (:func:`match_cached`).
 - ``"loftr"``: kornia's LoFTR, only from a LOCAL checkpoint (``loftr_weights``); dense, so there
   is no keypoint cache.
+- ``"flow"`` (default, no weights): dense correspondences from OpenCV's DIS optical flow (Kroeger et al. 2016) between
+  illumination-normalised images (:func:`flow_image`), taken on a grid of render pixels (``flow_stride``)
+  and kept where the forward and backward flows agree (``flow_fb_px``): :func:`match_flow`. The paper's
+  matcher is a learned one (SuperGlue, whose weights cannot be loaded here); SIFT on grey images, its
+  weight-free stand-in, failed on the lit video frames of the calibration scene ``calib_torus`` (the render
+  is unlit, the video lit and shadowed: 1.6 matches per frame at the *exact* state, median error 26 px), where
+  this gives ~130 per frame within 0.2 px (benchmarks/NOTES.md, session 16; chosen on the three calibration
+  scenes only). A departure from the paper's sparse matcher, documented in docs/architecture.md.
 
 When too few ratio-test matches remain to fit the RANSAC model (8 for F, 4 for H), no match is
 returned: unverified matches are dropped rather than trusted.
@@ -29,7 +37,9 @@ import cv2
 import numpy as np
 
 _WHERE = "gca/vision/matching.py"
-BACKENDS = ("sift", "loftr")
+BACKENDS = ("sift", "loftr", "flow")
+FLOW_IMAGES = ("chroma_clahe", "gray")
+FLOW_PRESETS = {"ultrafast": 0, "fast": 1, "medium": 2}  # cv2.DISOPTICAL_FLOW_PRESET_*
 GEOMETRIES = ("fundamental", "homography", "none")
 _MIN_MATCHES = {"fundamental": 8, "homography": 4, "none": 1}
 
@@ -47,9 +57,14 @@ class MatchConfig:
         ransac_confidence: RANSAC confidence [-].
         loftr_weights: local LoFTR checkpoint (.ckpt with a "state_dict"), backend "loftr".
         loftr_confidence: minimum LoFTR match confidence [-].
+        flow_image: what backend "flow" computes the flow on: "chroma_clahe" (shading-invariant chromaticity,
+            contrast-equalised) or "gray" (:func:`flow_image`).
+        flow_stride: spacing of the render pixels the flow is sampled at [px].
+        flow_fb_px: largest forward-backward flow disagreement of a kept match [px].
+        flow_preset: DIS preset, "ultrafast" | "fast" | "medium".
     """
 
-    backend: str = "sift"
+    backend: str = "flow"
     n_features: int = 0
     ratio: float = 0.75
     geometry: str = "homography"
@@ -57,11 +72,21 @@ class MatchConfig:
     ransac_confidence: float = 0.999
     loftr_weights: str = ""
     loftr_confidence: float = 0.5
+    flow_image: str = "chroma_clahe"
+    flow_stride: int = 6
+    flow_fb_px: float = 1.0
+    flow_preset: str = "medium"
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS or self.geometry not in GEOMETRIES:
             raise ValueError(f"{_WHERE}: MatchConfig backend={self.backend!r} (allowed {BACKENDS}), "
                              f"geometry={self.geometry!r} (allowed {GEOMETRIES})")
+        if self.flow_image not in FLOW_IMAGES or self.flow_preset not in FLOW_PRESETS:
+            raise ValueError(f"{_WHERE}: MatchConfig flow_image={self.flow_image!r} (allowed {FLOW_IMAGES}), "
+                             f"flow_preset={self.flow_preset!r} (allowed {tuple(FLOW_PRESETS)})")
+        if self.flow_stride < 1 or not self.flow_fb_px > 0:
+            raise ValueError(f"{_WHERE}: MatchConfig flow_stride must be >= 1 and flow_fb_px > 0, got "
+                             f"{self.flow_stride} and {self.flow_fb_px}")
         if not 0 < self.ratio <= 1:
             raise ValueError(f"{_WHERE}: MatchConfig.ratio must lie in (0, 1], got {self.ratio}")
 
@@ -183,7 +208,107 @@ def match_features(render: np.ndarray, gt: np.ndarray,
     """
     if cfg.backend == "loftr":
         return _match_loftr(render, gt, cfg)
+    if cfg.backend == "flow":
+        return match_flow(render, gt, cfg)
     return match_descriptors(*detect_keypoints(render, cfg), *detect_keypoints(gt, cfg), cfg)
+
+
+def match_frame(render: np.ndarray, gt: np.ndarray, kpts_gt: np.ndarray, desc_gt: np.ndarray,
+                cfg: MatchConfig = MatchConfig(), render_mask: np.ndarray | None = None,
+                gt_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Training's matcher: one render against its video frame, by ``cfg.backend``.
+
+    Args:
+        render: rendered RGB [H, W, 3]; gt: the video frame [H, W, 3] (uint8, or float in [0, 1]).
+        kpts_gt, desc_gt: the video frame's cached SIFT keypoints [K, 2] and descriptors (backend "sift").
+        cfg: matching config.
+        render_mask, gt_mask: optional object masks [H, W] (bool) of the render and the frame (backend "flow":
+            p inside the render's, q inside the frame's; the sparse backends leave that to the caller).
+
+    Returns:
+        (p [M, 2], q [M, 2]) float32 (x, y): p in the render, q in the video frame.
+    """
+    if cfg.backend == "sift":
+        return match_cached(render, kpts_gt, desc_gt, cfg)
+    if cfg.backend == "flow":
+        return match_flow(render, gt, cfg, render_mask, gt_mask)
+    return match_features(render, gt, cfg)
+
+
+def flow_image(frame: np.ndarray, kind: str = "chroma_clahe") -> np.ndarray:
+    """The single-channel uint8 image [H, W] backend "flow" computes optical flow on.
+
+    ``"chroma_clahe"``: the chromaticity ``c = (R, G, B) / (R + G + B)`` (with 1 added to each uint8 channel),
+    which a shading factor common to the three channels leaves unchanged (Lambertian shading and shadows under
+    white light), as a grey image of ``1.5 * 255 c``, then CLAHE (clip 2, 8x8 tiles) to equalise the contrast
+    of the texture's colour edges. ``"gray"``: the luma image (no normalisation).
+    """
+    frame = np.asarray(frame)
+    if frame.ndim != 3 or frame.shape[-1] != 3:
+        raise ValueError(f"{_WHERE}: a frame must be [H, W, 3] RGB, got shape {frame.shape}")
+    u8 = frame if frame.dtype == np.uint8 else (np.clip(frame, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if kind == "gray":
+        return cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+    if kind != "chroma_clahe":
+        raise ValueError(f"{_WHERE}: flow_image kind {kind!r} is not one of {FLOW_IMAGES}")
+    rgb = u8.astype(np.float32) + 1.0
+    chroma = np.clip(rgb / rgb.sum(-1, keepdims=True) * (1.5 * 255.0), 0.0, 255.0).astype(np.uint8)
+    return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(cv2.cvtColor(chroma, cv2.COLOR_RGB2GRAY))
+
+
+def _dis_flow(a: np.ndarray, b: np.ndarray, preset: str) -> np.ndarray:
+    """DIS optical flow [H, W, 2] (dx, dy) [px] from grey image a to grey image b."""
+    return cv2.DISOpticalFlow_create(FLOW_PRESETS[preset]).calc(a, b, None)
+
+
+def _inside(mask: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bool [M]: the mask [H, W] at the nearest pixel of each point [M, 2] (False outside the image)."""
+    h, w = mask.shape
+    ij = np.round(xy).astype(np.int64)
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    out = np.zeros(len(xy), bool)
+    out[ok] = np.asarray(mask, bool)[ij[ok, 1], ij[ok, 0]]
+    return out
+
+
+def match_flow(render: np.ndarray, gt: np.ndarray, cfg: MatchConfig = MatchConfig(),
+               render_mask: np.ndarray | None = None,
+               gt_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Dense correspondences from forward-backward consistent DIS optical flow (backend "flow").
+
+    p runs over the render pixels ``(s/2 + i s, s/2 + j s)`` (``s = flow_stride``) inside ``render_mask``;
+    ``q = p + f(p)`` with ``f`` the flow render -> frame on :func:`flow_image`; a pair is kept when the
+    backward flow ``b`` (frame -> render, bilinear at q) brings it back: ``|q + b(q) - p| < flow_fb_px``
+    (occlusions, texture-less patches and flow errors break that), and q lies inside the frame and
+    ``gt_mask``.
+
+    Args:
+        render: rendered RGB [H, W, 3]; gt: the video frame [H, W, 3] (same size).
+        cfg: matching config (``flow_*``).
+        render_mask, gt_mask: object masks [H, W] (bool), or None for the whole image.
+
+    Returns:
+        (p [M, 2], q [M, 2]) float32 pixel coordinates (x, y) in the render and the frame.
+    """
+    a, b = flow_image(render, cfg.flow_image), flow_image(gt, cfg.flow_image)
+    if a.shape != b.shape:
+        raise ValueError(f"{_WHERE}: backend 'flow' needs frames of one size, got {a.shape} and {b.shape}")
+    h, w = a.shape
+    s = cfg.flow_stride
+    ys, xs = np.mgrid[s // 2:h:s, s // 2:w:s]
+    p = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32)
+    if render_mask is not None:
+        p = p[_inside(render_mask, p)]
+    if len(p) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    fwd, bwd = _dis_flow(a, b, cfg.flow_preset), _dis_flow(b, a, cfg.flow_preset)
+    q = p + fwd[p[:, 1].astype(np.int64), p[:, 0].astype(np.int64)]
+    back = q + cv2.remap(bwd, q[:, :1].copy(), q[:, 1:].copy(), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)
+    keep = (np.linalg.norm(back - p, axis=1) < cfg.flow_fb_px) & _inside(np.ones((h, w), bool), q)
+    if gt_mask is not None:
+        keep &= _inside(gt_mask, q)
+    return p[keep].reshape(-1, 2), q[keep].astype(np.float32).reshape(-1, 2)
 
 
 def match_cached(render: np.ndarray, kpts_gt: np.ndarray, desc_gt: np.ndarray,
