@@ -1,7 +1,8 @@
 #!/bin/sh
 # Paper-profile priors and 200-iteration trainings on them, in bounded device commands (issues 22/20).
 # Session 14: the jelly prior (2000 steps, resumed across commands), then GCA (Adam) on ball, duck, calib_torus and NeuMA
-# on the ball. Session 15: GCA (RAdam) on the same three, beside the plasticine and sand priors.
+# on the ball. Session 15: GCA (RAdam) on the same three, beside the plasticine and sand priors. Session 16: GCA and
+# NCLaw on the three calibration scenes with the flow matcher (term shares), the plasticine prior finished first.
 #
 #   RUNS    "scene:method ..." trained at once under CUDA MPS (default: ball:gca duck:gca calib_torus:gca ball:neuma)
 #   PRIORS  prior families trained beside them, each in its own work directory (default: the runs' families that have
@@ -48,8 +49,10 @@ for f in $FAMS $PRIORS; do
   [ -f "$p/$f.pt" ] || [ -f "$p/$f.pt.checkpoint" ] || [ ! -f "$PRIOR_DIR/$f.pt.checkpoint" ] ||
     { cp "$PRIOR_DIR/$f.pt.checkpoint" "$PRIOR_DIR/$f.pt.checkpoint.stamp" "$p/" && say "prior $f resumes from $PRIOR_DIR/$f.pt.checkpoint"; }
 done
+PRIOR_PIDS=""
 for f in $PRIORS; do
-  [ -f "$W/prior_$f/prior/$f.pt" ] || harness "$W/prior_$f" "$(scene_of "$f")" gca "prior_$f" assets particles prior &
+  [ -f "$W/prior_$f/prior/$f.pt" ] || { harness "$W/prior_$f" "$(scene_of "$f")" gca "prior_$f" assets particles prior &
+                                        PRIOR_PIDS="$PRIOR_PIDS $!"; }
 done
 for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
   if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
@@ -67,17 +70,26 @@ for s in $SCENES; do
   [ -f "$W/$s/m/preprocess.done" ] || { harness "$W/$s" "$s" gca "data_$s" assets particles ground_truth preprocess & DATA="$DATA $!"; }
 done
 [ -z "$DATA" ] || wait $DATA  # the data only: the priors run on
-# 2. the runs at once under MPS, each in a copy of its scene's data with its family's prior (each resumes its checkpoint)
-for r in $RUNS; do
-  s=${r%%:*}; m=${r#*:}; f=$(family "$s"); w="$W/run_${s}_$m"
-  if [ -f "$W/$s/m/preprocess.done" ] && [ -f "$W/prior_$f/prior/$f.pt" ] && [ "$(left)" -gt 60 ]; then
-    [ -d "$w" ] || cp -r "$W/$s" "$w"
-    mkdir -p "$w/prior"; cp "$W/prior_$f/prior/$f.pt" "$w/prior/"
-    harness "$w" "$s" "$m" "${s}_$m" train evaluate &
-  else
-    say "run $r skipped: data, prior $f or time missing"
-  fi
-done
+# 2. the runs at once under MPS, each in a copy of its scene's data with its family's prior (each resumes its checkpoint);
+# a run whose prior is still training here starts when the priors end (they stop at 2000 steps or at the call's end)
+start_runs() {  # RUNS: starts those whose data and prior exist, leaves the others in WAITING
+  WAITING=""
+  for r in $1; do
+    s=${r%%:*}; m=${r#*:}; f=$(family "$s"); w="$W/run_${s}_$m"
+    if [ -f "$W/$s/m/preprocess.done" ] && [ -f "$W/prior_$f/prior/$f.pt" ] && [ "$(left)" -gt 60 ]; then
+      [ -d "$w" ] || cp -r "$W/$s" "$w"
+      mkdir -p "$w/prior"; cp "$W/prior_$f/prior/$f.pt" "$w/prior/"
+      harness "$w" "$s" "$m" "${s}_$m" train evaluate &
+    else
+      WAITING="$WAITING $r"
+    fi
+  done
+}
+start_runs "$RUNS"
+if [ -n "$WAITING" ] && [ -n "$PRIOR_PIDS" ]; then
+  say "waiting for the priors before:$WAITING"; wait $PRIOR_PIDS; start_runs "$WAITING"
+fi
+for r in $WAITING; do say "run $r skipped: data, prior $(family "${r%%:*}") or time missing"; done
 wait
 for f in $PRIORS; do mkdir -p "$OUT/prior_$f"; cp "$W/prior_$f"/prior/* "$W/prior_$f"/m/prior.* "$OUT/prior_$f/" 2>/dev/null; done
 python3 benchmarks/paperprior_summary.py "$OUT/res" 2>&1 | tee "$OUT/summary.txt"
