@@ -10,6 +10,8 @@
 #           PRIOR_DIR/<family>.pt.checkpoint (default benchmarks/results/priors_paper: the
 #           paper profile's priors made so far, tracked; session 14's jelly)
 #   LIMIT   seconds for this call (each process gets what is left; the priors checkpoint on SIGTERM)
+#   EXTRA   more harness options for the runs, e.g. "--set align.rdga.lambda1=1.0" (default none)
+#   TAG     suffix of the runs' work directories and result names (runs with other EXTRA beside earlier ones)
 #
 #   call 1 carry [".wpa"]:                            sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:     . .wpb/activate.sh && OUT=$OUT sh benchmarks/paperprior_bundle.sh
@@ -21,6 +23,7 @@
 set -u
 OUT=${OUT:-/tmp/pp_out}; W=${W:-/tmp/pp_w}; LIMIT=${LIMIT:-570}
 RUNS=${RUNS:-"ball:gca duck:gca calib_torus:gca ball:neuma"}
+EXTRA=${EXTRA:-}; TAG=${TAG:-}
 PRIOR_DIR=${PRIOR_DIR:-benchmarks/results/priors_paper}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
@@ -36,7 +39,7 @@ C="--profile paper --set render.backend=gsplat --set velocity.iterations=20 --se
 harness() {  # work scene method tag stages...
   w=$1; s=$2; m=$3; tag=$4; shift 4
   MLFLOW_TRACKING_URI=sqlite:///$w/mlflow.db timeout "$(left)" python3 benchmarks/harness.py --scene "$s" --methods "$m" \
-      $C --work "$w" --reuse-prior --reuse-data --out "$OUT/res" --tag "$tag" --stages "$@" >> "$OUT/$tag.log" 2>&1
+      $C $EXTRA --work "$w" --reuse-prior --reuse-data --out "$OUT/res" --tag "$tag" --stages "$@" >> "$OUT/$tag.log" 2>&1
   say "$tag ($*) rc=$?"
 }
 pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
@@ -75,11 +78,11 @@ done
 start_runs() {  # RUNS: starts those whose data and prior exist, leaves the others in WAITING
   WAITING=""
   for r in $1; do
-    s=${r%%:*}; m=${r#*:}; f=$(family "$s"); w="$W/run_${s}_$m"
+    s=${r%%:*}; m=${r#*:}; f=$(family "$s"); w="$W/run_${s}_$m$TAG"
     if [ -f "$W/$s/m/preprocess.done" ] && [ -f "$W/prior_$f/prior/$f.pt" ] && [ "$(left)" -gt 60 ]; then
       [ -d "$w" ] || cp -r "$W/$s" "$w"
       mkdir -p "$w/prior"; cp "$W/prior_$f/prior/$f.pt" "$w/prior/"
-      harness "$w" "$s" "$m" "${s}_$m" train evaluate &
+      harness "$w" "$s" "$m" "${s}_$m$TAG" train evaluate &
     else
       WAITING="$WAITING $r"
     fi
