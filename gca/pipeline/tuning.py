@@ -44,8 +44,8 @@ from gca.train.methods import RDGA_TERMS, get_method
 DEFAULT_METHODS: dict[str, dict[str, dict]] = {
     "gca": {
         "lambda_m": {"keys": ["align.rdga.lambda_mask"], "range": [0.1, 10.0], "factor": False},
-        "lambda_1": {"keys": ["align.rdga.lambda1"], "range": [1.0e-3, 0.1], "factor": False},
-        "lambda_2": {"keys": ["align.rdga.lambda2"], "range": [1.0e-3, 0.1], "factor": False},
+        "lambda_1": {"keys": ["align.rdga.lambda1"], "range": [1.0e-3, 10.0], "factor": False},
+        "lambda_2": {"keys": ["align.rdga.lambda2"], "range": [1.0e-3, 100.0], "factor": False},
         "lr": {"keys": ["train.lr_elasticity", "train.lr_plasticity"], "range": [0.25, 4.0], "factor": True},
     },
     "neuma": {
