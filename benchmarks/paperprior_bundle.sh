@@ -13,6 +13,7 @@
 #   EXTRA   more harness options for the runs, e.g. "--set align.rdga.lambda1=1.0" (default none)
 #   TAG     suffix of the runs' work directories and result names (runs with other EXTRA beside earlier ones)
 #
+#   (the folders: sh benchmarks/pack_gpu.sh, once per checkout)
 #   call 1 carry [".wpa"]:                            sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:     . .wpb/activate.sh && OUT=$OUT sh benchmarks/paperprior_bundle.sh
 #   calls 3.. (no carry; send each at once, the machine is released after 30 s idle): OUT=$OUT sh benchmarks/paperprior_bundle.sh

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -31,6 +32,18 @@ def parse_args(argv):
     cli.add_common(ap, device="cuda" if torch.cuda.is_available() else "cpu")
     return ap.parse_args(argv)
 
+
+
+def summary_line(family: str, metrics: dict) -> str:
+    """One line: held-out RMSE from the start to the end [cells], the response error [%] and the time. The start is
+    the untrained net's RMSE where finite, else the warm start's (an untrained net can leave the grid: inf)."""
+    rmse = metrics["heldout_rmse_cells"]
+    start, label = rmse.get("untrained"), "untrained"
+    if not (isinstance(start, (int, float)) and math.isfinite(start)) and rmse.get("warm") is not None:
+        start, label = rmse["warm"], "warm start"
+    ratio = start / rmse["trained"] if math.isfinite(start) and rmse["trained"] > 0 else float("nan")
+    return (f"prior {family}: held-out RMSE {start:.3g} ({label}) -> {rmse['trained']:.3g} cells (x{ratio:.1f}), "
+            f"response error {metrics['response_error_pct']['trained']['mean']:.1f} % in {metrics['seconds']['total']:.0f} s")
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
@@ -61,9 +74,7 @@ def main(argv=None) -> dict:
         run.log_metrics({k: v for k, v in metrics.items() if k not in ("data", "family", "device")})
         run.log_artifact(args.plots)
         stamp.clear_checkpoint(checkpoint)
-    print(f"prior {args.family}: held-out RMSE {metrics['heldout_rmse_cells']['untrained']:.3g} -> "
-          f"{metrics['heldout_rmse_cells']['trained']:.3g} cells (x{metrics['heldout_ratio']:.1f}), response error "
-          f"{metrics['response_error_pct']['trained']['mean']:.1f} % in {metrics['seconds']['total']:.0f} s")
+    print(summary_line(args.family, metrics))
     return metrics
 
 

@@ -78,3 +78,17 @@ def test_unknown_family_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="prior.families has no family 'granite'"):
         _stage().main(["--family", "granite", "--out", str(tmp_path / "g.pt"), "--metrics", str(tmp_path / "g.json"),
                        "--plots", str(tmp_path / "g.png"), "--params", str(tmp_path / "params.yaml")])
+
+
+def test_summary_line_starts_from_the_warm_start_when_the_untrained_net_left_the_grid():
+    """An untrained net can diverge (RMSE inf): the line then starts from the warm start's RMSE, says so, and its
+    ratio is finite; a finite untrained RMSE is the start as before."""
+    stage = _stage()
+
+    def metrics(untrained):
+        return {"heldout_rmse_cells": {"untrained": untrained, "warm": 0.5, "trained": 0.1},
+                "response_error_pct": {"trained": {"mean": 11.5}}, "seconds": {"total": 172.0}}
+
+    line = stage.summary_line("plasticine", metrics(float("inf")))
+    assert "0.5 (warm start) -> 0.1 cells (x5.0)" in line and "inf" not in line
+    assert "2 (untrained) -> 0.1 cells (x20.0)" in stage.summary_line("plasticine", metrics(2.0))
