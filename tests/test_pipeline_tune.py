@@ -217,8 +217,40 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
     strip = lambda r: {k: v for k, v in r.items() if k != "date"}  # noqa: E731
     assert strip(again) == strip(record)
 
+    # the state carried to a fresh work directory (another machine, a later session): nothing is redone there, the
+    # record is the same, and a unit in progress keeps its checkpoint
+    progress = work / "tuning/gca/trial1/calib_torus/gca/checkpoint.pt"
+    progress.parent.mkdir(parents=True, exist_ok=True)
+    progress.write_bytes(b"ckpt")
+    progress.with_name("checkpoint.pt.stamp").write_text("stamp")
+    archive = tmp_path / "state.tgz"
+    elsewhere = tmp_path / "elsewhere"
+    assert tune.save_state(work, archive) == len(tune.state_files(work)) >= 6  # 4 units, a velocity, a checkpoint
+    moved = tune.main(["--work", str(elsewhere), *argv[2:], "--no-prepare", "--restore-state", str(archive)])
+    assert strip(moved) == strip(record)
+    assert (elsewhere / progress.relative_to(work)).read_bytes() == b"ckpt"
+    assert (elsewhere / "tuning/velocity/calib_torus/velocity.json").is_file()
+    assert not (elsewhere / "data").exists() and not (elsewhere / "tuning/gca/trial0/calib_torus/eval").exists()
+    assert {p.as_posix() for p in tune.state_files(elsewhere)} == {p.as_posix() for p in tune.state_files(work)}
+
     from gca.report.tuning import write_tuning_tables
     (tmp_path / "report").mkdir()
     md, csv = write_tuning_tables(record_path, tmp_path / "report")
     text = md.read_text()
     assert "calib_torus" in text and "silhouette norm share" in text and "Chosen values" in text
+
+
+def test_a_tuning_state_with_a_foreign_member_is_refused(tmp_path):
+    import io
+    import tarfile
+
+    archive = tmp_path / "bad.tgz"
+    with tarfile.open(archive, "w:gz") as tar:
+        info = tarfile.TarInfo("../params.yaml")
+        info.size = 1
+        tar.addfile(info, io.BytesIO(b"x"))
+    with pytest.raises(ConfigError, match="is not a tuning state file"):
+        tune.restore_state(archive, tmp_path / "work")
+    assert not (tmp_path / "params.yaml").exists()
+    with pytest.raises(ConfigError, match="no tuning state there"):
+        tune.restore_state(tmp_path / "missing.tgz", tmp_path / "work")

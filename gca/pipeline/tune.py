@@ -15,6 +15,10 @@
    ``--deadline`` [s] starts no unit its measured cost would not finish in time.
 3. When every unit is there: the record (``--record``, default ``tuning/record.json``) and the params.yaml change
    to apply (printed); else the units left, and the command to repeat.
+
+A tuning spread over machines that forget their disks (one bounded GPU command per session): ``--save-state TGZ``
+writes what the next call needs (units done, launch velocities, checkpoints of units in progress; not the inputs),
+``--restore-state TGZ`` unpacks it into a fresh work directory first (``benchmarks/tune_bundle.sh``).
 """
 
 from __future__ import annotations
@@ -188,6 +192,53 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
             "iterations": train["iterations"], stamp.KEY: expected}
 
 
+def state_files(work: Path) -> list[Path]:
+    """What a tuning needs to go on in another work directory (another machine, a later session), relative to
+    ``work``: every finished unit's result (``tuning/<method>/trial<i>/<scene>@seed<k>.json``), the shared launch
+    velocities (``tuning/velocity/``) and the checkpoint (and its stamp) of every unit in progress. Not the inputs
+    (remade by ``--prepare-only`` from params), nor the finished runs' folders (their result has what the record uses)."""
+    tuning = work / "tuning"
+    found = [*tuning.glob("*/trial*/*.json"), *tuning.glob("velocity/**/*.json"),
+             *tuning.glob("*/trial*/*/*/checkpoint.pt"), *tuning.glob("*/trial*/*/*/checkpoint.pt.*")]
+    return sorted(p.relative_to(work) for p in found if p.is_file())
+
+
+def save_state(work: Path, archive: Path) -> int:
+    """Write :func:`state_files` of ``work`` to the gzipped tar ``archive`` (atomically); returns the file count."""
+    import tarfile
+
+    files = state_files(work)
+    archive.parent.mkdir(parents=True, exist_ok=True)
+    tmp = archive.with_name(archive.name + ".tmp")
+    with tarfile.open(tmp, "w:gz") as tar:
+        for rel in files:
+            tar.add(work / rel, arcname=rel.as_posix())
+    tmp.replace(archive)
+    return len(files)
+
+
+def restore_state(archive: Path, work: Path) -> int:
+    """Unpack a :func:`save_state` archive into ``work`` (a file already there is kept: it is at least as new);
+    returns the count unpacked. Refuses members outside ``tuning/``."""
+    import tarfile
+
+    if not archive.is_file():
+        raise ConfigError(f"{archive}: no tuning state there (written by --save-state)")
+    n = 0
+    with tarfile.open(archive, "r:gz") as tar:
+        for member in tar.getmembers():
+            if not member.isfile() or not member.name.startswith("tuning/") or ".." in Path(member.name).parts:
+                raise ConfigError(f"{archive}: {member.name!r} is not a tuning state file")
+            target = work / member.name
+            if target.exists():
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with tar.extractfile(member) as src:
+                target.write_bytes(src.read())
+            n += 1
+    return n
+
+
 def _git_commit() -> str:
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
@@ -263,6 +314,10 @@ def parse_args(argv):
     ap.add_argument("--device", default=None, help="cuda or cpu (default: cuda when visible)")
     ap.add_argument("--no-prepare", action="store_true", help="the work directory's inputs exist: run no stage")
     ap.add_argument("--prepare-only", action="store_true", help="make the inputs and launch velocities, then stop")
+    ap.add_argument("--restore-state", type=Path, metavar="TGZ",
+                    help="first unpack a --save-state archive into --work (units done elsewhere, checkpoints)")
+    ap.add_argument("--save-state", type=Path, metavar="TGZ",
+                    help="at the end write the units done, launch velocities and checkpoints to this archive")
     return ap.parse_args(argv)
 
 
@@ -285,6 +340,8 @@ def main(argv=None) -> dict:
     params["profile"] = params_raw["profile"]
     from gca.pipeline import schema
     schema.validate(params, "tune")
+    if args.restore_state is not None:
+        print(f"tune: {restore_state(args.restore_state, args.work)} files restored from {args.restore_state}")
     if not args.no_prepare:
         prepare_inputs(args.work, params_raw, args.priors)
     if args.prepare_only:
@@ -314,6 +371,8 @@ def main(argv=None) -> dict:
               flush=True)
     record, missing = build_record(args.work, params, cfg, methods, device, args.overrides)
     write_json(args.work / "tuning" / "record.partial.json", record)
+    if args.save_state is not None:
+        print(f"tune: {save_state(args.work, args.save_state)} state files saved to {args.save_state}")
     if missing:
         print(f"tune: {missing} units left (all shards); repeat the command (done units are kept)")
         return record
