@@ -11,39 +11,46 @@
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): OUT=$OUT sh benchmarks/tune_bundle.sh
 #   SHARDS   processes on the GPU at once (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
 #   METHODS  the tuned methods (default: every one of tuning.methods); LIMIT seconds for this call (default 570)
+#   PROFILE  paper (default); EXTRA more tune options; PRIORS the priors' folder (default the paper ones; "" pretrains).
+#            A CPU smoke: PROFILE=ci PRIORS= EXTRA="--set tuning.trials=2 --device cpu". PROFILE and EXTRA enter the
+#            units' stamps: every call of one tuning must give the same.
 # Cost (tuning/README.md): ~106 H100-minutes under 8-way MPS for the three methods' 72 units of 200 iterations.
 set -u
 OUT=${OUT:-/tmp/tune_out}; W=${W:-/tmp/tune}; SHARDS=${SHARDS:-8}; LIMIT=${LIMIT:-570}; METHODS=${METHODS:-}
-STATE=${STATE:-tuning/state.tgz}
+STATE=${STATE:-tuning/state.tgz}; PROFILE=${PROFILE:-paper}; EXTRA=${EXTRA:-}
+PRIORS=${PRIORS-benchmarks/results/priors_paper}  # the paper priors; "" pretrains them (the CI profile's nets differ)
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 T0=$(date +%s)
 left() { echo $((LIMIT - $(date +%s) + T0)); }
 say() { echo "[tune $(($(date +%s) - T0)) s] $1"; }
 M=""; [ -z "$METHODS" ] || M="--methods $METHODS"
-for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
-  if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-    python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-  fi
-done
-[ -f "$W/gsplat.done" ] || { timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"; say "gsplat build rc=$?"; }
-pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
+P=""; [ -z "$PRIORS" ] || P="--priors $PRIORS"
+if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
+  for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
+    if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
+      python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
+    fi
+  done
+  [ -f "$W/gsplat.done" ] || { timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"; say "gsplat build rc=$?"; }
+  pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
+fi
 R=""; [ -f "$STATE" ] && [ ! -f "$W/.restored" ] && { R="--restore-state $STATE"; touch "$W/.restored"; }
 # shellcheck disable=SC2086
-timeout "$(left)" python3 -m gca.pipeline.tune --work "$W" --profile paper $M $R \
-    --priors benchmarks/results/priors_paper --prepare-only > "$OUT/prepare.log" 2>&1
+timeout "$(left)" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M $R \
+    $P --prepare-only > "$OUT/prepare.log" 2>&1
 say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"
 k=0
 while [ "$k" -lt "$SHARDS" ]; do  # every shard on the one GPU; each stops at the deadline, a unit cut off resumes
   # shellcheck disable=SC2086
-  timeout "$(($(left) - 15))" python3 -m gca.pipeline.tune --work "$W" --profile paper $M \
-      --no-prepare --shard "$k/$SHARDS" --deadline "$(($(left) - 60))" > "$OUT/shard$k.log" 2>&1 &
+  timeout "$(($(left) - 15))" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M \
+      --no-prepare --record "$W/record.json" --shard "$k/$SHARDS" --deadline "$(($(left) - 60))" > "$OUT/shard$k.log" 2>&1 &
   k=$((k + 1))
 done
 wait
 say "shards done"; grep -h "^tune " "$OUT"/shard*.log | tail -n 20
 python3 -c "from pathlib import Path; from gca.pipeline.tune import save_state; \
 print(save_state(Path('$W'), Path('$OUT/state.tgz')), 'state files')"
-[ ! -f tuning/record.json ] || { cp tuning/record.json "$OUT/record.json"; say "every unit done: record.json in all.tgz"; }
+[ ! -f "$W/record.json" ] || { cp "$W/record.json" "$OUT/record.json"; say "every unit done: record.json in all.tgz"; }
 (cd "$OUT" && tar czf /tmp/tune_all.tgz . && find . -mindepth 1 -delete && mv /tmp/tune_all.tgz all.tgz)
 say "done: commit state.tgz from all.tgz as $STATE"
