@@ -76,8 +76,7 @@ def distances(renders: list[tuple[np.ndarray, np.ndarray]], frames: np.ndarray, 
     inverse = None if m is None else cv2.invertAffineTransform(m)
     d, counts = [], []
     for (rgb, inside), frame, mask, (kpts, desc) in zip(renders, frames, masks, keypoints):
-        p, q = match_frame((rgb * 255 + 0.5).astype(np.uint8), (np.clip(frame, 0, 1) * 255 + 0.5).astype(np.uint8),
-                           kpts, desc, cfg, inside, mask)
+        p, q = match_frame(rgb, frame, kpts, desc, cfg, inside, mask)  # float frames: rounded to uint8 there
         truth = p if inverse is None else p @ inverse[:, :2].T + inverse[:, 2]
         d.append(np.linalg.norm(truth - q, axis=1))
         counts.append(len(p))

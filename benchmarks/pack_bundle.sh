@@ -14,14 +14,11 @@ OUT=${OUT:-/tmp/pack_out}; W=${W:-/tmp/pack_w}; NS=${NS:-4}; ITS=${ITS:-10}; MOD
 PRIOR=${PRIOR:-benchmarks/results/priors_paper/jelly.pt}; GPU_TESTS=${GPU_TESTS:-0}
 mkdir -p "$OUT/nomps" "$OUT/mps" "$W/h/prior"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
+. benchmarks/gpu_wheels.sh
 T0=$(date +%s)
 stamp() { python3 -c "import time; print(f'[pack {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
 SETS="--set train.iterations=$ITS --set velocity.iterations=20 --set render.backend=gsplat"
-for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
-  if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-    python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-  fi
-done
+install_wheels
 
 if [ "$GPU_TESTS" = 1 ]; then
   stamp "gpu tests: degenerate F, gsplat vs torch"
@@ -29,7 +26,7 @@ if [ "$GPU_TESTS" = 1 ]; then
   tail -n 1 "$OUT/pytest_gpu.txt"
 fi
 
-stamp "solo: gsplat's build, data, then one training"
+stamp "solo: the gsplat build, data, then one training"
 timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "gsplat build rc=$?"
 cp "$PRIOR" "$W/h/prior/jelly.pt"
 # shellcheck disable=SC2086

@@ -28,6 +28,7 @@ EXTRA=${EXTRA:-}; TAG=${TAG:-}
 PRIOR_DIR=${PRIOR_DIR:-benchmarks/results/priors_paper}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
+. benchmarks/gpu_wheels.sh
 T0=$(date +%s)
 left() { echo $((LIMIT - $(date +%s) + T0)); }
 say() { echo "[paperprior $(($(date +%s) - T0)) s] $1"; }
@@ -58,11 +59,7 @@ for f in $PRIORS; do
   [ -f "$W/prior_$f/prior/$f.pt" ] || { harness "$W/prior_$f" "$(scene_of "$f")" gca "prior_$f" assets particles prior &
                                         PRIOR_PIDS="$PRIOR_PIDS $!"; }
 done
-for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
-  if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-    python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-  fi
-done
+install_wheels
 if [ ! -f "$W/gsplat.done" ]; then
   timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"
   say "gsplat build rc=$?"

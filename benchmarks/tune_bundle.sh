@@ -21,17 +21,14 @@ STATE=${STATE:-tuning/state.tgz}; PROFILE=${PROFILE:-paper}; EXTRA=${EXTRA:-}
 PRIORS=${PRIORS-benchmarks/results/priors_paper}  # the paper priors; "" pretrains them (the CI profile's nets differ)
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
+. benchmarks/gpu_wheels.sh
 T0=$(date +%s)
 left() { echo $((LIMIT - $(date +%s) + T0)); }
 say() { echo "[tune $(($(date +%s) - T0)) s] $1"; }
 M=""; [ -z "$METHODS" ] || M="--methods $METHODS"
 P=""; [ -z "$PRIORS" ] || P="--priors $PRIORS"
 if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
-  for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
-    if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-      python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-    fi
-  done
+  install_wheels
   [ -f "$W/gsplat.done" ] || { timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"; say "gsplat build rc=$?"; }
   pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
 fi

@@ -33,7 +33,6 @@ def parse_args(argv):
     return ap.parse_args(argv)
 
 
-
 def summary_line(family: str, metrics: dict) -> str:
     """One line: held-out RMSE from the start to the end [cells], the response error [%] and the time. The start is
     the untrained net's RMSE where finite, else the warm start's (an untrained net can leave the grid: inf)."""
@@ -44,6 +43,7 @@ def summary_line(family: str, metrics: dict) -> str:
     ratio = start / rmse["trained"] if math.isfinite(start) and rmse["trained"] > 0 else float("nan")
     return (f"prior {family}: held-out RMSE {start:.3g} ({label}) -> {rmse['trained']:.3g} cells (x{ratio:.1f}), "
             f"response error {metrics['response_error_pct']['trained']['mean']:.1f} % in {metrics['seconds']['total']:.0f} s")
+
 
 def main(argv=None) -> dict:
     args = parse_args(argv)

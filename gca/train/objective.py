@@ -27,7 +27,7 @@ from gca.train.config import TrainConfig
 from gca.train.law import LearnedLaw
 from gca.train.methods import Method
 from gca.train.probe import GradProbe
-from gca.vision.matching import MatchConfig, match_frame
+from gca.vision.matching import MatchConfig, match_frame, rgb_uint8
 
 
 @dataclasses.dataclass
@@ -102,7 +102,7 @@ class Objective:
         self.mask = torch.as_tensor(data.views["train0"].mask, device=x0.device)
         # the matcher's side of train0 (host, once): its video frames and masks (backend "flow" matches images)
         train0 = data.views["train0"]
-        self._gt_u8 = (np.clip(np.asarray(train0.rgb), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        self._gt_u8 = rgb_uint8(train0.rgb)
         self._gt_mask = np.asarray(train0.mask, bool)
         self.est_depth = torch.as_tensor(data.est_depth, dtype=x0.dtype, device=x0.device)
         self.K = {n: torch.tensor(np.array(v.camera.K), dtype=x0.dtype, device=x0.device) for n, v in data.views.items()}

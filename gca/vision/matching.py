@@ -91,14 +91,20 @@ class MatchConfig:
             raise ValueError(f"{_WHERE}: MatchConfig.ratio must lie in (0, 1], got {self.ratio}")
 
 
+def rgb_uint8(frame: np.ndarray) -> np.ndarray:
+    """An RGB frame [..., H, W, 3] (uint8, or float in [0, 1]: clipped and rounded) as uint8."""
+    frame = np.asarray(frame)
+    if frame.ndim < 3 or frame.shape[-1] != 3:
+        raise ValueError(f"{_WHERE}: a frame must be [H, W, 3] RGB, got shape {frame.shape}")
+    return frame if frame.dtype == np.uint8 else (np.clip(frame, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
 def to_gray_uint8(frame: np.ndarray) -> np.ndarray:
     """An RGB frame [H, W, 3] (uint8, or float in [0, 1]) as a uint8 grey image [H, W]."""
     frame = np.asarray(frame)
-    if frame.ndim != 3 or frame.shape[-1] != 3:
+    if frame.ndim != 3:
         raise ValueError(f"{_WHERE}: a frame must be [H, W, 3] RGB, got shape {frame.shape}")
-    if frame.dtype != np.uint8:
-        frame = (np.clip(frame, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    return cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+    return cv2.cvtColor(rgb_uint8(frame), cv2.COLOR_RGB2GRAY)
 
 
 def detect_keypoints(frame: np.ndarray, cfg: MatchConfig = MatchConfig()) -> tuple[np.ndarray, np.ndarray]:
@@ -243,15 +249,13 @@ def flow_image(frame: np.ndarray, kind: str = "chroma_clahe") -> np.ndarray:
     white light), as a grey image of ``1.5 * 255 c``, then CLAHE (clip 2, 8x8 tiles) to equalise the contrast
     of the texture's colour edges. ``"gray"``: the luma image (no normalisation).
     """
-    frame = np.asarray(frame)
-    if frame.ndim != 3 or frame.shape[-1] != 3:
-        raise ValueError(f"{_WHERE}: a frame must be [H, W, 3] RGB, got shape {frame.shape}")
-    u8 = frame if frame.dtype == np.uint8 else (np.clip(frame, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     if kind == "gray":
-        return cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+        return to_gray_uint8(frame)
     if kind != "chroma_clahe":
         raise ValueError(f"{_WHERE}: flow_image kind {kind!r} is not one of {FLOW_IMAGES}")
-    rgb = u8.astype(np.float32) + 1.0
+    if np.ndim(frame) != 3:
+        raise ValueError(f"{_WHERE}: a frame must be [H, W, 3] RGB, got shape {np.shape(frame)}")
+    rgb = rgb_uint8(frame).astype(np.float32) + 1.0
     chroma = np.clip(rgb / rgb.sum(-1, keepdims=True) * (1.5 * 255.0), 0.0, 255.0).astype(np.uint8)
     return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(cv2.cvtColor(chroma, cv2.COLOR_RGB2GRAY))
 
@@ -261,14 +265,15 @@ def _dis_flow(a: np.ndarray, b: np.ndarray, preset: str) -> np.ndarray:
     return cv2.DISOpticalFlow_create(FLOW_PRESETS[preset]).calc(a, b, None)
 
 
-def _inside(mask: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bool [M]: the mask [H, W] at the nearest pixel of each point [M, 2] (False outside the image)."""
-    h, w = mask.shape
+def _inside(xy: np.ndarray, shape: tuple[int, int], mask: np.ndarray | None = None) -> np.ndarray:
+    """Bool [M]: the nearest pixel of each point [M, 2] lies in the image of ``shape`` (H, W) and, if given,
+    in ``mask`` [H, W]."""
+    h, w = shape
     ij = np.round(xy).astype(np.int64)
     ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-    out = np.zeros(len(xy), bool)
-    out[ok] = np.asarray(mask, bool)[ij[ok, 1], ij[ok, 0]]
-    return out
+    if mask is not None:
+        ok[ok] = np.asarray(mask, bool)[ij[ok, 1], ij[ok, 0]]
+    return ok
 
 
 def match_flow(render: np.ndarray, gt: np.ndarray, cfg: MatchConfig = MatchConfig(),
@@ -298,16 +303,14 @@ def match_flow(render: np.ndarray, gt: np.ndarray, cfg: MatchConfig = MatchConfi
     ys, xs = np.mgrid[s // 2:h:s, s // 2:w:s]
     p = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32)
     if render_mask is not None:
-        p = p[_inside(render_mask, p)]
+        p = p[_inside(p, (h, w), render_mask)]
     if len(p) == 0:
         return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
     fwd, bwd = _dis_flow(a, b, cfg.flow_preset), _dis_flow(b, a, cfg.flow_preset)
     q = p + fwd[p[:, 1].astype(np.int64), p[:, 0].astype(np.int64)]
     back = q + cv2.remap(bwd, q[:, :1].copy(), q[:, 1:].copy(), cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)
-    keep = (np.linalg.norm(back - p, axis=1) < cfg.flow_fb_px) & _inside(np.ones((h, w), bool), q)
-    if gt_mask is not None:
-        keep &= _inside(gt_mask, q)
+    keep = (np.linalg.norm(back - p, axis=1) < cfg.flow_fb_px) & _inside(q, (h, w), gt_mask)
     return p[keep].reshape(-1, 2), q[keep].astype(np.float32).reshape(-1, 2)
 
 
