@@ -8,3 +8,11 @@ install_wheels() {
     fi
   done
 }
+# build_gsplat DIR LOG: compile gsplat's CUDA extension once per machine (DIR/gsplat.done marks it; ~100 s), output in
+# LOG. Fine in the background beside the stages: a process that renders meanwhile waits on gca.render.backend's build
+# lock instead of building too (two builds at once corrupt gsplat's build directory).
+build_gsplat() {
+  [ -f "$1/gsplat.done" ] && return 0
+  timeout 200 python3 -m gca.render.backend --build > "$2" 2>&1 && touch "$1/gsplat.done"
+  echo "[gsplat] build rc=$? ($(tail -n 1 "$2"))"
+}

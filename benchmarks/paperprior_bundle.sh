@@ -60,10 +60,7 @@ for f in $PRIORS; do
                                         PRIOR_PIDS="$PRIOR_PIDS $!"; }
 done
 install_wheels
-if [ ! -f "$W/gsplat.done" ]; then
-  timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"
-  say "gsplat build rc=$?"
-fi
+build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the data (its renders wait on the build lock)
 # 1. each scene's data once, at once (beside the priors)
 SCENES=""; for r in $RUNS; do SCENES=$(add_once "$SCENES" "${r%%:*}"); done
 DATA=""

@@ -3,7 +3,8 @@
 # device commands spread over sessions. The machine forgets its disk between sessions, so each call starts from the
 # tuning state committed in tuning/state.tgz (units done, launch velocities, checkpoints of units in progress) and
 # returns the new one in $OUT/all.tgz (state.tgz inside): commit it as tuning/state.tgz. The calibration scenes'
-# inputs are remade each time (~4 min; the priors are the paper ones in benchmarks/results/priors_paper).
+# inputs are remade each time (the scenes' stages at once, beside gsplat's build; the priors are the paper ones in
+# benchmarks/results/priors_paper).
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
@@ -29,14 +30,15 @@ M=""; [ -z "$METHODS" ] || M="--methods $METHODS"
 P=""; [ -z "$PRIORS" ] || P="--priors $PRIORS"
 if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
   install_wheels
-  [ -f "$W/gsplat.done" ] || { timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1 && touch "$W/gsplat.done"; say "gsplat build rc=$?"; }
+  build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
   pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
 fi
 R=""; [ -f "$STATE" ] && [ ! -f "$W/.restored" ] && { R="--restore-state $STATE"; touch "$W/.restored"; }
 # shellcheck disable=SC2086
 timeout "$(left)" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M $R \
     $P --prepare-only > "$OUT/prepare.log" 2>&1
-say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"
+say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"; grep -h "done in" "$OUT/prepare.log" | tail -n 12
+wait  # the gsplat build
 k=0
 while [ "$k" -lt "$SHARDS" ]; do  # every shard on the one GPU; each stops at the deadline, a unit cut off resumes
   # shellcheck disable=SC2086

@@ -254,3 +254,51 @@ def test_a_tuning_state_with_a_foreign_member_is_refused(tmp_path):
     assert not (tmp_path / "params.yaml").exists()
     with pytest.raises(ConfigError, match="no tuning state there"):
         tune.restore_state(tmp_path / "missing.tgz", tmp_path / "work")
+
+
+def _jobs(**specs):
+    from gca.pipeline.grid import Job
+
+    return {name: Job(name, cmd, [], [], 1.0, set(after)) for name, (cmd, after) in specs.items()}
+
+
+def test_the_inputs_stages_run_in_parallel_in_dependency_order(tmp_path):
+    """Independent chains run at once (each of a and b waits for the other's start file: one by one, the first
+    would time out), a dependent job starts only after its parents, a done job (its mark holds the stamp) is not
+    rerun, each job's output goes to its log."""
+    marks = tmp_path / ".tune"
+    marks.mkdir()
+    wait_for = "i=0; while [ ! -f {f} ] && [ $i -lt 40 ]; do sleep 0.1; i=$((i+1)); done; [ -f {f} ]"
+    jobs = _jobs(
+        a=(f"touch a.start && {wait_for.format(f='b.start')} && echo from-a && touch a.end", []),
+        b=(f"touch b.start && {wait_for.format(f='a.start')} && touch b.end", []),
+        c=("[ -f a.end ] && [ -f b.end ] && touch c.end", ["a", "b"]),
+        old=("touch old.ran", []))
+    (marks / "old.done").write_text("s1\n")
+    lines = []
+    tune._run_jobs(tune._order(jobs), tmp_path, marks, "s1", workers=2, log=lines.append)
+    assert (tmp_path / "c.end").is_file() and not (tmp_path / "old.ran").exists()
+    assert all((marks / f"{n}.done").read_text().strip() == "s1" for n in "abc")
+    assert "from-a" in (marks / "a.log").read_text()
+    assert any(line.startswith("tune: c: done in") for line in lines)
+    # one at a time the same pair cannot finish: a waits for b's start (negative control of the parallel check)
+    (marks / "a.done").unlink()
+    (tmp_path / "b.start").unlink()
+    one = _jobs(a=(f"{wait_for.format(f='b.start')}", []), b=("touch b.start", []))
+    with pytest.raises(SystemExit, match=r"tune: a failed \(exit 1\)"):
+        tune._run_jobs(tune._order(one), tmp_path, marks, "s1", workers=1, log=lines.append)
+
+
+def test_a_failing_inputs_stage_stops_the_rest_and_names_itself(tmp_path):
+    """The failure's message has the job, its exit status, its command and its log's tail; a job after it never
+    starts, a job already running finishes (and is marked done), nothing of the failed job is marked done."""
+    marks = tmp_path / ".tune"
+    marks.mkdir()
+    jobs = _jobs(bad=("echo broken input >&2; exit 3", []), slow=("sleep 1; touch slow.end", []),
+                 later=("touch later.ran", ["bad"]))
+    with pytest.raises(SystemExit) as err:
+        tune._run_jobs(tune._order(jobs), tmp_path, marks, "s", workers=2, log=lambda s: None)
+    msg = str(err.value)
+    assert "broken input" in msg and "tune: bad failed (exit 3): echo broken input" in msg and "bad.log" in msg
+    assert not (marks / "bad.done").exists() and not (tmp_path / "later.ran").exists()
+    assert (tmp_path / "slow.end").is_file() and (marks / "slow.done").is_file()

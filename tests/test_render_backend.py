@@ -118,3 +118,69 @@ def test_setup_installs_the_depth_extra_only_with_a_local_model(tmp_path, with_m
         (weights / "config.json").write_text("{}")
     calls = _setup(tmp_path, cuda=False, STUB_WEIGHTS=str(weights))
     assert ('python -m pip install -q -e .[depth]' in calls) == with_model
+
+
+_HOLDER = """
+import sys, time
+from pathlib import Path
+from gca.render.backend import build_lock
+d = Path(sys.argv[1])
+with build_lock(sys.argv[2]):
+    (d / "a.in").touch()
+    time.sleep(1.0)
+    (d / "a.out").touch()
+"""
+_WAITER = """
+import sys, time
+from pathlib import Path
+from gca.render.backend import build_lock
+d = Path(sys.argv[1])
+while not (d / "a.in").exists():
+    time.sleep(0.02)
+with build_lock(sys.argv[2]):
+    (d / "b.saw").write_text(str((d / "a.out").exists()))
+"""
+
+
+def _two_processes(tmp_path, lock_a, lock_b) -> str:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    a = subprocess.Popen([os.sys.executable, "-c", _HOLDER, str(tmp_path), lock_a], env=env)
+    b = subprocess.run([os.sys.executable, "-c", _WAITER, str(tmp_path), lock_b], env=env, timeout=60)
+    assert a.wait(timeout=60) == 0 and b.returncode == 0
+    return (tmp_path / "b.saw").read_text()
+
+
+def test_a_second_process_waits_for_the_gsplat_build_lock(tmp_path):
+    """The second process enters only after the first left (it sees a.out); with two different lock files (the
+    negative control) it enters while the first still holds its own."""
+    assert _two_processes(tmp_path, str(tmp_path / "x.lock"), str(tmp_path / "x.lock")) == "True"
+    for f in ("a.in", "a.out", "b.saw"):
+        (tmp_path / f).unlink()
+    assert _two_processes(tmp_path, str(tmp_path / "x.lock"), str(tmp_path / "y.lock")) == "False"
+
+
+def test_load_gsplat_imports_the_extension_under_the_lock(tmp_path):
+    """A stand-in gsplat whose extension module, on import, tries to take the lock itself: it must find it held
+    (gsplat's build deletes and refills its build directory, so no second process may build meanwhile)."""
+    pkg = tmp_path / "site" / "gsplat" / "cuda"
+    pkg.mkdir(parents=True)
+    (pkg.parent / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "_backend.py").write_text(
+        "import fcntl, os\n"
+        "with open(os.environ['GCA_GSPLAT_LOCK'], 'a') as h:\n"
+        "    try:\n"
+        "        fcntl.flock(h, fcntl.LOCK_EX | fcntl.LOCK_NB)\n"
+        "        HELD = False\n"
+        "    except BlockingIOError:\n"
+        "        HELD = True\n"
+        "_C = 'extension' if HELD else None\n")
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path / 'site'}:{ROOT}", "GCA_GSPLAT_LOCK": str(tmp_path / "g.lock")}
+    code = "from gca.render.backend import load_gsplat; print(load_gsplat(), load_gsplat())"
+    out = subprocess.run([os.sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["extension", "extension"]
+    # the negative control: imported without load_gsplat, the stand-in finds the lock free
+    plain = "from gsplat.cuda._backend import _C; print(_C)"
+    out = subprocess.run([os.sys.executable, "-c", plain], env=env, capture_output=True, text=True, timeout=60)
+    assert out.stdout.split() == ["None"]

@@ -85,8 +85,57 @@ def _order(jobs: dict) -> list:
     return order
 
 
-def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print) -> None:
-    """Run the stage commands that make the calibration scenes' inputs in ``work`` (each once per params)."""
+def default_jobs() -> int:
+    """Stage processes run at once by :func:`prepare_inputs`: a quarter of the CPU cores, at least 1 (the 2-core CI
+    machine runs them one by one; the 16-core GPU machine 4, one chain per calibration scene)."""
+    return max(1, (os.cpu_count() or 1) // 4)
+
+
+def _run_jobs(jobs: list, work: Path, marks: Path, stamp: str, workers: int, log=print) -> None:
+    """Run the stage ``jobs`` (in :func:`_order`) in ``work``, up to ``workers`` at once, each as soon as the jobs in
+    its ``after`` are done; a job whose mark holds ``stamp`` is done already. Each job's output goes to
+    ``marks/<job>.log``; the first failure stops starting new jobs, waits for the running ones, and exits with the
+    job's command and its log's last lines."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    done = {j.name for j in jobs if (marks / f"{j.name}.done").is_file()
+            and (marks / f"{j.name}.done").read_text().strip() == stamp}
+    waiting = [j for j in jobs if j.name not in done]
+    running: dict = {}  # name -> (job, Popen, log file, start time)
+    failed = None
+    while waiting or running:
+        for job in list(waiting):
+            if failed is None and len(running) < workers and job.after <= done:
+                waiting.remove(job)
+                cmd = job.cmd.replace("python ", f"{sys.executable} ", 1) if job.cmd.startswith("python ") else job.cmd
+                out = open(marks / f"{job.name}.log", "w")  # noqa: SIM115 - closed when the job ends
+                log(f"tune: {job.name}: {job.cmd}")
+                proc = subprocess.Popen(cmd, shell=True, cwd=work, env=env, stdout=out, stderr=subprocess.STDOUT)
+                running[job.name] = (job, proc, out, time.monotonic())
+        if failed is not None and not running:
+            break
+        if not running:
+            raise RuntimeError(f"dvc.yaml: {[j.name for j in waiting]} wait on jobs that never run")
+        time.sleep(0.2)
+        for name, (job, proc, out, t0) in list(running.items()):
+            if proc.poll() is None:
+                continue
+            out.close()
+            del running[name]
+            if proc.returncode == 0:
+                (marks / f"{name}.done").write_text(stamp + "\n")
+                done.add(name)
+                log(f"tune: {name}: done in {time.monotonic() - t0:.0f} s")
+            elif failed is None:
+                failed = (job, proc.returncode)
+    if failed is not None:
+        job, rc = failed
+        tail = "".join((marks / f"{job.name}.log").read_text(errors="replace").splitlines(True)[-15:])
+        raise SystemExit(f"{tail}tune: {job.name} failed (exit {rc}): {job.cmd} (log: {marks / f'{job.name}.log'})")
+
+
+def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print, workers: int = 1) -> None:
+    """Run the stage commands that make the calibration scenes' inputs in ``work`` (each once per params), up to
+    ``workers`` at once (the scenes' chains are independent; each stage's output in ``<work>/.tune/<stage>.log``)."""
     grid.prepare(work, params)
     stamp = hashlib.sha256((work / "params.yaml").read_bytes()).hexdigest()[:16]
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
@@ -101,17 +150,7 @@ def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print) -> 
             job.after = {a for a in job.after if a in jobs}
     marks = work / ".tune"
     marks.mkdir(exist_ok=True)
-    for job in _order(jobs):
-        mark = marks / f"{job.name}.done"
-        if mark.is_file() and mark.read_text().strip() == stamp:
-            continue
-        log(f"tune: {job.name}: {job.cmd}")
-        cmd = job.cmd.replace("python ", f"{sys.executable} ", 1) if job.cmd.startswith("python ") else job.cmd
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-        result = subprocess.run(cmd, shell=True, cwd=work, env=env)
-        if result.returncode != 0:
-            raise SystemExit(f"tune: {job.name} failed (exit {result.returncode}): {job.cmd}")
-        mark.write_text(stamp + "\n")
+    _run_jobs(_order(jobs), work, marks, stamp, workers, log)
 
 
 def unit_path(work: Path, method: str, trial: int, scene: str, seed: int) -> Path:
@@ -314,6 +353,8 @@ def parse_args(argv):
     ap.add_argument("--device", default=None, help="cuda or cpu (default: cuda when visible)")
     ap.add_argument("--no-prepare", action="store_true", help="the work directory's inputs exist: run no stage")
     ap.add_argument("--prepare-only", action="store_true", help="make the inputs and launch velocities, then stop")
+    ap.add_argument("--jobs", type=int, default=default_jobs(),
+                    help="stage processes at once while preparing the inputs (default: a quarter of the CPU cores)")
     ap.add_argument("--restore-state", type=Path, metavar="TGZ",
                     help="first unpack a --save-state archive into --work (units done elsewhere, checkpoints)")
     ap.add_argument("--save-state", type=Path, metavar="TGZ",
@@ -343,7 +384,7 @@ def main(argv=None) -> dict:
     if args.restore_state is not None:
         print(f"tune: {restore_state(args.restore_state, args.work)} files restored from {args.restore_state}")
     if not args.no_prepare:
-        prepare_inputs(args.work, params_raw, args.priors)
+        prepare_inputs(args.work, params_raw, args.priors, workers=max(1, args.jobs))
     if args.prepare_only:
         for scene in cfg.scenes:
             for seed in cfg.seeds:

@@ -6,15 +6,21 @@ backend with its reason and prints one line to stderr the first time a (backend,
 e.g. ``gca.render: rasterizer torch (gsplat not installed: ...)``.
 
 ``python -m gca.render.backend --build`` compiles gsplat's CUDA extension once (gsplat JIT-compiles
-on first import, ~100 s on an H100; concurrent first builds corrupt its build directory), printing
-what it does; ``scripts/setup.sh`` runs it on a CUDA machine before the pipeline starts.
+on first import, ~100 s on an H100), printing what it does; ``scripts/setup.sh`` runs it on a CUDA
+machine before the pipeline starts. gsplat's first build deletes and refills its build directory, so
+two processes building at once corrupt it: :func:`load_gsplat` (used by the rasterizer and by
+``--build``) imports the extension under an exclusive file lock (:func:`build_lock`), so processes
+started together on a fresh machine wait for one build instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import importlib.metadata
 import importlib.util
+import os
 import sys
 import time
 import warnings
@@ -23,6 +29,42 @@ _WHERE = "gca/render/backend.py"
 CHOICES = ("auto", "torch", "gsplat")
 INSTALL_HINT = "pip install 'gca[gpu]', which `make setup` does on a CUDA machine"
 _said: set[tuple[str, str]] = set()
+_loaded = False
+
+
+def lock_path() -> str:
+    """The lock file serialising gsplat's first build: ``$GCA_GSPLAT_LOCK``, else ``gca-gsplat-build.lock`` in
+    ``$XDG_CACHE_HOME`` (default ``~/.cache``), one per user like gsplat's build directory."""
+    if os.environ.get("GCA_GSPLAT_LOCK"):
+        return os.environ["GCA_GSPLAT_LOCK"]
+    cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(cache, "gca-gsplat-build.lock")
+
+
+@contextlib.contextmanager
+def build_lock(path: str | None = None):
+    """Hold the exclusive ``flock`` on ``path`` (default :func:`lock_path`) for the block; blocks while another
+    process holds it. Released when the block ends or the process dies."""
+    path = path or lock_path()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def load_gsplat():
+    """Import gsplat's CUDA extension (JIT-compiling it the first time) under :func:`build_lock`, once per process;
+    returns ``gsplat.cuda._backend._C`` (None when it did not load). Raises ImportError when gsplat is absent."""
+    global _loaded
+    if not _loaded:
+        with build_lock():
+            from gsplat.cuda._backend import _C  # noqa: F401 - the import is the build
+        _loaded = True
+    from gsplat.cuda._backend import _C
+    return _C
 
 
 def gsplat_version() -> str | None:
@@ -74,7 +116,7 @@ def build_gsplat() -> int:
           flush=True)
     t0 = time.perf_counter()
     try:
-        from gsplat.cuda._backend import _C
+        _C = load_gsplat()
     except Exception as exc:  # noqa: BLE001 - any failure of the build is reported, with its type
         print(f"gca.render: gsplat's extension failed to build: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1

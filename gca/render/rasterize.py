@@ -309,6 +309,9 @@ def _render_gsplat(means, covs, colors, opacities, camera: Camera, bg, cfg: Rast
         raise RenderError(f"{_WHERE}: backend='gsplat' needs CUDA tensors (got device {means.device}); "
                           "use backend='torch' on CPU")
     try:
+        from gca.render.backend import load_gsplat
+
+        load_gsplat()  # the first import compiles gsplat's extension: one process at a time (backend.build_lock)
         from gsplat import rasterization
     except ImportError as exc:
         raise RenderError(f"{_WHERE}: backend='gsplat' needs the optional package gsplat "
