@@ -10,6 +10,8 @@
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && OUT=$OUT sh benchmarks/tune_bundle.sh
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): OUT=$OUT sh benchmarks/tune_bundle.sh
+#   GCA_COMMIT  the commit sent (the GPU machine's copy has no .git): each unit records it, e.g. GCA_COMMIT=$(git rev-parse
+#            --short HEAD) written into the command here
 #   SHARDS   processes on the GPU at once (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
 #   METHODS  the tuned methods (default: every one of tuning.methods); LIMIT seconds for this call (default 570)
 #   PROFILE  paper (default); EXTRA more tune options; PRIORS the priors' folder (default the paper ones; "" pretrains).

@@ -202,6 +202,9 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
             assert unit["status"] == "failed" or math.isfinite(unit["chamfer_mean"])
         assert entry["chosen"]["trial"] in (0, 1) and set(entry["chosen"]["params"]) == \
             {key for k in entry["knobs"] for key in k["keys"]}
+    units = [u for e in record["methods"].values() for t in e["trials"] for u in t["units"]]
+    assert all(u["device"] == "cpu" and u["commit"] != "unknown" for u in units)
+    assert sum(record["unit_commits"].values()) == len(units) == 4
     shares = record["methods"]["gca"]["trials"][0]["score"]["shares"]
     assert set(shares) == {"silhouette", "global", "anchor"}
     assert all(math.isfinite(v["norm_share"]) for v in shares.values())
@@ -302,3 +305,17 @@ def test_a_failing_inputs_stage_stops_the_rest_and_names_itself(tmp_path):
     assert "broken input" in msg and "tune: bad failed (exit 3): echo broken input" in msg and "bad.log" in msg
     assert not (marks / "bad.done").exists() and not (tmp_path / "later.ran").exists()
     assert (tmp_path / "slow.end").is_file() and (marks / "slow.done").is_file()
+
+
+def test_the_commit_is_given_where_the_tree_has_no_git(monkeypatch):
+    """On the GPU machine the checkout is a copied tree without .git: the units say the commit they were sent as."""
+    import subprocess
+
+    def no_git(*a, **k):
+        raise OSError("git: not found")
+
+    monkeypatch.setattr(subprocess, "run", no_git)
+    monkeypatch.delenv("GCA_COMMIT", raising=False)
+    assert tune._git_commit() == "unknown"
+    monkeypatch.setenv("GCA_COMMIT", "abc1234")
+    assert tune._git_commit() == "abc1234 (given)"

@@ -228,7 +228,8 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
     return {"method": method_name, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
             "status": metrics["status"], "chamfer_mean": metrics.get("chamfer_mean"),
             "term_shares": train.get("term_shares", {}), "train_seconds": train["train_seconds"],
-            "iterations": train["iterations"], stamp.KEY: expected}
+            "iterations": train["iterations"], "commit": _git_commit(), "device": _device_name(device),
+            stamp.KEY: expected}
 
 
 def state_files(work: Path) -> list[Path]:
@@ -279,13 +280,19 @@ def restore_state(archive: Path, work: Path) -> int:
 
 
 def _git_commit() -> str:
+    """HEAD's commit (``+dirty`` with uncommitted changes to tracked files); where the checkout has no git (a copied
+    tree, as on the GPU machine) ``$GCA_COMMIT`` as given by whoever sent it (``benchmarks/tune_bundle.sh``), else
+    ``unknown``."""
+    given = os.environ.get("GCA_COMMIT", "").strip()
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
                                text=True, timeout=10).stdout.strip()
-        return out.stdout.strip() + ("+dirty" if dirty else "") if out.returncode == 0 else "unknown"
+        if out.returncode == 0:
+            return out.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        pass
+    return f"{given} (given)" if given else "unknown"
 
 
 def _device_name(device: str) -> str:
@@ -302,7 +309,7 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
     missing = 0
     record = {"protocol": "issue 22 items 1-2: tuning on calibration scenes only, the same budget for every method",
               "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "commit": _git_commit(), "device": _device_name(device), "profile": params["profile"],
+              "commit": _git_commit(), "device": _device_name(device), "unit_commits": {}, "profile": params["profile"],
               "benchmark_version": str(params.get("benchmark", {}).get("version", "")),
               "overrides": list(overrides), "budget": cfg.budget(),
               "search": {"kind": "latin_hypercube", "space": "log-uniform per knob", "sampler_seed": cfg.sampler_seed,
@@ -335,6 +342,11 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
                                "feasible": trials[best]["score"]["feasible"],
                                "objective": trials[best]["score"]["objective"]}
         record["methods"][method] = entry
+    for method in record["methods"].values():  # what code and device made the units (a tuning spans sessions)
+        for trial in method["trials"]:
+            for unit in trial["units"]:
+                key = f"{unit.get('commit', 'not recorded')} on {unit.get('device', 'not recorded')}"
+                record["unit_commits"][key] = record["unit_commits"].get(key, 0) + 1
     return record, missing
 
 
