@@ -307,15 +307,20 @@ def test_a_failing_inputs_stage_stops_the_rest_and_names_itself(tmp_path):
     assert (tmp_path / "slow.end").is_file() and (marks / "slow.done").is_file()
 
 
-def test_the_commit_is_given_where_the_tree_has_no_git(monkeypatch):
-    """On the GPU machine the checkout is a copied tree without .git: the units say the commit they were sent as."""
+def test_the_commit_given_by_the_sender_wins(monkeypatch):
+    """On the GPU machine the checkout is a copied tree whose .git (if any) is not the code sent: the units say the
+    commit they were sent as; here, without it, git's HEAD; with no git at all, unknown."""
     import subprocess
+
+    monkeypatch.delenv("GCA_COMMIT", raising=False)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    assert tune._git_commit().startswith(head)
+    monkeypatch.setenv("GCA_COMMIT", "abc1234")
+    assert tune._git_commit() == "abc1234 (given)"
 
     def no_git(*a, **k):
         raise OSError("git: not found")
 
     monkeypatch.setattr(subprocess, "run", no_git)
-    monkeypatch.delenv("GCA_COMMIT", raising=False)
+    monkeypatch.delenv("GCA_COMMIT")
     assert tune._git_commit() == "unknown"
-    monkeypatch.setenv("GCA_COMMIT", "abc1234")
-    assert tune._git_commit() == "abc1234 (given)"

@@ -280,10 +280,12 @@ def restore_state(archive: Path, work: Path) -> int:
 
 
 def _git_commit() -> str:
-    """HEAD's commit (``+dirty`` with uncommitted changes to tracked files); where the checkout has no git (a copied
-    tree, as on the GPU machine) ``$GCA_COMMIT`` as given by whoever sent it (``benchmarks/tune_bundle.sh``), else
-    ``unknown``."""
+    """The commit of the code running: ``$GCA_COMMIT`` when whoever sent the tree says it (the GPU machine's copy has
+    no ``.git`` of its own: the one there was stale, session 17), else HEAD (``+dirty`` with uncommitted changes to
+    tracked files), else ``unknown``."""
     given = os.environ.get("GCA_COMMIT", "").strip()
+    if given:
+        return f"{given} (given)"
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
@@ -292,7 +294,7 @@ def _git_commit() -> str:
             return out.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         pass
-    return f"{given} (given)" if given else "unknown"
+    return "unknown"
 
 
 def _device_name(device: str) -> str:
