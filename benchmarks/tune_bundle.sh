@@ -12,7 +12,7 @@
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): OUT=$OUT sh benchmarks/tune_bundle.sh
 #   GCA_COMMIT  the commit sent (the GPU machine's copy has no .git): each unit records it, e.g. GCA_COMMIT=$(git rev-parse
 #            --short HEAD) written into the command here
-#   SHARDS   processes on the GPU at once (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
+#   SHARDS   processes on the GPU at once, each taking units as it frees up (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
 #   METHODS  the tuned methods (default: every one of tuning.methods); LIMIT seconds for this call (default 570)
 #   PROFILE  paper (default); EXTRA more tune options; PRIORS the priors' folder (default the paper ones; "" pretrains).
 #            A CPU smoke: PROFILE=ci PRIORS= EXTRA="--set tuning.trials=2 --device cpu". PROFILE and EXTRA enter the
@@ -31,6 +31,7 @@ say() { echo "[tune $(($(date +%s) - T0)) s] $1"; }
 M=""; [ -z "$METHODS" ] || M="--methods $METHODS"
 P=""; [ -z "$PRIORS" ] || P="--priors $PRIORS"
 if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
+  [ -n "${GCA_COMMIT:-}" ] || { echo "tune_bundle.sh: give GCA_COMMIT=<the commit sent> (the units record it)"; exit 2; }
   install_wheels
   build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
   pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
@@ -41,11 +42,12 @@ timeout "$(left)" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" 
     $P --prepare-only > "$OUT/prepare.log" 2>&1
 say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"; grep -h "done in" "$OUT/prepare.log" | tail -n 12
 wait  # the gsplat build
-k=0
-while [ "$k" -lt "$SHARDS" ]; do  # every shard on the one GPU; each stops at the deadline, a unit cut off resumes
+rm -rf "$W/claims"; k=0
+while [ "$k" -lt "$SHARDS" ]; do  # SHARDS processes on the one GPU, each taking the next unclaimed unit (those cut off
+  # mid-training first: they resume their checkpoints) until the deadline
   # shellcheck disable=SC2086
   timeout "$(($(left) - 15))" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M \
-      --no-prepare --record "$W/record.json" --shard "$k/$SHARDS" --deadline "$(($(left) - 60))" > "$OUT/shard$k.log" 2>&1 &
+      --no-prepare --record "$W/record.json" --claim "$W/claims" --deadline "$(($(left) - 60))" > "$OUT/shard$k.log" 2>&1 &
   k=$((k + 1))
 done
 wait

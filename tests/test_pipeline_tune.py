@@ -324,3 +324,38 @@ def test_the_commit_given_by_the_sender_wins(monkeypatch):
     monkeypatch.setattr(subprocess, "run", no_git)
     monkeypatch.delenv("GCA_COMMIT")
     assert tune._git_commit() == "unknown"
+
+
+def test_processes_launched_together_claim_units_in_progress_first(tmp_path, monkeypatch):
+    """--claim: a unit claimed by another process of the launch is not run here, a unit with a checkpoint (cut off
+    mid-training) runs before the others, and a claim is one file per unit, taken once."""
+    claims, work = tmp_path / "claims", tmp_path / "work"
+    assert tune.claim_unit(claims, "gca", 0, "calib_torus", 0) and not tune.claim_unit(claims, "gca", 0, "calib_torus", 0)
+    for p in claims.iterdir():
+        p.unlink()
+    ran = []
+
+    def fake_unit(work_, params, cfg, method, trial, values, scene, seed, device):
+        ran.append((method, trial, scene, seed))
+        return {"method": method, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
+                "status": "ok", "chamfer_mean": 0.1, "term_shares": {}, "train_seconds": 0.0, "iterations": 1,
+                "stamp": tune.unit_stamp(params, cfg, method, values, scene, seed)}
+
+    monkeypatch.setattr(tune, "run_unit", fake_unit)
+    (work / "tuning/neuma/trial1/calib_star/neuma").mkdir(parents=True)
+    (work / "tuning/neuma/trial1/calib_star/neuma/checkpoint.pt").write_bytes(b"ckpt")
+    assert tune.claim_unit(claims, "neuma", 0, "calib_torus", 0)  # taken by another process of this launch
+    argv = ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
+            "--set", "tuning.scenes=[calib_torus,calib_star]", "--record", str(tmp_path / "r.json"), "--device", "cpu",
+            "--methods", "neuma", "--no-prepare", "--claim", str(claims)]
+    record = tune.main(argv)
+    assert ran[0] == ("neuma", 1, "calib_star", 0)
+    assert ("neuma", 0, "calib_torus", 0) not in ran and len(ran) == 3
+    assert len(list(claims.iterdir())) == 4 and not (tmp_path / "r.json").exists()  # one unit left: no record yet
+    assert sum(len(t["units"]) for t in record["methods"]["neuma"]["trials"]) == 3
+    # the next launch empties the claims: the unit left runs, and then the record is written
+    for p in claims.iterdir():
+        p.unlink()
+    ran.clear()
+    tune.main(argv)
+    assert ran == [("neuma", 0, "calib_torus", 0)] and (tmp_path / "r.json").is_file()

@@ -11,7 +11,9 @@
 2. Every (method, trial, scene, seed) unit: the launch velocity (once per scene and seed, from that seed's
    observations), :func:`gca.pipeline.train.train_method` and :func:`gca.pipeline.evaluate.evaluate_trained`
    with the trial's knob values, its CD and term shares into ``<work>/tuning/<method>/trial<i>/<scene>@seed<k>.json``.
-   A unit done is not redone (resumable); ``--shard k/n`` runs every n-th unit (one process per GPU);
+   A unit done is not redone (resumable); ``--shard k/n`` runs every n-th unit (one process per GPU), or, with
+   ``--claim DIR``, processes launched together take the next unclaimed unit as they free up (units cut off
+   mid-training first);
    ``--deadline`` [s] starts no unit its measured cost would not finish in time.
 3. When every unit is there: the record (``--record``, default ``tuning/record.json``) and the params.yaml change
    to apply (printed); else the units left, and the command to repeat.
@@ -232,6 +234,27 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
             stamp.KEY: expected}
 
 
+def in_progress(work: Path, method: str, trial: int, scene: str, seed: int) -> bool:
+    """Whether the unit has a checkpoint to resume (it was cut off mid-training)."""
+    from gca.train.config import run_dir_name
+
+    return (work / "tuning" / method / f"trial{trial}" / scene / run_dir_name(method, seed) / "checkpoint.pt").is_file()
+
+
+def claim_unit(claims: Path, method: str, trial: int, scene: str, seed: int) -> bool:
+    """Claim the unit for this process: True when no other process of the same launch claimed it first (an
+    exclusively created file ``claims/<method>.t<trial>.<scene>.s<seed>``; the launcher empties ``claims`` before it
+    starts the processes, so a claim of a process killed in an earlier launch does not hold)."""
+    claims.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(claims / f"{method}.t{trial}.{scene}.s{seed}", os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        return False
+    os.write(fd, f"{os.getpid()}\n".encode())
+    os.close(fd)
+    return True
+
+
 def state_files(work: Path) -> list[Path]:
     """What a tuning needs to go on in another work directory (another machine, a later session), relative to
     ``work``: every finished unit's result (``tuning/<method>/trial<i>/<scene>@seed<k>.json``), the shared launch
@@ -363,6 +386,9 @@ def parse_args(argv):
     ap.add_argument("--priors", type=Path, help="take <family>.pt from this folder instead of pretraining")
     ap.add_argument("--deadline", type=float, help="seconds: start no unit that would not finish by then")
     ap.add_argument("--shard", default="0/1", help="k/n: run every n-th unit from the k-th (one process per GPU)")
+    ap.add_argument("--claim", type=Path, metavar="DIR",
+                    help="processes launched together take units as they free up, each claimed by a file in DIR "
+                         "(empty it before the launch) instead of every n-th by --shard: none idles while units are left")
     ap.add_argument("--record", type=Path, default=ROOT / "tuning" / "record.json", help="the tuning record written")
     ap.add_argument("--device", default=None, help="cuda or cpu (default: cuda when visible)")
     ap.add_argument("--no-prepare", action="store_true", help="the work directory's inputs exist: run no stage")
@@ -406,6 +432,8 @@ def main(argv=None) -> dict:
         print(f"tune: inputs and launch velocities of {', '.join(cfg.scenes)} ready in {args.work}")
         return {}
     todo = [u for j, u in enumerate(units_of(cfg, methods)) if j % shards == shard]
+    if args.claim is not None:  # units cut off mid-training first: they finish soonest and free their checkpoints
+        todo.sort(key=lambda u: not in_progress(args.work, *u))
     trials = {m: trial_values(cfg, m, params) for m in methods}
     costs = []
     for j, (method, trial, scene, seed) in enumerate(todo):
@@ -416,6 +444,8 @@ def main(argv=None) -> dict:
         if args.deadline and costs and elapsed + max(costs) > args.deadline:
             print(f"tune: deadline: {elapsed:.0f} s used, a unit takes up to {max(costs):.0f} s; stopping (repeat the command)")
             break
+        if args.claim is not None and not claim_unit(args.claim, method, trial, scene, seed):
+            continue  # another process of this launch runs it
         t0 = time.monotonic()
         result = run_unit(args.work, params, cfg, method, trial, trials[method][trial], scene, seed, device)
         write_json(path, result)
