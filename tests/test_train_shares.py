@@ -101,3 +101,23 @@ def test_history_records_shares_every_k(scene):
     assert has == [True, False, True]
     with pytest.raises(ValueError, match="term_shares_every"):
         TrainConfig(term_shares_every=-1)
+
+
+@pytest.mark.parametrize("name", ["neuma", "gca"])
+def test_term_gradients_sum_to_the_total_under_frame_weights(scene, name):
+    """NeuMA's rollout weighting (``frame_weights``, set by the loop each iteration) weighs each frame's terms as it
+    weighs its loss: the per-term gradients still add up to the total (NeuMA's one term: share 1, cosine 1)."""
+    method, cfg, law, objective = _setup(scene, name)
+    data = scene[0]
+    n_video = len(data.video_frames)
+    objective.frame_weights = [0.5 ** (j // 2) for j in range(n_video)]
+    traj = simulate(tiny_solver(), law, data, n_video)
+    _, stats = objective.gradient(traj, n_video, law, shares=True)
+    grads = objective.last_term_grads
+    total = [p.grad.detach().clone() for p in law.trainable()]
+    summed = [sum(g[i] for g in grads.values() if g[i] is not None) for i in range(len(total))]
+    for t, s_ in zip(total, summed):
+        torch.testing.assert_close(s_, t, rtol=1e-4, atol=1e-9)
+    if name == "neuma":
+        assert stats["share/color/norm"] == pytest.approx(stats["share/total/norm"], rel=1e-5)
+        assert stats["share/color/cos"] == pytest.approx(1.0, abs=1e-6)

@@ -83,6 +83,7 @@ class Objective:
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
         self.probe: GradProbe | None = None  # set per iteration by _gradient (gradient provenance)
+        self._term_weight = 1.0  # the current frame's weight in the loss, applied to the terms collected for shares
         self.frame_weights: list[float] | None = None  # per video frame, set per iteration by the loop (NeuMA's rollout weighting)
         self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares
         self.last_term_grads: dict[str, list] | None = None  # each term's gradient of the last gradient(shares=True)
@@ -222,8 +223,10 @@ class Objective:
         matches = [f.result() for f in matching] if matching is not None else [None] * n_video
         loss, stats = traj.x.new_zeros(()), _MeanStats(n_video)
         for j in range(n_video):
+            self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
             loss = loss + (l_j if self.frame_weights is None else self.frame_weights[j] * l_j)
+        self._term_weight = 1.0
         return loss, stats
 
     def _cpr_frames(self, n_video: int) -> list[int]:
@@ -378,8 +381,11 @@ class Objective:
 
 
     def _collect(self, term: str, value: torch.Tensor) -> None:
-        """Add one frame's weighted ``term`` to the per-term sums (only while term shares are collected)."""
+        """Add one frame's weighted ``term`` to the per-term sums (only while term shares are collected), times the
+        frame's weight in the loss (``frame_weights``: NeuMA's rollout weighting), so the terms add up to the total."""
         if self._terms is not None:
+            if self._term_weight != 1.0:
+                value = self._term_weight * value
             self._terms[term] = self._terms[term] + value if term in self._terms else value
 
 
