@@ -27,7 +27,7 @@ if [ "$GPU_TESTS" = 1 ]; then
 fi
 
 stamp "solo: the gsplat build, data, then one training"
-timeout 200 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "gsplat build rc=$?"
+build_gsplat "$W" "$OUT/gsplat_build.log"
 cp "$PRIOR" "$W/h/prior/jelly.pt"
 # shellcheck disable=SC2086
 timeout 330 python3 benchmarks/harness.py --scene ball --methods gca --profile paper --work "$W/h" --out "$OUT/nomps" \

@@ -8,10 +8,10 @@
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
-#   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && OUT=$OUT sh benchmarks/tune_bundle.sh
-#   calls 3.. (no carry, each at once: the machine goes after 30 s idle): OUT=$OUT sh benchmarks/tune_bundle.sh
-#   GCA_COMMIT  the commit sent (the GPU machine's copy has no .git): each unit records it, e.g. GCA_COMMIT=$(git rev-parse
-#            --short HEAD) written into the command here
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/tune_bundle.sh
+#   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command
+#   GCA_COMMIT  required on the GPU machine: the commit sent (`git rev-parse --short HEAD` here, written into the
+#            command), which each unit records (the copy there carries a stale .git of its own)
 #   SHARDS   processes on the GPU at once, each taking units as it frees up (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
 #   METHODS  the tuned methods (default: every one of tuning.methods); LIMIT seconds for this call (default 570)
 #   PROFILE  paper (default); EXTRA more tune options; PRIORS the priors' folder (default the paper ones; "" pretrains).

@@ -159,6 +159,13 @@ def unit_path(work: Path, method: str, trial: int, scene: str, seed: int) -> Pat
     return work / "tuning" / method / f"trial{trial}" / f"{scene}@seed{seed}.json"
 
 
+def unit_run_dir(work: Path, method: str, trial: int, scene: str, seed: int) -> Path:
+    """The unit's training folder (its checkpoint while in progress): ``tuning/<method>/trial<i>/<scene>/<run name>``."""
+    from gca.train.config import run_dir_name
+
+    return work / "tuning" / method / f"trial{trial}" / scene / run_dir_name(method, seed)
+
+
 def _stamp(params: dict, extra) -> str:
     """A hash of every params section but ``tuning`` (the trial's knob values are already set in ``params``) and
     ``extra``: what a unit's result, checkpoint or shared launch velocity was made under (gca.stamp)."""
@@ -207,23 +214,21 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
     from gca.pipeline.settings import Settings
     from gca.pipeline.train import train_method, velocity_path
     from gca.scenes import truth
-    from gca.train.config import run_dir_name
     from gca.train.methods import get_method
 
     inputs = grid.scene_inputs(work, scene, params)
     shared = launch_velocity(work, params, scene, seed, device)
     settings = Settings(apply_values(params, cfg, method_name, values))
     method = get_method(method_name)
-    runs_dir = work / "tuning" / method_name / f"trial{trial}" / scene
-    runs_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = unit_run_dir(work, method_name, trial, scene, seed)
+    runs_dir = run_dir.parent
+    run_dir.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(shared, velocity_path(runs_dir, seed))
     velocity = tuple(read_json(shared)[k] for k in ("v0", "w0"))
-    name = run_dir_name(method_name, seed)
     expected = unit_stamp(params, cfg, method_name, values, scene, seed)
-    (runs_dir / name).mkdir(parents=True, exist_ok=True)
-    stamp.guard_checkpoint(runs_dir / name / "checkpoint.pt", expected)  # a killed unit resumes only its own setup
-    train = train_method(settings, scene, method, inputs, velocity, runs_dir / name, device=device, seed=seed)
-    stamp.clear_checkpoint(runs_dir / name / "checkpoint.pt")
+    stamp.guard_checkpoint(run_dir / "checkpoint.pt", expected)  # a killed unit resumes only its own setup
+    train = train_method(settings, scene, method, inputs, velocity, run_dir, device=device, seed=seed)
+    stamp.clear_checkpoint(run_dir / "checkpoint.pt")
     body = settings.load_body(inputs.particles, inputs.gaussians, device)
     with truth.bind(inputs.scene_dir, work / "data/gt" / scene):
         metrics = evaluate_trained(settings, scene, method, inputs, body, runs_dir, runs_dir / "eval", device, seed)
@@ -236,9 +241,7 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
 
 def in_progress(work: Path, method: str, trial: int, scene: str, seed: int) -> bool:
     """Whether the unit has a checkpoint to resume (it was cut off mid-training)."""
-    from gca.train.config import run_dir_name
-
-    return (work / "tuning" / method / f"trial{trial}" / scene / run_dir_name(method, seed) / "checkpoint.pt").is_file()
+    return (unit_run_dir(work, method, trial, scene, seed) / "checkpoint.pt").is_file()
 
 
 def claim_unit(claims: Path, method: str, trial: int, scene: str, seed: int) -> bool:
@@ -303,8 +306,8 @@ def restore_state(archive: Path, work: Path) -> int:
 
 
 def _git_commit() -> str:
-    """The commit of the code running: ``$GCA_COMMIT`` when whoever sent the tree says it (the GPU machine's copy has
-    no ``.git`` of its own: the one there was stale, session 17), else HEAD (``+dirty`` with uncommitted changes to
+    """The commit of the code running: ``$GCA_COMMIT`` when whoever sent the tree says it (the GPU machine's copy of
+    the tree carries a stale ``.git``, session 17: its HEAD is not the code sent), else HEAD (``+dirty`` with uncommitted changes to
     tracked files), else ``unknown``."""
     given = os.environ.get("GCA_COMMIT", "").strip()
     if given:
@@ -334,7 +337,8 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
     missing = 0
     record = {"protocol": "issue 22 items 1-2: tuning on calibration scenes only, the same budget for every method",
               "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "commit": _git_commit(), "device": _device_name(device), "unit_commits": {}, "profile": params["profile"],
+              "commit": _git_commit(), "device": _device_name(device), "unit_commits": {},  # what code and device made the units (a tuning spans sessions)
+              "profile": params["profile"],
               "benchmark_version": str(params.get("benchmark", {}).get("version", "")),
               "overrides": list(overrides), "budget": cfg.budget(),
               "search": {"kind": "latin_hypercube", "space": "log-uniform per knob", "sampler_seed": cfg.sampler_seed,
@@ -355,6 +359,8 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
                                        unit_stamp(params, cfg, method, values, scene, seed))
                     if result is not None:
                         units.append(result)
+                        made = f"{result.get('commit', 'not recorded')} on {result.get('device', 'not recorded')}"
+                        record["unit_commits"][made] = record["unit_commits"].get(made, 0) + 1
                     else:
                         missing += 1
             trials.append({"trial": i, "values": values, "params": param_values(params, cfg, method, values),
@@ -367,11 +373,6 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
                                "feasible": trials[best]["score"]["feasible"],
                                "objective": trials[best]["score"]["objective"]}
         record["methods"][method] = entry
-    for method in record["methods"].values():  # what code and device made the units (a tuning spans sessions)
-        for trial in method["trials"]:
-            for unit in trial["units"]:
-                key = f"{unit.get('commit', 'not recorded')} on {unit.get('device', 'not recorded')}"
-                record["unit_commits"][key] = record["unit_commits"].get(key, 0) + 1
     return record, missing
 
 

@@ -29,7 +29,6 @@ _WHERE = "gca/render/backend.py"
 CHOICES = ("auto", "torch", "gsplat")
 INSTALL_HINT = "pip install 'gca[gpu]', which `make setup` does on a CUDA machine"
 _said: set[tuple[str, str]] = set()
-_loaded = False
 
 
 def lock_path() -> str:
@@ -58,11 +57,10 @@ def build_lock(path: str | None = None):
 def load_gsplat():
     """Import gsplat's CUDA extension (JIT-compiling it the first time) under :func:`build_lock`, once per process;
     returns ``gsplat.cuda._backend._C`` (None when it did not load). Raises ImportError when gsplat is absent."""
-    global _loaded
-    if not _loaded:
+    if "gsplat.cuda._backend" not in sys.modules:  # imported once: later calls take no lock
         with build_lock():
-            from gsplat.cuda._backend import _C  # noqa: F401 - the import is the build
-        _loaded = True
+            from gsplat.cuda._backend import _C  # the first import is the build
+            return _C
     from gsplat.cuda._backend import _C
     return _C
 
