@@ -229,3 +229,42 @@ def read_json(path: str | os.PathLike) -> Any:
         return json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: malformed JSON: {exc}") from exc
+
+
+def pack_files(root: str | os.PathLike, files: list, archive: str | os.PathLike) -> int:
+    """Write ``files`` (paths relative to ``root``) to the gzipped tar ``archive``, atomically (an archive
+    cut off midway never replaces the last good one); returns the file count."""
+    import tarfile
+
+    root, archive = Path(root), Path(archive)
+    with atomic_path(archive) as tmp, tarfile.open(tmp, "w:gz") as tar:
+        for rel in files:
+            tar.add(root / rel, arcname=Path(rel).as_posix())
+    return len(files)
+
+
+def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, what: str) -> int:
+    """Unpack the gzipped tar ``archive`` into ``root``, keeping a file already there (it is at least as new);
+    returns the count unpacked. Every member must be a plain file whose relative path ``allowed(path) -> bool``
+    accepts, or nothing is written: ``ValueError`` naming the archive, the member and ``what`` it should be."""
+    import tarfile
+
+    archive, root = Path(archive), Path(root)
+    if not archive.is_file():
+        raise FileNotFoundError(f"{archive}: no {what} there")
+    n = 0
+    with tarfile.open(archive, "r:gz") as tar:
+        members = tar.getmembers()
+        for member in members:
+            if not member.isfile() or ".." in Path(member.name).parts or Path(member.name).is_absolute() \
+                    or not allowed(member.name):
+                raise ValueError(f"{archive}: {member.name!r} is not a {what} file")
+        for member in members:
+            target = root / member.name
+            if target.exists():
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with tar.extractfile(member) as src, atomic_path(target) as tmp:
+                tmp.write_bytes(src.read())
+            n += 1
+    return n

@@ -157,3 +157,97 @@ def test_gpu_ids():
     assert grid.gpu_ids("2,3") == [2, 3] and grid.gpu_ids("4") == 4 and grid.gpu_ids("0,") == [0]
     with pytest.raises(argparse.ArgumentTypeError, match="comma-separated"):
         grid.gpu_ids("1;2")
+
+
+def test_needed_runs_what_a_job_to_run_reads_and_the_ends(jobs):
+    """After a restored state, a scene whose training and evaluation are done does not remake its inputs; one
+    with a run left remakes what that run reads (negative control: nothing done runs everything)."""
+    _, js = jobs
+    assert grid.needed(js, set()) == set(js)
+    ball_done = {n for n in js if n.startswith(("train@ball", "evaluate@ball"))}
+    need = grid.needed(js, ball_done)
+    assert not any(n.endswith("@ball") for n in need)  # assets@ball .. preprocess@ball: nothing left reads them
+    assert {"assets@cat", "preprocess@cat", "train@cat:gca", "evaluate@cat", "report"} <= need
+    one_left = ball_done - {"train@ball:gca"}  # a run to redo (its marker removed): it remakes what it reads
+    need = grid.needed(js, one_left)
+    assert {"train@ball:gca", "preprocess@ball", "assets@ball"} <= need
+    assert "train@ball:nclaw" not in need  # done: never run again
+    prior = next(n for n in js if n.startswith("prior@"))
+    assert prior in need  # the inputs still read by the runs left (ball's gca, every cat job)
+
+
+def _write(root, rels, text="x"):
+    for rel in rels:
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+
+
+def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
+    """--save-state keeps what another machine needs to go on (the runs with their checkpoints, evaluations,
+    the training/evaluation markers, MLflow) and not the inputs; --restore-state refuses a state made under
+    another params.yaml, or with a member that is not a state file, writing nothing."""
+    work, elsewhere = tmp_path / "w", tmp_path / "elsewhere"
+    params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"])
+    grid.prepare(work, params)
+    state = [".grid/train@ball:gca.done", ".grid/evaluate@ball.done", "runs/ball/gca/train.json",
+             "runs/ball/gca@seed1/checkpoint.pt", "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json",
+             "mlflow.db"]
+    inputs = [".grid/assets@ball.done", ".grid/preprocess@ball.done", "data/scenes/ball/meta.json",
+              "metrics/assets/ball.json", ".grid/grid.log"]
+    _write(work, state + inputs)
+    archive = tmp_path / "state.tgz"
+    assert grid.save_state(work, archive) == len(state) + 1  # and the params digest
+    grid.prepare(elsewhere, params)
+    assert grid.restore_state(archive, elsewhere) == len(state) + 1
+    assert all((elsewhere / rel).read_text() == "x" for rel in state)
+    assert not any((elsewhere / rel).exists() for rel in inputs)
+    (elsewhere / "runs/ball/gca/train.json").write_text("newer")
+    grid.restore_state(archive, elsewhere)
+    assert (elsewhere / "runs/ball/gca/train.json").read_text() == "newer"  # a file there is kept
+
+    other = tmp_path / "other"
+    grid.prepare(other, grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1,2]"]))
+    with pytest.raises(SystemExit, match="another params.yaml"):
+        grid.restore_state(archive, other)
+    assert not (other / "runs").exists()
+    bad = tmp_path / "bad.tgz"
+    with tarfile.open(archive) as src, tarfile.open(bad, "w:gz") as tar:
+        for m in src.getmembers():
+            tar.addfile(m, src.extractfile(m))
+        info = tarfile.TarInfo("data/scenes/ball/meta.json")
+        info.size = 1
+        import io
+        tar.addfile(info, io.BytesIO(b"y"))
+    fresh = tmp_path / "fresh"
+    grid.prepare(fresh, params)
+    with pytest.raises(SystemExit, match="is not a grid state file"):
+        grid.restore_state(bad, fresh)
+    assert not (fresh / "runs").exists()
+    with pytest.raises(SystemExit, match="no grid state there"):
+        grid.restore_state(tmp_path / "missing.tgz", fresh)
+
+
+def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
+    """The command line: a second work directory restored from the first's state runs only what is left (the
+    finished scene's inputs not remade) and saves its own state at the end."""
+    seen = []
+
+    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp=""):
+        seen.append(sorted(n for n in jobs if not grid.dispatch.is_done(work, n)))
+        return {n: "done" for n in jobs}
+    monkeypatch.setattr(grid.dispatch, "run", fake_run)
+    argv = ["--scenes", "ball", "--methods", "gca", "nclaw", "--profile", "ci", "--stages", "assets", "particles",
+            "ground_truth", "preprocess", "train", "evaluate"]
+    first, second = tmp_path / "a", tmp_path / "b"
+    grid.main(["--work", str(first), *argv])
+    assert "assets@ball" in seen[0] and "evaluate@ball" in seen[0]
+    _write(first, [".grid/train@ball:nclaw.done", ".grid/train@ball:gca.done", ".grid/evaluate@ball.done",
+                   "runs/ball/gca/train.json", "metrics/eval/ball/gca.json"])
+    archive = tmp_path / "state.tgz"
+    grid.main(["--work", str(first), *argv, "--save-state", str(archive)])
+    grid.main(["--work", str(second), *argv, "--restore-state", str(archive), "--save-state", str(tmp_path / "b.tgz")])
+    assert seen[-1] == []  # everything done elsewhere: not even the inputs run
+    assert (second / "metrics/eval/ball/gca.json").is_file() and (tmp_path / "b.tgz").is_file()
+    (second / ".grid/train@ball:gca.done").unlink()  # negative control: a run left remakes its inputs
+    grid.main(["--work", str(second), *argv])
+    assert seen[-1] == ["assets@ball", "ground_truth@ball", "particles@ball", "preprocess@ball", "train@ball:gca"]

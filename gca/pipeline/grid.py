@@ -287,9 +287,9 @@ def scene_inputs(work: Path, scene_name: str, params: dict, prior_dir: Path | No
 def prepare(work: Path, params: dict) -> None:
     """The work directory as a checkout: the code linked, its own params.yaml."""
     work.mkdir(parents=True, exist_ok=True)
-    for name in ("stages", "gca", "dvc.yaml"):
+    for name in ("stages", "gca", "dvc.yaml", "tuning"):  # tuning/: the record params.yaml cites (the report)
         target = work / name
-        if not target.exists():
+        if not target.exists() and (ROOT / name).exists():
             target.symlink_to(ROOT / name)
     (work / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     (work / ".grid").mkdir(exist_ok=True)
@@ -308,6 +308,80 @@ def collect(work: Path, out: Path) -> Path:
             if f.is_file() and not f.is_symlink() and keep.match(rel) and f.stat().st_size < 8 * 2 ** 20:
                 tar.add(f, arcname=rel)
     return path
+
+
+# What a --work grid needs to go on elsewhere (another machine, a later session): the finished training and
+# evaluation jobs' markers and everything under runs/ (results, histories, learned laws, the launch velocities and
+# the checkpoints of runs cut off mid-training) and metrics/eval/, and the MLflow store. Not the inputs (assets,
+# particles, ground truth, preprocessing: remade from params, and only where a job still needs them, :func:`needed`).
+STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/.+|metrics/eval/.+|mlflow\.db|mlruns/.+)$")
+STATE_PARAMS = ".grid/state_params.sha256"  # the digest of the params.yaml the state was made under
+
+
+def _params_digest(work: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256((work / "params.yaml").read_bytes()).hexdigest()
+
+
+def state_files(work: Path) -> list[str]:
+    """:data:`STATE_RE`'s files in ``work`` (relative, sorted; files of 64 MiB or more are left out)."""
+    return sorted(rel for f in work.rglob("*") if f.is_file() and not f.is_symlink()
+                  and STATE_RE.match(rel := f.relative_to(work).as_posix()) and f.stat().st_size < 64 * 2 ** 20)
+
+
+def save_state(work: Path, archive: Path) -> int:
+    """The grid's state (:func:`state_files` and the digest of its params.yaml) in the gzipped tar ``archive``
+    (atomically); returns the file count."""
+    from gca.io import pack_files, write_text
+
+    write_text(work / STATE_PARAMS, _params_digest(work) + "\n")
+    return pack_files(work, [*state_files(work), STATE_PARAMS], archive)
+
+
+def restore_state(archive: Path, work: Path) -> int:
+    """Unpack a :func:`save_state` archive into the prepared ``work`` (a file already there is kept). Refused,
+    with nothing written, when it was made under another params.yaml (other scenes, methods, seeds or knobs: its
+    runs are not this grid's) or holds anything but state files. Returns the count unpacked."""
+    import tarfile
+
+    from gca.io import unpack_files
+
+    if not archive.is_file():
+        raise SystemExit(f"{archive}: no grid state there (written by --save-state)")
+    with tarfile.open(archive, "r:gz") as tar:
+        try:
+            made = tar.extractfile(STATE_PARAMS).read().decode().strip()
+        except KeyError:
+            raise SystemExit(f"{archive}: not a grid state (no {STATE_PARAMS})") from None
+    if made != _params_digest(work):
+        raise SystemExit(f"{archive}: made under another params.yaml than {work / 'params.yaml'} (other scenes, "
+                         "methods, seeds, profile or knobs); use a new state file for this grid")
+    try:
+        return unpack_files(archive, work, lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name)), "grid state")
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from exc
+
+
+def needed(jobs: dict, done: set[str]) -> set[str]:
+    """The jobs to run: every job not done whose results a grid state carries (training, evaluation:
+    :data:`STATE_RE`) or that nothing reads from (the grid's ends), and the jobs not done that one of those reads
+    from. After a restored state (training and evaluation done elsewhere), a scene whose jobs are all done does
+    not remake its inputs."""
+    readers: dict[str, set[str]] = {n: set() for n in jobs}
+    for name, job in jobs.items():
+        for a in job.after:
+            if a in readers:
+                readers[a].add(name)
+    memo: dict[str, bool] = {}
+
+    def need(name: str) -> bool:
+        if name not in memo:
+            memo[name] = name not in done and (not readers[name] or bool(STATE_RE.match(f".grid/{name}.done"))
+                                               or any(need(r) for r in readers[name]))
+        return memo[name]
+
+    return {n for n in jobs if need(n)}
 
 
 MPS_CONTROL = "nvidia-cuda-mps-control"
@@ -374,6 +448,11 @@ def main(argv=None) -> dict[str, str]:
                                                           "finished, so `dvc repro` recomputes none of them")
     ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
     ap.add_argument("--collect-only", action="store_true", help="only --collect what --work holds")
+    ap.add_argument("--restore-state", type=Path, metavar="TGZ",
+                    help="--work: first unpack a --save-state archive (the runs and evaluations done elsewhere)")
+    ap.add_argument("--save-state", type=Path, metavar="TGZ",
+                    help="--work: at the end write the runs, evaluations and MLflow store to this archive (the state "
+                         "another machine goes on from with --restore-state)")
     ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
                                      "jobs share: concurrent first builds can corrupt its cache)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
@@ -407,6 +486,10 @@ def main(argv=None) -> dict[str, str]:
         jobs = link(batch_runs(split_train(jobs, params), args.runs_per_job))
         if "report" in jobs:  # report reads metrics/demo only when it exists: run without the demo stage
             jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
+        if args.restore_state is not None:
+            print(f"[grid] {restore_state(args.restore_state, work)} state files restored from {args.restore_state}")
+        keep = needed(jobs, {n for n in jobs if dispatch.is_done(work, n)})
+        jobs = {n: j for n, j in jobs.items() if n in keep or dispatch.is_done(work, n)}
     (work / ".grid").mkdir(parents=True, exist_ok=True)
     logfile = open(work / ".grid" / "grid.log", "a")
 
@@ -444,6 +527,8 @@ def main(argv=None) -> dict[str, str]:
         if finished:
             log(f"dvc commit -f {' '.join(finished)}")
             subprocess.run([sys.executable, "-m", "dvc", "commit", "-f", *finished], cwd=work, check=True)
+    if args.save_state is not None and args.repo is None:
+        log(f"state: {save_state(work, args.save_state)} files in {args.save_state}")
     if args.collect:
         log(f"results: {collect(work, args.collect)}")
     return state

@@ -40,7 +40,7 @@ import yaml
 
 from gca import config, stamp
 from gca.config import ConfigError, resolve
-from gca.io import read_json, write_json
+from gca.io import pack_files, read_json, unpack_files, write_json
 from gca.pipeline import cli, grid
 from gca.pipeline.tuning import (TuningConfig, apply_values, check_scenes, choose, param_values, params_change,
                                  score, trial_values)
@@ -271,38 +271,16 @@ def state_files(work: Path) -> list[Path]:
 
 def save_state(work: Path, archive: Path) -> int:
     """Write :func:`state_files` of ``work`` to the gzipped tar ``archive`` (atomically); returns the file count."""
-    import tarfile
-
-    files = state_files(work)
-    archive.parent.mkdir(parents=True, exist_ok=True)
-    tmp = archive.with_name(archive.name + ".tmp")
-    with tarfile.open(tmp, "w:gz") as tar:
-        for rel in files:
-            tar.add(work / rel, arcname=rel.as_posix())
-    tmp.replace(archive)
-    return len(files)
+    return pack_files(work, state_files(work), archive)
 
 
 def restore_state(archive: Path, work: Path) -> int:
     """Unpack a :func:`save_state` archive into ``work`` (a file already there is kept: it is at least as new);
     returns the count unpacked. Refuses members outside ``tuning/``."""
-    import tarfile
-
-    if not archive.is_file():
-        raise ConfigError(f"{archive}: no tuning state there (written by --save-state)")
-    n = 0
-    with tarfile.open(archive, "r:gz") as tar:
-        for member in tar.getmembers():
-            if not member.isfile() or not member.name.startswith("tuning/") or ".." in Path(member.name).parts:
-                raise ConfigError(f"{archive}: {member.name!r} is not a tuning state file")
-            target = work / member.name
-            if target.exists():
-                continue
-            target.parent.mkdir(parents=True, exist_ok=True)
-            with tar.extractfile(member) as src:
-                target.write_bytes(src.read())
-            n += 1
-    return n
+    try:
+        return unpack_files(archive, work, lambda name: name.startswith("tuning/"), "tuning state")
+    except (FileNotFoundError, ValueError) as exc:
+        raise ConfigError(str(exc)) from exc
 
 
 def _git_commit() -> str:
