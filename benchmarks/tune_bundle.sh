@@ -55,5 +55,6 @@ say "shards done"; grep -h "^tune " "$OUT"/shard*.log | tail -n 20
 python3 -c "from pathlib import Path; from gca.pipeline.tune import save_state; \
 print(save_state(Path('$W'), Path('$OUT/state.tgz')), 'state files')"
 [ ! -f "$W/record.json" ] || { cp "$W/record.json" "$OUT/record.json"; say "every unit done: record.json in all.tgz"; }
-(cd "$OUT" && tar czf /tmp/tune_all.tgz . && find . -mindepth 1 -delete && mv /tmp/tune_all.tgz all.tgz)
+# members named without "./", so that `tar xzf all.tgz state.tgz` finds it
+(cd "$OUT" && tar czf /tmp/tune_all.tgz $(ls -A) && find . -mindepth 1 -delete && mv /tmp/tune_all.tgz all.tgz)
 say "done: commit state.tgz from all.tgz as $STATE"

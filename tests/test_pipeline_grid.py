@@ -251,3 +251,25 @@ def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
     (second / ".grid/train@ball:gca.done").unlink()  # negative control: a run left remakes its inputs
     grid.main(["--work", str(second), *argv])
     assert seen[-1] == ["assets@ball", "ground_truth@ball", "particles@ball", "preprocess@ball", "train@ball:gca"]
+
+
+def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path):
+    """benchmarks/table_bundle.sh, the GPU path's CPU twin at the CI profile: a first call runs the grid and returns
+    its state in all.tgz (``tar xzf all.tgz state.tgz`` finds it); a call on "another machine" (a fresh work
+    folder) restores it and remakes no input, only the report; the table is there."""
+    import os
+    import subprocess
+
+    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
+           "SLOTS": "2", "LIMIT": "590", "STATE": str(tmp_path / "state.tgz")}
+    first = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                           env={**env, "W": str(tmp_path / "a"), "OUT": str(tmp_path / "out_a")})
+    assert "nothing left to run" in first.stdout, first.stdout + first.stderr
+    subprocess.run(["tar", "xzf", str(tmp_path / "out_a/all.tgz"), "state.tgz"], cwd=tmp_path, check=True)
+    second = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                            env={**env, "W": str(tmp_path / "b"), "OUT": str(tmp_path / "out_b")})
+    assert "state files restored" in second.stdout and "nothing left to run" in second.stdout, second.stdout
+    assert "done  report" in second.stdout and "done  assets@ball" not in second.stdout
+    assert not (tmp_path / "b/grid/data").exists()  # no input remade
+    assert (tmp_path / "b/grid/runs/ball/nclaw@seed1/train.json").is_file()
+    assert any((tmp_path / "b/grid/reports/ci").glob("table1*"))

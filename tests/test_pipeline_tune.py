@@ -89,6 +89,22 @@ def test_a_table_scene_is_refused():
         tune.main(["--work", "/nonexistent/never", "--profile", "ci", "--set", "tuning.scenes=[calib_star, ball]"])
 
 
+def test_params_citing_a_record_are_not_tuned_again_by_accident(tmp_path):
+    """Once params.yaml cites a record (its knobs hold the choice), a tuning run would draw its trials around the
+    chosen values and redo every unit: refused with the way to re-make that tuning or tune anew (negative control:
+    with the citation overridden it goes on, to the next check: the shard's)."""
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["tuning"]["record"] = "tuning/record.json"
+    cited = tmp_path / "params.yaml"
+    cited.write_text(yaml.safe_dump(raw, sort_keys=False))
+    argv = ["--work", str(tmp_path / "never"), "--params", str(cited), "--profile", "ci", "--shard", "5/2"]
+    with pytest.raises(ConfigError, match="cites the tuning record tuning/record.json.*git show"):
+        tune.main(argv)
+    with pytest.raises(ConfigError, match="--shard 5/2"):  # past the citation check, stopped by the next one
+        tune.main([*argv, "--set", "tuning.record=''"])
+    assert not (tmp_path / "never").exists()
+
+
 def _unit(cd, shares=None, status="ok", scene="calib_torus"):
     return {"scene": scene, "seed": 0, "status": status, "chamfer_mean": cd, "term_shares": shares or {}}
 
@@ -178,7 +194,7 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
     work, record_path = tmp_path / "work", tmp_path / "record.json"
     argv = ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
             "--set", "tuning.scenes=[calib_torus]", "--record", str(record_path), "--device", "cpu",
-            "--methods", "gca", "neuma"]
+            "--methods", "gca", "neuma", "--set", "tuning.record=''"]  # around the checkout's values, cited or not
     with recorder() as rec:
         record = tune.main(argv)
     out = capsys.readouterr().out

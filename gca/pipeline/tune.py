@@ -388,6 +388,12 @@ def main(argv=None) -> dict:
 
     device = args.device or default_device()
     raw, _, cfg = load_config(args.params, args.profile, args.overrides)
+    if cfg.record:
+        raise ConfigError(
+            f"{args.params}: cites the tuning record {cfg.record} (tuning.record): its knobs hold that tuning's choice, "
+            "and a tuning's trials and unit stamps are drawn from the params before it, so every unit would be "
+            "redone. To re-make or extend that tuning, pass --params with the params.yaml of its commit (`git show "
+            "<record's commit>:params.yaml > base.yaml`); to tune anew around the chosen values, --set \"tuning.record=''\"")
     methods = args.methods or list(cfg.methods)
     for m in methods:
         cfg.knobs(m)

@@ -1,0 +1,46 @@
+#!/bin/sh
+# Issue 22 item 8 / issue 20 item 5: a table's grid (gca.pipeline.grid: inputs, training, evaluation, report) on ONE
+# H100 under CUDA MPS, in bounded device commands spread over machines and sessions. The machine forgets its disk
+# between leases, so each call starts from the grid's state committed in $STATE (the runs done, their evaluations,
+# the checkpoints of runs cut off mid-training, the MLflow store: `grid --save-state`) and returns the new one in
+# $OUT/all.tgz (state.tgz inside, with grid_results.tar.gz): commit it as $STATE. Inputs are remade on each machine,
+# only for the scenes with a run or an evaluation left (`grid.needed`).
+#
+#   (once per checkout: sh benchmarks/pack_gpu.sh)
+#   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/table_bundle.sh
+#   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command
+#   GCA_COMMIT  required on the GPU machine: the commit sent (the copy there carries a stale .git); runs record it
+#   SCENES, METHODS, SEEDS  the grid (default Table 1: six scenes x gca neuma nclaw x seeds [0,1,2]); STATE its state
+#            file (default benchmarks/results/table1_seeds/state.tgz). A state is tied to its params.yaml (scenes,
+#            methods, seeds, knobs): another grid takes another STATE.
+#   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 570); PROFILE paper
+#   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v).
+#   A CPU smoke: PROFILE=ci PRIORS= SCENES=ball METHODS=nclaw SEEDS="[0,1]" SLOTS=2 STATE=/tmp/s.tgz sh benchmarks/table_bundle.sh
+set -u
+OUT=${OUT:-/tmp/table_out}; W=${W:-/tmp/table}; SLOTS=${SLOTS:-8}; LIMIT=${LIMIT:-570}; PROFILE=${PROFILE:-paper}
+SCENES=${SCENES:-"ball duck pawn cat fish bottle"}; METHODS=${METHODS:-"gca neuma nclaw"}; SEEDS=${SEEDS:-"[0,1,2]"}
+STATE=${STATE:-benchmarks/results/table1_seeds/state.tgz}; EXTRA=${EXTRA:-}
+PRIORS=${PRIORS-benchmarks/results/priors_paper}
+mkdir -p "$OUT" "$W"
+export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
+. benchmarks/gpu_wheels.sh
+T0=$(date +%s)
+MPS=""; P="--priors $PRIORS"; STAGES="assets particles ground_truth preprocess train evaluate report"
+[ -n "$PRIORS" ] || { P=""; STAGES="assets particles prior ground_truth preprocess train evaluate report"; }
+if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
+  [ -n "${GCA_COMMIT:-}" ] || { echo "table_bundle.sh: give GCA_COMMIT=<the commit sent> (the runs record it)"; exit 2; }
+  install_wheels
+  build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
+  MPS="--mps"
+fi
+R=""; [ -f "$STATE" ] && [ ! -f "$W/.restored" ] && { R="--restore-state $STATE"; touch "$W/.restored"; }
+# shellcheck disable=SC2086
+timeout "$((LIMIT - 5))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES --methods $METHODS \
+    --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
+    --deadline "$((LIMIT - 60))" --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
+echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | tail -n 40
+wait  # the gsplat build, when the grid ended first
+# members named without "./", so that `tar xzf all.tgz state.tgz` finds it
+(cd "$OUT" && tar czf /tmp/table_all.tgz $(ls -A) && find . -mindepth 1 -delete && mv /tmp/table_all.tgz all.tgz)
+echo "[table $(($(date +%s) - T0)) s] done: commit state.tgz from all.tgz as $STATE"
