@@ -12,8 +12,10 @@
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command
 #   GCA_COMMIT  required on the GPU machine: the commit sent (the copy there carries a stale .git); runs record it
 #   SCENES, METHODS, SEEDS  the grid (default Table 1: six scenes x gca neuma nclaw x seeds [0,1,2]); STATE its state
-#            file (default benchmarks/results/table1_seeds/state.tgz). A state is tied to its params.yaml (scenes,
-#            methods, seeds, knobs): another grid takes another STATE.
+#            file (default benchmarks/results/table1_seeds/state.tgz). A state is tied to its params (scenes, seeds,
+#            knobs): another grid takes another STATE. It may grow by methods: Table 3's rows after Table 1's, with
+#            METHODS="gca neuma nclaw no_global no_anchor rank_to_l1 no_rdga no_cpr gca_full_ft" and the same STATE
+#            (the runs done are kept, the scenes with new methods evaluated again).
 #   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 570); PROFILE paper
 #   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v).
 #   A CPU smoke: PROFILE=ci PRIORS= SCENES=ball METHODS=nclaw SEEDS="[0,1]" SLOTS=2 STATE=/tmp/s.tgz sh benchmarks/table_bundle.sh

@@ -243,9 +243,9 @@ def pack_files(root: str | os.PathLike, files: list, archive: str | os.PathLike)
     return len(files)
 
 
-def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, what: str) -> int:
-    """Unpack the gzipped tar ``archive`` into ``root``, keeping a file already there (it is at least as new);
-    returns the count unpacked. Every member must be a plain file whose relative path ``allowed(path) -> bool``
+def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, what: str, skip=None) -> int:
+    """Unpack the gzipped tar ``archive`` into ``root``, keeping a file already there (it is at least as new) and
+    leaving out the members ``skip(path) -> bool`` names; returns the count unpacked. Every member must be a plain file whose relative path ``allowed(path) -> bool``
     accepts, or nothing is written: ``ValueError`` naming the archive, the member and ``what`` it should be."""
     import tarfile
 
@@ -261,7 +261,7 @@ def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, w
                 raise ValueError(f"{archive}: {member.name!r} is not a {what} file")
         for member in members:
             target = root / member.name
-            if target.exists():
+            if target.exists() or (skip is not None and skip(member.name)):
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
             with tar.extractfile(member) as src, atomic_path(target) as tmp:

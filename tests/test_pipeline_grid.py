@@ -185,7 +185,7 @@ def _write(root, rels, text="x"):
 def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
     """--save-state keeps what another machine needs to go on (the runs with their checkpoints, evaluations,
     the training/evaluation markers, MLflow) and not the inputs; --restore-state refuses a state made under
-    another params.yaml, or with a member that is not a state file, writing nothing."""
+    other params, or with a member that is not a state file, writing nothing."""
     work, elsewhere = tmp_path / "w", tmp_path / "elsewhere"
     params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"])
     grid.prepare(work, params)
@@ -207,7 +207,7 @@ def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
 
     other = tmp_path / "other"
     grid.prepare(other, grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1,2]"]))
-    with pytest.raises(SystemExit, match="another params.yaml"):
+    with pytest.raises(SystemExit, match="made under other params"):
         grid.restore_state(archive, other)
     assert not (other / "runs").exists()
     bad = tmp_path / "bad.tgz"
@@ -225,6 +225,35 @@ def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
     assert not (fresh / "runs").exists()
     with pytest.raises(SystemExit, match="no grid state there"):
         grid.restore_state(tmp_path / "missing.tgz", fresh)
+
+
+def test_a_grid_state_grows_by_methods_and_evaluates_those_scenes_again(tmp_path):
+    """Table 3's rows after Table 1's: a state restored into a grid with more methods keeps the runs done, and the
+    scenes with new methods are evaluated again (their evaluation marker left out); a grid that drops a method of
+    the state is refused (negative control), and so is one with other knobs."""
+    work = tmp_path / "w"
+    grid.prepare(work, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], []))
+    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball.done", ".grid/train@cat:nclaw.done",
+                  ".grid/evaluate@cat.done", "runs/ball/nclaw/train.json", "metrics/eval/ball/nclaw.json"])
+    archive = tmp_path / "state.tgz"
+    grid.save_state(work, archive)
+    params = grid.grid_params("ci", ["ball", "cat"], ["nclaw"], [])
+    params["scenes"]["ball"]["methods"] = ["nclaw", "gca"]
+    grown = tmp_path / "grown"
+    grid.prepare(grown, params)
+    grid.restore_state(archive, grown)
+    assert (grown / ".grid/train@ball:nclaw.done").is_file() and (grown / "runs/ball/nclaw/train.json").is_file()
+    assert not (grown / ".grid/evaluate@ball.done").exists()  # ball has a new method: evaluated again
+    assert (grown / ".grid/evaluate@cat.done").is_file()  # cat's methods are the same
+    fewer = tmp_path / "fewer"
+    grid.prepare(fewer, grid.grid_params("ci", ["ball", "cat"], ["gca"], []))
+    with pytest.raises(SystemExit, match="methods this grid lacks"):
+        grid.restore_state(archive, fewer)
+    assert not (fewer / "runs").exists()
+    knob = tmp_path / "knob"
+    grid.prepare(knob, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], ["align.rdga.lambda1=0.5"]))
+    with pytest.raises(SystemExit, match="made under other params"):
+        grid.restore_state(archive, knob)
 
 
 def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):

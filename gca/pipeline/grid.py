@@ -29,7 +29,9 @@ still running (a training job loses at most ``train.checkpoint_every`` iteration
 then waits for them to end, at most ``dispatch.STOP_GRACE_S`` + 10 s past the deadline), so a long grid runs
 as a few commands of bounded length (repeat the command until it reports every job done). A failed job
 is logged with its log path, its dependents are skipped, the others go on. ``--priors DIR`` takes
-``<family>.pt`` from an earlier run instead of pretraining.
+``<family>.pt`` from an earlier run instead of pretraining. ``--save-state``/``--restore-state`` carry a
+``--work`` grid to another machine (the runs, evaluations, checkpoints and MLflow store; inputs are remade only
+where a job left reads them): ``benchmarks/table_bundle.sh`` runs a table that way on one GPU across sessions.
 """
 
 from __future__ import annotations
@@ -315,13 +317,21 @@ def collect(work: Path, out: Path) -> Path:
 # the checkpoints of runs cut off mid-training) and metrics/eval/, and the MLflow store. Not the inputs (assets,
 # particles, ground truth, preprocessing: remade from params, and only where a job still needs them, :func:`needed`).
 STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/.+|metrics/eval/.+|mlflow\.db|mlruns/.+)$")
-STATE_PARAMS = ".grid/state_params.sha256"  # the digest of the params.yaml the state was made under
+STATE_PARAMS = ".grid/state_params.json"  # what the state was made under: the params' digest and each scene's methods
 
 
-def _params_digest(work: Path) -> str:
+def _made_under(work: Path) -> dict:
+    """The grid's params.yaml as a state records it: the digest of everything but the scenes' ``methods`` (a grid
+    may grow by methods: Table 3's rows after Table 1's) and those methods per scene."""
     import hashlib
+    import json
 
-    return hashlib.sha256((work / "params.yaml").read_bytes()).hexdigest()
+    params = yaml.safe_load((work / "params.yaml").read_text())
+    methods = {name: list(spec.get("methods", [])) for name, spec in params["scenes"].items()}
+    for spec in params["scenes"].values():
+        spec.pop("methods", None)
+    digest = hashlib.sha256(json.dumps(params, sort_keys=True, default=str).encode()).hexdigest()
+    return {"digest": digest, "methods": methods}
 
 
 def state_files(work: Path) -> list[str]:
@@ -331,18 +341,21 @@ def state_files(work: Path) -> list[str]:
 
 
 def save_state(work: Path, archive: Path) -> int:
-    """The grid's state (:func:`state_files` and the digest of its params.yaml) in the gzipped tar ``archive``
-    (atomically); returns the file count."""
-    from gca.io import pack_files, write_text
+    """The grid's state (:func:`state_files` and what it was made under, :func:`_made_under`) in the gzipped tar
+    ``archive`` (atomically); returns the file count."""
+    from gca.io import pack_files, write_json
 
-    write_text(work / STATE_PARAMS, _params_digest(work) + "\n")
+    write_json(work / STATE_PARAMS, _made_under(work))
     return pack_files(work, [*state_files(work), STATE_PARAMS], archive)
 
 
 def restore_state(archive: Path, work: Path) -> int:
-    """Unpack a :func:`save_state` archive into the prepared ``work`` (a file already there is kept). Refused,
-    with nothing written, when it was made under another params.yaml (other scenes, methods, seeds or knobs: its
-    runs are not this grid's) or holds anything but state files. Returns the count unpacked."""
+    """Unpack a :func:`save_state` archive into the prepared ``work`` (a file already there is kept); returns the
+    count unpacked. The grid may have grown by methods since (each scene's methods a superset of the state's):
+    then a scene with new methods is evaluated again (its evaluation marker is not restored). Refused, with
+    nothing written, when made under other params (other scenes, seeds, profile or knobs, or a scene's method
+    dropped: its runs are not this grid's), or when it holds anything but state files."""
+    import json
     import tarfile
 
     from gca.io import unpack_files
@@ -351,14 +364,22 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(f"{archive}: no grid state there (written by --save-state)")
     with tarfile.open(archive, "r:gz") as tar:
         try:
-            made = tar.extractfile(STATE_PARAMS).read().decode().strip()
+            made = json.loads(tar.extractfile(STATE_PARAMS).read())
         except KeyError:
             raise SystemExit(f"{archive}: not a grid state (no {STATE_PARAMS})") from None
-    if made != _params_digest(work):
-        raise SystemExit(f"{archive}: made under another params.yaml than {work / 'params.yaml'} (other scenes, "
-                         "methods, seeds, profile or knobs); use a new state file for this grid")
+    here = _made_under(work)
+    if made["digest"] != here["digest"]:
+        raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'} (other scenes, seeds, "
+                         "profile or knobs); use a new state file for this grid")
+    dropped = {s: sorted(set(m) - set(here["methods"].get(s, []))) for s, m in made["methods"].items()}
+    dropped = {s: m for s, m in dropped.items() if m}
+    if dropped:
+        raise SystemExit(f"{archive}: made with methods this grid lacks ({dropped}); a grid may only add methods")
+    grown = {s for s, m in here["methods"].items() if set(m) - set(made["methods"].get(s, []))}
+    again = {f".grid/evaluate@{s}.done" for s in grown}
     try:
-        return unpack_files(archive, work, lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name)), "grid state")
+        return unpack_files(archive, work, lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name)),
+                            "grid state", skip=lambda name: name in again)
     except ValueError as exc:
         raise SystemExit(str(exc)) from exc
 
