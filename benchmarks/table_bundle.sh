@@ -1,10 +1,13 @@
 #!/bin/sh
 # Issue 22 item 8 / issue 20 item 5: a table's grid (gca.pipeline.grid: inputs, training, evaluation, report) on ONE
 # H100 under CUDA MPS, in bounded device commands spread over machines and sessions. The machine forgets its disk
-# between leases, so each call starts from the grid's state committed in $STATE (the runs done, their evaluations,
-# the checkpoints of runs cut off mid-training, the MLflow store: `grid --save-state`) and returns the new one in
-# $OUT/all.tgz (state.tgz inside, with grid_results.tar.gz): commit it as $STATE. Inputs are remade on each machine,
-# only for the scenes with a run or an evaluation left (`grid.needed`).
+# between leases, so each call starts from the grid's state committed in $STATE (the runs done, their laws and
+# evaluations' JSON, the checkpoints of runs cut off mid-training: `grid --save-state`, ~45 kB a run) and returns the
+# new one in $OUT/all.tgz (state.tgz inside) with grid_results.tar.gz (the histories, media and report made by this
+# call) and mlflow.db (this machine's MLflow store): commit state.tgz as $STATE, keep the rest. Inputs are remade on
+# each machine, only for the scenes with a run or an evaluation left (`grid.needed`). With the wheels' call, the
+# carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: move benchmarks/results/* but priors_paper and
+# reports/ci/figures aside for it.
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
@@ -43,6 +46,7 @@ timeout "$((LIMIT - 5))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes 
     --deadline "$((LIMIT - 60))" --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
 echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | tail -n 40
 wait  # the gsplat build, when the grid ended first
+[ ! -f "$W/grid/mlflow.db" ] || cp "$W/grid/mlflow.db" "$OUT/mlflow.db"
 # members named without "./", so that `tar xzf all.tgz state.tgz` finds it
 (cd "$OUT" && tar czf /tmp/table_all.tgz $(ls -A) && find . -mindepth 1 -delete && mv /tmp/table_all.tgz all.tgz)
 echo "[table $(($(date +%s) - T0)) s] done: commit state.tgz from all.tgz as $STATE"

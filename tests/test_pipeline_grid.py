@@ -183,17 +183,20 @@ def _write(root, rels, text="x"):
 
 
 def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
-    """--save-state keeps what another machine needs to go on (the runs with their checkpoints, evaluations,
-    the training/evaluation markers, MLflow) and not the inputs; --restore-state refuses a state made under
+    """--save-state keeps what another machine needs to go on (the runs' results, laws and checkpoints, the
+    launch velocities, the evaluations' JSON, the training/evaluation markers) and not the inputs, nor what nothing
+    downstream reads (histories, media, MLflow); --restore-state refuses a state made under
     other params, or with a member that is not a state file, writing nothing."""
     work, elsewhere = tmp_path / "w", tmp_path / "elsewhere"
     params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"])
     grid.prepare(work, params)
     state = [".grid/train@ball:gca.done", ".grid/evaluate@ball.done", "runs/ball/gca/train.json",
-             "runs/ball/gca@seed1/checkpoint.pt", "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json",
-             "mlflow.db"]
+             "runs/ball/gca/law.pt", "runs/ball/gca@seed1/checkpoint.pt", "runs/ball/gca@seed1/checkpoint.pt.stamp",
+             "runs/ball/velocity.json", "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json"]
     inputs = [".grid/assets@ball.done", ".grid/preprocess@ball.done", "data/scenes/ball/meta.json",
-              "metrics/assets/ball.json", ".grid/grid.log"]
+              "metrics/assets/ball.json", ".grid/grid.log", ".grid/report.done",
+              # what nothing downstream reads: each call returns it instead (--collect)
+              "runs/ball/gca/history.json", "runs/ball/gca/loss.png", "metrics/eval/ball/gca/strip.png", "mlflow.db"]
     _write(work, state + inputs)
     archive = tmp_path / "state.tgz"
     assert grid.save_state(work, archive) == len(state) + 1  # and the params digest

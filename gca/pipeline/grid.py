@@ -312,11 +312,14 @@ def collect(work: Path, out: Path) -> Path:
     return path
 
 
-# What a --work grid needs to go on elsewhere (another machine, a later session): the finished training and
-# evaluation jobs' markers and everything under runs/ (results, histories, learned laws, the launch velocities and
-# the checkpoints of runs cut off mid-training) and metrics/eval/, and the MLflow store. Not the inputs (assets,
-# particles, ground truth, preprocessing: remade from params, and only where a job still needs them, :func:`needed`).
-STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/.+|metrics/eval/.+|mlflow\.db|mlruns/.+)$")
+# What a --work grid needs to go on elsewhere (another machine, a later session), kept small (it travels with the
+# checkout, under the device tool's 64-MiB carry with the GPU wheels: ~45 kB a run): the finished training and
+# evaluation jobs' markers, each run's result, learned law and checkpoint (of a run cut off mid-training), the
+# launch velocities, the evaluations' JSON (what the tables read). Not the inputs (assets, particles, ground truth,
+# preprocessing: remade from params, only where a job still needs them, :func:`needed`), nor what nothing downstream
+# reads: histories, loss curves, evaluation media, the MLflow store (each call returns them: --collect, the bundle).
+STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
+                      r"runs/[^/]+/[^/]+/(train\.json|law\.pt|checkpoint\.pt(\..+)?)|metrics/eval/[^/]+/[^/]+\.json)$")
 STATE_PARAMS = ".grid/state_params.json"  # what the state was made under: the params' digest and each scene's methods
 
 
