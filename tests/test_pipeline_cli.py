@@ -324,3 +324,41 @@ def test_progress_bars_are_quiet_under_ci_although_tqdm_was_imported_first(tmp_p
     bare = subprocess.run([sys.executable, str(script), "bare"], capture_output=True, text=True, env=env, timeout=120)
     assert quiet.returncode == 0 and "work-bar" not in quiet.stderr
     assert bare.returncode == 0 and "work-bar" in bare.stderr
+
+
+HALF_BUILT = """
+import sys
+from gca import stop
+from gca.pipeline import cli
+
+
+class HalfBuilt:  # like GitPython's config parser when a SIGTERM lands inside its __init__ (CI, session 18)
+    def __init__(self):
+        raise stop.Terminated()  # what the signal handler raises, before the attribute is set
+        self.ready = True
+
+    def __del__(self):
+        self.ready  # AttributeError: the object was never finished
+
+
+def main(argv):
+    HalfBuilt()
+
+
+sys.exit(cli.run(main, [], name="stage"))
+"""
+
+
+def test_a_stop_inside_a_half_built_object_still_ends_on_the_stop_line(tmp_path):
+    """A SIGTERM can land inside third-party code mid-construction; the half-built object's ``__del__`` then
+    complains when it is collected. Its complaint stays visible but comes before the stage's last line, which is
+    the stop (a job log's last line says why the stage ended), with exit status 143."""
+    import subprocess
+
+    script = tmp_path / "stage.py"
+    script.write_text(HALF_BUILT)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    assert out.returncode == 143, out.stderr
+    assert "AttributeError" in out.stderr  # not silenced
+    assert out.stderr.strip().splitlines()[-1] == "stage: stopped by SIGTERM", out.stderr

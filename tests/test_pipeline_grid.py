@@ -159,6 +159,24 @@ def test_gpu_ids():
         grid.gpu_ids("1;2")
 
 
+def test_a_work_folder_links_the_cited_tuning_record_only(tmp_path, monkeypatch):
+    """The report in a grid's work folder reads the tuning record params.yaml cites: linked as a file, never the
+    checkout's tuning/ folder (a tuning's work folder, made by the same function, would write its units there)."""
+    root = tmp_path / "checkout"
+    for name in ("stages", "gca", "dvc.yaml"):
+        (root / name).mkdir(parents=True)
+    (root / "tuning").mkdir()
+    (root / "tuning/record.json").write_text("{}")
+    monkeypatch.setattr(grid, "ROOT", root)
+    cited, uncited = tmp_path / "cited", tmp_path / "uncited"
+    grid.prepare(cited, {"tuning": {"record": "tuning/record.json"}})
+    grid.prepare(uncited, {"tuning": {"record": ""}})
+    assert (cited / "tuning/record.json").read_text() == "{}" and not (cited / "tuning").is_symlink()
+    assert not (uncited / "tuning").exists()
+    (cited / "tuning/gca").mkdir()
+    assert not (root / "tuning/gca").exists()
+
+
 def test_needed_runs_what_a_job_to_run_reads_and_the_ends(jobs):
     """After a restored state, a scene whose training and evaluation are done does not remake its inputs; one
     with a run left remakes what that run reads (negative control: nothing done runs everything)."""

@@ -205,6 +205,8 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
     restricted = yaml.safe_load((work / "params.yaml").read_text())
     assert set(restricted["scenes"]) == {"calib_torus"} and set(restricted["objects"]) == {"torus"}
     assert not any((work / "data" / d / s).exists() for d in ("scenes", "prep", "gt") for s in TABLE_SCENES)
+    assert not (ROOT / "tuning" / "gca").exists() and not (ROOT / "tuning" / "record.partial.json").exists()  # the
+    # units live in the work folder, not in the checkout's tuning/ (a linked folder there once took them: session 18)
     assert json.loads(record_path.read_text()) == record
     assert set(record["methods"]) == {"gca", "neuma"}
     assert record["budget"] == {"trials": 2, "iterations": 1, "seeds": [0], "scenes": ["calib_torus"],

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 import os
 import sys
 import time
@@ -96,14 +97,20 @@ def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, 
                 print(f"{name}: removed the stale temporary {path} (an earlier run was killed)", file=sys.stderr)
         main(argv)
     except stop.Terminated as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
-        return 143
+        stopped = f"{name}: {exc}"
     except user_errors() as exc:
         if debug:
             traceback.print_exc()
         print(f"{name}: error: {_message(exc)}", file=sys.stderr)
         return 2
-    return 0
+    else:
+        return 0
+    # Out of the except block the stopped frames are garbage: collected now, an object the signal caught half-built
+    # (inside third-party code: GitPython's config parser under MLflow, session 18) complains from its __del__ here,
+    # visibly, and not after the stop line at interpreter exit. The stop line stays the last (a job log's reason).
+    gc.collect()
+    print(stopped, file=sys.stderr)
+    return 143
 
 
 PARAMS_HELP = "params file (default: params.yaml; under `dvc repro`, DVC's view of it)"

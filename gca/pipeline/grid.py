@@ -287,12 +287,18 @@ def scene_inputs(work: Path, scene_name: str, params: dict, prior_dir: Path | No
 
 
 def prepare(work: Path, params: dict) -> None:
-    """The work directory as a checkout: the code linked, its own params.yaml."""
+    """The work directory as a checkout: the code linked, its own params.yaml, and the tuning record it cites
+    (``tuning.record``, the report's tuning page) linked as a file: not the checkout's ``tuning/`` folder, where a
+    tuning's work directory (made here too) would then write its units."""
     work.mkdir(parents=True, exist_ok=True)
-    for name in ("stages", "gca", "dvc.yaml", "tuning"):  # tuning/: the record params.yaml cites (the report)
+    for name in ("stages", "gca", "dvc.yaml"):
         target = work / name
-        if not target.exists() and (ROOT / name).exists():
+        if not target.exists():
             target.symlink_to(ROOT / name)
+    cited = str((params.get("tuning") or {}).get("record") or "")
+    if cited and (ROOT / cited).is_file() and not (work / cited).exists():
+        (work / cited).parent.mkdir(parents=True, exist_ok=True)
+        (work / cited).symlink_to(ROOT / cited)
     (work / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     (work / ".grid").mkdir(exist_ok=True)
 
