@@ -1,4 +1,4 @@
-# Sourced by the device bundles (paperprior_bundle.sh, pack_bundle.sh, tune_bundle.sh): install_wheels puts the carried
+# Sourced by the device bundles (paperprior_bundle.sh, pack_bundle.sh, tune_bundle.sh, table_bundle.sh): install_wheels puts the carried
 # .whl and .whl_render folders (benchmarks/pack_gpu.sh) beside warp in /tmp/gca-warp/site, each once per machine (a
 # reinstalled gsplat recompiles, ~90 s).
 install_wheels() {
@@ -15,4 +15,18 @@ build_gsplat() {
   [ -f "$1/gsplat.done" ] && return 0
   timeout 200 python3 -m gca.render.backend --build > "$2" 2>&1 && touch "$1/gsplat.done"
   echo "[gsplat] build rc=$? ($(tail -n 1 "$2"))"
+}
+# need_commit NAME: on the GPU machine, stop unless GCA_COMMIT names the commit sent (the copy there carries a stale
+# .git of its own; what the bundle makes records the commit).
+need_commit() {
+  [ -n "${GCA_COMMIT:-}" ] || { echo "$1: give GCA_COMMIT=<the commit sent> (what it makes records it)"; exit 2; }
+}
+# restore_once STATE W: the option that restores the committed state STATE, on the first call of a machine only
+# (W/.restored marks it; later calls go on from the work folder W).
+restore_once() {
+  [ -f "$1" ] && [ ! -f "$2/.restored" ] && { touch "$2/.restored"; echo "--restore-state $1"; }
+}
+# pack_out OUT: everything in OUT as OUT/all.tgz, members named without "./" (so `tar xzf all.tgz state.tgz` finds it).
+pack_out() {
+  (cd "$1" && tar czf "/tmp/pack_out.$$.tgz" $(ls -A) && find . -mindepth 1 -delete && mv "/tmp/pack_out.$$.tgz" all.tgz)
 }

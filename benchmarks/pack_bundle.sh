@@ -62,5 +62,5 @@ for mode in ("nomps", "mps"):
         its = [row["seconds_per_iteration"] for row in r["rows"]]
         print(f"{mode + ' x' + n:<12}{min(its):>6.2f}-{max(its):<5.2f}{r['packed_train_seconds_slowest']:>19.1f}{r['packing_gain']:>19.2f}")
 PY
-(cd "$OUT" && tar czf /tmp/pack_all.tgz . && find . -mindepth 1 -delete && mv /tmp/pack_all.tgz all.tgz)
+pack_out "$OUT"
 stamp "done"

@@ -93,4 +93,4 @@ for f in $PRIORS; do mkdir -p "$OUT/prior_$f"; cp "$W/prior_$f"/prior/* "$W/prio
 python3 benchmarks/paperprior_summary.py "$OUT/res" 2>&1 | tee "$OUT/summary.txt"
 for f in $PRIORS; do tr '\r' '\n' < "$OUT/prior_$f.log" 2>/dev/null | grep "step/s\|response error" | tail -n 1; done
 # everything in one file: the device tool returns at most 8 files (session 15 lost a call's checkpoints to that cap)
-(cd "$OUT" && tar czf /tmp/pp_all.tgz . && find . -mindepth 1 -delete && mv /tmp/pp_all.tgz all.tgz)
+pack_out "$OUT"

@@ -34,12 +34,12 @@ T0=$(date +%s)
 MPS=""; P="--priors $PRIORS"; STAGES="assets particles ground_truth preprocess train evaluate report"
 [ -n "$PRIORS" ] || { P=""; STAGES="assets particles prior ground_truth preprocess train evaluate report"; }
 if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
-  [ -n "${GCA_COMMIT:-}" ] || { echo "table_bundle.sh: give GCA_COMMIT=<the commit sent> (the runs record it)"; exit 2; }
+  need_commit table_bundle.sh
   install_wheels
   build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
   MPS="--mps"
 fi
-R=""; [ -f "$STATE" ] && [ ! -f "$W/.restored" ] && { R="--restore-state $STATE"; touch "$W/.restored"; }
+R=$(restore_once "$STATE" "$W")
 # shellcheck disable=SC2086
 timeout "$((LIMIT - 5))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES --methods $METHODS \
     --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
@@ -47,6 +47,5 @@ timeout "$((LIMIT - 5))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes 
 echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | tail -n 40
 wait  # the gsplat build, when the grid ended first
 [ ! -f "$W/grid/mlflow.db" ] || cp "$W/grid/mlflow.db" "$OUT/mlflow.db"
-# members named without "./", so that `tar xzf all.tgz state.tgz` finds it
-(cd "$OUT" && tar czf /tmp/table_all.tgz $(ls -A) && find . -mindepth 1 -delete && mv /tmp/table_all.tgz all.tgz)
+pack_out "$OUT"
 echo "[table $(($(date +%s) - T0)) s] done: commit state.tgz from all.tgz as $STATE"

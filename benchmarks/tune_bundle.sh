@@ -31,12 +31,12 @@ say() { echo "[tune $(($(date +%s) - T0)) s] $1"; }
 M=""; [ -z "$METHODS" ] || M="--methods $METHODS"
 P=""; [ -z "$PRIORS" ] || P="--priors $PRIORS"
 if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
-  [ -n "${GCA_COMMIT:-}" ] || { echo "tune_bundle.sh: give GCA_COMMIT=<the commit sent> (the units record it)"; exit 2; }
+  need_commit tune_bundle.sh
   install_wheels
   build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
   pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
 fi
-R=""; [ -f "$STATE" ] && [ ! -f "$W/.restored" ] && { R="--restore-state $STATE"; touch "$W/.restored"; }
+R=$(restore_once "$STATE" "$W")
 # shellcheck disable=SC2086
 timeout "$(left)" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M $R \
     $P --prepare-only > "$OUT/prepare.log" 2>&1
@@ -55,6 +55,5 @@ say "shards done"; grep -h "^tune " "$OUT"/shard*.log | tail -n 20
 python3 -c "from pathlib import Path; from gca.pipeline.tune import save_state; \
 print(save_state(Path('$W'), Path('$OUT/state.tgz')), 'state files')"
 [ ! -f "$W/record.json" ] || { cp "$W/record.json" "$OUT/record.json"; say "every unit done: record.json in all.tgz"; }
-# members named without "./", so that `tar xzf all.tgz state.tgz` finds it
-(cd "$OUT" && tar czf /tmp/tune_all.tgz $(ls -A) && find . -mindepth 1 -delete && mv /tmp/tune_all.tgz all.tgz)
+pack_out "$OUT"
 say "done: commit state.tgz from all.tgz as $STATE"

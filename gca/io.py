@@ -245,8 +245,9 @@ def pack_files(root: str | os.PathLike, files: list, archive: str | os.PathLike)
 
 def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, what: str, skip=None) -> int:
     """Unpack the gzipped tar ``archive`` into ``root``, keeping a file already there (it is at least as new) and
-    leaving out the members ``skip(path) -> bool`` names; returns the count unpacked. Every member must be a plain file whose relative path ``allowed(path) -> bool``
-    accepts, or nothing is written: ``ValueError`` naming the archive, the member and ``what`` it should be."""
+    leaving out the members ``skip(path) -> bool`` names; returns the count unpacked. Every member must be a plain
+    file whose relative path ``allowed(path) -> bool`` accepts, or nothing is written: ``ValueError`` naming the
+    archive, the member and ``what`` it should be."""
     import tarfile
 
     archive, root = Path(archive), Path(root)

@@ -30,8 +30,8 @@ then waits for them to end, at most ``dispatch.STOP_GRACE_S`` + 10 s past the de
 as a few commands of bounded length (repeat the command until it reports every job done). A failed job
 is logged with its log path, its dependents are skipped, the others go on. ``--priors DIR`` takes
 ``<family>.pt`` from an earlier run instead of pretraining. ``--save-state``/``--restore-state`` carry a
-``--work`` grid to another machine (the runs, evaluations, checkpoints and MLflow store; inputs are remade only
-where a job left reads them): ``benchmarks/table_bundle.sh`` runs a table that way on one GPU across sessions.
+``--work`` grid to another machine (the runs' results, laws and checkpoints, the evaluations' JSON; inputs are
+remade only where a job left reads them): ``benchmarks/table_bundle.sh`` runs a table that way on one GPU across sessions.
 """
 
 from __future__ import annotations
@@ -481,8 +481,8 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--restore-state", type=Path, metavar="TGZ",
                     help="--work: first unpack a --save-state archive (the runs and evaluations done elsewhere)")
     ap.add_argument("--save-state", type=Path, metavar="TGZ",
-                    help="--work: at the end write the runs, evaluations and MLflow store to this archive (the state "
-                         "another machine goes on from with --restore-state)")
+                    help="--work: at the end write the runs' results, laws and checkpoints and the evaluations' JSON "
+                         "to this archive (the state another machine goes on from with --restore-state)")
     ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
                                      "jobs share: concurrent first builds can corrupt its cache)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
@@ -518,8 +518,9 @@ def main(argv=None) -> dict[str, str]:
             jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
         if args.restore_state is not None:
             print(f"[grid] {restore_state(args.restore_state, work)} state files restored from {args.restore_state}")
-        keep = needed(jobs, {n for n in jobs if dispatch.is_done(work, n)})
-        jobs = {n: j for n, j in jobs.items() if n in keep or dispatch.is_done(work, n)}
+        done = {n for n in jobs if dispatch.is_done(work, n)}
+        keep = needed(jobs, done)
+        jobs = {n: j for n, j in jobs.items() if n in keep or n in done}
     (work / ".grid").mkdir(parents=True, exist_ok=True)
     logfile = open(work / ".grid" / "grid.log", "a")
 
