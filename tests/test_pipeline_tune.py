@@ -86,7 +86,8 @@ def test_a_table_scene_is_refused():
         with pytest.raises(ConfigError, match="not a calibration scene"):
             tuning.check_scenes(params, ["calib_torus", scene])
     with pytest.raises(ConfigError, match="not a calibration scene"):
-        tune.main(["--work", "/nonexistent/never", "--profile", "ci", "--set", "tuning.scenes=[calib_star, ball]"])
+        tune.main(["--work", "/nonexistent/never", "--profile", "ci", "--set", "tuning.scenes=[calib_star, ball]",
+                   "--set", "tuning.record=''"])
 
 
 def test_params_citing_a_record_are_not_tuned_again_by_accident(tmp_path):
@@ -175,6 +176,30 @@ def test_frozen_params_are_the_cited_records_choice():
     assert tuning.frozen_mismatches(params, fake) == [
         f"align.rdga.lambda1: params.yaml {params['align']['rdga']['lambda1']!r}, tuning record (gca) "
         f"{params['align']['rdga']['lambda1'] * 3!r}"]
+
+
+def test_the_printed_params_change_applied_as_is_passes_the_frozen_check():
+    """What tune prints to apply is what the frozen check accepts (session 19: it printed 6 digits, the check wants 1e-9)."""
+    import yaml
+
+    params, _ = _shipped()
+    chosen = {"align.rdga.lambda1": 0.12345678912345678, "train.neuma_lr_scale": 2.3456789123456789}
+    record = {"methods": {"gca": {"chosen": {"trial": 4, "feasible": False, "params": {k: v for k, v in chosen.items()
+                                                                                      if k.startswith("align")}}},
+                          "neuma": {"chosen": {"trial": 1, "feasible": True,
+                                               "params": {"train.neuma_lr_scale": chosen["train.neuma_lr_scale"]}}}}}
+    applied = json.loads(json.dumps(params))
+    for line in tuning.params_change(record, "tuning/record.json").splitlines():
+        if line.startswith("#") or line.startswith("tuning.record"):
+            continue
+        key, value = line.split(": ")
+        *parents, leaf = key.split(".")
+        node = applied
+        for name in parents:
+            node = node[name]
+        node[leaf] = yaml.safe_load(value)
+    assert tuning.frozen_mismatches(applied, record) == []
+    assert tuning.frozen_mismatches(params, record) != []  # negative control: the unapplied params differ
 
 
 def test_the_report_says_when_no_record_is_cited(tmp_path):
@@ -365,7 +390,7 @@ def test_processes_launched_together_claim_units_in_progress_first(tmp_path, mon
     assert tune.claim_unit(claims, "neuma", 0, "calib_torus", 0)  # taken by another process of this launch
     argv = ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
             "--set", "tuning.scenes=[calib_torus,calib_star]", "--record", str(tmp_path / "r.json"), "--device", "cpu",
-            "--methods", "neuma", "--no-prepare", "--claim", str(claims)]
+            "--methods", "neuma", "--no-prepare", "--claim", str(claims), "--set", "tuning.record=''"]
     record = tune.main(argv)
     assert ran[0] == ("neuma", 1, "calib_star", 0)
     assert ("neuma", 0, "calib_torus", 0) not in ran and len(ran) == 3

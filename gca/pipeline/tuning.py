@@ -254,11 +254,12 @@ def frozen_mismatches(params: Mapping, record: Mapping) -> list[str]:
 
 
 def params_change(record: Mapping, record_path: str) -> str:
-    """The params.yaml lines to apply the record's choice, one ``key: value`` per knob key, and its citation."""
+    """The params.yaml lines to apply the record's choice, one ``key: value`` per knob key (full precision: the
+    test of the frozen params compares at 1e-9), and its citation."""
     lines = [f"tuning.record: {record_path}"]
     for method, entry in record.get("methods", {}).items():
         trial = entry["chosen"]["trial"]
         note = "" if entry["chosen"]["feasible"] else " (no trial reached the share floors: least shortfall)"
         lines.append(f"# {method}: trial {trial}{note}")
-        lines += [f"{key}: {value:.6g}" for key, value in entry["chosen"]["params"].items()]
+        lines += [f"{key}: {float(value)!r}" for key, value in entry["chosen"]["params"].items()]
     return "\n".join(lines)
