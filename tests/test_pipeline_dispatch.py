@@ -112,6 +112,30 @@ def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeyp
     assert (tmp_path / "ckpt").read_text() == "12"
 
 
+def test_a_deadline_stop_of_many_jobs_returns_within_its_grace(tmp_path, monkeypatch):
+    """The stop waits for the stopped jobs' processes, not for their outcomes: submitit's outcome read waits 15 s per
+    job for a result file a stopped job never writes (eight jobs held an H100 grid 120 s past its deadline, beyond
+    the bundle's timeout, in session 19). Four jobs stopped at once: back within the documented bound."""
+    code = "import signal, sys, time; signal.signal(signal.SIGTERM, lambda *_: sys.exit(143)); time.sleep(120)"
+    jobs = {f"train@s{k}:gca": grid.Job(f"train@s{k}:gca", f"python -c {code!r}", [], [], 10.0) for k in range(4)}
+    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
+    lines = []
+    t0 = time.monotonic()
+    state = dispatch.run(jobs, _local(tmp_path, slots=4), tmp_path, lines.append, deadline=3.0, poll_s=0.1)
+    took = time.monotonic() - t0
+    assert state == {n: "todo" for n in jobs}
+    assert sum(ln.startswith("stop  ") and "at the deadline" in ln for ln in lines) == 4
+    assert not any("still running" in ln for ln in lines), lines
+    assert took < 3.0 + dispatch.STOP_GRACE_S + 10.0, f"the stop took {took:.0f} s past the start"
+    # negative control: a job that ended without a result reads as failed at once (no 15 s wait)
+    engine = _local(tmp_path / "other")
+    handle = engine.submit(dispatch.StageCommand("k", "python -c 'import os; os.kill(os.getppid(), 9)'", tmp_path), [])
+    while engine.running(handle):
+        time.sleep(0.1)
+    t1 = time.monotonic()
+    assert engine.state(handle) == dispatch.FAILED and time.monotonic() - t1 < 5.0
+
+
 class _Recorder(dispatch.Engine):
     """An engine with dependencies (as SLURM): records what was submitted after what; jobs end when told."""
 

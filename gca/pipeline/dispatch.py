@@ -205,6 +205,10 @@ class Engine(abc.ABC):
         (then it is submitted again)."""
         return None
 
+    def running(self, handle) -> bool:
+        """Whether the job still runs, without reading its outcome (a stopped job has none to read)."""
+        return self.state(handle) == RUNNING
+
 
 class SubmititEngine(Engine):
     """A submitit executor: ``submitit.LocalExecutor`` (``places``: one GPU id or None per slot) or
@@ -251,9 +255,17 @@ class SubmititEngine(Engine):
         handle = submitit.SlurmJob(folder=self.executor.folder, job_id=path.read_text().strip())
         return handle if handle.state.split()[0] in self.ACTIVE else None
 
+    def running(self, handle) -> bool:
+        """``handle.done()`` alone: submitit's outcome read (``exception()``) waits 15 s for the result file of a job
+        that has none (one stopped at a deadline), per job: eight stopped jobs held the stop 120 s, past the bundle's
+        timeout, so no state was saved (session 19, two H100 calls lost)."""
+        return not handle.done()
+
     def state(self, handle) -> str:
         if not handle.done():
             return RUNNING
+        if not self.slurm and not handle.paths.result_pickle.exists():
+            return FAILED  # a local job ended without its result (killed): submitit would wait 15 s for it
         try:
             return FAILED if handle.exception() is not None else DONE
         except Exception:  # noqa: BLE001 - a job with no result (killed, cancelled) counts as failed
@@ -486,7 +498,7 @@ def _wait_stopped(engine: Engine, stopping: dict, log, poll_s: float, work: Path
     left = dict(stopping)
     while left and time.monotonic() < t_end:
         left = {n: h for n, h in left.items()
-                if engine.state(h) == RUNNING or _running_pid(marker(work, n, ".pid")) is not None}
+                if engine.running(h) or _running_pid(marker(work, n, ".pid")) is not None}
         if left:
             time.sleep(min(poll_s, 0.2))
     for n in left:
