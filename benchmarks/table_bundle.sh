@@ -14,11 +14,18 @@
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/table_bundle.sh
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command
 #   GCA_COMMIT  required on the GPU machine: the commit sent (the copy there carries a stale .git); runs record it
-#   SCENES, METHODS, SEEDS  the grid (default Table 1: six scenes x gca neuma nclaw x seeds [0,1,2]); STATE its state
-#            file (default benchmarks/results/table1_seeds/state.tgz). A state is tied to its params (scenes, seeds,
-#            knobs): another grid takes another STATE. It may grow by methods: Table 3's rows after Table 1's, with
-#            METHODS="gca neuma nclaw no_global no_anchor rank_to_l1 no_rdga no_cpr gca_full_ft" and the same STATE
-#            (the runs done are kept, the scenes with new methods evaluated again).
+#   SCENES, METHODS, SEEDS  the grid (default Table 1: six scenes x gca neuma nclaw x seeds [0,1,2]; METHODS=params:
+#            each scene's own methods in params.yaml); STATE its state file (default
+#            benchmarks/results/table1_seeds/state.tgz). A state is tied to its seeds and knobs (another grid takes
+#            another STATE) but grows by methods and by scenes, so the paper's tables are one state, one report and
+#            one claims table, in this order (the runs done are kept; a scene with new methods is evaluated again):
+#              1. Table 1: the defaults (36 trained runs, 18 NCLaw runs)
+#              2. Table 3: METHODS="gca neuma nclaw no_global no_anchor rank_to_l1 no_rdga no_cpr gca_full_ft" (+108)
+#              3. the rest (Tables 2, 4, 5, 6, law level): METHODS=params
+#                 SCENES="ball duck pawn cat fish bottle dragon wolf pudding composite" (+~60)
+#            Cost at ~650 s a run under 8-way MPS (~81 s of throughput each, benchmarks/NOTES.md s18-19): Table 1
+#            ~50 min of H100, all of it ~4.5 h. Table 4's seconds are then MPS-packed seconds (its LoRA vs full
+#            fine-tuning ratio compares runs packed alike); solo timings: benchmarks/harness.py.
 #   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 570); PROFILE paper
 #   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v).
 #   A CPU smoke: PROFILE=ci PRIORS= SCENES=ball METHODS=nclaw SEEDS="[0,1]" SLOTS=2 STATE=/tmp/s.tgz sh benchmarks/table_bundle.sh
@@ -40,8 +47,9 @@ if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside
   MPS="--mps"
 fi
 R=$(restore_once "$STATE" "$W")
+M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's own methods
 # shellcheck disable=SC2086
-timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES --methods $METHODS \
+timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M \
     --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
     --deadline "$((LIMIT - 60))" --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
 echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | tail -n 40

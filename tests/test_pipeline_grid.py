@@ -3,6 +3,7 @@ through the engine's local executor. Running the jobs (failures, GPU slots, requ
 tests/test_pipeline_dispatch.py."""
 
 import argparse
+import json
 import tarfile
 from pathlib import Path
 
@@ -277,6 +278,45 @@ def test_a_grid_state_grows_by_methods_and_evaluates_those_scenes_again(tmp_path
         grid.restore_state(archive, knob)
 
 
+def test_a_grid_state_grows_by_scenes_into_one_report(tmp_path):
+    """Tables 2, 5 and 6 after Tables 1 and 3, in one state (one report, one claims table): a state restored into a
+    grid with more scenes keeps every run done; a new scene starts from nothing. Refused (negative controls, nothing
+    written): a grid without one of the state's scenes, one where a scene of the state is defined otherwise (its
+    object), and one with other knobs."""
+    work = tmp_path / "w"
+    grid.prepare(work, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], []))
+    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball.done", "runs/ball/nclaw/train.json",
+                  "metrics/eval/ball/nclaw.json"])
+    archive = tmp_path / "state.tgz"
+    grid.save_state(work, archive)
+    more = tmp_path / "more"
+    grid.prepare(more, grid.grid_params("ci", ["ball", "cat", "dragon", "composite"], ["nclaw"], []))
+    assert grid.restore_state(archive, more) == 5
+    assert (more / ".grid/evaluate@ball.done").is_file()  # ball's methods are the same: not evaluated again
+    assert not (more / "runs/dragon").exists()
+    for name, scenes, overrides, why in [
+            ("fewer", ["ball"], [], "scenes this grid lacks"),
+            ("moved", ["ball", "cat"], ["scenes.cat.object=duck"], "scene.s. \\['cat'\\] defined otherwise"),
+            ("knob", ["ball", "cat", "dragon"], ["align.rdga.lambda1=0.5"], "other seeds, profile or knobs")]:
+        grid.prepare(tmp_path / name, grid.grid_params("ci", scenes, ["nclaw"], overrides))
+        with pytest.raises(SystemExit, match=why):
+            grid.restore_state(archive, tmp_path / name)
+        assert not (tmp_path / name / "runs").exists()
+    older = tmp_path / "older.tgz"  # a state of the format before scenes could be added
+    with tarfile.open(archive) as src, tarfile.open(older, "w:gz") as tar:
+        for m in src.getmembers():
+            data = src.extractfile(m).read()
+            if m.name == grid.STATE_PARAMS:
+                made = json.loads(data)
+                made.pop("scenes")
+                data = json.dumps(made).encode()
+                m.size = len(data)
+            import io
+            tar.addfile(m, io.BytesIO(data))
+    with pytest.raises(SystemExit, match="older format"):
+        grid.restore_state(older, tmp_path / "more")
+
+
 def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
     """The command line: a second work directory restored from the first's state runs only what is left (the
     finished scene's inputs not remade) and saves its own state at the end."""
@@ -335,7 +375,7 @@ def test_table_bundle_saves_the_state_of_a_grid_cut_off_by_its_timeout(tmp_path)
     hang = tmp_path / "hang.sh"
     hang.write_text("#!/bin/sh\nsleep 100\n")
     hang.chmod(0o755)
-    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
+    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "params", "SEEDS": "[0,1]",
            "SLOTS": "2", "LIMIT": "45", "STATE": str(tmp_path / "none.tgz"), "W": str(tmp_path / "a"),
            "OUT": str(tmp_path / "out"), "EXTRA": f"--before {hang}"}
     cut = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=120,
@@ -343,4 +383,7 @@ def test_table_bundle_saves_the_state_of_a_grid_cut_off_by_its_timeout(tmp_path)
     assert "grid rc=124" in cut.stdout and "the grid was cut off before its state: saved" in cut.stdout, cut.stdout
     subprocess.run(["tar", "xzf", str(tmp_path / "out/all.tgz"), "state.tgz"], cwd=tmp_path, check=True)
     assert grid.restore_state(tmp_path / "state.tgz", tmp_path / "a" / "grid") >= 0  # a valid state of this grid
+    with tarfile.open(tmp_path / "state.tgz") as tar:  # METHODS=params: ball's own methods in params.yaml
+        made = json.loads(tar.extractfile(grid.STATE_PARAMS).read())
+    assert made["methods"]["ball"] == yaml.safe_load((ROOT / "params.yaml").read_text())["scenes"]["ball"]["methods"]
     # (negative control, in the test above: a grid that ends by itself saves its own state, and the bundle does not)

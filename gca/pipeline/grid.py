@@ -329,18 +329,30 @@ STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/[^/]+/velocit
 STATE_PARAMS = ".grid/state_params.json"  # what the state was made under: the params' digest and each scene's methods
 
 
-def _made_under(work: Path) -> dict:
-    """The grid's params.yaml as a state records it: the digest of everything but the scenes' ``methods`` (a grid
-    may grow by methods: Table 3's rows after Table 1's) and those methods per scene."""
+def _digest(value) -> str:
     import hashlib
     import json
 
+    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _made_under(work: Path) -> dict:
+    """The grid's params.yaml as a state records it. A grid may grow by methods (Table 3's rows after Table 1's) and
+    by scenes (Tables 2, 5, 6 after them: one state, one report, one claims table), so the record is: ``digest``, of
+    everything that is not a scene's (the scenes, their objects, prior families and demo captures taken out);
+    ``scenes``, each scene's own digest (its spec but ``methods``, its object, its prior family, its capture);
+    ``methods``, each scene's methods."""
     params = yaml.safe_load((work / "params.yaml").read_text())
-    methods = {name: list(spec.get("methods", [])) for name, spec in params["scenes"].items()}
-    for spec in params["scenes"].values():
-        spec.pop("methods", None)
-    digest = hashlib.sha256(json.dumps(params, sort_keys=True, default=str).encode()).hexdigest()
-    return {"digest": digest, "methods": methods}
+    scenes = params.pop("scenes")
+    objects = params.pop("objects", {})
+    families = (params.get("prior") or {}).pop("families", {})
+    captures = (params.get("demo") or {}).pop("captures", {})
+    methods = {name: list(spec.get("methods", [])) for name, spec in scenes.items()}
+    own = {name: _digest({"scene": {k: v for k, v in spec.items() if k != "methods"},
+                          "object": objects.get(spec.get("object")), "prior": families.get(spec.get("prior")),
+                          "capture": captures.get(name)})
+           for name, spec in scenes.items()}
+    return {"digest": _digest(params), "scenes": own, "methods": methods}
 
 
 def state_files(work: Path) -> list[str]:
@@ -360,10 +372,11 @@ def save_state(work: Path, archive: Path) -> int:
 
 def restore_state(archive: Path, work: Path) -> int:
     """Unpack a :func:`save_state` archive into the prepared ``work`` (a file already there is kept); returns the
-    count unpacked. The grid may have grown by methods since (each scene's methods a superset of the state's):
-    then a scene with new methods is evaluated again (its evaluation marker is not restored). Refused, with
-    nothing written, when made under other params (other scenes, seeds, profile or knobs, or a scene's method
-    dropped: its runs are not this grid's), or when it holds anything but state files."""
+    count unpacked. The grid may have grown since by methods (each scene's methods a superset of the state's: a
+    scene with new methods is evaluated again, its evaluation marker not restored) and by scenes (a new scene runs
+    from nothing). Refused, with nothing written, when made under other params (seeds, profile or knobs; a scene
+    of the state defined otherwise here, or missing here; a scene's method dropped: its runs are not this grid's),
+    or when it holds anything but state files."""
     import json
     import tarfile
 
@@ -377,9 +390,19 @@ def restore_state(archive: Path, work: Path) -> int:
         except KeyError:
             raise SystemExit(f"{archive}: not a grid state (no {STATE_PARAMS})") from None
     here = _made_under(work)
+    if "scenes" not in made:
+        raise SystemExit(f"{archive}: a grid state of an older format (before session 19: it cannot grow by scenes); "
+                         "use a new state file for this grid")
     if made["digest"] != here["digest"]:
-        raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'} (other scenes, seeds, "
-                         "profile or knobs); use a new state file for this grid")
+        raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'} (other seeds, profile or "
+                         "knobs); use a new state file for this grid")
+    missing = sorted(set(made["scenes"]) - set(here["scenes"]))
+    if missing:
+        raise SystemExit(f"{archive}: made with scenes this grid lacks ({missing}); a grid may only add scenes")
+    other = sorted(n for n, d in made["scenes"].items() if here["scenes"][n] != d)
+    if other:
+        raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'}: scene(s) {other} defined "
+                         "otherwise (their spec, object, prior family or capture); use a new state file for this grid")
     dropped = {s: sorted(set(m) - set(here["methods"].get(s, []))) for s, m in made["methods"].items()}
     dropped = {s: m for s, m in dropped.items() if m}
     if dropped:
