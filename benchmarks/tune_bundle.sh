@@ -40,7 +40,7 @@ R=$(restore_once "$STATE" "$W")
 # shellcheck disable=SC2086
 timeout "$(left)" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M $R \
     $P --prepare-only > "$OUT/prepare.log" 2>&1
-say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"; grep -h "done in" "$OUT/prepare.log" | tail -n 12
+say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"; grep -h "tune: done  \|FAIL  " "$OUT/prepare.log" | tail -n 12
 wait  # the gsplat build
 rm -rf "$W/claims"; k=0
 while [ "$k" -lt "$SHARDS" ]; do  # SHARDS processes on the one GPU, each taking the next unclaimed unit (those cut off

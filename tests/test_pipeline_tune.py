@@ -303,51 +303,63 @@ def test_a_tuning_state_with_a_foreign_member_is_refused(tmp_path):
 
 
 def _jobs(**specs):
+    """grid.Job's of ``python -c`` code (the dispatcher runs stage commands without a shell, as dvc.yaml's are)."""
+    import shlex
+
     from gca.pipeline.grid import Job
 
-    return {name: Job(name, cmd, [], [], 1.0, set(after)) for name, (cmd, after) in specs.items()}
+    return {name: Job(name, f"python -c {shlex.quote(code)}", [], [], 1.0, set(after))
+            for name, (code, after) in specs.items()}
+
+
+_WAIT = ("import pathlib, sys, time\nfor _ in range(100):\n    if pathlib.Path({f!r}).exists(): break\n"
+         "    time.sleep(0.1)\nelse:\n    sys.exit(1)\n")
 
 
 def test_the_inputs_stages_run_in_parallel_in_dependency_order(tmp_path):
-    """Independent chains run at once (each of a and b waits for the other's start file: one by one, the first
-    would time out), a dependent job starts only after its parents, a done job (its mark holds the stamp) is not
-    rerun, each job's output goes to its log."""
-    marks = tmp_path / ".tune"
-    marks.mkdir()
-    wait_for = "i=0; while [ ! -f {f} ] && [ $i -lt 40 ]; do sleep 0.1; i=$((i+1)); done; [ -f {f} ]"
+    """tune's inputs go through the grid's dispatcher: independent chains run at once (each of a and b waits for
+    the other's start file: one by one, the first would time out), a dependent job starts only after its parents,
+    a job done under the same stamp is not rerun; one at a time the pair fails, named with its log."""
+    from gca.pipeline import dispatch
+
+    touch = "import pathlib; pathlib.Path({f!r}).touch()\n"
     jobs = _jobs(
-        a=(f"touch a.start && {wait_for.format(f='b.start')} && echo from-a && touch a.end", []),
-        b=(f"touch b.start && {wait_for.format(f='a.start')} && touch b.end", []),
-        c=("[ -f a.end ] && [ -f b.end ] && touch c.end", ["a", "b"]),
-        old=("touch old.ran", []))
-    (marks / "old.done").write_text("s1\n")
+        a=(touch.format(f="a.start") + _WAIT.format(f="b.start") + "print('from-a')\n" + touch.format(f="a.end"), []),
+        b=(touch.format(f="b.start") + _WAIT.format(f="a.start") + touch.format(f="b.end"), []),
+        c=("import os, sys\nif not (os.path.exists('a.end') and os.path.exists('b.end')):\n    sys.exit(1)\n"
+           + touch.format(f="c.end"), ["a", "b"]),
+        old=(touch.format(f="old.ran"), []))
+    marker = dispatch.marker(tmp_path, "old")
+    marker.parent.mkdir(parents=True)
+    marker.write_text("1.0\ns1\n")
     lines = []
-    tune._run_jobs(tune._order(jobs), tmp_path, marks, "s1", workers=2, log=lines.append)
+    tune.run_stages(jobs, tmp_path, "s1", workers=2, log=lines.append)
     assert (tmp_path / "c.end").is_file() and not (tmp_path / "old.ran").exists()
-    assert all((marks / f"{n}.done").read_text().strip() == "s1" for n in "abc")
-    assert "from-a" in (marks / "a.log").read_text()
-    assert any(line.startswith("tune: c: done in") for line in lines)
+    assert all(dispatch.is_done(tmp_path, n, "s1") for n in "abc")
+    assert any(line.startswith("tune: done  c in") for line in lines)
     # one at a time the same pair cannot finish: a waits for b's start (negative control of the parallel check)
-    (marks / "a.done").unlink()
     (tmp_path / "b.start").unlink()
-    one = _jobs(a=(f"{wait_for.format(f='b.start')}", []), b=("touch b.start", []))
-    with pytest.raises(SystemExit, match=r"tune: a failed \(exit 1\)"):
-        tune._run_jobs(tune._order(one), tmp_path, marks, "s1", workers=1, log=lines.append)
+    one = _jobs(a=(_WAIT.format(f="b.start"), []), b=(touch.format(f="b.start"), []))
+    with pytest.raises(SystemExit, match=r"(?s)FAIL  (a|b).*log: .*stage\(s\) \['(a|b)'\] failed"):
+        tune.run_stages(one, tmp_path, "s2", workers=1, log=lines.append)
 
 
-def test_a_failing_inputs_stage_stops_the_rest_and_names_itself(tmp_path):
-    """The failure's message has the job, its exit status, its command and its log's tail; a job after it never
-    starts, a job already running finishes (and is marked done), nothing of the failed job is marked done."""
-    marks = tmp_path / ".tune"
-    marks.mkdir()
-    jobs = _jobs(bad=("echo broken input >&2; exit 3", []), slow=("sleep 1; touch slow.end", []),
-                 later=("touch later.ran", ["bad"]))
+def test_a_failing_inputs_stage_stops_its_chain_and_names_itself(tmp_path):
+    """The failure's message has the job, its exit status, its log and its tail; a job after it never starts; an
+    independent job finishes and is marked done (kept for the next call); nothing of the failed job is marked done."""
+    from gca.pipeline import dispatch
+
+    jobs = _jobs(bad=("import sys; print('broken input', file=sys.stderr); sys.exit(3)", []),
+                 slow=("import pathlib, time; time.sleep(1); pathlib.Path('slow.end').touch()", []),
+                 later=("import pathlib; pathlib.Path('later.ran').touch()", ["bad"]))
     with pytest.raises(SystemExit) as err:
-        tune._run_jobs(tune._order(jobs), tmp_path, marks, "s", workers=2, log=lambda s: None)
+        tune.run_stages(jobs, tmp_path, "s", workers=2, log=lambda s: None)
     msg = str(err.value)
-    assert "broken input" in msg and "tune: bad failed (exit 3): echo broken input" in msg and "bad.log" in msg
-    assert not (marks / "bad.done").exists() and not (tmp_path / "later.ran").exists()
-    assert (tmp_path / "slow.end").is_file() and (marks / "slow.done").is_file()
+    assert msg.startswith("FAIL  bad (") and "bad: exit 3" in msg and "failed (their logs above)" in msg, msg
+    log_path = Path(msg.split("log: ")[1].splitlines()[0])
+    assert "broken input" in log_path.read_text()
+    assert not dispatch.is_done(tmp_path, "bad") and not (tmp_path / "later.ran").exists()
+    assert (tmp_path / "slow.end").is_file() and dispatch.is_done(tmp_path, "slow", "s")
 
 
 def test_the_commit_given_by_the_sender_wins(monkeypatch):

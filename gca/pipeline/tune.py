@@ -41,7 +41,7 @@ import yaml
 from gca import config, stamp
 from gca.config import ConfigError, resolve
 from gca.io import pack_files, read_json, unpack_files, write_json
-from gca.pipeline import cli, grid
+from gca.pipeline import cli, dispatch, grid
 from gca.pipeline.tuning import (TuningConfig, apply_values, check_scenes, choose, param_values, params_change,
                                  score, trial_values)
 
@@ -74,70 +74,18 @@ def work_params(raw: dict, cfg: TuningConfig) -> dict:
     return out
 
 
-def _order(jobs: dict) -> list:
-    """The jobs in an order that respects ``after`` (Kahn's algorithm, names sorted for a stable order)."""
-    done, order = set(), []
-    while len(order) < len(jobs):
-        ready = sorted(n for n, j in jobs.items() if n not in done and j.after <= done)
-        if not ready:
-            raise RuntimeError(f"dvc.yaml: a cycle among {sorted(set(jobs) - done)}")
-        for name in ready:
-            done.add(name)
-            order.append(jobs[name])
-    return order
-
-
 def default_jobs() -> int:
     """Stage processes run at once by :func:`prepare_inputs`: a quarter of the CPU cores, at least 1 (the 2-core CI
     machine runs them one by one; the 16-core GPU machine 4, one chain per calibration scene)."""
     return max(1, (os.cpu_count() or 1) // 4)
 
 
-def _run_jobs(jobs: list, work: Path, marks: Path, stamp: str, workers: int, log=print) -> None:
-    """Run the stage ``jobs`` (in :func:`_order`) in ``work``, up to ``workers`` at once, each as soon as the jobs in
-    its ``after`` are done; a job whose mark holds ``stamp`` is done already. Each job's output goes to
-    ``marks/<job>.log``; the first failure stops starting new jobs, waits for the running ones, and exits with the
-    job's command and its log's last lines."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    done = {j.name for j in jobs if (marks / f"{j.name}.done").is_file()
-            and (marks / f"{j.name}.done").read_text().strip() == stamp}
-    waiting = [j for j in jobs if j.name not in done]
-    running: dict = {}  # name -> (job, Popen, log file, start time)
-    failed = None
-    while waiting or running:
-        for job in list(waiting):
-            if failed is None and len(running) < workers and job.after <= done:
-                waiting.remove(job)
-                cmd = job.cmd.replace("python ", f"{sys.executable} ", 1) if job.cmd.startswith("python ") else job.cmd
-                out = open(marks / f"{job.name}.log", "w")  # noqa: SIM115 - closed when the job ends
-                log(f"tune: {job.name}: {job.cmd}")
-                proc = subprocess.Popen(cmd, shell=True, cwd=work, env=env, stdout=out, stderr=subprocess.STDOUT)
-                running[job.name] = (job, proc, out, time.monotonic())
-        if failed is not None and not running:
-            break
-        if not running:
-            raise RuntimeError(f"dvc.yaml: {[j.name for j in waiting]} wait on jobs that never run")
-        time.sleep(0.2)
-        for name, (job, proc, out, t0) in list(running.items()):
-            if proc.poll() is None:
-                continue
-            out.close()
-            del running[name]
-            if proc.returncode == 0:
-                (marks / f"{name}.done").write_text(stamp + "\n")
-                done.add(name)
-                log(f"tune: {name}: done in {time.monotonic() - t0:.0f} s")
-            elif failed is None:
-                failed = (job, proc.returncode)
-    if failed is not None:
-        job, rc = failed
-        tail = "".join((marks / f"{job.name}.log").read_text(errors="replace").splitlines(True)[-15:])
-        raise SystemExit(f"{tail}tune: {job.name} failed (exit {rc}): {job.cmd} (log: {marks / f'{job.name}.log'})")
-
-
 def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print, workers: int = 1) -> None:
     """Run the stage commands that make the calibration scenes' inputs in ``work`` (each once per params), up to
-    ``workers`` at once (the scenes' chains are independent; each stage's output in ``<work>/.tune/<stage>.log``)."""
+    ``workers`` at once, through the grid's dispatcher (:func:`gca.pipeline.dispatch.run`, its local engine: each
+    job once its inputs are done, a job done under these params not again, each stage's log named when it fails;
+    the scenes' chains are independent, so a failure stops only its own chain). Exits with the failed stages and
+    their logs' tails."""
     grid.prepare(work, params)
     stamp = hashlib.sha256((work / "params.yaml").read_bytes()).hexdigest()[:16]
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
@@ -150,9 +98,25 @@ def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print, wor
             jobs.pop(f"prior@{family}", None)
         for job in jobs.values():
             job.after = {a for a in job.after if a in jobs}
-    marks = work / ".tune"
-    marks.mkdir(exist_ok=True)
-    _run_jobs(_order(jobs), work, marks, stamp, workers, log)
+    run_stages(jobs, work, stamp, workers, log)
+
+
+def run_stages(jobs: dict, work: Path, stamp: str, workers: int, log=print) -> None:
+    """``jobs`` (``grid.Job``, ``after`` linked) through :func:`dispatch.run` on this machine, ``workers`` at once (on
+    GPU 0 where there is one: the inputs' renders use it); exits naming each failed job, its log and its tail."""
+    engine = dispatch.local_engine(work / ".grid" / "submitit" / "%j", 1, max(1, workers), timeout_min=24 * 60,
+                                   max_requeue=0)
+    lines: list[str] = []
+
+    def say(msg: str) -> None:
+        lines.append(msg)
+        log(f"tune: {msg}")
+    state = dispatch.run(jobs, engine, work, say, poll_s=0.2, stamp=stamp)
+    failed = sorted(n for n, s in state.items() if s == dispatch.FAILED)
+    if failed:
+        why = "\n".join(ln for ln in lines if ln.startswith("FAIL  "))
+        raise SystemExit(f"{why}\ntune: the inputs' stage(s) {failed} failed (their logs above); the stages done are "
+                         "kept: run the same command again once fixed")
 
 
 def unit_path(work: Path, method: str, trial: int, scene: str, seed: int) -> Path:
