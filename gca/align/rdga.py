@@ -119,9 +119,11 @@ class RDGAConfig:
     r: int = 9
     k: int = 7
     tau: float = 0.5
-    lambda1: float = 0.01
-    lambda2: float = 0.01
-    lambda_mask: float = 1.0
+    # lambda_1, lambda_2, lambda_m: tuned on the calibration scenes (tuning/record.json, GCA trial 4; paper-literal
+    # 0.01, 0.01, 1.0 before): params.yaml holds the same (test_pipeline_schema)
+    lambda1: float = 0.22769935911115308
+    lambda2: float = 3.2485386221615973
+    lambda_mask: float = 1.5626689207170845
     lambda_geo: float = 1.0
     temperature: float = 0.1
     stable_region: str = "eroded"

@@ -87,7 +87,7 @@ class TuningConfig:
             factor: bool}}``.
     """
 
-    record: str = ""
+    record: str = "tuning/record.json"
     scenes: tuple[str, ...] = ("calib_torus", "calib_mushroom", "calib_star")
     trials: int = 8
     iterations: int = 200
