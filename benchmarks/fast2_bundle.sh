@@ -21,12 +21,7 @@ mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 T0=$(date +%s)
 stamp() { python3 -c "import time; print(f'[fast2 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
-# each folder once per machine (reinstalling gsplat's files would make its extension compile again, ~90 s)
-for d in .whl .whl_render; do
-  if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-    python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-  fi
-done
+. benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
 COMMON="--scene ball --methods gca --profile paper --work $W --set train.iterations=$ITS --set velocity.iterations=20 --set render.backend=gsplat"
 fresh() { rm -rf "$W/runs" "$W/eval"; }
 

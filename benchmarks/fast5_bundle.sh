@@ -15,11 +15,7 @@ mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 T0=$(date +%s)
 stamp() { python3 -c "import time; print(f'[fast5 {int(time.time()) - $T0:>4} s] ' + '$1', flush=True)"; }
-for d in .whl .whl_render; do  # each folder once per machine (a reinstalled gsplat recompiles, ~90 s)
-  if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-    python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-  fi
-done
+. benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
 train() {  # tag scene iterations timeout
   rm -rf "$W/$2/runs" "$W/$2/eval"; mkdir -p "$OUT/$1" "$W/$2/prior"; cp .priors/jelly.pt "$W/$2/prior/jelly.pt"
   REUSE=""; [ -f "$W/$2/m/gt.json" ] && REUSE="--reuse-data"

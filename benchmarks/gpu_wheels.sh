@@ -1,4 +1,5 @@
-# Sourced by the device bundles (paperprior_bundle.sh, pack_bundle.sh, tune_bundle.sh, table_bundle.sh): install_wheels puts the carried
+# Sourced by the device bundles (paperprior_bundle.sh, pack_bundle.sh, tune_bundle.sh, table_bundle.sh,
+# prior_then_train.sh, fast2-5_bundle.sh): install_wheels puts the carried
 # .whl and .whl_render folders (benchmarks/pack_gpu.sh) beside warp in /tmp/gca-warp/site, each once per machine (a
 # reinstalled gsplat recompiles, ~90 s).
 install_wheels() {

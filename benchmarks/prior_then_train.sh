@@ -1,10 +1,6 @@
 set -u
 export PYTHONPATH=/tmp/gca-warp/site:. PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:////tmp/p6_w/mlflow.db
-for d in .whl .whl_render; do
-  if [ -d "$d" ] && [ ! -f "/tmp/gca-warp/$d.done" ]; then
-    python3 -m pip install -q --no-deps --no-index --upgrade --target /tmp/gca-warp/site "$d"/*.whl && touch "/tmp/gca-warp/$d.done"
-  fi
-done
+. benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
 # Issue 20/22, session 13: is GCA's divergence on the ball a property of the 100-iteration timing prior? A longer prior
 # (prior.train.iterations=$PRIOR_ITS) made on the GPU, then 200 GCA iterations on it with the history kept.
 #   call 1 carry [".wpa"]: sh .wpa/stage.sh
