@@ -51,10 +51,12 @@ M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's
 # shellcheck disable=SC2086
 timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M \
     --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
-    --deadline "$((LIMIT - 60))" --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
+    --deadline "$((LIMIT - 90))" --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
 echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | tail -n 40
-# the grid saves its state at its end; cut off before that (rc 124: session 19 lost two calls so), it is saved here,
-# from the markers and checkpoints on disk (the timeout's SIGTERM reached the training processes too: they checkpoint)
+# The deadline (LIMIT - 90) leaves the stop (at most dispatch.STOP_GRACE_S + 10 s), the state and the results 65 s
+# before the grid's timeout (LIMIT - 25). The grid saves its state at its end; cut off before that (rc 124: session
+# 19 lost two calls so), it is saved here from the markers and checkpoints on disk (the timeout's SIGTERM reaches the
+# training processes too: they checkpoint)
 [ -f "$OUT/state.tgz" ] || [ ! -f "$W/grid/params.yaml" ] || python3 -c "from pathlib import Path; from gca.pipeline.grid import save_state; \
 print('[table] the grid was cut off before its state: saved', save_state(Path('$W/grid'), Path('$OUT/state.tgz')), 'files')"
 wait  # the gsplat build, when the grid ended first
