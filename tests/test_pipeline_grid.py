@@ -387,3 +387,19 @@ def test_table_bundle_saves_the_state_of_a_grid_cut_off_by_its_timeout(tmp_path)
         made = json.loads(tar.extractfile(grid.STATE_PARAMS).read())
     assert made["methods"]["ball"] == yaml.safe_load((ROOT / "params.yaml").read_text())["scenes"]["ball"]["methods"]
     # (negative control, in the test above: a grid that ends by itself saves its own state, and the bundle does not)
+
+
+def test_the_grid_tells_its_runs_how_they_share_the_gpu(tmp_path, monkeypatch):
+    """Each job's environment names the grid's slots per GPU and whether MPS runs (train.json records them: Table 4
+    says when its times are packed); one slot reads as alone."""
+    seen = []
+
+    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp=""):
+        seen.append(dict(job_env(None, 0)))
+        return {n: "done" for n in jobs}
+    monkeypatch.setattr(grid.dispatch, "run", fake_run)
+    argv = ["--scenes", "ball", "--methods", "nclaw", "--profile", "ci", "--stages", "assets"]
+    grid.main(["--work", str(tmp_path / "a"), *argv, "--slots", "8"])
+    grid.main(["--work", str(tmp_path / "b"), *argv, "--slots", "1"])
+    assert (seen[0]["GCA_RUNS_PER_GPU"], seen[0]["GCA_MPS"]) == ("8", "0")  # --mps not asked
+    assert seen[1]["GCA_RUNS_PER_GPU"] == "1"

@@ -270,3 +270,28 @@ def test_a_report_stopped_while_it_copies_capture_media_keeps_the_previous_one(m
     monkeypatch.undo()
     written = build_reports(metrics, out, ReportConfig(dpi=40))
     assert out / "captures" / "mine.md" in written and (out / "captures" / "mine_gca_resim.gif").read_bytes() == b"GIF89a"
+
+
+def test_table4_says_when_its_times_are_packed(tmp_path):
+    """Runs that shared their GPU (the grid's slots, under MPS) are named in Table 4's notes: packed times are not
+    solo times. Runs that did not (a record without the field counts as alone) add no note (negative control)."""
+    alone, packed = tmp_path / "alone", tmp_path / "packed"
+    for root, extra in ((alone, {}), (packed, {"runs_per_gpu": 8, "mps": True})):
+        for method in ("gca", "gca_full_ft"):
+            _write(root, _record("ball", method, chamfer_mean=0.1, train_seconds=60.0, peak_memory_gib=1.0,
+                                 **(extra if method == "gca" else {})))
+    assert not any("packed" in n for n in tables.table4_efficiency(load_runs(alone)).notes)
+    (note,) = [n for n in tables.table4_efficiency(load_runs(packed)).notes if "packed" in n]
+    assert note.startswith("1 of 2 runs trained with up to 8 runs on one GPU (under CUDA MPS)")
+
+
+def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
+    """train.json's runs_per_gpu and mps: the grid's environment; a run started otherwise counts as alone."""
+    from gca.pipeline.train import gpu_sharing
+
+    monkeypatch.delenv("GCA_RUNS_PER_GPU", raising=False)
+    monkeypatch.delenv("GCA_MPS", raising=False)
+    assert gpu_sharing() == {"runs_per_gpu": 1, "mps": False}
+    monkeypatch.setenv("GCA_RUNS_PER_GPU", "8")
+    monkeypatch.setenv("GCA_MPS", "1")
+    assert gpu_sharing() == {"runs_per_gpu": 8, "mps": True}

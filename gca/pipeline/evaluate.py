@@ -53,7 +53,8 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "material": scene.material,
             "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],
-            "term_shares": train.get("term_shares", {})}
+            "term_shares": train.get("term_shares", {}), "runs_per_gpu": train.get("runs_per_gpu", 1),
+            "mps": train.get("mps", False)}
 
 
 def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path,

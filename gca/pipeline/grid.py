@@ -566,7 +566,9 @@ def main(argv=None) -> dict[str, str]:
     log(f"{len(jobs)} jobs ({todo} to run) through {args.engine} on {where}"
         + (f", profile {args.profile}" if args.repo is None else f", in place in {work}"))
     t0 = time.monotonic()
-    with mps_daemon(args.mps, log):
+    env["GCA_RUNS_PER_GPU"] = str(args.slots if engine.places else 1)  # provenance of the runs' times (Table 4)
+    with mps_daemon(args.mps, log) as mps_on:
+        env["GCA_MPS"] = "1" if mps_on else "0"
         state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp)
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]

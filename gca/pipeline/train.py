@@ -18,6 +18,7 @@ level); evaluation stays against the one true trajectory.
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -204,12 +205,19 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                "iterations": result.iterations, "train_seconds": cost.wall_s + result.seconds_before,
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
-               "rejected_updates": result.rejected, "selected": result.selected,
+               "rejected_updates": result.rejected, "selected": result.selected, **gpu_sharing(),
                "term_shares": mean_term_shares(result.history),
                "last": result.history[-1] if result.history else {}}
     write_json(out_dir / "train.json", summary)
     _plot_history(result.history, out_dir / "loss.png", f"{scene_name} / {method.name}")
     return summary
+
+
+def gpu_sharing() -> dict:
+    """How the run shared its GPU, from the launcher (``gca.pipeline.grid`` sets ``GCA_RUNS_PER_GPU``, its slots per
+    GPU, and ``GCA_MPS``): ``runs_per_gpu`` [count] and ``mps`` [bool]. A time measured with 8 runs on one GPU is not a
+    solo time (Table 4 says so); a run started otherwise (dvc repro, by hand) counts as alone."""
+    return {"runs_per_gpu": int(os.environ.get("GCA_RUNS_PER_GPU") or 1), "mps": os.environ.get("GCA_MPS") == "1"}
 
 
 def mean_term_shares(history: list[dict]) -> dict[str, float]:

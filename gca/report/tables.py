@@ -140,6 +140,19 @@ def _mean_over_scenes(runs: Runs, method: str, key: str, scale: float = 1.0) -> 
     return Cell(cell.status, cell.mean * scale, None, cell.n)
 
 
+def _sharing_note(runs: Runs) -> tuple[str, ...]:
+    """A note when Table 4's runs shared their GPU (``runs_per_gpu`` > 1, from the grid): their times are not solo."""
+    records = [r for m in paper.TABLE4_LABELS for s in paper.SYNTHETIC_SCENES for r in runs.get((s, m)) or []]
+    shared = [r for r in records if int(r.get("runs_per_gpu") or 1) > 1]
+    if not shared:
+        return ()
+    most = max(int(r["runs_per_gpu"]) for r in shared)
+    mps = "under CUDA MPS" if any(r.get("mps") for r in shared) else "time-sliced, without MPS"
+    return (f"{len(shared)} of {len(records)} runs trained with up to {most} runs on one GPU ({mps}): their training "
+            "times are packed times, not solo ones; LoRA vs full fine-tuning compares fairly only between runs packed "
+            "alike. Solo timings: `benchmarks/harness.py`.",)
+
+
 def _n_scenes(runs: Runs, method: str) -> int:
     return sum((s, method) in runs for s in paper.SYNTHETIC_SCENES)
 
@@ -163,7 +176,8 @@ def table4_efficiency(runs: Runs) -> Table:
                      "Scenes": ""})
     notes = ("Measured columns are means over the synthetic scenes that ran (`Scenes`); memory is the peak in GiB "
              "(`peak_memory_gib`), the paper's in GB; inference is the rollout time (`rollout_seconds`).",
-             f"Paper device: {paper.PAPER_DEVICE}. Times depend on the device and profile stated above.")
+             f"Paper device: {paper.PAPER_DEVICE}. Times depend on the device and profile stated above.",
+             *_sharing_note(runs))
     return Table("table4_efficiency", "Table 4: computational efficiency (LoRA vs full fine-tuning)",
                  "Paper: LoRA fine-tuning achieves superior physical accuracy with lower cost.",
                  pd.DataFrame(rows), notes)
