@@ -70,10 +70,13 @@ def test_neuma_lr_scale_multiplies_its_published_rates():
 
     from gca.train.config import NEUMA_LR, TrainConfig, neuma_recipe
 
-    base = neuma_recipe(TrainConfig(), "jelly")
+    base = neuma_recipe(TrainConfig(neuma_lr_scale=1.0), "jelly")
     assert (base.lr_elasticity, base.lr_plasticity) == NEUMA_LR["jelly"][:2]  # 1.0: as published
     scaled = neuma_recipe(dataclasses.replace(TrainConfig(), neuma_lr_scale=2.0), "jelly")
     assert scaled.lr_elasticity == pytest.approx(2 * NEUMA_LR["jelly"][0])
+    tuned = TrainConfig()  # the default is the tuning's choice (tuning/record.json), both rates scaled
+    assert tuned.neuma_lr_scale != 1.0
+    assert neuma_recipe(tuned, "jelly").lr_plasticity == pytest.approx(tuned.neuma_lr_scale * NEUMA_LR["jelly"][1])
     with pytest.raises(ValueError, match="neuma_lr_scale"):
         TrainConfig(neuma_lr_scale=0.0)
 

@@ -274,7 +274,7 @@ from gca.train.state import make_optimizer  # noqa: E402
 
 
 def test_neuma_recipe_by_prior_family_and_gca_untouched():
-    base = TrainConfig(iterations=30, neuma_lr_scale=1.0)  # as published (the tuned scale: the next test)
+    base = TrainConfig(iterations=30, neuma_lr_scale=1.0)  # as published (the tuned scale: test_pipeline_tune)
     for family, (lr_e, lr_p, floor) in NEUMA_LR.items():
         cfg = neuma_recipe(base, family)
         assert (cfg.lr_elasticity, cfg.lr_plasticity, cfg.cosine_floor, cfg.optimizer) == (lr_e, lr_p, floor, "radam")
@@ -284,16 +284,6 @@ def test_neuma_recipe_by_prior_family_and_gca_untouched():
     assert (fluid.lr_elasticity, fluid.cosine_floor) == (base.lr_elasticity, base.cosine_floor)
     assert get_method("neuma").recipe == get_method("neuma_multiview").recipe == "neuma"
     assert get_method("gca").recipe == "gca" and frame_weights(base, 0, 10) is None  # negative control
-
-
-def test_neumas_published_rates_scale_by_the_tuned_factor():
-    """``train.neuma_lr_scale`` (tuned on the calibration scenes, the default) multiplies both published rates."""
-    tuned = TrainConfig(iterations=30)
-    assert tuned.neuma_lr_scale != 1.0  # the tuning's choice is the default (tuning/record.json)
-    for family, (lr_e, lr_p, floor) in NEUMA_LR.items():
-        cfg = neuma_recipe(tuned, family)
-        assert cfg.lr_elasticity == pytest.approx(lr_e * tuned.neuma_lr_scale, rel=1e-12)
-        assert cfg.lr_plasticity == pytest.approx(lr_p * tuned.neuma_lr_scale, rel=1e-12) and cfg.cosine_floor == floor
 
 
 def test_gca_optimiser_comes_from_params_and_neuma_keeps_radam(scene):
