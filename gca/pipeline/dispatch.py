@@ -262,7 +262,7 @@ class SubmititEngine(Engine):
         return not handle.done()
 
     def state(self, handle) -> str:
-        if not handle.done():
+        if self.running(handle):
             return RUNNING
         if not self.slurm and not handle.paths.result_pickle.exists():
             return FAILED  # a local job ended without its result (killed): submitit would wait 15 s for it

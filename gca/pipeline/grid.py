@@ -52,6 +52,7 @@ from typing import Callable
 import yaml
 
 from gca.pipeline import dispatch
+from gca.stamp import fingerprint
 from gca.pipeline.dispatch import critical_path, gpu_ids  # noqa: F401 (this module's API before the engine)
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
@@ -329,13 +330,6 @@ STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/[^/]+/velocit
 STATE_PARAMS = ".grid/state_params.json"  # what the state was made under: the params' digest and each scene's methods
 
 
-def _digest(value) -> str:
-    import hashlib
-    import json
-
-    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
-
-
 def _made_under(work: Path) -> dict:
     """The grid's params.yaml as a state records it. A grid may grow by methods (Table 3's rows after Table 1's) and
     by scenes (Tables 2, 5, 6 after them: one state, one report, one claims table), so the record is: ``digest``, of
@@ -348,11 +342,11 @@ def _made_under(work: Path) -> dict:
     families = (params.get("prior") or {}).pop("families", {})
     captures = (params.get("demo") or {}).pop("captures", {})
     methods = {name: list(spec.get("methods", [])) for name, spec in scenes.items()}
-    own = {name: _digest({"scene": {k: v for k, v in spec.items() if k != "methods"},
-                          "object": objects.get(spec.get("object")), "prior": families.get(spec.get("prior")),
-                          "capture": captures.get(name)})
+    own = {name: fingerprint({}, (), extra={"scene": {k: v for k, v in spec.items() if k != "methods"},
+                                            "object": objects.get(spec.get("object")),
+                                            "prior": families.get(spec.get("prior")), "capture": captures.get(name)})
            for name, spec in scenes.items()}
-    return {"digest": _digest(params), "scenes": own, "methods": methods}
+    return {"digest": fingerprint({}, (), extra=params), "scenes": own, "methods": methods}  # gca.stamp's hash
 
 
 def state_files(work: Path) -> list[str]:
