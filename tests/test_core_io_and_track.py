@@ -116,3 +116,22 @@ def test_tracking_failure_only_warns(tmp_path, monkeypatch):
             run.log_metrics({"x": 1.0})
             ran.append(True)
     assert ran == [True]
+
+
+def test_the_commit_given_by_the_sender_wins(monkeypatch):
+    """On the GPU machine the checkout is a copied tree whose .git (if any) is not the code sent: training, evaluation and
+    tuning records say the commit they were sent as; here, without it, git's HEAD; with no git at all, unknown."""
+    import subprocess
+
+    monkeypatch.delenv("GCA_COMMIT", raising=False)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=track.ROOT, capture_output=True, text=True).stdout.strip()
+    assert track.git_commit().startswith(head)
+    monkeypatch.setenv("GCA_COMMIT", "abc1234")
+    assert track.git_commit() == "abc1234 (given)"
+
+    def no_git(*a, **k):
+        raise OSError("git: not found")
+
+    monkeypatch.setattr(subprocess, "run", no_git)
+    monkeypatch.delenv("GCA_COMMIT")
+    assert track.git_commit() == "unknown"

@@ -130,10 +130,12 @@ def test_every_method_has_metrics_and_reports_exist(pipeline):
         assert m["status"] == "ok", (method, m["status"])  # no method diverges at the CI profile
         assert np.isfinite(m["chamfer_mean"]) and len(m["chamfer_per_frame"]) > 1
         assert 0 < m["psnr_train"] < 100
+        trained = json.loads((pipeline / "runs" / SCENE / method / "train.json").read_text())
+        assert m["train_commit"] == trained["commit"] and m["commit"] not in ("", "unknown")
     gca = json.loads((pipeline / "metrics/eval" / SCENE / "gca.json").read_text())
     assert "law_error_uniaxial_pct" in gca and "law_curves" in gca
     assert (pipeline / "reports/README.md").is_file()
-    assert (pipeline / "reports/table1_synthetic_cd.md").is_file()
+    assert f"trained at `{gca['train_commit']}`" in (pipeline / "reports/table1_synthetic_cd.md").read_text()
 
 
 def test_training_wrote_history_and_adapters(pipeline):
@@ -144,6 +146,7 @@ def test_training_wrote_history_and_adapters(pipeline):
         train = json.loads((run / method / "train.json").read_text())
         assert train["status"] == "ok", (method, train["status"])
         assert (run / method / "law.pt").is_file() and not (run / method / "checkpoint.pt").exists()
+        assert train["commit"] not in ("", "unknown") and train["device"].startswith("cpu")  # what made it
 
 
 def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch, capsys):

@@ -249,7 +249,7 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
         assert entry["chosen"]["trial"] in (0, 1) and set(entry["chosen"]["params"]) == \
             {key for k in entry["knobs"] for key in k["keys"]}
     units = [u for e in record["methods"].values() for t in e["trials"] for u in t["units"]]
-    assert all(u["device"] == "cpu" and u["commit"] != "unknown" for u in units)
+    assert all(u["device"].startswith("cpu") and u["commit"] != "unknown" for u in units)
     assert sum(record["unit_commits"].values()) == len(units) == 4
     shares = record["methods"]["gca"]["trials"][0]["score"]["shares"]
     assert set(shares) == {"silhouette", "global", "anchor"}
@@ -363,25 +363,6 @@ def test_a_failing_inputs_stage_stops_its_chain_and_names_itself(tmp_path):
     assert "broken input" in log_path.read_text()
     assert not dispatch.is_done(tmp_path, "bad") and not (tmp_path / "later.ran").exists()
     assert (tmp_path / "slow.end").is_file() and dispatch.is_done(tmp_path, "slow", "s")
-
-
-def test_the_commit_given_by_the_sender_wins(monkeypatch):
-    """On the GPU machine the checkout is a copied tree whose .git (if any) is not the code sent: the units say the
-    commit they were sent as; here, without it, git's HEAD; with no git at all, unknown."""
-    import subprocess
-
-    monkeypatch.delenv("GCA_COMMIT", raising=False)
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    assert tune._git_commit().startswith(head)
-    monkeypatch.setenv("GCA_COMMIT", "abc1234")
-    assert tune._git_commit() == "abc1234 (given)"
-
-    def no_git(*a, **k):
-        raise OSError("git: not found")
-
-    monkeypatch.setattr(subprocess, "run", no_git)
-    monkeypatch.delenv("GCA_COMMIT")
-    assert tune._git_commit() == "unknown"
 
 
 def test_processes_launched_together_claim_units_in_progress_first(tmp_path, monkeypatch):

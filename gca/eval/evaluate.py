@@ -32,8 +32,9 @@ from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
 
 
-def device_name(device: torch.device) -> str:
+def device_name(device: torch.device | str) -> str:
     """Human-readable device for metrics headers (the GPU model, or the CPU architecture)."""
+    device = torch.device(device)
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
     import platform

@@ -8,6 +8,7 @@ from gca.eval.capture import evaluate_capture
 from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json
 from gca.pipeline.settings import Settings
+from gca.pipeline.track import git_commit
 from gca.pipeline.train import load_learned_law, read_velocity, solver_for, velocity_path
 from gca.scenes.world import Body
 from gca.train.config import run_dir_name
@@ -51,8 +52,9 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
     if scene.law_level:
         metrics.update(law_metrics(law.material, settings.material(scene.material), scene.dt, cfg))
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "material": scene.material,
-            "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device),
+            "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device), "commit": git_commit(),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],
+            "train_device": train.get("device", "not recorded"), "train_commit": train.get("commit", "not recorded"),
             "term_shares": train.get("term_shares", {}), "runs_per_gpu": train.get("runs_per_gpu", 1),
             "mps": train.get("mps", False)}
 
@@ -69,5 +71,7 @@ def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs
     if train["status"] != "ok":
         metrics["status"] = train["status"]
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "seed": seed,
-            "profile": settings.profile, "device": device_name(body.x0.device), "velocity": read_json(velocity_path(runs_dir, seed)),
+            "profile": settings.profile, "device": device_name(body.x0.device), "commit": git_commit(),
+            "train_device": train.get("device", "not recorded"), "train_commit": train.get("commit", "not recorded"),
+            "velocity": read_json(velocity_path(runs_dir, seed)),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}

@@ -31,16 +31,28 @@ from typing import Any, Iterator, Mapping
 from gca.config import flatten
 
 DEFAULT_URI = "sqlite:///mlflow.db"
+ROOT = Path(__file__).resolve().parents[2]  # the checkout the package runs from
 _MAX_PARAM_LEN = 6000  # MLflow rejects longer param values
 
 
 def git_commit() -> str:
-    """Short SHA of HEAD, or ``"unknown"`` outside a git checkout."""
+    """The commit of the code running: ``$GCA_COMMIT`` when whoever sent the tree says it (the GPU machine's copy of
+    the tree carries a stale ``.git``, session 17: its HEAD is not the code sent; ``benchmarks/gpu_wheels.sh``
+    requires it there), else HEAD of the checkout this package is imported from (``+dirty`` with uncommitted
+    changes to tracked files), else ``unknown``. Recorded by training, evaluation and tuning, and the MLflow tag
+    ``git_commit``."""
+    given = os.environ.get("GCA_COMMIT", "").strip()
+    if given:
+        return f"{given} (given)"
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() or "unknown"
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10).stdout.strip()
+        if out.returncode == 0:
+            return out.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        pass
+    return "unknown"
 
 
 class Run:

@@ -27,11 +27,13 @@ import torch
 
 from gca import config
 from gca.efficiency import measure
+from gca.eval.evaluate import device_name
 from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
 from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
+from gca.pipeline.track import git_commit
 from gca.scenes import SceneConfig, read_meta, load_views
 from gca.scenes.preprocess import load_prep
 from gca.scenes.store import frame_substeps, seed_dir
@@ -206,6 +208,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
                "rejected_updates": result.rejected, "selected": result.selected, **gpu_sharing(),
+               "commit": git_commit(), "device": device_name(device),  # what made it (a resumed run: what finished it)
                "term_shares": mean_term_shares(result.history),
                "last": result.history[-1] if result.history else {}}
     write_json(out_dir / "train.json", summary)

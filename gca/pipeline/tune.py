@@ -42,6 +42,7 @@ from gca import config, stamp
 from gca.config import ConfigError, resolve
 from gca.io import pack_files, read_json, unpack_files, write_json
 from gca.pipeline import cli, dispatch, grid
+from gca.pipeline.track import git_commit
 from gca.pipeline.tuning import (TuningConfig, apply_values, check_scenes, choose, param_values, params_change,
                                  score, trial_values)
 
@@ -199,7 +200,7 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
     return {"method": method_name, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
             "status": metrics["status"], "chamfer_mean": metrics.get("chamfer_mean"),
             "term_shares": train.get("term_shares", {}), "train_seconds": train["train_seconds"],
-            "iterations": train["iterations"], "commit": _git_commit(), "device": _device_name(device),
+            "iterations": train["iterations"], "commit": train["commit"], "device": train["device"],
             stamp.KEY: expected}
 
 
@@ -247,39 +248,15 @@ def restore_state(archive: Path, work: Path) -> int:
         raise ConfigError(str(exc)) from exc
 
 
-def _git_commit() -> str:
-    """The commit of the code running: ``$GCA_COMMIT`` when whoever sent the tree says it (the GPU machine's copy of
-    the tree carries a stale ``.git``, session 17: its HEAD is not the code sent), else HEAD (``+dirty`` with uncommitted changes to
-    tracked files), else ``unknown``."""
-    given = os.environ.get("GCA_COMMIT", "").strip()
-    if given:
-        return f"{given} (given)"
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                               text=True, timeout=10).stdout.strip()
-        if out.returncode == 0:
-            return out.stdout.strip() + ("+dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return "unknown"
-
-
-def _device_name(device: str) -> str:
-    import torch
-
-    if device.startswith("cuda") and torch.cuda.is_available():
-        return torch.cuda.get_device_name(torch.device(device))
-    return "cpu"
-
-
 def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str], device: str,
                  overrides: list[str]) -> tuple[dict, int]:
     """The tuning record from the unit files in ``work`` and the number of units still missing."""
+    from gca.eval.evaluate import device_name  # torch and warp: only where a record is built
+
     missing = 0
     record = {"protocol": "issue 22 items 1-2: tuning on calibration scenes only, the same budget for every method",
               "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "commit": _git_commit(), "device": _device_name(device), "unit_commits": {},  # what code and device made the units (a tuning spans sessions)
+              "commit": git_commit(), "device": device_name(device), "unit_commits": {},  # what code and device made the units (a tuning spans sessions)
               "profile": params["profile"],
               "benchmark_version": str(params.get("benchmark", {}).get("version", "")),
               "overrides": list(overrides), "budget": cfg.budget(),

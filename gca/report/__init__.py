@@ -202,4 +202,5 @@ def summary(runs: Runs, cfg: ReportConfig | None = None) -> dict:
     info = provenance(runs, runs.keys())
     return {"n_runs": len(runs), "n_records": len(statuses),
             "status_counts": {s: statuses.count(s) for s in sorted(set(statuses))},
-            "profile": info["profile"], "device": info["device"], "table1_average_cd": averages}
+            "profile": info["profile"], "device": info["device"], "commit": info["commit"],
+            "table1_average_cd": averages}

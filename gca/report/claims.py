@@ -308,7 +308,8 @@ def claims_markdown(df: pd.DataFrame, info: Mapping[str, str], cfg: ClaimsConfig
                   "a smoke test of the machinery (tiny scenes, a few iterations, few seeds); only the paper "
                   "profile's claims table says whether the paper's claims hold.", ""]
     lines += [f"- Measured at: profile `{info.get('profile')}`, device `{info.get('device')}`, {info.get('runs')} "
-              "metrics files.",
+              f"metrics files; code: evaluated at `{info.get('commit', 'unknown')}`, trained at "
+              f"`{info.get('train_commit', 'unknown')}`.",
               f"- Divergence: {info.get('divergence', '')}.",
               f"- Interval: {cfg.confidence:.0%} percentile bootstrap over the paired units, {cfg.resamples} "
               f"resamples, numpy seed {cfg.seed}. A unit is one (scene, seed) both methods measured (diverged runs "

@@ -356,7 +356,8 @@ TABLES: tuple[tuple[Callable[[Runs], Table], Callable[[], set[tuple[str, str]]]]
 
 
 def provenance(runs: Runs, pairs: Iterable[tuple[str, str]]) -> dict[str, str]:
-    """Profile, device and Chamfer definition of the records a table reads ("mixed" when they differ)."""
+    """Profile, device, code and Chamfer definition of the records a table reads ("mixed" when they differ; "unknown"
+    when none says: ``commit`` is the evaluation's, ``train_commit`` its training's, both since session 20)."""
     records = [r for pair in sorted(pairs) for r in runs.get(pair, [])]
 
     def one(key: str) -> str:
@@ -367,6 +368,7 @@ def provenance(runs: Runs, pairs: Iterable[tuple[str, str]]) -> dict[str, str]:
 
     definitions = sorted({str(r["chamfer_definition"]) for r in records if r.get("chamfer_definition")})
     return {"runs": str(len(records)), "profile": one("profile"), "device": one("device"),
+            "commit": one("commit"), "train_commit": one("train_commit"),
             "benchmark_version": one("benchmark_version"),
             "chamfer_definition": " | ".join(definitions) if definitions else "not stated in the metrics"}
 
@@ -388,7 +390,8 @@ def markdown(table: Table, info: Mapping[str, str]) -> str:
     if info["runs"] == "0":
         where = "no metrics found for this table: every measured cell is “not run”"
     else:
-        where = f"profile `{info['profile']}`, device `{info['device']}`, {info['runs']} metrics files"
+        where = (f"profile `{info['profile']}`, device `{info['device']}`, {info['runs']} metrics files; code: "
+                 f"evaluated at `{info.get('commit', 'unknown')}`, trained at `{info.get('train_commit', 'unknown')}`")
     lines = [f"# {table.title}", "", table.caption, "",
              f"- Benchmark version: {info.get('benchmark_version', 'unknown')} (params `benchmark.version` of the "
              "metrics; docs/benchmark.md).",
