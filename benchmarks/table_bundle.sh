@@ -4,7 +4,9 @@
 # between leases, so each call starts from the grid's state committed in $STATE (the runs done, their laws and
 # evaluations' JSON, the checkpoints of runs cut off mid-training: `grid --save-state`, ~45 kB a run) and returns the
 # new one in $OUT/all.tgz (state.tgz inside) with grid_results.tar.gz (the histories, media and report made by this
-# call) and mlflow.db (this machine's MLflow store): commit state.tgz as $STATE, keep the rest. Inputs are remade on
+# machine): commit state.tgz as $STATE and the histories as a records.tgz (benchmarks/results/table1_records_s20/).
+# The GPU machine has no mlflow: the runs reach MLflow here afterwards (grid --restore-state $STATE --records
+# records.tgz --mlflow-import, same grid options; README "After a run"). Inputs are remade on
 # each machine, only for the scenes with a run or an evaluation left (`grid.needed`). With the wheels' call, the
 # carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: move benchmarks/results/* but priors_paper and
 # reports/ci/figures aside for it.

@@ -24,7 +24,7 @@ from gca.pipeline import cli
 from gca.pipeline.evaluate import evaluate_capture_trained, evaluate_trained
 from gca.io import read_json, write_json
 from gca.pipeline.train import seed_runs
-from gca.pipeline.track import method_params, mirror_runs, stage_run, with_millimetres
+from gca.pipeline.track import method_params, mirror_runs, stage_run, train_run_args, with_millimetres
 from gca.scenes import truth
 
 from common import scene_context, scene_parser  # stages/common.py
@@ -44,9 +44,8 @@ def main(argv=None) -> dict:
     for method, seed, name in tqdm(seed_runs(settings, methods, args.seeds), desc=f"evaluate {args.scene}", unit="run",
                                    disable=cli.quiet()):
         run_id = read_json(args.runs / name / "train.json").get("mlflow_run_id")
-        with stage_run("evaluate", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
-                       experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
-                       tags={"tables": ",".join(method.tables), "seed": str(seed)}, resume_run_id=run_id) as run:
+        with stage_run("evaluate", settings.params, **train_run_args(args.scene, method, seed, name),
+                       resume_run_id=run_id) as run:
             with truth.bind(args.scene_dir, args.gt):
                 out[name] = evaluate_trained(settings, args.scene, method, inputs, body, args.runs, args.out,
                                              args.device, seed)
@@ -59,7 +58,7 @@ def main(argv=None) -> dict:
             primary = run.run_id
         # every other table of the method lists this row too (gca.pipeline.track module doc)
         mirror_runs(settings.params, final, method.tables[1:], primary, scene=args.scene, method=method.name,
-                    run_name=f"{args.scene}/{name}", tags={"tables": ",".join(method.tables), "seed": str(seed)},
+                    run_name=f"{args.scene}/{name}", tags=train_run_args(args.scene, method, seed, name)["tags"],
                     extra_params=method_params(method, lora=settings.lora))
         print(f"evaluate {args.scene}/{name}: {out[name]['status']} CD={out[name].get('chamfer_mean', float('nan')):.4g}")
     return out

@@ -28,7 +28,7 @@ from pathlib import Path
 from gca import stamp, stop
 from gca.pipeline import cli
 from gca.io import read_json, write_json
-from gca.pipeline.track import method_params, stage_run
+from gca.pipeline.track import method_params, stage_run, train_run_args
 
 from common import scene_context, scene_parser  # stages/common.py
 from gca.pipeline.train import (estimate_scene_velocity, observed_inputs, read_velocity, seed_runs, train_method,
@@ -90,9 +90,7 @@ def main(argv=None) -> dict:
     results = {}
     for method, seed, name in runs:
         velocity, inputs_stamp = velocities[seed]
-        with stage_run("train", settings.params, scene=args.scene, method=method.name, table=method.tables[0],
-                       experiment=f"gca/{method.tables[0]}", run_name=f"{args.scene}/{name}",
-                       tags={"tables": ",".join(method.tables), "material": scene.material, "seed": str(seed)}) as run:
+        with stage_run("train", settings.params, **train_run_args(args.scene, method, seed, name, scene.material)) as run:
             run.log_params(method_params(method, settings.rdga, settings.cpr, settings.lora))
             checkpoint = args.out / name / "checkpoint.pt"
             stamp.guard_checkpoint(checkpoint, stamp.fingerprint(settings.params, TRAIN_KEYS,

@@ -410,6 +410,20 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(str(exc)) from exc
 
 
+RECORDS_RE = re.compile(r"^(runs/[^/]+/[^/]+/(history\.json|loss\.png)|metrics/eval/[^/]+/[^/]+/[^/]+\.(png|gif))$")
+
+
+def unpack_records(archive: Path, work: Path) -> int:
+    """Unpack what the MLflow import reads beyond the state (:data:`RECORDS_RE`: histories, loss curves, evaluation
+    media) from ``archive`` into ``work`` (a file there is kept); other members are passed over."""
+    from gca.io import unpack_files
+
+    try:
+        return unpack_files(archive, work, lambda name: True, "records", skip=lambda name: not RECORDS_RE.match(name))
+    except (FileNotFoundError, ValueError) as exc:
+        raise SystemExit(str(exc)) from exc
+
+
 def needed(jobs: dict, done: set[str]) -> set[str]:
     """The jobs to run: every job not done whose results a grid state carries (training, evaluation:
     :data:`STATE_RE`) or that nothing reads from (the grid's ends), and the jobs not done that one of those reads
@@ -500,6 +514,12 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--save-state", type=Path, metavar="TGZ",
                     help="--work: at the end write the runs' results, laws and checkpoints and the evaluations' JSON "
                          "to this archive (the state another machine goes on from with --restore-state)")
+    ap.add_argument("--records", type=Path, action="append", default=[], metavar="TGZ",
+                    help="--work: also unpack the histories, loss curves and evaluation media of these archives "
+                         "(--collect's grid_results.tar.gz, a results folder's records.tgz), for --mlflow-import")
+    ap.add_argument("--mlflow-import", action="store_true",
+                    help="--work: run no job; log the runs' records (after --restore-state, --records) into MLflow "
+                         "as the stages would have (gca.pipeline.mlflow_records: the GPU machine has no mlflow)")
     ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
                                      "jobs share: concurrent first builds can corrupt its cache)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
@@ -535,6 +555,13 @@ def main(argv=None) -> dict[str, str]:
             jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
         if args.restore_state is not None:
             print(f"[grid] {restore_state(args.restore_state, work)} state files restored from {args.restore_state}")
+        for archive in args.records:
+            print(f"[grid] {unpack_records(archive, work)} record files unpacked from {archive}")
+        if args.mlflow_import:
+            from gca.pipeline.mlflow_records import import_grid
+
+            print(f"[grid] mlflow: {import_grid(work)}")
+            return {}
         done = {n for n in jobs if dispatch.is_done(work, n)}
         keep = needed(jobs, done)
         jobs = {n: j for n, j in jobs.items() if n in keep or n in done}

@@ -130,6 +130,15 @@ def method_params(method, rdga=None, cpr=None, lora=None) -> dict[str, Any]:
     return out
 
 
+def train_run_args(scene: str, method, seed: int, name: str, material: str | None = None) -> dict[str, Any]:
+    """:func:`stage_run`'s keywords for the MLflow run of one training run (``name``: ``gca``, ``gca@seed1``): the
+    experiment of the method's first table, tags scene / method / table / tables / seed (and the scene's material).
+    The train and evaluate stages and the records' import (``gca.pipeline.mlflow_records``) log through it."""
+    tags = {"tables": ",".join(method.tables), "seed": str(seed), **({"material": material} if material else {})}
+    return {"scene": scene, "method": method.name, "table": method.tables[0], "experiment": f"gca/{method.tables[0]}",
+            "run_name": f"{scene}/{name}", "tags": tags}
+
+
 def with_millimetres(metrics: Mapping[str, Any]) -> dict[str, Any]:
     """``metrics`` plus ``<key>_mm`` for every finite Chamfer number ``chamfer_*`` in metres (x 1e3; a squared
     definition, m^2, gets ``<key>_mm2``, x 1e6)."""
