@@ -20,7 +20,8 @@
 #            each scene's own methods in params.yaml); STATE its state file (default
 #            benchmarks/results/table1_seeds/state.tgz). A state is tied to its seeds and knobs (another grid takes
 #            another STATE) but grows by methods and by scenes, so the paper's tables are one state, one report and
-#            one claims table, in this order (the runs done are kept; a scene with new methods is evaluated again):
+#            one claims table, in this order (the runs done and their evaluations are kept; only new runs are trained
+#            and evaluated, each run's evaluation right after its training):
 #              1. Table 1: the defaults (36 trained runs, 18 NCLaw runs)
 #              2. Table 3: METHODS="gca neuma nclaw no_global no_anchor rank_to_l1 no_rdga no_cpr gca_full_ft" (+108)
 #              3. the rest (Tables 2, 4, 5, 6, law level): METHODS=params

@@ -94,7 +94,7 @@ def repo(tmp_path_factory):
 def test_engine_runs_every_stage_and_writes_every_report(repo):
     dest, _, log, _ = repo
     for job in ["assets@ball", "particles@cat", "prior@jelly", "ground_truth@ball", "preprocess@cat",
-                "train@ball:nclaw", "train@cat:no_global+", "evaluate@cat", "demo", "report"]:
+                "train@ball:nclaw", "train@cat:no_global+", "evaluate@cat:gca+", "demo", "report"]:
         assert f"done  {job}" in log, log
     assert "FAIL" not in log and "dvc commit -f " in log
     for name in REPORTS:

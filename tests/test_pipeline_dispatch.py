@@ -225,7 +225,7 @@ def test_slurm_jobs_carry_afterok_dependencies_one_gpu_and_the_requeue_signal(tm
 
 def test_finished_stages_are_the_ones_all_of_whose_jobs_are_done():
     state = {"assets@ball": "done", "train@ball:nclaw": "done", "train@ball:gca": "failed",
-             "train@cat:gca": "done", "train@cat:nclaw": "done", "evaluate@cat": "todo"}
+             "train@cat:gca": "done", "train@cat:nclaw": "done", "evaluate@cat:gca": "done", "evaluate@cat:nclaw": "todo"}
     assert dispatch.dvc_stages(state) == ["assets@ball", "train@cat"]
 
 

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def jobs():
     params = grid.grid_params("ci", ["ball", "cat"], ["gca", "nclaw"], ["train.iterations=3"])
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
-    return params, grid.link(grid.split_train(grid.expand(dvc, params, ["assets", "particles", "prior", "ground_truth",
+    return params, grid.link(grid.split_runs(grid.expand(dvc, params, ["assets", "particles", "prior", "ground_truth",
                                                                           "preprocess", "train", "evaluate", "report"]),
                                               params))
 
@@ -34,9 +34,9 @@ def test_grid_params_keep_only_what_the_scenes_need():
 
 def test_stage_commands_are_dvc_yaml_expanded(jobs):
     params, jobs = jobs
-    assert {"assets@ball", "assets@cat", "prior@jelly", "prior@plasticine", "ground_truth@cat", "evaluate@ball",
+    assert {"assets@ball", "assets@cat", "prior@jelly", "prior@plasticine", "ground_truth@cat", "evaluate@ball:gca",
             "report", "train@ball:nclaw", "train@ball:gca"} <= set(jobs)
-    assert "prior@sand" not in jobs and "train@ball" not in jobs
+    assert "prior@sand" not in jobs and "train@ball" not in jobs and "evaluate@ball" not in jobs
     assert jobs["report"].cmd.split("--out ")[1].startswith("reports/ci ")
     assert jobs["assets@cat"].cmd.startswith("python stages/assets.py --object cat --out data/assets/cat")
     gca = jobs["train@ball:gca"]
@@ -47,7 +47,7 @@ def test_stage_commands_are_dvc_yaml_expanded(jobs):
 def test_seeds_split_training_into_one_job_per_run():
     params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,2]"])
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
-    jobs = grid.link(grid.split_train(grid.expand(dvc, params, ["train", "evaluate"]), params))
+    jobs = grid.link(grid.split_runs(grid.expand(dvc, params, ["train", "evaluate"]), params))
     train = {n: j for n, j in jobs.items() if n.startswith("train@")}
     # every method runs every seed (the prior's launch velocity comes from the seed's own nuisance draw)
     assert set(train) == {"train@ball:nclaw", "train@ball:gca", "train@ball:nclaw@seed2", "train@ball:gca@seed2"}
@@ -59,7 +59,13 @@ def test_seeds_split_training_into_one_job_per_run():
     assert train["train@ball:gca@seed2"].outs == ["runs/ball/gca@seed2"]
     assert train["train@ball:gca@seed2"].after == {"train@ball:nclaw@seed2"}
     assert train["train@ball:gca"].after == {"train@ball:nclaw"}
-    assert set(train) <= jobs["evaluate@ball"].after
+    # each run is evaluated after its own training (and its seed's launch velocity), not after the scene's others
+    evaluate = {n: j for n, j in jobs.items() if n.startswith("evaluate@")}
+    assert set(evaluate) == {n.replace("train@", "evaluate@") for n in train}
+    assert evaluate["evaluate@ball:gca@seed2"].cmd.endswith("--methods gca --seeds 2")
+    assert evaluate["evaluate@ball:gca@seed2"].outs == ["metrics/eval/ball/gca@seed2.json", "metrics/eval/ball/gca@seed2"]
+    assert evaluate["evaluate@ball:gca@seed2"].after & set(train) == {"train@ball:gca@seed2", "train@ball:nclaw@seed2"}
+    assert evaluate["evaluate@ball:gca"].after & set(train) == {"train@ball:gca", "train@ball:nclaw"}
 
 
 def test_order_follows_deps_and_outs(jobs):
@@ -67,10 +73,10 @@ def test_order_follows_deps_and_outs(jobs):
     assert {"train@ball:nclaw", "prior@jelly", "ground_truth@ball", "preprocess@ball", "particles@ball",
             "assets@ball"} <= jobs["train@ball:gca"].after
     assert "prior@plasticine" not in jobs["train@ball:gca"].after
-    assert {"train@cat:gca", "train@cat:nclaw"} <= jobs["evaluate@cat"].after
-    assert {"evaluate@ball", "evaluate@cat"} <= jobs["report"].after
+    assert {"train@cat:gca", "train@cat:nclaw"} <= jobs["evaluate@cat:gca"].after
+    assert {"evaluate@ball:gca", "evaluate@cat:nclaw"} <= jobs["report"].after
     prio = grid.critical_path(jobs)  # gca.pipeline.dispatch's
-    assert prio["prior@jelly"] > prio["train@ball:gca"] > prio["evaluate@ball"] > prio["report"] > 0
+    assert prio["prior@jelly"] > prio["train@ball:gca"] > prio["evaluate@ball:gca"] > prio["report"] > 0
 
 
 def test_collect_keeps_the_small_results(tmp_path):
@@ -186,7 +192,7 @@ def test_needed_runs_what_a_job_to_run_reads_and_the_ends(jobs):
     ball_done = {n for n in js if n.startswith(("train@ball", "evaluate@ball"))}
     need = grid.needed(js, ball_done)
     assert not any(n.endswith("@ball") for n in need)  # assets@ball .. preprocess@ball: nothing left reads them
-    assert {"assets@cat", "preprocess@cat", "train@cat:gca", "evaluate@cat", "report"} <= need
+    assert {"assets@cat", "preprocess@cat", "train@cat:gca", "evaluate@cat:gca", "report"} <= need
     one_left = ball_done - {"train@ball:gca"}  # a run to redo (its marker removed): it remakes what it reads
     need = grid.needed(js, one_left)
     assert {"train@ball:gca", "preprocess@ball", "assets@ball"} <= need
@@ -209,7 +215,7 @@ def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
     work, elsewhere = tmp_path / "w", tmp_path / "elsewhere"
     params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"])
     grid.prepare(work, params)
-    state = [".grid/train@ball:gca.done", ".grid/evaluate@ball.done", "runs/ball/gca/train.json",
+    state = [".grid/train@ball:gca.done", ".grid/evaluate@ball:gca.done", "runs/ball/gca/train.json",
              "runs/ball/gca/law.pt", "runs/ball/gca@seed1/checkpoint.pt", "runs/ball/gca@seed1/checkpoint.pt.stamp",
              "runs/ball/velocity.json", "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json"]
     inputs = [".grid/assets@ball.done", ".grid/preprocess@ball.done", "data/scenes/ball/meta.json",
@@ -249,14 +255,14 @@ def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
         grid.restore_state(tmp_path / "missing.tgz", fresh)
 
 
-def test_a_grid_state_grows_by_methods_and_evaluates_those_scenes_again(tmp_path):
-    """Table 3's rows after Table 1's: a state restored into a grid with more methods keeps the runs done, and the
-    scenes with new methods are evaluated again (their evaluation marker left out); a grid that drops a method of
-    the state is refused (negative control), and so is one with other knobs."""
+def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monkeypatch):
+    """Table 3's rows after Table 1's: a state restored into a grid with more methods keeps the runs done and their
+    evaluations; only the new methods' runs are trained and evaluated (one evaluation job per run). A grid that drops
+    a method of the state is refused (negative control), and so is one with other knobs."""
     work = tmp_path / "w"
     grid.prepare(work, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], []))
-    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball.done", ".grid/train@cat:nclaw.done",
-                  ".grid/evaluate@cat.done", "runs/ball/nclaw/train.json", "metrics/eval/ball/nclaw.json"])
+    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball:nclaw.done", ".grid/train@cat:nclaw.done",
+                  ".grid/evaluate@cat:nclaw.done", "runs/ball/nclaw/train.json", "metrics/eval/ball/nclaw.json"])
     archive = tmp_path / "state.tgz"
     grid.save_state(work, archive)
     params = grid.grid_params("ci", ["ball", "cat"], ["nclaw"], [])
@@ -265,8 +271,11 @@ def test_a_grid_state_grows_by_methods_and_evaluates_those_scenes_again(tmp_path
     grid.prepare(grown, params)
     grid.restore_state(archive, grown)
     assert (grown / ".grid/train@ball:nclaw.done").is_file() and (grown / "runs/ball/nclaw/train.json").is_file()
-    assert not (grown / ".grid/evaluate@ball.done").exists()  # ball has a new method: evaluated again
-    assert (grown / ".grid/evaluate@cat.done").is_file()  # cat's methods are the same
+    assert (grown / ".grid/evaluate@ball:nclaw.done").is_file()  # evaluated before: kept
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    jobs = grid.link(grid.split_runs(grid.expand(dvc, params, ["train", "evaluate"]), params))
+    todo = {n for n in jobs if not grid.dispatch.is_done(grown, n)}
+    assert todo == {"train@ball:gca", "evaluate@ball:gca"}  # ball's new run only
     fewer = tmp_path / "fewer"
     grid.prepare(fewer, grid.grid_params("ci", ["ball", "cat"], ["gca"], []))
     with pytest.raises(SystemExit, match="methods this grid lacks"):
@@ -285,14 +294,14 @@ def test_a_grid_state_grows_by_scenes_into_one_report(tmp_path):
     object), and one with other knobs."""
     work = tmp_path / "w"
     grid.prepare(work, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], []))
-    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball.done", "runs/ball/nclaw/train.json",
+    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball:nclaw.done", "runs/ball/nclaw/train.json",
                   "metrics/eval/ball/nclaw.json"])
     archive = tmp_path / "state.tgz"
     grid.save_state(work, archive)
     more = tmp_path / "more"
     grid.prepare(more, grid.grid_params("ci", ["ball", "cat", "dragon", "composite"], ["nclaw"], []))
     assert grid.restore_state(archive, more) == 5
-    assert (more / ".grid/evaluate@ball.done").is_file()  # ball's methods are the same: not evaluated again
+    assert (more / ".grid/evaluate@ball:nclaw.done").is_file()  # evaluated: not evaluated again
     assert not (more / "runs/dragon").exists()
     for name, scenes, overrides, why in [
             ("fewer", ["ball"], [], "scenes this grid lacks"),
@@ -330,8 +339,9 @@ def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
             "ground_truth", "preprocess", "train", "evaluate"]
     first, second = tmp_path / "a", tmp_path / "b"
     grid.main(["--work", str(first), *argv])
-    assert "assets@ball" in seen[0] and "evaluate@ball" in seen[0]
-    _write(first, [".grid/train@ball:nclaw.done", ".grid/train@ball:gca.done", ".grid/evaluate@ball.done",
+    assert "assets@ball" in seen[0] and "evaluate@ball:gca" in seen[0]
+    _write(first, [".grid/train@ball:nclaw.done", ".grid/train@ball:gca.done", ".grid/evaluate@ball:gca.done",
+                   ".grid/evaluate@ball:nclaw.done",
                    "runs/ball/gca/train.json", "metrics/eval/ball/gca.json"])
     archive = tmp_path / "state.tgz"
     grid.main(["--work", str(first), *argv, "--save-state", str(archive)])

@@ -168,6 +168,43 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     return out
 
 
+def split_evaluate(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
+    """``evaluate@<scene>`` -> one job per trained run (:func:`split_train`'s): ``evaluate@<scene>:<run>``, after
+    that run's training only (its deps name the run's folder and its seed's launch velocity, not the scene's whole
+    ``runs/<scene>``), writing ``metrics/eval/<scene>/<run>.json`` and its media folder. So a run is evaluated as
+    soon as it is trained (no scene-wide tail at the end of a table), a short job is cut less often by a deadline,
+    and a grid grown by methods (Table 3's rows after Table 1's) evaluates only the new runs."""
+    from gca.config import resolve
+    from gca.train.methods import get_method
+    from gca.pipeline.settings import Settings
+    from gca.pipeline.train import seed_runs, velocity_path
+
+    resolved = Settings(resolve(params, params["profile"]))
+    several = len(resolved.train.seeds) > 1
+    out = {}
+    for name, job in jobs.items():
+        if not name.startswith("evaluate@"):
+            out[name] = job
+            continue
+        scene = name.split("@", 1)[1]
+        runs_dir = re.search(r"--runs (\S+)", job.cmd).group(1)
+        eval_dir = re.search(r"--out (\S+)", job.cmd).group(1)
+        methods = [get_method(m) for m in params["scenes"][scene]["methods"]]
+        if not methods:  # a calibration scene: its (empty) evaluation folder is still the stage's output
+            out[name] = job
+        for method, s, run in seed_runs(resolved, methods):
+            deps = [d for d in job.deps if d != runs_dir] + [f"{runs_dir}/{run}", velocity_path(Path(runs_dir), s).as_posix()]
+            cmd = f"{job.cmd} --methods {method.name}" + (f" --seeds {s}" if several else "")
+            out[f"{name}:{run}"] = Job(f"{name}:{run}", cmd, deps, [f"{eval_dir}/{run}.json", f"{eval_dir}/{run}"],
+                                       job.cost / max(1, len(methods)))
+    return out
+
+
+def split_runs(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
+    """:func:`split_train` then :func:`split_evaluate`: one training job and one evaluation job per run."""
+    return split_evaluate(split_train(jobs, params), params)
+
+
 def _under(path: str, root: str) -> bool:
     return path == root or path.startswith(root.rstrip("/") + "/")
 
@@ -185,13 +222,15 @@ def batch_runs(jobs: dict, runs_per_job: int) -> dict:
     """Training jobs of :func:`split_train` (one per run) put together ``runs_per_job`` at a time: the runs
     of one scene and one seed after the first (which estimates the launch velocity), in their order, as one
     ``--methods a b ...`` command (where starting a process costs more than the parallelism gains: a
-    CPU). Jobs not unlinked yet (``after``: only the velocity job)."""
+    CPU); so are the evaluation jobs of :func:`split_evaluate`, all runs of a scene and seed. Jobs not linked yet
+    (``after``: only the velocity job)."""
     if runs_per_job <= 1:
         return jobs
     out, groups = {}, {}
     for name, job in jobs.items():
         m = re.search(r"--methods (\S+)", job.cmd)
-        if not name.startswith("train@") or not job.after or m is None:
+        runs = (name.startswith("train@") and job.after) or (name.startswith("evaluate@") and ":" in name)
+        if not runs or m is None:
             out[name] = job
             continue
         seed = re.search(r"--seeds (\S+)", job.cmd)
@@ -205,7 +244,8 @@ def batch_runs(jobs: dict, runs_per_job: int) -> dict:
             first = batch[0]
             methods = " ".join(re.search(r"--methods (\S+)", j.cmd).group(1) for j in batch)
             name = "+".join([first.name] + [j.name.split(":", 1)[1] for j in batch[1:]])
-            out[name] = type(first)(name, re.sub(r"--methods \S+", f"--methods {methods}", first.cmd), list(first.deps),
+            deps = list(dict.fromkeys(d for j in batch for d in j.deps))  # an evaluation reads each run's folder
+            out[name] = type(first)(name, re.sub(r"--methods \S+", f"--methods {methods}", first.cmd), deps,
                                     [o for j in batch for o in j.outs], sum(j.cost for j in batch), set(first.after))
     return out
 
@@ -216,8 +256,8 @@ def repo_jobs(repo: Path, stages: list[str] | None, runs_per_job: int = 1, chang
     others are up to date."""
     params = yaml.safe_load((repo / "params.yaml").read_text())
     jobs = expand(yaml.safe_load((repo / "dvc.yaml").read_text()), params, stages)
-    if any(n.startswith("train@") for n in jobs):
-        jobs = batch_runs(split_train(jobs, params), runs_per_job)
+    if any(n.startswith(("train@", "evaluate@")) for n in jobs):
+        jobs = batch_runs(split_runs(jobs, params), runs_per_job)
     jobs = link(jobs)
     if changed is None:
         return jobs
@@ -366,8 +406,8 @@ def save_state(work: Path, archive: Path) -> int:
 
 def restore_state(archive: Path, work: Path) -> int:
     """Unpack a :func:`save_state` archive into the prepared ``work`` (a file already there is kept); returns the
-    count unpacked. The grid may have grown since by methods (each scene's methods a superset of the state's: a
-    scene with new methods is evaluated again, its evaluation marker not restored) and by scenes (a new scene runs
+    count unpacked. The grid may have grown since by methods (each scene's methods a superset of the state's: only
+    the new methods' runs are trained and evaluated) and by scenes (a new scene runs
     from nothing). Refused, with nothing written, when made under other params (seeds, profile or knobs; a scene
     of the state defined otherwise here, or missing here; a scene's method dropped: its runs are not this grid's),
     or when it holds anything but state files."""
@@ -401,11 +441,9 @@ def restore_state(archive: Path, work: Path) -> int:
     dropped = {s: m for s, m in dropped.items() if m}
     if dropped:
         raise SystemExit(f"{archive}: made with methods this grid lacks ({dropped}); a grid may only add methods")
-    grown = {s for s, m in here["methods"].items() if set(m) - set(made["methods"].get(s, []))}
-    again = {f".grid/evaluate@{s}.done" for s in grown}
-    try:
+    try:  # a scene with new methods needs only their runs evaluated (one evaluation job per run: split_evaluate)
         return unpack_files(archive, work, lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name)),
-                            "grid state", skip=lambda name: name in again)
+                            "grid state")
     except ValueError as exc:
         raise SystemExit(str(exc)) from exc
 
@@ -550,7 +588,7 @@ def main(argv=None) -> dict[str, str]:
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(src, dst)
                 jobs.pop(f"prior@{family}", None)
-        jobs = link(batch_runs(split_train(jobs, params), args.runs_per_job))
+        jobs = link(batch_runs(split_runs(jobs, params), args.runs_per_job))
         if "report" in jobs:  # report reads metrics/demo only when it exists: run without the demo stage
             jobs["report"].after = {a for a in jobs["report"].after if not a.startswith("demo")}
         if args.restore_state is not None:
