@@ -132,6 +132,7 @@ def test_every_method_has_metrics_and_reports_exist(pipeline):
         assert 0 < m["psnr_train"] < 100
         trained = json.loads((pipeline / "runs" / SCENE / method / "train.json").read_text())
         assert m["train_commit"] == trained["commit"] and m["commit"] not in ("", "unknown")
+        assert m["velocity_source"] == "train.json"  # evaluated with the launch velocity it trained with
     gca = json.loads((pipeline / "metrics/eval" / SCENE / "gca.json").read_text())
     assert "law_error_uniaxial_pct" in gca and "law_curves" in gca
     assert (pipeline / "reports/README.md").is_file()
@@ -147,6 +148,8 @@ def test_training_wrote_history_and_adapters(pipeline):
         assert train["status"] == "ok", (method, train["status"])
         assert (run / method / "law.pt").is_file() and not (run / method / "checkpoint.pt").exists()
         assert train["commit"] not in ("", "unknown") and train["device"].startswith("cpu")  # what made it
+        assert train["velocity"] == {k: v for k, v in json.loads((run / "velocity.json").read_text()).items()
+                                     if k in ("v0", "w0")}  # the launch velocity it trained with
 
 
 def test_an_interrupted_train_stage_resumes_with_its_launch_velocity(pipeline, tmp_path, monkeypatch, capsys):

@@ -9,7 +9,7 @@ from gca.eval.evaluate import device_name, evaluate_run, law_metrics
 from gca.io import read_json
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import git_commit
-from gca.pipeline.train import load_learned_law, read_velocity, solver_for, velocity_path
+from gca.pipeline.train import load_learned_law, solver_for, trained_velocity, velocity_path
 from gca.scenes.world import Body
 from gca.train.config import run_dir_name
 
@@ -18,14 +18,16 @@ def _trained_run(settings: Settings, scene_name: str, method, inputs, body: Body
                  seed: int | None):
     """(scene, seed, run name, train.json, the run's learned law, its launch velocity [v0, w0]) of one trained run;
     an explicit row's launch is its own learned one, every other row's the estimate from its seed's observations
-    (:func:`gca.pipeline.train.velocity_path`)."""
+    (:func:`gca.pipeline.train.trained_velocity`: the one the run trained with)."""
     scene = settings.scene(scene_name)
     seed = settings.train_for(seed).seed
     name = run_dir_name(method.name, seed)
     train = read_json(runs_dir / name / "train.json")
     law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
                            float(body.mass.sum() / body.vol.sum()), device, seed)
-    return scene, seed, name, train, law, law.launch_velocity(read_velocity(velocity_path(runs_dir, seed)))
+    estimate, source = trained_velocity(runs_dir, name, seed)
+    train = {**train, "velocity_source": source}
+    return scene, seed, name, train, law, law.launch_velocity(estimate)
 
 
 def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path, out_dir: Path,
@@ -55,6 +57,7 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
             "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device), "commit": git_commit(),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],
             "train_device": train.get("device", "not recorded"), "train_commit": train.get("commit", "not recorded"),
+            "velocity_source": train["velocity_source"],
             "term_shares": train.get("term_shares", {}), "runs_per_gpu": train.get("runs_per_gpu", 1),
             "mps": train.get("mps", False)}
 
@@ -73,5 +76,6 @@ def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "seed": seed,
             "profile": settings.profile, "device": device_name(body.x0.device), "commit": git_commit(),
             "train_device": train.get("device", "not recorded"), "train_commit": train.get("commit", "not recorded"),
-            "velocity": read_json(velocity_path(runs_dir, seed)),
+            "velocity": train.get("velocity") or read_json(velocity_path(runs_dir, seed)),
+            "velocity_source": train["velocity_source"],
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"]}

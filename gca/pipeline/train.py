@@ -209,6 +209,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                "memory_source": cost.source, "render_backend": data.body.backend, "mlflow_run_id": run.run_id if run else None,
                "rejected_updates": result.rejected, "selected": result.selected, **gpu_sharing(),
                "commit": git_commit(), "device": device_name(device),  # what made it (a resumed run: what finished it)
+               "velocity": {"v0": list(map(float, velocity[0])), "w0": list(map(float, velocity[1]))},  # it trained with
                "term_shares": mean_term_shares(result.history),
                "last": result.history[-1] if result.history else {}}
     write_json(out_dir / "train.json", summary)
@@ -292,11 +293,23 @@ def load_law(path: Path, law: LearnedLaw, family: str) -> None:
         law.load_state(payload["state"])
 
 
-def read_velocity(path: Path) -> tuple[list[float], list[float]]:
-    """(v0 [3] m/s, w0 [3] rad/s) from ``velocity.json``, validated."""
-    raw = read_json(path)
+def read_velocity(path: Path, raw: Mapping | None = None) -> tuple[list[float], list[float]]:
+    """(v0 [3] m/s, w0 [3] rad/s) from ``velocity.json`` (or ``raw``, read from ``path``: a run's ``train.json``
+    ``velocity``), validated."""
+    raw = read_json(path) if raw is None else raw
     for key in ("v0", "w0"):
         v = raw.get(key)
         if v is None or len(v) != 3 or not all(np.isfinite(v)):
             raise ValueError(f"{path}: {key} must be 3 finite numbers, got {v}")
     return raw["v0"], raw["w0"]
+
+
+def trained_velocity(runs_dir: Path, name: str, seed: int) -> tuple[tuple[list[float], list[float]], str]:
+    """((v0, w0), where from) of a trained run: the estimate it trained with, kept in its ``train.json`` (since
+    session 20), else its seed's shared ``velocity.json`` (older runs). The shared file may have been estimated
+    again after the run (a grid going on on another machine, whose remade inputs differ in float32 noise, session
+    20): evaluating a run with the launch velocity it trained with keeps its law and its launch one measurement."""
+    train = read_json(runs_dir / name / "train.json")
+    if "velocity" in train:
+        return read_velocity(runs_dir / name / "train.json", train["velocity"]), "train.json"
+    return read_velocity(velocity_path(runs_dir, seed)), velocity_path(runs_dir, seed).name
