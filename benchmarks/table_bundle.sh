@@ -29,6 +29,10 @@
 #            Cost at ~650 s a run under 8-way MPS (~81 s of throughput each, benchmarks/NOTES.md s18-19): Table 1
 #            ~50 min of H100, all of it ~4.5 h. Table 4's seconds are then MPS-packed seconds (its LoRA vs full
 #            fine-tuning ratio compares runs packed alike); solo timings: benchmarks/harness.py.
+#   MACHINE_S  the machine's lease [s] (default on the GPU machine 1800: it goes back 30 min after the stage call):
+#            a training run starts only if its expected time fits what is left of it (grid --machine-left), since a
+#            run cut off by the machine's end resumes on no other machine (session 20: remade inputs differ in float32
+#            noise, so checkpoints made elsewhere are not resumed); evaluations fill the rest
 #   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 570); PROFILE paper
 #   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v).
 #   A CPU smoke: PROFILE=ci PRIORS= SCENES=ball METHODS=nclaw SEEDS="[0,1]" SLOTS=2 STATE=/tmp/s.tgz sh benchmarks/table_bundle.sh
@@ -48,13 +52,19 @@ if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside
   install_wheels
   build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
   MPS="--mps"
+  MACHINE_S=${MACHINE_S:-1800}
+fi
+ML=""  # the machine's time left: from its first call here (W persists while the machine is held), minus ~60 s before it
+if [ -n "${MACHINE_S:-}" ]; then
+  [ -f "$W/machine_start" ] || echo "$T0" > "$W/machine_start"
+  ML="--machine-left $((MACHINE_S - 60 - (T0 - $(cat "$W/machine_start"))))"
 fi
 R=$(restore_once "$STATE" "$W")
 M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's own methods
 # shellcheck disable=SC2086
 timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M \
     --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
-    --deadline "$((LIMIT - 90))" --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
+    --deadline "$((LIMIT - 90))" $ML --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
 echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | tail -n 40
 # The deadline (LIMIT - 90) leaves the stop (at most dispatch.STOP_GRACE_S + 10 s), the state and the results 65 s
 # before the grid's timeout (LIMIT - 25). The grid saves its state at its end; cut off before that (rc 124: session

@@ -90,6 +90,36 @@ def test_deadline_submits_nothing_that_would_end_late(tmp_path):
     assert dispatch.run({"slow": slow}, _local(tmp_path), tmp_path, lambda m: None, deadline=60.0) == {"slow": "todo"}
 
 
+def test_a_run_that_would_outlast_the_machine_is_not_started_but_one_with_a_checkpoint_goes_on(tmp_path):
+    """--machine-left: a run cut off by the machine's end resumes on no other machine (its inputs are remade there
+    and differ in float32 noise), so a training run starts only if its expected time fits the machine's time left;
+    a run with a checkpoint (started on this machine) and an evaluation go on. Negative control: no machine limit."""
+    def jobs():
+        return {name: grid.Job(name, "python -c 'pass'", [], [f"runs/ball/{name.split(':')[1]}"], 0.01)
+                for name in ("train@ball:gca", "train@ball:neuma")} | {"evaluate@ball:nclaw": _fake("e", "pass")}
+    (tmp_path / "runs/ball/neuma").mkdir(parents=True)
+    (tmp_path / "runs/ball/neuma/checkpoint.pt").write_bytes(b"")
+    lines = []
+    state = dispatch.run(jobs(), _local(tmp_path), tmp_path, lines.append, poll_s=0.1, launch_until=300.0,
+                         expected_s=lambda name: 900.0)
+    assert state == {"train@ball:gca": "todo", "train@ball:neuma": "done", "evaluate@ball:nclaw": "done"}
+    assert dispatch.run(jobs(), _local(tmp_path / "b"), tmp_path / "b", lines.append, poll_s=0.1) == \
+        {"train@ball:gca": "done", "train@ball:neuma": "done", "evaluate@ball:nclaw": "done"}
+
+
+def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_path):
+    for scene, run, seconds in (("ball", "gca", 800.0), ("ball", "gca@seed1", 850.0), ("cat", "gca", 400.0),
+                                ("cat", "gca_full_ft", 5000.0)):
+        (tmp_path / "runs" / scene / run).mkdir(parents=True)
+        (tmp_path / "runs" / scene / run / "train.json").write_text(json.dumps({"train_seconds": seconds}))
+    start = grid.JOB_START_S
+    assert grid.expected_train_s(tmp_path, "train@ball:gca@seed2", 900.0) == start + 850.0  # its scene's slowest
+    assert grid.expected_train_s(tmp_path, "train@duck:gca", 900.0) == start + 850.0  # its method's, elsewhere
+    assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == pytest.approx(start + 900.0 * 2.7 / 4.5)
+    assert grid.expected_train_s(tmp_path, "train@cat:gca+neuma", 900.0) == pytest.approx(
+        start + 400.0 + 900.0 * 2.7 / 4.5)  # a batch of runs: their sum
+
+
 def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):
     # a stage that, stopped (SIGTERM), takes 1 s to save the iteration it was in, as training checkpoints first
     (tmp_path / "fake_train.py").write_text(

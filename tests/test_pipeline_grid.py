@@ -331,7 +331,7 @@ def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
     finished scene's inputs not remade) and saves its own state at the end."""
     seen = []
 
-    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp=""):
+    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp="", **machine):
         seen.append(sorted(n for n in jobs if not grid.dispatch.is_done(work, n)))
         return {n: "done" for n in jobs}
     monkeypatch.setattr(grid.dispatch, "run", fake_run)
@@ -375,6 +375,24 @@ def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path):
     assert any((tmp_path / "b/grid/reports/ci").glob("table1*"))
 
 
+def test_table_bundle_starts_no_run_the_machine_would_cut_off(tmp_path):
+    """MACHINE_S (on the GPU machine: its 30-min lease): with less left than a run's expected time, the bundle's grid
+    makes the inputs but starts no training (a run cut off by the machine resumes on no other) and says what is left
+    to do; the first call writes the machine's start beside the work folder."""
+    import os
+    import subprocess
+
+    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0]",
+           "SLOTS": "2", "LIMIT": "590", "STATE": str(tmp_path / "none.tgz"), "MACHINE_S": "100",
+           "W": str(tmp_path / "a"), "OUT": str(tmp_path / "out")}
+    call = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                          env=env)
+    log = (tmp_path / "a/grid/.grid/grid.log").read_text()
+    assert "done  preprocess@ball" in log and "start train@" not in log, call.stdout + log
+    assert "'todo': 3" in log and "run the same command again" in log  # train, evaluate, report
+    assert (tmp_path / "a/machine_start").is_file()
+
+
 def test_table_bundle_saves_the_state_of_a_grid_cut_off_by_its_timeout(tmp_path):
     """A grid the bundle's timeout cuts off (session 19: a deadline stop held past it, twice, and both H100 calls came
     back without a state) still returns its state: the bundle saves it from what is on disk. A grid that hangs in
@@ -404,7 +422,7 @@ def test_the_grid_tells_its_runs_how_they_share_the_gpu(tmp_path, monkeypatch):
     says when its times are packed); one slot reads as alone."""
     seen = []
 
-    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp=""):
+    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp="", **machine):
         seen.append(dict(job_env(None, 0)))
         return {n: "done" for n in jobs}
     monkeypatch.setattr(grid.dispatch, "run", fake_run)

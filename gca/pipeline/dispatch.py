@@ -34,6 +34,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
@@ -359,7 +360,8 @@ def dependents(jobs: dict, name: str) -> set[str]:
 
 
 def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = None, poll_s: float = 1.0,
-        job_env=None, stamp: str = "") -> dict[str, str]:
+        job_env=None, stamp: str = "", launch_until: float | None = None,
+        expected_s: Callable[[str], float] | None = None) -> dict[str, str]:
     """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
 
     A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
@@ -367,8 +369,11 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     ``deadline`` [s]: submit nothing that its estimated cost would not finish in time (training: resumable,
     submitted while ``grid.RESUMABLE_MIN_S`` remain) and stop what still runs then (to do next time).
     ``job_env(job, place)``: extra environment of a job's stage process; ``stamp``: what a job's ``.done``
-    marker must hold to count (the digest of the inputs, :func:`is_done`). Returns each job's state:
-    done, failed, skipped or todo.
+    marker must hold to count (the digest of the inputs, :func:`is_done`). ``launch_until`` [s]: the time left to
+    the machine (a lease that ends, beyond this command's ``deadline``): a training job without a checkpoint is
+    launched only while its ``expected_s(name)`` [s] fits in it, since a run cut off by the machine's end resumes
+    on no other machine (its remade inputs differ: session 20); one with a checkpoint goes on regardless. Returns
+    each job's state: done, failed, skipped or todo.
     """
     work = Path(work)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
@@ -379,8 +384,12 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     started: dict[str, float] = {}
     free = None if engine.places is None else list(engine.places)
     end = None if deadline is None else time.monotonic() + deadline
+    machine_end = None if launch_until is None else time.monotonic() + launch_until
 
     def fits(name: str) -> bool:
+        if machine_end is not None and name.startswith("train@") and not _has_checkpoint(work, jobs[name]) \
+                and time.monotonic() + (expected_s(name) if expected_s else 0.0) > machine_end:
+            return False
         if end is None:
             return True
         need = RESUMABLE_MIN_S if name.startswith("train@") else 60 * jobs[name].cost * 1.3
@@ -464,6 +473,11 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             engine.stop_jobs(stopping, work, log, poll_s)
             return state
         time.sleep(poll_s)
+
+
+def _has_checkpoint(work: Path, job) -> bool:
+    """Whether one of a training job's runs (its ``outs``: ``runs/<scene>/<run>``) left a checkpoint."""
+    return any((work / out / "checkpoint.pt").is_file() for out in job.outs)
 
 
 def _running_pid(pid_file: Path) -> int | None:

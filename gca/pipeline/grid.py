@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import json
 import os
 import re
 import shutil
@@ -269,8 +270,6 @@ def repo_jobs(repo: Path, stages: list[str] | None, runs_per_job: int = 1, chang
 
 def dvc_changed(repo: Path) -> set[str] | None:
     """The stages ``dvc status`` lists in ``repo`` (changed or never run); None without dvc."""
-    import json
-
     out = subprocess.run([sys.executable, "-m", "dvc", "status", "--json"], cwd=repo, capture_output=True, text=True)
     if out.returncode != 0:
         return None
@@ -411,9 +410,6 @@ def restore_state(archive: Path, work: Path) -> int:
     from nothing). Refused, with nothing written, when made under other params (seeds, profile or knobs; a scene
     of the state defined otherwise here, or missing here; a scene's method dropped: its runs are not this grid's),
     or when it holds anything but state files."""
-    import json
-    import tarfile
-
     from gca.io import unpack_files
 
     if not archive.is_file():
@@ -460,6 +456,32 @@ def unpack_records(archive: Path, work: Path) -> int:
         return unpack_files(archive, work, lambda name: True, "records", skip=lambda name: not RECORDS_RE.match(name))
     except (FileNotFoundError, ValueError) as exc:
         raise SystemExit(str(exc)) from exc
+
+
+JOB_START_S = 60.0  # a training job's process start, data and launch-velocity estimate (~30-60 s, session 20) [s]
+
+
+def expected_train_s(work: Path, job: str, default: float) -> float:
+    """Expected seconds of training job ``train@<scene>:<run>[+<run>...]``: per run, the longest ``train_seconds`` of
+    the finished runs of its scene and method in ``work`` (packed alike: the grid's), else of its method on any
+    scene, else ``default`` scaled by the method's :data:`COST` against GCA's (NCLaw, which does not train: ~0.13);
+    plus :data:`JOB_START_S` for the job (``train_seconds`` counts the iterations only)."""
+    scene, runs = job.split("@", 1)[1].split(":", 1)
+    total = JOB_START_S
+    for run in runs.split("+"):
+        method = run.split("@", 1)[0]
+        times = {}
+        for path in (work / "runs").glob(f"*/{method}*/train.json"):
+            if path.parent.name.split("@", 1)[0] == method:
+                seconds = float(json.loads(path.read_text()).get("train_seconds") or 0.0)
+                times.setdefault(path.parent.parent.name, []).append(seconds)
+        if times.get(scene):
+            total += max(times[scene])
+        elif times:
+            total += max(max(v) for v in times.values())
+        else:
+            total += default * min(1.0, COST.get(f"train:{method}", COST["train"]) / COST["train:gca"])
+    return total
 
 
 def needed(jobs: dict, done: set[str]) -> set[str]:
@@ -560,6 +582,13 @@ def main(argv=None) -> dict[str, str]:
                          "as the stages would have (gca.pipeline.mlflow_records: the GPU machine has no mlflow)")
     ap.add_argument("--before", help="a command run once before the jobs (e.g. compile a JIT extension the "
                                      "jobs share: concurrent first builds can corrupt its cache)")
+    ap.add_argument("--machine-left", type=float, metavar="S",
+                    help="seconds this machine has left (a lease beyond this command's --deadline): a training run "
+                         "starts only if its expected time fits (a run cut off by the machine resumes on no other: "
+                         "remade inputs differ in float32 noise); evaluations and runs with a checkpoint go on")
+    ap.add_argument("--expected-train-s", type=float, default=900.0, metavar="S",
+                    help="--machine-left: a training run's expected seconds where none of its scene and method has "
+                         "finished here (default 900: the slowest Table 1 GCA run under 8-way MPS, session 20)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
                                                         "allowed (root), stop it at the end; says so where not")
     dispatch.add_engine_args(ap, slots=2)
@@ -628,7 +657,9 @@ def main(argv=None) -> dict[str, str]:
     env["GCA_RUNS_PER_GPU"] = str(args.slots if engine.places else 1)  # provenance of the runs' times (Table 4)
     with mps_daemon(args.mps, log) as mps_on:
         env["GCA_MPS"] = "1" if mps_on else "0"
-        state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp)
+        state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp,
+                             launch_until=args.machine_left,
+                             expected_s=lambda name: expected_train_s(work, name, args.expected_train_s))
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))
