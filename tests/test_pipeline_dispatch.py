@@ -109,9 +109,11 @@ def test_a_run_that_would_outlast_the_machine_is_not_started_but_one_with_a_chec
 
 def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_path):
     for scene, run, seconds in (("ball", "gca", 800.0), ("ball", "gca@seed1", 850.0), ("cat", "gca", 400.0),
-                                ("cat", "gca_full_ft", 5000.0)):
+                                ("cat", "gca_full_ft", 5000.0), ("duck", "neuma", 100.0)):
         (tmp_path / "runs" / scene / run).mkdir(parents=True)
-        (tmp_path / "runs" / scene / run / "train.json").write_text(json.dumps({"train_seconds": seconds}))
+        status = "diverged" if run == "neuma" else "ok"  # stopped early: says nothing of a run's time
+        (tmp_path / "runs" / scene / run / "train.json").write_text(json.dumps({"train_seconds": seconds,
+                                                                                "status": status}))
     start = grid.JOB_START_S
     assert grid.expected_train_s(tmp_path, "train@ball:gca@seed2", 900.0) == start + 850.0  # its scene's slowest
     assert grid.expected_train_s(tmp_path, "train@duck:gca", 900.0) == start + 850.0  # its method's, elsewhere

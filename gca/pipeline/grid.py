@@ -463,7 +463,7 @@ JOB_START_S = 60.0  # a training job's process start, data and launch-velocity e
 
 def expected_train_s(work: Path, job: str, default: float) -> float:
     """Expected seconds of training job ``train@<scene>:<run>[+<run>...]``: per run, the longest ``train_seconds`` of
-    the finished runs of its scene and method in ``work`` (packed alike: the grid's), else of its method on any
+    the runs of its scene and method that finished ``ok`` (a diverged one stops early) in ``work`` (packed alike: the grid's), else of its method on any
     scene, else ``default`` scaled by the method's :data:`COST` against GCA's (NCLaw, which does not train: ~0.13);
     plus :data:`JOB_START_S` for the job (``train_seconds`` counts the iterations only)."""
     scene, runs = job.split("@", 1)[1].split(":", 1)
@@ -472,9 +472,9 @@ def expected_train_s(work: Path, job: str, default: float) -> float:
         method = run.split("@", 1)[0]
         times = {}
         for path in (work / "runs").glob(f"*/{method}*/train.json"):
-            if path.parent.name.split("@", 1)[0] == method:
-                seconds = float(json.loads(path.read_text()).get("train_seconds") or 0.0)
-                times.setdefault(path.parent.parent.name, []).append(seconds)
+            record = json.loads(path.read_text())
+            if path.parent.name.split("@", 1)[0] == method and record.get("status") == "ok":  # a diverged run stops early
+                times.setdefault(path.parent.parent.name, []).append(float(record.get("train_seconds") or 0.0))
         if times.get(scene):
             total += max(times[scene])
         elif times:
