@@ -8,8 +8,8 @@
 # The GPU machine has no mlflow: the runs reach MLflow here afterwards (grid --restore-state $STATE --records
 # records.tgz --mlflow-import, same grid options; README "After a run"). Inputs are remade on
 # each machine, only for the scenes with a run or an evaluation left (`grid.needed`). With the wheels' call, the
-# carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: move benchmarks/results/* but priors_paper and
-# reports/ci/figures aside for it.
+# carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: `sh benchmarks/carry_aside.sh out` before the
+# calls (benchmarks/results/* but priors_paper and table1_seeds, and reports/ci/figures), `... back` after them.
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
@@ -33,11 +33,12 @@
 #            a training run starts only if its expected time fits what is left of it (grid --machine-left), since a
 #            run cut off by the machine's end resumes on no other machine (session 20: remade inputs differ in float32
 #            noise, so checkpoints made elsewhere are not resumed); evaluations fill the rest
-#   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 570); PROFILE paper
+#   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 590: the
+#            calls end ~70 s under it, session 20: 523 s at 590, under the device's 600-s command limit); PROFILE paper
 #   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v).
 #   A CPU smoke: PROFILE=ci PRIORS= SCENES=ball METHODS=nclaw SEEDS="[0,1]" SLOTS=2 STATE=/tmp/s.tgz sh benchmarks/table_bundle.sh
 set -u
-OUT=${OUT:-/tmp/table_out}; W=${W:-/tmp/table}; SLOTS=${SLOTS:-8}; LIMIT=${LIMIT:-570}; PROFILE=${PROFILE:-paper}
+OUT=${OUT:-/tmp/table_out}; W=${W:-/tmp/table}; SLOTS=${SLOTS:-8}; LIMIT=${LIMIT:-590}; PROFILE=${PROFILE:-paper}
 SCENES=${SCENES:-"ball duck pawn cat fish bottle"}; METHODS=${METHODS:-"gca neuma nclaw"}; SEEDS=${SEEDS:-"[0,1,2]"}
 STATE=${STATE:-benchmarks/results/table1_seeds/state.tgz}; EXTRA=${EXTRA:-}
 PRIORS=${PRIORS-benchmarks/results/priors_paper}
