@@ -301,15 +301,19 @@ def test_a_run_is_evaluated_with_the_launch_velocity_it_trained_with(tmp_path):
     """A grid going on on another machine may estimate a seed's shared velocity.json again (its remade inputs differ
     in float32 noise, session 20); a run trained before keeps its own estimate in train.json, and evaluation uses
     that. A run from before session 20 (no ``velocity`` in train.json) falls back to the shared file."""
+    from gca.io import read_json
     from gca.pipeline.train import trained_velocity
+
+    def evaluated_with(run):
+        return trained_velocity(read_json(runs / run / "train.json"), runs, run, 0)
 
     runs = tmp_path / "runs"
     (runs / "gca").mkdir(parents=True)
     (runs / "velocity.json").write_text(json.dumps({"v0": [9.0, 9.0, 9.0], "w0": [0.0, 0.0, 0.0]}))  # re-estimated
     (runs / "gca/train.json").write_text(json.dumps({"velocity": {"v0": [1.0, 2.0, 3.0], "w0": [0.0, 0.1, 0.0]}}))
-    assert trained_velocity(runs, "gca", 0) == (([1.0, 2.0, 3.0], [0.0, 0.1, 0.0]), "train.json")
+    assert evaluated_with("gca") == (([1.0, 2.0, 3.0], [0.0, 0.1, 0.0]), "train.json")
     (runs / "gca/train.json").write_text(json.dumps({"status": "ok"}))  # an older run: the shared file
-    assert trained_velocity(runs, "gca", 0) == (([9.0, 9.0, 9.0], [0.0, 0.0, 0.0]), "velocity.json")
+    assert evaluated_with("gca") == (([9.0, 9.0, 9.0], [0.0, 0.0, 0.0]), "velocity.json")
     (runs / "gca/train.json").write_text(json.dumps({"velocity": {"v0": [1.0, float("nan"), 3.0], "w0": [0, 0, 0]}}))
     with pytest.raises(ValueError, match="gca/train.json: v0 must be 3 finite numbers"):
-        trained_velocity(runs, "gca", 0)
+        evaluated_with("gca")

@@ -25,7 +25,7 @@ def _trained_run(settings: Settings, scene_name: str, method, inputs, body: Body
     train = read_json(runs_dir / name / "train.json")
     law = load_learned_law(settings, scene_name, method, inputs, runs_dir / name,
                            float(body.mass.sum() / body.vol.sum()), device, seed)
-    estimate, source = trained_velocity(runs_dir, name, seed)
+    estimate, source = trained_velocity(train, runs_dir, name, seed)
     train = {**train, "velocity_source": source}
     return scene, seed, name, train, law, law.launch_velocity(estimate)
 

@@ -137,27 +137,16 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     name (``gca``, ``gca@seed1``); the first job of each seed (the cheapest method's) estimates that seed's launch
     velocity from its own observations (``velocity.json``, ``velocity@seed<k>.json``), the seed's other jobs
     reuse it."""
-    from gca.config import resolve
-    from gca.train.methods import get_method
-    from gca.pipeline.settings import Settings
-    from gca.pipeline.train import seed_runs, velocity_path
+    from gca.pipeline.train import velocity_path
 
-    resolved = Settings(resolve(params, params["profile"]))
-    several = len(resolved.train.seeds) > 1
-    out = {}
-    for name, job in jobs.items():
-        if not name.startswith("train@"):
-            out[name] = job
-            continue
-        scene = name.split("@", 1)[1]
-        methods = sorted(params["scenes"][scene]["methods"], key=lambda m: COST.get(f"train:{m}", COST["train"]))
+    def runs_of(name: str, job: Job, scene: str, runs, seeds: str) -> dict[str, Job]:
         run_dir = re.search(r"--out (\S+)", job.cmd).group(1)
-        firsts: dict[int, str] = {}  # seed -> the job that estimates its launch velocity (from its own observations)
-        for method, s, run in seed_runs(resolved, [get_method(m) for m in methods]):
+        out, firsts = {}, {}  # firsts: seed -> the job that estimates its launch velocity (from its own observations)
+        for method, s, run in runs:
             m = method.name
             first = firsts.get(s)
             velocity = velocity_path(Path(run_dir), s).as_posix()
-            cmd = f"{job.cmd} --methods {m}" + (f" --seeds {s}" if several else "")
+            cmd = f"{job.cmd} --methods {m}" + seeds.format(s)
             if first is not None:
                 cmd += f" --velocity {velocity}"
             j = Job(f"{name}:{run}", cmd, list(job.deps), [f"{run_dir}/{run}"] + ([] if first else [velocity]),
@@ -166,7 +155,10 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
                 j.after.add(first)
             firsts.setdefault(s, j.name)
             out[j.name] = j
-    return out
+        return out
+
+    return _per_run(jobs, params, "train@", runs_of,
+                    order=lambda methods: sorted(methods, key=lambda m: COST.get(f"train:{m}", COST["train"])))
 
 
 def split_evaluate(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
@@ -175,29 +167,44 @@ def split_evaluate(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
     ``runs/<scene>``), writing ``metrics/eval/<scene>/<run>.json`` and its media folder. So a run is evaluated as
     soon as it is trained (no scene-wide tail at the end of a table), a short job is cut less often by a deadline,
     and a grid grown by methods (Table 3's rows after Table 1's) evaluates only the new runs."""
+    from gca.pipeline.train import velocity_path
+
+    def runs_of(name: str, job: Job, scene: str, runs, seeds: str) -> dict[str, Job]:
+        if not runs:  # a calibration scene: its (empty) evaluation folder is still the stage's output
+            return {name: job}
+        runs_dir = re.search(r"--runs (\S+)", job.cmd).group(1)
+        eval_dir = re.search(r"--out (\S+)", job.cmd).group(1)
+        n_methods = len(params["scenes"][scene]["methods"])
+        out = {}
+        for method, s, run in runs:
+            deps = [d for d in job.deps if d != runs_dir] + [f"{runs_dir}/{run}", velocity_path(Path(runs_dir), s).as_posix()]
+            out[f"{name}:{run}"] = Job(f"{name}:{run}", f"{job.cmd} --methods {method.name}" + seeds.format(s), deps,
+                                       [f"{eval_dir}/{run}.json", f"{eval_dir}/{run}"], job.cost / n_methods)
+        return out
+
+    return _per_run(jobs, params, "evaluate@", runs_of)
+
+
+def _per_run(jobs: dict[str, Job], params: dict, prefix: str, runs_of, order=list) -> dict[str, Job]:
+    """``jobs`` with each per-scene job of stage ``prefix`` (``train@``, ``evaluate@``) replaced by
+    ``runs_of(name, job, scene, runs, seeds)``: ``runs`` the scene's ``(method, seed, run name)``
+    (:func:`gca.pipeline.train.seed_runs`, its methods in ``order(methods)``), ``seeds`` the command's seed option
+    as a format string of the seed (empty when ``train.seeds`` has one seed)."""
     from gca.config import resolve
     from gca.train.methods import get_method
     from gca.pipeline.settings import Settings
-    from gca.pipeline.train import seed_runs, velocity_path
+    from gca.pipeline.train import seed_runs
 
     resolved = Settings(resolve(params, params["profile"]))
-    several = len(resolved.train.seeds) > 1
+    seeds = " --seeds {}" if len(resolved.train.seeds) > 1 else ""
     out = {}
     for name, job in jobs.items():
-        if not name.startswith("evaluate@"):
+        if not name.startswith(prefix):
             out[name] = job
             continue
         scene = name.split("@", 1)[1]
-        runs_dir = re.search(r"--runs (\S+)", job.cmd).group(1)
-        eval_dir = re.search(r"--out (\S+)", job.cmd).group(1)
-        methods = [get_method(m) for m in params["scenes"][scene]["methods"]]
-        if not methods:  # a calibration scene: its (empty) evaluation folder is still the stage's output
-            out[name] = job
-        for method, s, run in seed_runs(resolved, methods):
-            deps = [d for d in job.deps if d != runs_dir] + [f"{runs_dir}/{run}", velocity_path(Path(runs_dir), s).as_posix()]
-            cmd = f"{job.cmd} --methods {method.name}" + (f" --seeds {s}" if several else "")
-            out[f"{name}:{run}"] = Job(f"{name}:{run}", cmd, deps, [f"{eval_dir}/{run}.json", f"{eval_dir}/{run}"],
-                                       job.cost / max(1, len(methods)))
+        methods = [get_method(m) for m in order(params["scenes"][scene]["methods"])]
+        out.update(runs_of(name, job, scene, seed_runs(resolved, methods), seeds))
     return out
 
 
@@ -461,27 +468,52 @@ def unpack_records(archive: Path, work: Path) -> int:
 JOB_START_S = 60.0  # a training job's process start, data and launch-velocity estimate (~30-60 s, session 20) [s]
 
 
-def expected_train_s(work: Path, job: str, default: float) -> float:
+def finished_train_seconds(work: Path) -> dict[str, dict[str, float]]:
+    """``{method: {scene: the longest train_seconds}}`` of the runs in ``work/runs`` that finished ``ok`` (a diverged
+    one stops early; the grid's runs, packed alike)."""
+    out: dict[str, dict[str, float]] = {}
+    for path in (work / "runs").glob("*/*/train.json"):
+        record = json.loads(path.read_text())
+        if record.get("status") == "ok":
+            scenes = out.setdefault(path.parent.name.split("@", 1)[0], {})
+            scene = path.parent.parent.name
+            scenes[scene] = max(scenes.get(scene, 0.0), float(record.get("train_seconds") or 0.0))
+    return out
+
+
+def expected_train_s(work: Path, job: str, default: float, finished: dict | None = None) -> float:
     """Expected seconds of training job ``train@<scene>:<run>[+<run>...]``: per run, the longest ``train_seconds`` of
-    the runs of its scene and method that finished ``ok`` (a diverged one stops early) in ``work`` (packed alike: the grid's), else of its method on any
-    scene, else ``default`` scaled by the method's :data:`COST` against GCA's (NCLaw, which does not train: ~0.13);
-    plus :data:`JOB_START_S` for the job (``train_seconds`` counts the iterations only)."""
+    the runs of its scene and method that finished ``ok`` in ``work`` (``finished``: :func:`finished_train_seconds`
+    of it, read here when not given), else of its method on any scene, else ``default`` scaled by the method's
+    :data:`COST` against GCA's (NCLaw, which does not train: ~0.13); plus :data:`JOB_START_S` for the job
+    (``train_seconds`` counts the iterations only)."""
+    finished = finished_train_seconds(work) if finished is None else finished
     scene, runs = job.split("@", 1)[1].split(":", 1)
     total = JOB_START_S
     for run in runs.split("+"):
         method = run.split("@", 1)[0]
-        times = {}
-        for path in (work / "runs").glob(f"*/{method}*/train.json"):
-            record = json.loads(path.read_text())
-            if path.parent.name.split("@", 1)[0] == method and record.get("status") == "ok":  # a diverged run stops early
-                times.setdefault(path.parent.parent.name, []).append(float(record.get("train_seconds") or 0.0))
-        if times.get(scene):
-            total += max(times[scene])
+        times = finished.get(method, {})
+        if scene in times:
+            total += times[scene]
         elif times:
-            total += max(max(v) for v in times.values())
+            total += max(times.values())
         else:
             total += default * min(1.0, COST.get(f"train:{method}", COST["train"]) / COST["train:gca"])
     return total
+
+
+def _expected_in(work: Path, default: float) -> Callable[[str], float]:
+    """:func:`expected_train_s` for ``dispatch.run``, which asks each poll for every training run it holds back: the
+    finished runs' times are read again only when a training job has finished since (its ``.done`` marker)."""
+    memo: dict = {}
+
+    def expected(job: str) -> float:
+        key = sum(1 for _ in (work / ".grid").glob("train@*.done"))
+        if memo.get("key") != key:
+            memo.update(key=key, finished=finished_train_seconds(work))
+        return expected_train_s(work, job, default, memo["finished"])
+
+    return expected
 
 
 def needed(jobs: dict, done: set[str]) -> set[str]:
@@ -659,7 +691,7 @@ def main(argv=None) -> dict[str, str]:
         env["GCA_MPS"] = "1" if mps_on else "0"
         state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp,
                              launch_until=args.machine_left,
-                             expected_s=lambda name: expected_train_s(work, name, args.expected_train_s))
+                             expected_s=_expected_in(work, args.expected_train_s))
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))

@@ -304,12 +304,13 @@ def read_velocity(path: Path, raw: Mapping | None = None) -> tuple[list[float], 
     return raw["v0"], raw["w0"]
 
 
-def trained_velocity(runs_dir: Path, name: str, seed: int) -> tuple[tuple[list[float], list[float]], str]:
-    """((v0, w0), where from) of a trained run: the estimate it trained with, kept in its ``train.json`` (since
-    session 20), else its seed's shared ``velocity.json`` (older runs). The shared file may have been estimated
-    again after the run (a grid going on on another machine, whose remade inputs differ in float32 noise, session
-    20): evaluating a run with the launch velocity it trained with keeps its law and its launch one measurement."""
-    train = read_json(runs_dir / name / "train.json")
+def trained_velocity(train: Mapping, runs_dir: Path, name: str,
+                     seed: int) -> tuple[tuple[list[float], list[float]], str]:
+    """((v0, w0), where from) of a trained run (``train``: its ``runs_dir/<name>/train.json``): the estimate it trained
+    with, kept in its ``train.json`` (since session 20), else its seed's shared ``velocity.json`` (older runs). The
+    shared file may have been estimated again after the run (a grid going on on another machine, whose remade
+    inputs differ in float32 noise, session 20): evaluating a run with the launch velocity it trained with keeps its
+    law and its launch one measurement."""
     if "velocity" in train:
         return read_velocity(runs_dir / name / "train.json", train["velocity"]), "train.json"
     return read_velocity(velocity_path(runs_dir, seed)), velocity_path(runs_dir, seed).name
