@@ -117,9 +117,15 @@ def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_pat
     start = grid.JOB_START_S
     assert grid.expected_train_s(tmp_path, "train@ball:gca@seed2", 900.0) == start + 850.0  # its scene's slowest
     assert grid.expected_train_s(tmp_path, "train@duck:gca", 900.0) == start + 850.0  # its method's, elsewhere
-    assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == pytest.approx(start + 900.0 * 2.7 / 4.5)
+    neuma = grid.COST["train:neuma"] / grid.COST["train:gca"]
+    assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == pytest.approx(start + 900.0 * neuma)
     assert grid.expected_train_s(tmp_path, "train@cat:gca+neuma", 900.0) == pytest.approx(
-        start + 400.0 + 900.0 * 2.7 / 4.5)  # a batch of runs: their sum
+        start + 400.0 + 900.0 * neuma)  # a batch of runs: their sum
+    # a method finished on the cat only: on the ball it takes as much longer as GCA does there (850 / 400)
+    (tmp_path / "runs/cat/neuma").mkdir()
+    (tmp_path / "runs/cat/neuma/train.json").write_text(json.dumps({"train_seconds": 300.0, "status": "ok"}))
+    assert grid.expected_train_s(tmp_path, "train@ball:neuma", 900.0) == pytest.approx(start + 300.0 * 850.0 / 400.0)
+    assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == start + 300.0  # nobody finished the duck
 
 
 def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):

@@ -59,9 +59,10 @@ from gca.pipeline.dispatch import critical_path, gpu_ids  # noqa: F401 (this mod
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 
 # Estimated cost of a job [GPU-minutes, paper profile, one H100, alone]: for priorities (longest path
-# first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid.
+# first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid. NeuMA's: 2.62 s per
+# iteration under 8-way MPS on the fish (session 20, its only measured paper run) vs GCA's 2.65-2.74 there.
 COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
-        "train": 0.6, "train:gca": 4.5, "train:neuma": 2.7, "train:neuma_multiview": 4.0,
+        "train": 0.6, "train:gca": 4.5, "train:neuma": 4.4, "train:neuma_multiview": 4.0,
         "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.3, "demo": 1.0}
 
 
@@ -484,7 +485,8 @@ def finished_train_seconds(work: Path) -> dict[str, dict[str, float]]:
 def expected_train_s(work: Path, job: str, default: float, finished: dict | None = None) -> float:
     """Expected seconds of training job ``train@<scene>:<run>[+<run>...]``: per run, the longest ``train_seconds`` of
     the runs of its scene and method that finished ``ok`` in ``work`` (``finished``: :func:`finished_train_seconds`
-    of it, read here when not given), else of its method on any scene, else ``default`` scaled by the method's
+    of it, read here when not given); else its method's time on another scene scaled by how much slower this scene
+    is for another method that finished on both (:func:`_scaled_elsewhere`); else ``default`` scaled by the method's
     :data:`COST` against GCA's (NCLaw, which does not train: ~0.13); plus :data:`JOB_START_S` for the job
     (``train_seconds`` counts the iterations only)."""
     finished = finished_train_seconds(work) if finished is None else finished
@@ -496,10 +498,22 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
         if scene in times:
             total += times[scene]
         elif times:
-            total += max(times.values())
+            total += _scaled_elsewhere(finished, method, scene)
         else:
             total += default * min(1.0, COST.get(f"train:{method}", COST["train"]) / COST["train:gca"])
     return total
+
+
+def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene: str) -> float:
+    """Seconds of ``method`` on ``scene``, where it has finished only on other scenes: the largest of its time on a
+    scene s times ``t(other, scene) / t(other, s)`` over the other methods that finished on both (scenes differ
+    several-fold: ball ~850 s, pawn ~470 s for GCA, session 20), and of its slowest time anywhere. [s]"""
+    times = finished[method]
+    guesses = [max(times.values())]
+    for other, their in finished.items():
+        if other != method and scene in their:
+            guesses += [t * their[scene] / their[s] for s, t in times.items() if their.get(s)]
+    return max(guesses)
 
 
 def _expected_in(work: Path, default: float) -> Callable[[str], float]:
