@@ -28,6 +28,13 @@ restore_once() {
   [ -f "$1" ] && [ ! -f "$2/.restored" ] && { touch "$2/.restored"; echo "--restore-state $1"; }
 }
 # pack_out OUT: everything in OUT as OUT/all.tgz, members named without "./" (so `tar xzf all.tgz state.tgz` finds it).
+# The device returns files of at most 16 MiB: a larger all.tgz is cut into all.tgz.0, all.tgz.1, ... of PACK_PART
+# bytes (default 15 MiB; `cat all.tgz.* > all.tgz` here), and a state.tgz is also kept beside it, whole (session 21: the
+# 40 evaluations' media made one call's all.tgz too large, and its state came back only by a second command).
 pack_out() {
-  (cd "$1" && tar czf "/tmp/pack_out.$$.tgz" $(ls -A) && find . -mindepth 1 -delete && mv "/tmp/pack_out.$$.tgz" all.tgz)
+  (cd "$1" && tar czf "/tmp/pack_out.$$.tgz" $(ls -A) && { [ ! -f state.tgz ] || mv state.tgz "/tmp/pack_state.$$.tgz"; } \
+    && find . -mindepth 1 -delete && mv "/tmp/pack_out.$$.tgz" all.tgz \
+    && { [ ! -f "/tmp/pack_state.$$.tgz" ] || mv "/tmp/pack_state.$$.tgz" state.tgz; } \
+    && if [ "$(wc -c < all.tgz)" -gt "${PACK_PART:-15728640}" ]; then
+         split -b "${PACK_PART:-15728640}" -d -a 1 all.tgz all.tgz. && rm all.tgz; fi)
 }

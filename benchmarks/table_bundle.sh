@@ -3,7 +3,7 @@
 # H100 under CUDA MPS, in bounded device commands spread over machines and sessions. The machine forgets its disk
 # between leases, so each call starts from the grid's state committed in $STATE (the runs done, their laws and
 # evaluations' JSON, the checkpoints of runs cut off mid-training: `grid --save-state`, ~45 kB a run) and returns the
-# new one in $OUT/all.tgz (state.tgz inside) with grid_results.tar.gz (the histories, media and report made by this
+# new one in $OUT/all.tgz (state.tgz inside and beside; cut in 15-MiB parts when larger) with grid_results.tar.gz (the histories, media and report made by this
 # machine): commit state.tgz as $STATE and the histories as a records.tgz (benchmarks/results/table1_records_s20/).
 # The GPU machine has no mlflow: the runs reach MLflow here afterwards (grid --restore-state $STATE --records
 # records.tgz --mlflow-import, same grid options; README "After a run"). Inputs are remade on
