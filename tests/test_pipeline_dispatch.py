@@ -117,6 +117,9 @@ def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_pat
     start = grid.JOB_START_S
     assert grid.expected_train_s(tmp_path, "train@ball:gca@seed2", 900.0) == start + 850.0  # its scene's slowest
     assert grid.expected_train_s(tmp_path, "train@duck:gca", 900.0) == start + 850.0  # its method's, elsewhere
+    # nothing finished: GCA's default for a GCA ablation (it trains alike), a fraction for NCLaw (no training)
+    assert grid.expected_train_s(tmp_path, "train@duck:no_cpr", 900.0) == start + 900.0
+    assert grid.expected_train_s(tmp_path, "train@duck:nclaw", 900.0) == pytest.approx(start + 900.0 * 0.6 / 4.5)
     neuma = grid.COST["train:neuma"] / grid.COST["train:gca"]
     assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == pytest.approx(start + 900.0 * neuma)
     assert grid.expected_train_s(tmp_path, "train@cat:gca+neuma", 900.0) == pytest.approx(
@@ -340,11 +343,12 @@ def test_runs_of_a_scene_batched_after_the_velocity_job():
     jobs = grid.split_train(grid.expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, ["train"]), params)
     batched = grid.link(grid.batch_runs(dict(jobs), 2))
     # split_train's order: cheapest first (nclaw estimates each seed's velocity), seeds outermost
-    assert set(batched) == {"train@ball:nclaw", "train@ball:no_cpr+neuma", "train@ball:gca", "train@ball:nclaw@seed1",
-                            "train@ball:no_cpr@seed1+neuma@seed1", "train@ball:gca@seed1"}
-    both = batched["train@ball:no_cpr@seed1+neuma@seed1"]
-    assert both.cmd.endswith("--methods no_cpr neuma --seeds 1 --velocity runs/ball/velocity@seed1.json")
-    assert both.outs == ["runs/ball/no_cpr@seed1", "runs/ball/neuma@seed1"] and both.after == {"train@ball:nclaw@seed1"}
+    # (costs: nclaw 0.6, neuma 4.0, gca and its ablation no_cpr 4.5, in the order given)
+    assert set(batched) == {"train@ball:nclaw", "train@ball:neuma+gca", "train@ball:no_cpr", "train@ball:nclaw@seed1",
+                            "train@ball:neuma@seed1+gca@seed1", "train@ball:no_cpr@seed1"}
+    both = batched["train@ball:neuma@seed1+gca@seed1"]
+    assert both.cmd.endswith("--methods neuma gca --seeds 1 --velocity runs/ball/velocity@seed1.json")
+    assert both.outs == ["runs/ball/neuma@seed1", "runs/ball/gca@seed1"] and both.after == {"train@ball:nclaw@seed1"}
     firsts = {"train@ball:nclaw", "train@ball:nclaw@seed1"}
     assert set(batched) - firsts <= {n for n, j in batched.items() if j.after & firsts}
     assert grid.batch_runs(dict(jobs), 1) == jobs

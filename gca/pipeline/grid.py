@@ -59,11 +59,23 @@ from gca.pipeline.dispatch import critical_path, gpu_ids  # noqa: F401 (this mod
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 
 # Estimated cost of a job [GPU-minutes, paper profile, one H100, alone]: for priorities (longest path
-# first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid. NeuMA's: 2.62 s per
-# iteration under 8-way MPS on the fish (session 20, its only measured paper run) vs GCA's 2.65-2.74 there.
+# first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid. The trained
+# methods' ratios to GCA from the tuning's 24 units each under 8-way MPS (tuning/record.json: mean train_seconds GCA
+# 628, NeuMA 562, PAC-NeRF-style 579); multi-view rows render three views (x ~1.25, not measured).
 COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
-        "train": 0.6, "train:gca": 4.5, "train:neuma": 4.4, "train:neuma_multiview": 4.0,
+        "train": 0.6, "train:gca": 4.5, "train:neuma": 4.0, "train:neuma_multiview": 5.5,
+        "train:pacnerf_depth": 4.2, "train:pacnerf_depth_aligned": 4.2, "train:pacnerf_multiview": 5.5,
         "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.3, "demo": 1.0}
+
+
+def train_cost(method: str) -> float:
+    """:data:`COST` of training ``method``: its own entry, else GCA's for a method that trains (Table 3's
+    ablations are GCA with terms off), else ``train`` (NCLaw: the stage's start-up only)."""
+    from gca.train.methods import METHODS
+
+    if f"train:{method}" in COST:
+        return COST[f"train:{method}"]
+    return COST["train:gca"] if method in METHODS and METHODS[method].trains else COST["train"]
 
 
 @dataclasses.dataclass
@@ -151,7 +163,7 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
             if first is not None:
                 cmd += f" --velocity {velocity}"
             j = Job(f"{name}:{run}", cmd, list(job.deps), [f"{run_dir}/{run}"] + ([] if first else [velocity]),
-                    COST.get(f"train:{m}", COST["train"]))
+                    train_cost(m))
             if first is not None:
                 j.after.add(first)
             firsts.setdefault(s, j.name)
@@ -159,7 +171,7 @@ def split_train(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
         return out
 
     return _per_run(jobs, params, "train@", runs_of,
-                    order=lambda methods: sorted(methods, key=lambda m: COST.get(f"train:{m}", COST["train"])))
+                    order=lambda methods: sorted(methods, key=train_cost))
 
 
 def split_evaluate(jobs: dict[str, Job], params: dict) -> dict[str, Job]:
@@ -487,7 +499,7 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
     the runs of its scene and method that finished ``ok`` in ``work`` (``finished``: :func:`finished_train_seconds`
     of it, read here when not given); else its method's time on another scene scaled by how much slower this scene
     is for another method that finished on both (:func:`_scaled_elsewhere`); else ``default`` scaled by the method's
-    :data:`COST` against GCA's (NCLaw, which does not train: ~0.13); plus :data:`JOB_START_S` for the job
+    :func:`train_cost` against GCA's (NCLaw, which does not train: ~0.13); plus :data:`JOB_START_S` for the job
     (``train_seconds`` counts the iterations only)."""
     finished = finished_train_seconds(work) if finished is None else finished
     scene, runs = job.split("@", 1)[1].split(":", 1)
@@ -500,7 +512,7 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
         elif times:
             total += _scaled_elsewhere(finished, method, scene)
         else:
-            total += default * min(1.0, COST.get(f"train:{method}", COST["train"]) / COST["train:gca"])
+            total += default * min(1.0, train_cost(method) / COST["train:gca"])
     return total
 
 
