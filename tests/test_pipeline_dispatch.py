@@ -131,6 +131,38 @@ def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_pat
     assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == start + 300.0  # nobody finished the duck
 
 
+def test_a_training_jobs_marker_records_how_many_trainings_shared_the_gpu_with_it(tmp_path):
+    """Session 21: the lease check took a run timed 5-way as the time of runs then packed 8-way, which outlasted
+    the machine. Two trainings side by side record ~2, one alone after them ~1; an evaluation records nothing."""
+    sleep = "import time; time.sleep(1.5)"
+    jobs = {"train@ball:a": _fake("train@ball:a", sleep), "train@ball:b": _fake("train@ball:b", sleep),
+            "train@ball:c": _fake("train@ball:c", sleep, ["train@ball:a", "train@ball:b"]),
+            "evaluate@ball:a": _fake("evaluate@ball:a", "pass", ["train@ball:a"])}
+    state = dispatch.run(jobs, _local(tmp_path, slots=2), tmp_path, lambda line: None, poll_s=0.05)
+    assert set(state.values()) == {"done"}
+    assert 1.5 < dispatch.sharing(tmp_path, "train@ball:a") <= 2.0
+    assert 1.5 < dispatch.sharing(tmp_path, "train@ball:b") <= 2.0
+    assert dispatch.sharing(tmp_path, "train@ball:c") == pytest.approx(1.0, abs=0.05)
+    assert dispatch.sharing(tmp_path, "evaluate@ball:a") is None
+    assert dispatch.is_done(tmp_path, "train@ball:a")  # the marker still counts
+
+
+def test_finished_runs_count_as_if_packed_as_the_machine_packs_them(tmp_path):
+    for run, seconds in (("gca_full_ft", 310.0), ("gca_full_ft@seed1", 300.0), ("gca", 469.0)):
+        (tmp_path / "runs/pawn" / run).mkdir(parents=True)
+        (tmp_path / "runs/pawn" / run / "train.json").write_text(json.dumps({"train_seconds": seconds, "status": "ok"}))
+    (tmp_path / ".grid").mkdir()
+    (tmp_path / ".grid/train@pawn:gca_full_ft.done").write_text("351.0\n\nsharing=5.00\n")  # timed 5-way
+    (tmp_path / ".grid/train@pawn:gca.done").write_text("500.0\n\n")  # no sharing recorded: taken as 8-way
+    eight = grid.finished_train_seconds(tmp_path, slots=8)
+    assert eight["gca_full_ft"]["pawn"] == pytest.approx(310.0 * (2.2 + 8) / (2.2 + 5))  # ~439 s, not 310
+    assert eight["gca"]["pawn"] == 469.0
+    assert grid.finished_train_seconds(tmp_path)["gca_full_ft"]["pawn"] == 310.0  # no slots given: as timed
+    start = grid.JOB_START_S
+    assert grid.expected_train_s(tmp_path, "train@pawn:gca_full_ft@seed2", 900.0, eight) == pytest.approx(
+        start + 310.0 * 10.2 / 7.2)
+
+
 def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):
     # a stage that, stopped (SIGTERM), takes 1 s to save the iteration it was in, as training checkpoints first
     (tmp_path / "fake_train.py").write_text(

@@ -382,6 +382,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     handles: dict[str, object] = {}
     place_of: dict[str, object] = {}
     started: dict[str, float] = {}
+    shared: dict[str, float] = {}  # a training job's integral of the training jobs running beside it (itself too) [s]
+    last = [time.monotonic()]
     free = None if engine.places is None else list(engine.places)
     end = None if deadline is None else time.monotonic() + deadline
     machine_end = None if launch_until is None else time.monotonic() + launch_until
@@ -419,6 +421,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if s == DONE:
                 state[n] = DONE
                 log(f"done  {n} in {took:.0f} s")
+                if n in shared and took > 0:
+                    record_sharing(work, n, shared.pop(n) / took)
             else:
                 state[n] = FAILED
                 path = engine.log(h)
@@ -442,7 +446,15 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if not engine.dependencies:
                 return
 
+    def tally() -> None:
+        now = time.monotonic()
+        training = [n for n in handles if n.startswith("train@")]
+        for n in training:
+            shared[n] = shared.get(n, 0.0) + len(training) * (now - max(last[0], started[n]))
+        last[0] = now
+
     while True:
+        tally()
         reap()
         for n in ready_jobs():
             if free is not None and not free:
@@ -473,6 +485,26 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             engine.stop_jobs(stopping, work, log, poll_s)
             return state
         time.sleep(poll_s)
+
+
+def record_sharing(work: Path, name: str, mean: float) -> None:
+    """Add ``sharing=<mean>`` to training job ``name``'s ``.done`` marker: how many training jobs ran on the GPUs at
+    once, itself included, averaged over its time in this call (the last call, when it resumed across calls). A run
+    packed 5-way takes ~0.7 of its time packed 8-way (``grid.packed_seconds``), so the machine-lease check scales
+    finished runs' times by it (session 21)."""
+    path = marker(work, name)
+    if path.is_file():
+        path.write_text(path.read_text().rstrip("\n") + f"\nsharing={mean:.2f}\n")
+
+
+def sharing(work: Path, name: str) -> float | None:
+    """The ``sharing=`` of job ``name``'s ``.done`` marker (:func:`record_sharing`), or None (none recorded)."""
+    path = marker(work, name)
+    if path.is_file():
+        for token in path.read_text().split():
+            if token.startswith("sharing="):
+                return float(token.split("=", 1)[1])
+    return None
 
 
 def _has_checkpoint(work: Path, job) -> bool:

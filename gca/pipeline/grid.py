@@ -481,16 +481,40 @@ def unpack_records(archive: Path, work: Path) -> int:
 JOB_START_S = 60.0  # a training job's process start, data and launch-velocity estimate (~30-60 s, session 20) [s]
 
 
-def finished_train_seconds(work: Path) -> dict[str, dict[str, float]]:
+PACKING_OFFSET = 2.2  # runs' worth of a run's work that does not slow down with sharing the GPU: a run's time under
+# k-way MPS goes as (PACKING_OFFSET + k); fit to the ball's 1.64, 2.6 and 4.4 s per iteration solo, 4- and 8-way
+# (benchmarks/NOTES.md, session 16): (2.2 + 4) / (2.2 + 8) = 0.61 against 0.59 measured
+
+
+def packed_seconds(seconds: float, ran: float, at: float) -> float:
+    """Seconds of a run that took ``seconds`` sharing the GPU ``ran``-way (its marker's ``sharing``), were it
+    packed ``at``-way (:data:`PACKING_OFFSET`)."""
+    return seconds * (PACKING_OFFSET + at) / (PACKING_OFFSET + ran)
+
+
+def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, dict[str, float]]:
     """``{method: {scene: the longest train_seconds}}`` of the runs in ``work/runs`` that finished ``ok`` (a diverged
-    one stops early; the grid's runs, packed alike)."""
+    one stops early); with ``slots``, each as if packed ``slots``-way (:func:`packed_seconds`, from the sharing its
+    training job's marker records: ``dispatch.record_sharing``; none recorded: taken as packed so). Session 21: a
+    run timed 5-way (310 s) set the expectation of runs that then ran 8-way and outlasted the machine."""
+    shares = {}
+    if slots:
+        for path in (work / ".grid").glob("train@*.done"):
+            scene, runs = path.name[len("train@"):-len(".done")].split(":", 1)
+            ran = dispatch.sharing(work, path.name[:-len(".done")])
+            for run in runs.split("+"):
+                shares[(scene, run)] = ran
     out: dict[str, dict[str, float]] = {}
     for path in (work / "runs").glob("*/*/train.json"):
         record = json.loads(path.read_text())
         if record.get("status") == "ok":
             scenes = out.setdefault(path.parent.name.split("@", 1)[0], {})
             scene = path.parent.parent.name
-            scenes[scene] = max(scenes.get(scene, 0.0), float(record.get("train_seconds") or 0.0))
+            seconds = float(record.get("train_seconds") or 0.0)
+            ran = shares.get((scene, path.parent.name))
+            if ran:
+                seconds = packed_seconds(seconds, ran, slots)
+            scenes[scene] = max(scenes.get(scene, 0.0), seconds)
     return out
 
 
@@ -528,7 +552,7 @@ def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene:
     return max(guesses)
 
 
-def _expected_in(work: Path, default: float) -> Callable[[str], float]:
+def _expected_in(work: Path, default: float, slots: int | None = None) -> Callable[[str], float]:
     """:func:`expected_train_s` for ``dispatch.run``, which asks each poll for every training run it holds back: the
     finished runs' times are read again only when a training job has finished since (its ``.done`` marker)."""
     memo: dict = {}
@@ -536,7 +560,7 @@ def _expected_in(work: Path, default: float) -> Callable[[str], float]:
     def expected(job: str) -> float:
         key = sum(1 for _ in (work / ".grid").glob("train@*.done"))
         if memo.get("key") != key:
-            memo.update(key=key, finished=finished_train_seconds(work))
+            memo.update(key=key, finished=finished_train_seconds(work, slots))
         return expected_train_s(work, job, default, memo["finished"])
 
     return expected
@@ -717,7 +741,8 @@ def main(argv=None) -> dict[str, str]:
         env["GCA_MPS"] = "1" if mps_on else "0"
         state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp,
                              launch_until=args.machine_left,
-                             expected_s=_expected_in(work, args.expected_train_s))
+                             expected_s=_expected_in(work, args.expected_train_s,
+                                                     args.slots if engine.places else None))
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))
