@@ -15,6 +15,8 @@
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/table_bundle.sh
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command
+#   after each: commit its state.tgz (beside all.tgz) as $STATE; a large all.tgz comes as all.tgz.0, .1, ...
+#            (`cat all.tgz.* > all.tgz`): its histories go to a records.tgz
 #   GCA_COMMIT  required on the GPU machine: the commit sent (the copy there carries a stale .git); runs record it
 #   SCENES, METHODS, SEEDS  the grid (default Table 1: six scenes x gca neuma nclaw x seeds [0,1,2]; METHODS=params:
 #            each scene's own methods in params.yaml); STATE its state file (default

@@ -190,3 +190,26 @@ def test_term_share_table(tmp_path):
     row = df.iloc[0]
     assert (row["Method"], row["Runs"]) == ("Ours", "2") and len(df) == 1
     assert row["silhouette"] == "3.000 (cos 0.999)" and row["global"] == "0.00100 (cos 0.010)"
+
+
+def test_table1_says_how_much_the_launch_velocity_ranks_the_prior(tmp_path):
+    """Session 21: the per-seed launch estimate's error ranked the prior's CD with rho 0.92. The note computes it
+    from the records; records without it (older evaluations) say so instead of a number."""
+    for seed, (error, cd) in enumerate(((0.4, 0.01), (2.0, 0.05), (7.0, 0.1))):
+        _write(tmp_path, "ball", "nclaw", seed=seed, chamfer_mean=cd, launch_v0_error_m_s=error)
+    note = tables.table1_synthetic_cd(load_runs(tmp_path)).notes[0]
+    assert "median 2 m/s (range 0.4-7)" in note and "3 (scene, seed) units" in note and "rho" in note
+    assert note.rstrip(".").split("CD: ")[1].startswith("1.000")
+    _write(tmp_path, "ball", "nclaw", seed=2, chamfer_mean=0.001, launch_v0_error_m_s=7.0)  # negative control
+    assert "CD: -0.500" in tables.table1_synthetic_cd(load_runs(tmp_path)).notes[0]
+    bare = tmp_path / "old"
+    for seed in range(3):
+        _write(bare, "ball", "nclaw", seed=seed, chamfer_mean=0.01)
+    assert "not in these metrics" in tables.table1_synthetic_cd(load_runs(bare)).notes[0]
+
+
+def test_launch_error_is_the_distance_to_the_true_launch():
+    from gca.pipeline.evaluate import launch_error
+
+    out = launch_error([0.6, -2.0, 3.0], (0.6, -2.0, -1.0))
+    assert out == {"launch_v0": [0.6, -2.0, 3.0], "launch_v0_error_m_s": 4.0}

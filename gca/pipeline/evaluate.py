@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from gca.eval.capture import evaluate_capture
@@ -53,6 +54,7 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
         metrics["status"] = train["status"]
     if scene.law_level:
         metrics.update(law_metrics(law.material, settings.material(scene.material), scene.dt, cfg))
+    metrics.update(launch_error(velocity[0], scene.v0))
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "material": scene.material,
             "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device), "commit": git_commit(),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],
@@ -60,6 +62,14 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
             "velocity_source": train["velocity_source"],
             "term_shares": train.get("term_shares", {}), "runs_per_gpu": train.get("runs_per_gpu", 1),
             "mps": train.get("mps", False)}
+
+
+def launch_error(v0, v0_true) -> dict:
+    """The launch velocity a run was evaluated from (``launch_v0`` [3], m/s) and its distance to the scene's true
+    one (``launch_v0_error_m_s``; ground truth, read here at evaluation only). The report relates it to the CD
+    (``gca.report.tables.launch_note``)."""
+    v0 = [float(v) for v in v0]
+    return {"launch_v0": v0, "launch_v0_error_m_s": math.dist(v0, [float(v) for v in v0_true])}
 
 
 def evaluate_capture_trained(settings: Settings, scene_name: str, method, inputs, body: Body, runs_dir: Path,
