@@ -110,6 +110,26 @@ def write_strip(path: Path, frames: np.ndarray, gt: np.ndarray, n: int = 4) -> N
         iio.imwrite(tmp, (np.concatenate([top, bottom], axis=0) * 255 + 0.5).astype(np.uint8), extension=".png")
 
 
+def chamfer_from_launch(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], scene_dir: Path,
+                        cfg: MetricsConfig = MetricsConfig()) -> float | None:
+    """Mean Chamfer distance [m] over the video frames of one no-grad rollout of ``material`` from ``velocity``
+    (v0 [3] m/s, w0 [3] rad/s) against the true trajectory (evaluation only), as :func:`evaluate_run` measures
+    ``chamfer_mean``; None when the rollout diverges. With the scene's true launch it is a diagnostic of the law
+    alone: a law's CD from its launch estimate mixes the law's error with the estimate's (session 21)."""
+    meta = read_meta(scene_dir)
+    frames_idx = list(meta["video_frames"])
+    substeps = frame_substeps(meta, solver.cfg.dt, scene_dir)
+    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype, device=body.x0.device) for u in velocity))
+    try:
+        with torch.no_grad():
+            traj = rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=frames_idx[-1] * substeps,
+                           steps_per_frame=substeps, checkpoint=False)
+    except (SimulationDiverged, CFLError):
+        return None
+    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype, device=body.x0.device)
+    return float(chamfer_over_time(traj.x[[0] + frames_idx], gt, squared=cfg.chamfer_squared)[1:].mean())
+
+
 def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], scene_dir: Path, background,
                  out_dir: Path, cfg: MetricsConfig = MetricsConfig()) -> dict:
     """All trajectory and image metrics of one trained law; writes strip.png and rollout.gif to ``out_dir``."""
