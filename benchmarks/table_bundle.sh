@@ -37,7 +37,9 @@
 #            noise, so checkpoints made elsewhere are not resumed); evaluations fill the rest
 #   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 590: the
 #            calls end ~70 s under it, session 20: 523 s at 590, under the device's 600-s command limit); PROFILE paper
-#   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v).
+#   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v;
+#            EXTRA="--evaluate-missing chamfer_mean_true_launch": the runs evaluated before that metric existed,
+#            Table 1's 54, are evaluated again, once, with their laws from the state: ~150 s of inputs + ~150 s).
 #   A CPU smoke: PROFILE=ci PRIORS= SCENES=ball METHODS=nclaw SEEDS="[0,1]" SLOTS=2 STATE=/tmp/s.tgz sh benchmarks/table_bundle.sh
 set -u
 OUT=${OUT:-/tmp/table_out}; W=${W:-/tmp/table}; SLOTS=${SLOTS:-8}; LIMIT=${LIMIT:-590}; PROFILE=${PROFILE:-paper}

@@ -287,6 +287,26 @@ def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monk
         grid.restore_state(archive, knob)
 
 
+def test_evaluations_that_lack_a_metric_added_since_run_again_once(tmp_path):
+    """Session 21 added chamfer_mean_true_launch: Table 1's 54 evaluations lack it. Those jobs (and the report) are
+    done no more, the training is kept; an evaluation that has it stays done, so a second call undoes nothing."""
+    work = tmp_path / "w"
+    grid.prepare(work, grid.grid_params("ci", ["ball"], ["nclaw", "gca"], []))
+    _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball:nclaw.done", ".grid/train@ball:gca.done",
+                  ".grid/evaluate@ball:gca.done", ".grid/report.done"])
+    (work / "metrics/eval/ball").mkdir(parents=True)
+    (work / "metrics/eval/ball/nclaw.json").write_text(json.dumps({"chamfer_mean": 0.1}))
+    (work / "metrics/eval/ball/gca.json").write_text(json.dumps({"chamfer_mean": 0.1, "chamfer_mean_true_launch": 0.05}))
+    assert grid.evaluate_missing(work, "chamfer_mean_true_launch") == ["evaluate@ball:nclaw"]
+    assert not grid.dispatch.is_done(work, "evaluate@ball:nclaw") and not grid.dispatch.is_done(work, "report")
+    assert grid.dispatch.is_done(work, "evaluate@ball:gca") and grid.dispatch.is_done(work, "train@ball:nclaw")
+    (work / ".grid/evaluate@ball:nclaw.done").write_text("1\n")  # evaluated again, now with the metric
+    (work / "metrics/eval/ball/nclaw.json").write_text(json.dumps({"chamfer_mean": 0.1, "chamfer_mean_true_launch": 0.08}))
+    (work / ".grid/report.done").write_text("1\n")
+    assert grid.evaluate_missing(work, "chamfer_mean_true_launch") == []
+    assert grid.dispatch.is_done(work, "report")
+
+
 def test_a_grid_state_grows_by_scenes_into_one_report(tmp_path):
     """Tables 2, 5 and 6 after Tables 1 and 3, in one state (one report, one claims table): a state restored into a
     grid with more scenes keeps every run done; a new scene starts from nothing. Refused (negative controls, nothing

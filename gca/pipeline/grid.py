@@ -464,6 +464,26 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(str(exc)) from exc
 
 
+def evaluate_missing(work: Path, key: str) -> list[str]:
+    """Evaluations done before ``key`` was measured (a metric added since: session 21's
+    ``chamfer_mean_true_launch``): the ``evaluate@<scene>:<run>[+<run>...]`` jobs whose metrics JSON of a run lacks
+    ``key`` lose their ``.done`` marker, so the grid evaluates those runs again (the laws are kept; only their metrics
+    are remade), and so does the report. Idempotent: an evaluation that recorded ``key`` stays done. Returns the jobs
+    undone."""
+    undone = []
+    for marker in sorted((work / ".grid").glob("evaluate@*.done")):
+        scene, runs = marker.name[len("evaluate@"):-len(".done")].split(":", 1)
+        for run in runs.split("+"):
+            path = work / "metrics" / "eval" / scene / f"{run}.json"
+            if not path.is_file() or key not in json.loads(path.read_text()):
+                marker.unlink()
+                undone.append(marker.name[:-len(".done")])
+                break
+    if undone:
+        (work / ".grid" / "report.done").unlink(missing_ok=True)
+    return undone
+
+
 RECORDS_RE = re.compile(r"^(runs/[^/]+/[^/]+/(history\.json|loss\.png)|metrics/eval/[^/]+/[^/]+/[^/]+\.(png|gif))$")
 
 
@@ -659,6 +679,9 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--records", type=Path, action="append", default=[], metavar="TGZ",
                     help="--work: also unpack the histories, loss curves and evaluation media of these archives "
                          "(--collect's grid_results.tar.gz, a results folder's records.tgz), for --mlflow-import")
+    ap.add_argument("--evaluate-missing", metavar="KEY", action="append", default=[],
+                    help="--work: evaluate again the runs whose metrics lack KEY (a metric added since they were "
+                         "evaluated, e.g. chamfer_mean_true_launch), then the report; idempotent across calls")
     ap.add_argument("--mlflow-import", action="store_true",
                     help="--work: run no job; log the runs' records (after --restore-state, --records) into MLflow "
                          "as the stages would have (gca.pipeline.mlflow_records: the GPU machine has no mlflow)")
@@ -706,6 +729,11 @@ def main(argv=None) -> dict[str, str]:
             print(f"[grid] {restore_state(args.restore_state, work)} state files restored from {args.restore_state}")
         for archive in args.records:
             print(f"[grid] {unpack_records(archive, work)} record files unpacked from {archive}")
+        for key in args.evaluate_missing:
+            undone = evaluate_missing(work, key)
+            if undone:
+                print(f"[grid] {len(undone)} evaluations lack {key}: evaluated again ({', '.join(undone[:4])}"
+                      + (", ..." if len(undone) > 4 else "") + ")")
         if args.mlflow_import:
             from gca.pipeline.mlflow_records import import_grid
 
