@@ -145,6 +145,11 @@ def test_a_training_jobs_marker_records_how_many_trainings_shared_the_gpu_with_i
     assert dispatch.sharing(tmp_path, "train@ball:c") == pytest.approx(1.0, abs=0.05)
     assert dispatch.sharing(tmp_path, "evaluate@ball:a") is None
     assert dispatch.is_done(tmp_path, "train@ball:a")  # the marker still counts
+    two = tmp_path / "two_gpus"  # one training on each of two GPUs: neither shared its GPU
+    jobs2 = {n: _fake(n, sleep) for n in ("train@ball:a", "train@ball:b")}
+    assert set(dispatch.run(jobs2, _local(two, gpus=2, slots=1), two, lambda line: None, poll_s=0.05).values()) == {"done"}
+    assert dispatch.sharing(two, "train@ball:a") == pytest.approx(1.0, abs=0.05)
+    assert dispatch.sharing(two, "train@ball:b") == pytest.approx(1.0, abs=0.05)
 
 
 def test_finished_runs_count_as_if_packed_as_the_machine_packs_them(tmp_path):

@@ -382,7 +382,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     handles: dict[str, object] = {}
     place_of: dict[str, object] = {}
     started: dict[str, float] = {}
-    shared: dict[str, float] = {}  # a training job's integral of the training jobs running beside it (itself too) [s]
+    shared: dict[str, float] = {}  # a training job's integral of the trainings running on its GPU (itself too) [s]
     last = [time.monotonic()]
     free = None if engine.places is None else list(engine.places)
     end = None if deadline is None else time.monotonic() + deadline
@@ -449,8 +449,9 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     def tally() -> None:
         now = time.monotonic()
         training = [n for n in handles if n.startswith("train@")]
-        for n in training:
-            shared[n] = shared.get(n, 0.0) + len(training) * (now - max(last[0], started[n]))
+        for n in training:  # those on its GPU (``place_of``; one engine place, or none, for all)
+            beside = sum(1 for m in training if place_of.get(m) == place_of.get(n))
+            shared[n] = shared.get(n, 0.0) + beside * (now - max(last[0], started[n]))
         last[0] = now
 
     while True:
@@ -488,7 +489,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
 
 
 def record_sharing(work: Path, name: str, mean: float) -> None:
-    """Add ``sharing=<mean>`` to training job ``name``'s ``.done`` marker: how many training jobs ran on the GPUs at
+    """Add ``sharing=<mean>`` to training job ``name``'s ``.done`` marker: how many training jobs ran on its GPU at
     once, itself included, averaged over its time in this call (the last call, when it resumed across calls). A run
     packed 5-way takes ~0.7 of its time packed 8-way (``grid.packed_seconds``), so the machine-lease check scales
     finished runs' times by it (session 21)."""
