@@ -28,7 +28,7 @@ restore_once() {
   [ -f "$1" ] && [ ! -f "$2/.restored" ] && { touch "$2/.restored"; echo "--restore-state $1"; }
 }
 # pack_out OUT: everything in OUT as OUT/all.tgz, members named without "./" (so `tar xzf all.tgz state.tgz` finds it).
-# The device returns files of at most 16 MiB: a larger all.tgz is cut into all.tgz.0, all.tgz.1, ... of PACK_PART
+# The device returns files of at most 16 MiB: a larger all.tgz is cut into all.tgz.00, all.tgz.01, ... of PACK_PART
 # bytes (default 15 MiB; `cat all.tgz.* > all.tgz` here), and a state.tgz is also kept beside it, whole (session 21: the
 # 40 evaluations' media made one call's all.tgz too large, and its state came back only by a second command).
 pack_out() {
@@ -36,5 +36,6 @@ pack_out() {
     && find . -mindepth 1 -delete && mv "/tmp/pack_out.$$.tgz" all.tgz \
     && { [ ! -f "/tmp/pack_state.$$.tgz" ] || mv "/tmp/pack_state.$$.tgz" state.tgz; } \
     && if [ "$(wc -c < all.tgz)" -gt "${PACK_PART:-15728640}" ]; then
-         split -b "${PACK_PART:-15728640}" -d -a 1 all.tgz all.tgz. && rm all.tgz; fi)
+         split -b "${PACK_PART:-15728640}" -d -a 2 all.tgz all.tgz. && rm all.tgz
+         n=$(ls all.tgz.* | wc -l); [ "$n" -le 6 ] || echo "pack_out: $n parts: the device returns 8 files of 64 MiB in all; some will not come back"; fi)
 }

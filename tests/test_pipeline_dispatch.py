@@ -166,6 +166,14 @@ def test_finished_runs_count_as_if_packed_as_the_machine_packs_them(tmp_path):
     start = grid.JOB_START_S
     assert grid.expected_train_s(tmp_path, "train@pawn:gca_full_ft@seed2", 900.0, eight) == pytest.approx(
         start + 310.0 * 10.2 / 7.2)
+    # a batched training (CPU: --runs-per-job) keeps "+" in its marker's name: each of its runs gets the sharing
+    for run in ("neuma", "gca@seed1"):
+        (tmp_path / "runs/cat" / run).mkdir(parents=True)
+        (tmp_path / "runs/cat" / run / "train.json").write_text(json.dumps({"train_seconds": 100.0, "status": "ok"}))
+    grid.dispatch.marker(tmp_path, "train@cat:neuma+gca@seed1").write_text("200.0\n\nsharing=3.80\n")
+    assert grid.dispatch.marker(tmp_path, "train@cat:neuma+gca@seed1").name == "train@cat:neuma+gca@seed1.done"
+    packed = grid.finished_train_seconds(tmp_path, slots=8)
+    assert packed["neuma"]["cat"] == packed["gca"]["cat"] == pytest.approx(100.0 * 10.2 / 6.0)
 
 
 def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeypatch):

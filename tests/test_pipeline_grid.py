@@ -297,11 +297,22 @@ def test_evaluations_that_lack_a_metric_added_since_run_again_once(tmp_path):
     (work / "metrics/eval/ball").mkdir(parents=True)
     (work / "metrics/eval/ball/nclaw.json").write_text(json.dumps({"chamfer_mean": 0.1}))
     (work / "metrics/eval/ball/gca.json").write_text(json.dumps({"chamfer_mean": 0.1, "chamfer_mean_true_launch": 0.05}))
-    assert grid.evaluate_missing(work, "chamfer_mean_true_launch") == ["evaluate@ball:nclaw"]
+    # a batched evaluation (CPU: `--runs-per-job`) whose second run lacks it; a diverged rollout (no CD: nothing to
+    # remake, stays done); a scene-level marker of a tuning (no run in its name): ignored
+    for rel in ("evaluate@ball:gca@seed1+nclaw@seed1", "evaluate@ball:neuma", "evaluate@calib"):
+        grid.dispatch.marker(work, rel).write_text("1\n")
+    (work / "metrics/eval/ball/gca@seed1.json").write_text(json.dumps({"chamfer_mean": 0.1, "chamfer_mean_true_launch": 0.1}))
+    (work / "metrics/eval/ball/nclaw@seed1.json").write_text(json.dumps({"chamfer_mean": 0.1}))
+    (work / "metrics/eval/ball/neuma.json").write_text(json.dumps({"status": "diverged"}))
+    assert grid.evaluate_missing(work, "chamfer_mean_true_launch") == ["evaluate@ball:gca@seed1+nclaw@seed1",
+                                                                       "evaluate@ball:nclaw"]
+    assert grid.dispatch.is_done(work, "evaluate@ball:neuma") and grid.dispatch.is_done(work, "evaluate@calib")
     assert not grid.dispatch.is_done(work, "evaluate@ball:nclaw") and not grid.dispatch.is_done(work, "report")
     assert grid.dispatch.is_done(work, "evaluate@ball:gca") and grid.dispatch.is_done(work, "train@ball:nclaw")
-    (work / ".grid/evaluate@ball:nclaw.done").write_text("1\n")  # evaluated again, now with the metric
-    (work / "metrics/eval/ball/nclaw.json").write_text(json.dumps({"chamfer_mean": 0.1, "chamfer_mean_true_launch": 0.08}))
+    for run in ("nclaw", "gca@seed1+nclaw@seed1"):  # evaluated again, now with the metric
+        (work / f".grid/evaluate@ball:{run}.done").write_text("1\n")
+    for run in ("nclaw", "nclaw@seed1"):
+        (work / f"metrics/eval/ball/{run}.json").write_text(json.dumps({"chamfer_mean": 0.1, "chamfer_mean_true_launch": 0.08}))
     (work / ".grid/report.done").write_text("1\n")
     assert grid.evaluate_missing(work, "chamfer_mean_true_launch") == []
     assert grid.dispatch.is_done(work, "report")

@@ -46,7 +46,7 @@ def marker(work: Path, name: str, suffix: str = ".done") -> Path:
     """``<work>/.grid/<job>.done``: the job finished (its seconds inside)."""
     import re
 
-    return Path(work) / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:-]", "_", name) + suffix)
+    return Path(work) / ".grid" / (re.sub(r"[^A-Za-z0-9_.@:+-]", "_", name) + suffix)  # "+": batched runs
 
 
 def _ignore_usr_signal() -> None:
@@ -447,6 +447,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 return
 
     def tally() -> None:
+        if free is None:  # SLURM places its jobs: which share a GPU is not known here
+            return
         now = time.monotonic()
         training = [n for n in handles if n.startswith("train@")]
         for n in training:  # those on its GPU (``place_of``; one engine place, or none, for all)
@@ -494,8 +496,10 @@ def record_sharing(work: Path, name: str, mean: float) -> None:
     packed 5-way takes ~0.7 of its time packed 8-way (``grid.packed_seconds``), so the machine-lease check scales
     finished runs' times by it (session 21)."""
     path = marker(work, name)
-    if path.is_file():
-        path.write_text(path.read_text().rstrip("\n") + f"\nsharing={mean:.2f}\n")
+    if path.is_file():  # whole or not at all: a marker is a state file (a stamp in it decides `is_done`)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(path.read_text().rstrip("\n") + f"\nsharing={mean:.2f}\n")
+        os.replace(tmp, path)
 
 
 def sharing(work: Path, name: str) -> float | None:

@@ -61,7 +61,7 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yam
 # Estimated cost of a job [GPU-minutes, paper profile, one H100, alone]: for priorities (longest path
 # first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid. The trained
 # methods' ratios to GCA from the tuning's 24 units each under 8-way MPS (tuning/record.json: mean train_seconds GCA
-# 628, NeuMA 562, PAC-NeRF-style 579); multi-view rows render three views (x ~1.25, not measured).
+# 628, NeuMA 562, PAC-NeRF-style 579); multi-view rows render three views: ~1.3x their monocular row (a guess).
 COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
         "train": 0.6, "train:gca": 4.5, "train:neuma": 4.0, "train:neuma_multiview": 5.5,
         "train:pacnerf_depth": 4.2, "train:pacnerf_depth_aligned": 4.2, "train:pacnerf_multiview": 5.5,
@@ -464,18 +464,20 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(str(exc)) from exc
 
 
-def evaluate_missing(work: Path, key: str) -> list[str]:
+def evaluate_missing(work: Path, key: str, measured: str = "chamfer_mean") -> list[str]:
     """Evaluations done before ``key`` was measured (a metric added since: session 21's
-    ``chamfer_mean_true_launch``): the ``evaluate@<scene>:<run>[+<run>...]`` jobs whose metrics JSON of a run lacks
-    ``key`` lose their ``.done`` marker, so the grid evaluates those runs again (the laws are kept; only their metrics
-    are remade), and so does the report. Idempotent: an evaluation that recorded ``key`` stays done. Returns the jobs
-    undone."""
+    ``chamfer_mean_true_launch``): the ``evaluate@<scene>:<run>[+<run>...]`` jobs with a run whose metrics JSON
+    measured ``measured`` but lacks ``key`` lose their ``.done`` marker, so the grid evaluates those runs again (the
+    laws are kept; only their metrics are remade), and so does the report. Idempotent: an evaluation that recorded
+    ``key`` (the stage writes it, None where not measured), or one without ``measured`` (a diverged rollout, a
+    capture scene), stays done. Returns the jobs undone."""
     undone = []
-    for marker in sorted((work / ".grid").glob("evaluate@*.done")):
+    for marker in sorted((work / ".grid").glob("evaluate@*:*.done")):
         scene, runs = marker.name[len("evaluate@"):-len(".done")].split(":", 1)
         for run in runs.split("+"):
             path = work / "metrics" / "eval" / scene / f"{run}.json"
-            if not path.is_file() or key not in json.loads(path.read_text()):
+            record = json.loads(path.read_text()) if path.is_file() else {}
+            if measured in record and key not in record:
                 marker.unlink()
                 undone.append(marker.name[:-len(".done")])
                 break
@@ -577,8 +579,8 @@ def _expected_in(work: Path, default: float, slots: int | None = None) -> Callab
     finished runs' times are read again only when a training job has finished since (its ``.done`` marker)."""
     memo: dict = {}
 
-    def expected(job: str) -> float:
-        key = sum(1 for _ in (work / ".grid").glob("train@*.done"))
+    def expected(job: str) -> float:  # a marker's size grows when its sharing is recorded (after the job's end)
+        key = sorted((p.name, p.stat().st_size) for p in (work / ".grid").glob("train@*.done"))
         if memo.get("key") != key:
             memo.update(key=key, finished=finished_train_seconds(work, slots))
         return expected_train_s(work, job, default, memo["finished"])

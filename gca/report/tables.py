@@ -123,10 +123,11 @@ def launch_note(runs: Runs, scenes: Sequence[str], method: str = "nclaw") -> str
                 f"`{LAUNCH_KEY}`; evaluations before session 21 lack it: `benchmarks/velocity_vs_cd.py` computes it "
                 "from a grid state).")
     errors = pd.Series([u[0] for u in units])
-    rho = errors.corr(pd.Series([u[1] for u in units]), method="spearman")
+    rho = errors.corr(pd.Series([u[1] for u in units]), method="spearman")  # NaN: a constant column
+    rho_text = "undefined (constant values)" if rho != rho else f"{rho:.3f}"
     return (f"Launch velocity (estimated per seed from the observations, shared by a seed's visual rows): "
             f"|v0 - v0_true| median {errors.median():.3g} m/s (range {errors.min():.3g}-{errors.max():.3g}) over "
-            f"{len(units)} (scene, seed) units; Spearman rho with the prior's (`{method}`) CD: {rho:.3f}. A rho near "
+            f"{len(units)} (scene, seed) units; Spearman rho with the prior's (`{method}`) CD: {rho_text}. A rho near "
             "1 says the table ranks launch estimates more than laws.")
 
 
