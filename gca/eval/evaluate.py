@@ -41,24 +41,34 @@ def device_name(device: torch.device | str) -> str:
     return f"cpu ({platform.machine()}, {torch.get_num_threads()} threads)"
 
 
+def rollout_from(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], video_frames: list[int],
+                 substeps: int) -> Rollout:
+    """One no-grad rollout of ``material`` from (v0 [3] m/s, w0 [3] rad/s) through the last video frame."""
+    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype, device=body.x0.device) for u in velocity))
+    with torch.no_grad():
+        return rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=video_frames[-1] * substeps,
+                       steps_per_frame=substeps, checkpoint=False)
+
+
 def predict(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], video_frames: list[int],
             substeps: int) -> tuple[Rollout, float]:
     """Full rollout of the learned law (no grad) from (v0, w0); returns the rollout and its wall time [s].
 
-    The timed rollout is the second of two identical ones: the first pays the one-off costs (kernel
-    loading, CUDA-graph capture) that a user rolling a trained law out repeatedly pays once. The clock
+    The timed rollout is the second of two identical ones (:func:`rollout_from`): the first pays the one-off costs
+    (kernel loading, CUDA-graph capture) that a user rolling a trained law out repeatedly pays once. The clock
     stops after the device has finished (synchronised).
     """
-    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype, device=body.x0.device) for u in velocity))
-
-    def run() -> Rollout:
-        with torch.no_grad():
-            return rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=video_frames[-1] * substeps,
-                           steps_per_frame=substeps, checkpoint=False)
-    run()
+    rollout_from(solver, material, body, velocity, video_frames, substeps)
     t0 = synced_clock(body.x0.device)
-    traj = run()
+    traj = rollout_from(solver, material, body, velocity, video_frames, substeps)
     return traj, synced_clock(body.x0.device) - t0
+
+
+def chamfer_to_truth(traj: Rollout, video_frames: list[int], scene_dir: Path, cfg: MetricsConfig) -> torch.Tensor:
+    """Chamfer distance [m] per frame [T+1] (frame 0, then each video frame) of a rollout against the true
+    trajectory (evaluation only)."""
+    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=traj.x.dtype, device=traj.x.device)
+    return chamfer_over_time(traj.x[[0] + video_frames], gt, squared=cfg.chamfer_squared)
 
 
 def image_metrics(body: Body, traj: Rollout, scene_dir: Path, views: list[str], video_frames: list[int],
@@ -118,16 +128,11 @@ def chamfer_from_launch(solver: MPMSolver, material, body: Body, velocity: tuple
     alone: a law's CD from its launch estimate mixes the law's error with the estimate's (session 21)."""
     meta = read_meta(scene_dir)
     frames_idx = list(meta["video_frames"])
-    substeps = frame_substeps(meta, solver.cfg.dt, scene_dir)
-    v = initial_velocity(body.x0, *(torch.tensor(u, dtype=body.x0.dtype, device=body.x0.device) for u in velocity))
     try:
-        with torch.no_grad():
-            traj = rollout(solver, material, body.x0, v, body.vol, body.mass, n_steps=frames_idx[-1] * substeps,
-                           steps_per_frame=substeps, checkpoint=False)
+        traj = rollout_from(solver, material, body, velocity, frames_idx, frame_substeps(meta, solver.cfg.dt, scene_dir))
     except (SimulationDiverged, CFLError):
         return None
-    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype, device=body.x0.device)
-    return float(chamfer_over_time(traj.x[[0] + frames_idx], gt, squared=cfg.chamfer_squared)[1:].mean())
+    return float(chamfer_to_truth(traj, frames_idx, scene_dir, cfg)[1:].mean())
 
 
 def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, list], scene_dir: Path, background,
@@ -141,9 +146,7 @@ def evaluate_run(solver: MPMSolver, material, body: Body, velocity: tuple[list, 
                                 frame_substeps(meta, solver.cfg.dt, scene_dir))
     except (SimulationDiverged, CFLError) as exc:  # CFL: the law is too stiff for the scene's dt
         return {**metrics, "status": "diverged", "message": str(exc)}
-    gt = torch.as_tensor(load_trajectory(scene_dir), dtype=body.x0.dtype, device=body.x0.device)
-    pred = traj.x[[0] + frames_idx]
-    cd = chamfer_over_time(pred, gt, squared=cfg.chamfer_squared)
+    cd = chamfer_to_truth(traj, frames_idx, scene_dir, cfg)
     metrics.update(status="ok", rollout_seconds=seconds, chamfer_per_frame=cd.tolist(), chamfer_mean=float(cd[1:].mean()))
     views = ["train0"] + list(meta["views"]["eval"])
     img, rendered = image_metrics(body, traj, scene_dir, views, frames_idx, background, cfg)

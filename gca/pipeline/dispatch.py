@@ -495,11 +495,11 @@ def record_sharing(work: Path, name: str, mean: float) -> None:
     once, itself included, averaged over its time in this call (the last call, when it resumed across calls). A run
     packed 5-way takes ~0.7 of its time packed 8-way (``grid.packed_seconds``), so the machine-lease check scales
     finished runs' times by it (session 21)."""
+    from gca.io import write_text
+
     path = marker(work, name)
-    if path.is_file():  # whole or not at all: a marker is a state file (a stamp in it decides `is_done`)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(path.read_text().rstrip("\n") + f"\nsharing={mean:.2f}\n")
-        os.replace(tmp, path)
+    if path.is_file():  # whole or not at all (atomically): a marker is a state file, its stamp decides `is_done`
+        write_text(path, path.read_text().rstrip("\n") + f"\nsharing={mean:.2f}\n")
 
 
 def sharing(work: Path, name: str) -> float | None:

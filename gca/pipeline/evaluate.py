@@ -48,18 +48,18 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
     scene, seed, name, train, law, velocity = _trained_run(settings, scene_name, method, inputs, body, runs_dir,
                                                            device, seed)
     cfg = settings.metrics
-    metrics = evaluate_run(solver_for(settings, scene, device), law.material, body, velocity,
-                           inputs.scene_dir, settings.video.background, out_dir / name, cfg)
+    solver = solver_for(settings, scene, device)
+    metrics = evaluate_run(solver, law.material, body, velocity, inputs.scene_dir, settings.video.background,
+                           out_dir / name, cfg)
     if train["status"] != "ok":
         metrics["status"] = train["status"]
     if scene.law_level:
         metrics.update(law_metrics(law.material, settings.material(scene.material), scene.dt, cfg))
     metrics.update(launch_error(velocity[0], scene.v0))
-    metrics["chamfer_mean_true_launch"] = None  # the law alone, from the true launch (a diagnostic, not the paper's)
-    if "chamfer_mean" in metrics:
-        metrics["chamfer_mean_true_launch"] = chamfer_from_launch(
-            solver_for(settings, scene, device), law.material, body, (list(scene.v0), list(scene.w0)),
-            inputs.scene_dir, cfg)
+    # the law alone, from the true launch (a diagnostic, not the paper's); None where the rollout gave no CD
+    metrics["chamfer_mean_true_launch"] = chamfer_from_launch(
+        solver, law.material, body, (list(scene.v0), list(scene.w0)), inputs.scene_dir, cfg) \
+        if "chamfer_mean" in metrics else None
     return {**metrics, "scene": scene_name, "method": method.name, "object": scene.object, "material": scene.material,
             "seed": seed, "profile": settings.profile, "device": device_name(body.x0.device), "commit": git_commit(),
             "train_seconds": train["train_seconds"], "peak_memory_gib": train["peak_memory_gib"],

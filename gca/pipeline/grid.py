@@ -464,6 +464,13 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(str(exc)) from exc
 
 
+def job_runs(name: str) -> tuple[str, list[str]]:
+    """(scene, run names) of a per-run job ``<stage>@<scene>:<run>[+<run>...]`` (:func:`split_runs`,
+    :func:`batch_runs`), also given as its marker's file stem (``dispatch.marker`` keeps ``+``)."""
+    scene, runs = name.split("@", 1)[1].split(":", 1)
+    return scene, runs.split("+")
+
+
 def evaluate_missing(work: Path, key: str, measured: str = "chamfer_mean") -> list[str]:
     """Evaluations done before ``key`` was measured (a metric added since: session 21's
     ``chamfer_mean_true_launch``): the ``evaluate@<scene>:<run>[+<run>...]`` jobs with a run whose metrics JSON
@@ -473,13 +480,13 @@ def evaluate_missing(work: Path, key: str, measured: str = "chamfer_mean") -> li
     capture scene), stays done. Returns the jobs undone."""
     undone = []
     for marker in sorted((work / ".grid").glob("evaluate@*:*.done")):
-        scene, runs = marker.name[len("evaluate@"):-len(".done")].split(":", 1)
-        for run in runs.split("+"):
+        scene, runs = job_runs(marker.stem)
+        for run in runs:
             path = work / "metrics" / "eval" / scene / f"{run}.json"
             record = json.loads(path.read_text()) if path.is_file() else {}
             if measured in record and key not in record:
                 marker.unlink()
-                undone.append(marker.name[:-len(".done")])
+                undone.append(marker.stem)
                 break
     if undone:
         (work / ".grid" / "report.done").unlink(missing_ok=True)
@@ -521,10 +528,10 @@ def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, di
     run timed 5-way (310 s) set the expectation of runs that then ran 8-way and outlasted the machine."""
     shares = {}
     if slots:
-        for path in (work / ".grid").glob("train@*.done"):
-            scene, runs = path.name[len("train@"):-len(".done")].split(":", 1)
-            ran = dispatch.sharing(work, path.name[:-len(".done")])
-            for run in runs.split("+"):
+        for path in (work / ".grid").glob("train@*:*.done"):
+            scene, runs = job_runs(path.stem)
+            ran = dispatch.sharing(work, path.stem)
+            for run in runs:
                 shares[(scene, run)] = ran
     out: dict[str, dict[str, float]] = {}
     for path in (work / "runs").glob("*/*/train.json"):
@@ -548,9 +555,9 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
     :func:`train_cost` against GCA's (NCLaw, which does not train: ~0.13); plus :data:`JOB_START_S` for the job
     (``train_seconds`` counts the iterations only)."""
     finished = finished_train_seconds(work) if finished is None else finished
-    scene, runs = job.split("@", 1)[1].split(":", 1)
+    scene, runs = job_runs(job)
     total = JOB_START_S
-    for run in runs.split("+"):
+    for run in runs:
         method = run.split("@", 1)[0]
         times = finished.get(method, {})
         if scene in times:
@@ -576,10 +583,11 @@ def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene:
 
 def _expected_in(work: Path, default: float, slots: int | None = None) -> Callable[[str], float]:
     """:func:`expected_train_s` for ``dispatch.run``, which asks each poll for every training run it holds back: the
-    finished runs' times are read again only when a training job has finished since (its ``.done`` marker)."""
+    finished runs' times are read again only when a training marker appeared or grew since (a job's end, then its
+    sharing: ``dispatch.record_sharing``)."""
     memo: dict = {}
 
-    def expected(job: str) -> float:  # a marker's size grows when its sharing is recorded (after the job's end)
+    def expected(job: str) -> float:
         key = sorted((p.name, p.stat().st_size) for p in (work / ".grid").glob("train@*.done"))
         if memo.get("key") != key:
             memo.update(key=key, finished=finished_train_seconds(work, slots))
