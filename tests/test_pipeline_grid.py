@@ -208,20 +208,21 @@ def _write(root, rels, text="x"):
 
 
 def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
-    """--save-state keeps what another machine needs to go on (the runs' results, laws and checkpoints, the
+    """--save-state keeps what another machine needs to go on (the runs' results and laws, the
     launch velocities, the evaluations' JSON, the training/evaluation markers) and not the inputs, nor what nothing
-    downstream reads (histories, media, MLflow); --restore-state refuses a state made under
-    other params, or with a member that is not a state file, writing nothing."""
+    downstream reads (histories, media, MLflow), nor a cut-off run's checkpoint (it would not resume on remade
+    inputs); --restore-state refuses a state made under other params, or with a member that is not a state file,
+    writing nothing, and leaves out the checkpoints of an older state."""
     work, elsewhere = tmp_path / "w", tmp_path / "elsewhere"
     params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"])
     grid.prepare(work, params)
     state = [".grid/train@ball:gca.done", ".grid/evaluate@ball:gca.done", "runs/ball/gca/train.json",
-             "runs/ball/gca/law.pt", "runs/ball/gca@seed1/checkpoint.pt", "runs/ball/gca@seed1/checkpoint.pt.stamp",
-             "runs/ball/velocity.json", "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json"]
+             "runs/ball/gca/law.pt", "runs/ball/velocity.json", "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json"]
     inputs = [".grid/assets@ball.done", ".grid/preprocess@ball.done", "data/scenes/ball/meta.json",
               "metrics/assets/ball.json", ".grid/grid.log", ".grid/report.done",
               # what nothing downstream reads: each call returns it instead (--collect)
-              "runs/ball/gca/history.json", "runs/ball/gca/loss.png", "metrics/eval/ball/gca/strip.png", "mlflow.db"]
+              "runs/ball/gca/history.json", "runs/ball/gca/loss.png", "metrics/eval/ball/gca/strip.png", "mlflow.db",
+              "runs/ball/gca@seed1/checkpoint.pt", "runs/ball/gca@seed1/checkpoint.pt.stamp"]
     _write(work, state + inputs)
     archive = tmp_path / "state.tgz"
     assert grid.save_state(work, archive) == len(state) + 1  # and the params digest
@@ -253,6 +254,19 @@ def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
     assert not (fresh / "runs").exists()
     with pytest.raises(SystemExit, match="no grid state there"):
         grid.restore_state(tmp_path / "missing.tgz", fresh)
+
+    # a state of session 21 carried checkpoints: it restores, without them (they would train afresh here)
+    old = tmp_path / "old.tgz"
+    with tarfile.open(archive) as src, tarfile.open(old, "w:gz") as tar:
+        for m in src.getmembers():
+            tar.addfile(m, src.extractfile(m))
+        for rel in ("runs/ball/gca@seed1/checkpoint.pt", "runs/ball/gca@seed1/checkpoint.pt.stamp"):
+            info = tarfile.TarInfo(rel)
+            info.size = 1
+            tar.addfile(info, io.BytesIO(b"c"))
+    grid.prepare(tmp_path / "from_old", params)
+    assert grid.restore_state(old, tmp_path / "from_old") == len(state) + 1
+    assert not (tmp_path / "from_old/runs/ball/gca@seed1/checkpoint.pt").exists()
 
 
 def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monkeypatch):

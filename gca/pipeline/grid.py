@@ -380,12 +380,16 @@ def collect(work: Path, out: Path) -> Path:
 
 # What a --work grid needs to go on elsewhere (another machine, a later session), kept small (it travels with the
 # checkout, under the device tool's 64-MiB carry with the GPU wheels: ~45 kB a run): the finished training and
-# evaluation jobs' markers, each run's result, learned law and checkpoint (of a run cut off mid-training), the
-# launch velocities, the evaluations' JSON (what the tables read). Not the inputs (assets, particles, ground truth,
+# evaluation jobs' markers, each run's result and learned law, the launch velocities, the evaluations' JSON (what
+# the tables read). Not a run's checkpoint (of a run cut off mid-training): another machine remakes the inputs,
+# which differ in float32 noise, so the checkpoint's stamp would not match there and the run would train afresh
+# (session 20); carried, it made the lease check take seven such runs for resumable (session 22: they started in a
+# call that could not finish them). Older states that hold checkpoints still restore, without them. Not the inputs (assets, particles, ground truth,
 # preprocessing: remade from params, only where a job still needs them, :func:`needed`), nor what nothing downstream
 # reads: histories, loss curves, evaluation media, the MLflow store (each call returns them: --collect, the bundle).
 STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
                       r"runs/[^/]+/[^/]+/(train\.json|law\.pt|checkpoint\.pt(\..+)?)|metrics/eval/[^/]+/[^/]+\.json)$")
+CHECKPOINT_RE = re.compile(r"(^|/)checkpoint\.pt(\..+)?$")  # a run's checkpoint and its stamp: never in a state
 STATE_PARAMS = ".grid/state_params.json"  # what the state was made under: the params' digest and each scene's methods
 
 
@@ -409,9 +413,11 @@ def _made_under(work: Path) -> dict:
 
 
 def state_files(work: Path) -> list[str]:
-    """:data:`STATE_RE`'s files in ``work`` (relative, sorted; files of 64 MiB or more are left out)."""
+    """:data:`STATE_RE`'s files in ``work`` (relative, sorted; files of 64 MiB or more and checkpoints,
+    :data:`CHECKPOINT_RE`, are left out)."""
     return sorted(rel for f in work.rglob("*") if f.is_file() and not f.is_symlink()
-                  and STATE_RE.match(rel := f.relative_to(work).as_posix()) and f.stat().st_size < 64 * 2 ** 20)
+                  and STATE_RE.match(rel := f.relative_to(work).as_posix()) and not CHECKPOINT_RE.search(rel)
+                  and f.stat().st_size < 64 * 2 ** 20)
 
 
 def save_state(work: Path, archive: Path) -> int:
@@ -429,7 +435,8 @@ def restore_state(archive: Path, work: Path) -> int:
     the new methods' runs are trained and evaluated) and by scenes (a new scene runs
     from nothing). Refused, with nothing written, when made under other params (seeds, profile or knobs; a scene
     of the state defined otherwise here, or missing here; a scene's method dropped: its runs are not this grid's),
-    or when it holds anything but state files."""
+    or when it holds anything but state files. A checkpoint in an older state is not unpacked (:data:`CHECKPOINT_RE`:
+    it would not resume on this machine's remade inputs, and the lease check would take its run for resumable)."""
     from gca.io import unpack_files
 
     if not archive.is_file():
@@ -459,7 +466,7 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(f"{archive}: made with methods this grid lacks ({dropped}); a grid may only add methods")
     try:  # a scene with new methods needs only their runs evaluated (one evaluation job per run: split_evaluate)
         return unpack_files(archive, work, lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name)),
-                            "grid state")
+                            "grid state", skip=lambda name: bool(CHECKPOINT_RE.search(name)))
     except ValueError as exc:
         raise SystemExit(str(exc)) from exc
 
