@@ -1,12 +1,14 @@
 """Launch-velocity estimation against the ground truth, split along the training camera's viewing ray.
 
-    python benchmarks/velocity_fit.py --work /tmp/pp --scene duck \
+    python benchmarks/velocity_fit.py --work /tmp/pp --scene duck --seed 0 1 2 \
         --variant "" --variant "velocity.reg_view_axis=0 velocity.n_video_frames=12"
 
 ``--work`` is a pipeline (or ``gca/pipeline/grid.py``) work directory holding the scene's data, its
 preprocessing and ``models/prior/<family>.pt``. Each variant (space-separated ``dotted.key=yaml``
 overrides of its ``params.yaml``) fits (v0, w0) as the ``train`` stage does; the table gives the error
-of v0 along the viewing ray (weakly observable from one view) and in the image plane [m/s], and of w0.
+of v0 along the viewing ray (weakly observable from one view) and in the image plane [m/s], and of w0, on each
+``--seed``'s observations (its nuisance draw: segmentation, depth, lighting; ``train.seeds`` of the work directory).
+It reads the scene's true launch: use it on calibration scenes only (a table scene's truth is evaluation's).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from gca.pipeline.grid import apply_overrides, scene_inputs  # noqa: E402  (the 
 from gca import config  # noqa: E402
 from gca.pipeline.settings import Settings  # noqa: E402
 from gca.scenes.ground_truth import scene_cameras  # noqa: E402
-from gca.pipeline.train import default_device, estimate_scene_velocity  # noqa: E402
+from gca.pipeline.train import default_device, estimate_scene_velocity, observed_inputs  # noqa: E402
 
 
 def errors(params, scene_name: str, fit: dict) -> dict:
@@ -47,6 +49,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--scene", required=True)
     ap.add_argument("--variant", action="append", default=[], help="space-separated dotted.key=value overrides")
+    ap.add_argument("--seed", type=int, nargs="+", default=[0], help="observations of these training seeds")
     ap.add_argument("--device", default=default_device())
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
@@ -55,13 +58,20 @@ def main(argv=None) -> list[dict]:
     rows = []
     for text in args.variant or [""]:
         params = apply_overrides(copy.deepcopy(base), text.split())
-        with tempfile.TemporaryDirectory() as tmp:
-            fit = estimate_scene_velocity(Settings(params), args.scene, inputs, Path(tmp) / "velocity.json", args.device)
-        rows.append({"variant": text or "params.yaml", **fit, **errors(params, args.scene, fit)})
-    print(f"{'variant':50s} {'gt along':>8s} {'err along':>9s} {'in-plane':>8s} {'w0 err':>7s} {'loss':>8s}")
+        settings = Settings(params)
+        for seed in args.seed:
+            with tempfile.TemporaryDirectory() as tmp:
+                fit = estimate_scene_velocity(settings, args.scene, observed_inputs(settings, args.scene, inputs, seed),
+                                              Path(tmp) / "velocity.json", args.device)
+            rows.append({"variant": text or "params.yaml", "scene": args.scene, "seed": seed, **fit,
+                         **errors(params, args.scene, fit)})
+            r = rows[-1]
+            print(f"{r['variant']:50s} seed {seed} {r['v0_gt_along_ray']:+8.2f} {r['v0_along_ray']:+9.2f} "
+                  f"{r['v0_in_plane']:8.2f} {r['w0_error']:7.2f} {r['loss_last']:8.4f}", flush=True)
+    print(f"{'variant':50s} {'seed':6s} {'gt along':>8s} {'err along':>9s} {'in-plane':>8s} {'w0 err':>7s} {'loss':>8s}")
     for r in rows:
-        print(f"{r['variant']:50s} {r['v0_gt_along_ray']:+8.2f} {r['v0_along_ray']:+9.2f} {r['v0_in_plane']:8.2f} "
-              f"{r['w0_error']:7.2f} {r['loss_last']:8.4f}")
+        print(f"{r['variant']:50s} seed {r['seed']} {r['v0_gt_along_ray']:+8.2f} {r['v0_along_ray']:+9.2f} "
+              f"{r['v0_in_plane']:8.2f} {r['w0_error']:7.2f} {r['loss_last']:8.4f}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return rows

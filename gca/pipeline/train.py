@@ -115,7 +115,7 @@ def estimate_scene_velocity(settings: Settings, scene_name: str, inputs: SceneIn
     material = Material(prior.elasticity, prior.plasticity, float(body.mass.sum() / body.vol.sum())).to(device)
     v0, w0, history = estimate_velocity(solver_for(settings, scene, device), material, body, view, meta["video_frames"],
                                         frame_substeps(meta, scene.dt, inputs.scene_dir), settings.velocity,
-                                        settings.video.background)
+                                        settings.video.background, settings.match)
     result = {"v0": v0.tolist(), "w0": w0.tolist(), "loss_first": history[0] if history else None,
               "loss_last": history[-1] if history else None, "iterations": len(history)}
     write_json(out, result)

@@ -164,6 +164,10 @@ class VelocityConfig:
         lambda_mask, lambda_color: weights of the silhouette and colour losses.
         angular: also fit an angular velocity about the centre of mass (NeuMA fits v0 only).
         reg_view_axis: weight of the L2 prior on v0's component along the camera axis [(m/s)^-2].
+        lambda_track: weight of the point tracks' reprojection error (``gca.train.velocity.track_loss``) [px^-2];
+            0 = silhouettes only (NeuMA).
+        track_k: particles carrying each tracked point [count].
+        track_huber_px: the Huber loss's quadratic zone [px].
     """
 
     iterations: int = 100
@@ -173,3 +177,6 @@ class VelocityConfig:
     lambda_color: float = 0.0
     angular: bool = True
     reg_view_axis: float = 0.0
+    lambda_track: float = 0.0
+    track_k: int = 4
+    track_huber_px: float = 2.0
