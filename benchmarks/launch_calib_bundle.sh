@@ -4,7 +4,7 @@
 # nuisance draw), then fits every variant on every (scene, seed) with benchmarks/velocity_fit.py (the train stage's
 # own estimate, `estimate_scene_velocity`), one process per (scene, seed) under CUDA MPS. The rows (errors against the
 # calibration scenes' true launch, along the training camera's ray and in the image plane) come back as
-# $OUT/<scene>@seed<k>.log and .json; `python benchmarks/launch_choice.py $OUT` applies the selection rule declared in
+# $OUT/<scene>_seed<k>.log and .json (no "@": the device returns no such name); `python benchmarks/launch_choice.py $OUT` applies the selection rule declared in
 # benchmarks/NOTES.md (session 22) before the call.
 #   call 1 carry [".wpa"]:                        sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]: . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/launch_calib_bundle.sh
@@ -40,11 +40,11 @@ for s in $SCENES; do
     (IFS=';'; set -f; set -- $VARIANTS; unset IFS
      args=""; for v in "$@"; do args="$args --variant \"$v\""; done
      eval timeout "$left" python3 benchmarks/velocity_fit.py --work "$W/grid" --scene "$s" --seed "$k" $args \
-         --json "$OUT/$s@seed$k.json") > "$OUT/$s@seed$k.log" 2>&1 &
+         --json "$OUT/${s}_seed$k.json") > "$OUT/${s}_seed$k.log" 2>&1 &
   done
 done
 wait
 [ "$GPU" = 0 ] || echo quit | nvidia-cuda-mps-control 2>/dev/null || true
 echo "[launch $(($(date +%s) - T0)) s] fits done"
-grep -h "seed [0-9]" "$OUT"/*@seed*.log | grep -v "^variant" | sort | uniq
+grep -h "seed [0-9]" "$OUT"/*_seed*.log | grep -v "^variant" | sort | uniq
 python3 benchmarks/launch_choice.py "$OUT" || true

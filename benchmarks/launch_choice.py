@@ -2,7 +2,7 @@
 
     python benchmarks/launch_choice.py OUT     # OUT: benchmarks/launch_calib_bundle.sh's output folder
 
-Reads each ``<scene>@seed<k>.log`` (the rows ``benchmarks/velocity_fit.py`` prints as each fit ends, so a call cut
+Reads each ``<scene>_seed<k>.log`` (the rows ``benchmarks/velocity_fit.py`` prints as each fit ends, so a call cut
 off keeps the fits it finished) and ranks the variants by the median over the (scene, seed) units of the launch
 error ``|v0 - v0_true|`` [m/s] (from its along-ray and in-plane parts). Rule: the lowest median among the variants
 fitted on every unit; a variant within ``TIE`` [m/s] of a lower-ranked earlier one (simpler: fewer terms, fewer
@@ -26,8 +26,8 @@ ROW = re.compile(r"^(?P<variant>.*?)\s+seed (?P<seed>\d+)\s+(?P<gt>[-+]\d+\.\d+)
 def rows(out: Path) -> list[dict]:
     """Every fitted (variant, scene, seed) row of the logs, once."""
     seen = {}
-    for log in sorted(out.glob("*@seed*.log")):
-        scene = log.name.split("@")[0]
+    for log in sorted(out.glob("*_seed*.log")):
+        scene = log.name.rsplit("_seed", 1)[0]
         for line in log.read_text(errors="replace").splitlines():
             m = ROW.match(line.strip())
             if m:
