@@ -2,14 +2,14 @@
 # Issue 22 item 8 / issue 20 item 5: a table's grid (gca.pipeline.grid: inputs, training, evaluation, report) on ONE
 # H100 under CUDA MPS, in bounded device commands spread over machines and sessions. The machine forgets its disk
 # between leases, so each call starts from the grid's state committed in $STATE (the runs done, their laws and
-# evaluations' JSON, the checkpoints of runs cut off mid-training: `grid --save-state`, ~45 kB a run) and returns the
+# evaluations' JSON, no checkpoint: a run cut off trains afresh on the next machine; `grid --save-state`, ~45 kB a run) and returns the
 # new one in $OUT/all.tgz (state.tgz inside and beside; cut in 15-MiB parts when larger) with grid_results.tar.gz (the histories, media and report made by this
 # machine): commit state.tgz as $STATE and the histories as a records.tgz (benchmarks/results/table1_records_s20/).
 # The GPU machine has no mlflow: the runs reach MLflow here afterwards (grid --restore-state $STATE --records
 # records.tgz --mlflow-import, same grid options; README "After a run"). Inputs are remade on
 # each machine, only for the scenes with a run or an evaluation left (`grid.needed`). With the wheels' call, the
 # carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: `sh benchmarks/carry_aside.sh out` before the
-# calls (benchmarks/results/* but priors_paper and table1_seeds, and reports/ci/figures), `... back` after them.
+# calls (benchmarks/results/* but priors_paper, table1_seeds and table1_launch, and reports/ci/figures), `... back` after them.
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
@@ -20,7 +20,8 @@
 #   GCA_COMMIT  required on the GPU machine: the commit sent (the copy there carries a stale .git); runs record it
 #   SCENES, METHODS, SEEDS  the grid (default Table 1: six scenes x gca neuma nclaw x seeds [0,1,2]; METHODS=params:
 #            each scene's own methods in params.yaml); STATE its state file (default
-#            benchmarks/results/table1_seeds/state.tgz). A state is tied to its seeds and knobs (another grid takes
+#            benchmarks/results/table1_launch/state.tgz: Table 1 under the point-track launch estimate, session 22;
+#            table1_seeds/ holds the silhouette-only one, restorable at f1d93a9). A state is tied to its seeds and knobs (another grid takes
 #            another STATE) but grows by methods and by scenes, so the paper's tables are one state, one report and
 #            one claims table, in this order (the runs done and their evaluations are kept; only new runs are trained
 #            and evaluated, each run's evaluation right after its training):
@@ -44,7 +45,7 @@
 set -u
 OUT=${OUT:-/tmp/table_out}; W=${W:-/tmp/table}; SLOTS=${SLOTS:-8}; LIMIT=${LIMIT:-590}; PROFILE=${PROFILE:-paper}
 SCENES=${SCENES:-"ball duck pawn cat fish bottle"}; METHODS=${METHODS:-"gca neuma nclaw"}; SEEDS=${SEEDS:-"[0,1,2]"}
-STATE=${STATE:-benchmarks/results/table1_seeds/state.tgz}; EXTRA=${EXTRA:-}
+STATE=${STATE:-benchmarks/results/table1_launch/state.tgz}; EXTRA=${EXTRA:-}
 PRIORS=${PRIORS-benchmarks/results/priors_paper}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1

@@ -13,7 +13,8 @@ def _tree(root: Path) -> dict:
 def test_results_go_aside_and_come_back_whole(tmp_path):
     repo, hold = tmp_path / "repo", tmp_path / "hold"
     for rel in ("benchmarks/results/README.md", "benchmarks/results/priors_paper/jelly.pt",
-                "benchmarks/results/table1_seeds/state.tgz", "benchmarks/results/fast_s11/a.json",
+                "benchmarks/results/table1_seeds/state.tgz", "benchmarks/results/table1_launch/state.tgz",
+                "benchmarks/results/fast_s11/a.json",
                 "benchmarks/results/x.json", "reports/ci/figures/f.png", "reports/ci/table1.md"):
         (repo / rel).parent.mkdir(parents=True, exist_ok=True)
         (repo / rel).write_text(rel)
@@ -22,6 +23,7 @@ def test_results_go_aside_and_come_back_whole(tmp_path):
                                     capture_output=True, text=True)  # noqa: E731
     assert run("out").returncode == 0
     assert sorted(_tree(repo)) == ["benchmarks/results/README.md", "benchmarks/results/priors_paper/jelly.pt",
+                                   "benchmarks/results/table1_launch/state.tgz",
                                    "benchmarks/results/table1_seeds/state.tgz", "reports/ci/table1.md"]
     again = run("out")  # a second `out` before `back` would mix two sessions' files: refused
     assert again.returncode == 1 and "run 'back' first" in again.stdout

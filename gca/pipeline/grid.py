@@ -30,7 +30,7 @@ then waits for them to end, at most ``dispatch.STOP_GRACE_S`` + 10 s past the de
 as a few commands of bounded length (repeat the command until it reports every job done). A failed job
 is logged with its log path, its dependents are skipped, the others go on. ``--priors DIR`` takes
 ``<family>.pt`` from an earlier run instead of pretraining. ``--save-state``/``--restore-state`` carry a
-``--work`` grid to another machine (the runs' results, laws and checkpoints, the evaluations' JSON; inputs are
+``--work`` grid to another machine (the runs' results and laws, the evaluations' JSON, no checkpoint; inputs are
 remade only where a job left reads them): ``benchmarks/table_bundle.sh`` runs a table that way on one GPU across sessions.
 """
 
@@ -691,7 +691,7 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--restore-state", type=Path, metavar="TGZ",
                     help="--work: first unpack a --save-state archive (the runs and evaluations done elsewhere)")
     ap.add_argument("--save-state", type=Path, metavar="TGZ",
-                    help="--work: at the end write the runs' results, laws and checkpoints and the evaluations' JSON "
+                    help="--work: at the end write the runs' results and laws and the evaluations' JSON "
                          "to this archive (the state another machine goes on from with --restore-state)")
     ap.add_argument("--records", type=Path, action="append", default=[], metavar="TGZ",
                     help="--work: also unpack the histories, loss curves and evaluation media of these archives "
