@@ -1,7 +1,7 @@
 """How much of a table's Chamfer distance is the launch velocity's error? (evaluation-side: reads the true v0)
 
 Each visual row of a (scene, seed) starts from the launch velocity v0 [m/s] estimated from that seed's observations
-(``gca.train.velocity``, NeuMA's stage A: silhouettes of the first frames under the prior law), so a wrong v0 moves
+(``gca.train.velocity``, NeuMA's stage A: silhouettes of the first frames under the prior law, and since session 22 point tracks), so a wrong v0 moves
 every row's trajectory alike. This prints, per (scene, seed) of a grid state, the estimate's error against the
 scene's true v0 (params ``scenes.<name>.v0``, ground truth: only evaluation may read it), the Chamfer distance of
 each method, and the Spearman rank correlation of |v0 error| with the prior's (``nclaw``) CD across the units.
