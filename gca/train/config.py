@@ -165,7 +165,7 @@ class VelocityConfig:
         angular: also fit an angular velocity about the centre of mass (NeuMA fits v0 only).
         reg_view_axis: weight of the L2 prior on v0's component along the camera axis [(m/s)^-2].
         lambda_track: weight of the point tracks' reprojection error (``gca.train.velocity.track_loss``) [px^-2];
-            0 = silhouettes only (NeuMA).
+            0 = silhouettes only (NeuMA); 10 chosen on the calibration scenes (benchmarks/NOTES.md s22).
         track_k: particles carrying each tracked point [count].
         track_huber_px: the Huber loss's quadratic zone [px].
     """
@@ -177,6 +177,6 @@ class VelocityConfig:
     lambda_color: float = 0.0
     angular: bool = True
     reg_view_axis: float = 0.0
-    lambda_track: float = 0.0
+    lambda_track: float = 10.0
     track_k: int = 4
     track_huber_px: float = 2.0
