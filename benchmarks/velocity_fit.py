@@ -56,22 +56,19 @@ def main(argv=None) -> list[dict]:
     base = config.load(f"velocity_fit@{args.scene}", args.work / "params.yaml")
     inputs = scene_inputs(args.work, args.scene, base)
     rows = []
+    print(f"{'variant':50s} {'seed':6s} {'gt along':>8s} {'err along':>9s} {'in-plane':>8s} {'w0 err':>7s} {'loss':>8s}")
     for text in args.variant or [""]:
         params = apply_overrides(copy.deepcopy(base), text.split())
         settings = Settings(params)
-        for seed in args.seed:
+        for seed in args.seed:  # each row as its fit ends (a run cut off keeps them: benchmarks/launch_choice.py)
             with tempfile.TemporaryDirectory() as tmp:
                 fit = estimate_scene_velocity(settings, args.scene, observed_inputs(settings, args.scene, inputs, seed),
                                               Path(tmp) / "velocity.json", args.device)
-            rows.append({"variant": text or "params.yaml", "scene": args.scene, "seed": seed, **fit,
-                         **errors(params, args.scene, fit)})
-            r = rows[-1]
+            r = {"variant": text or "params.yaml", "scene": args.scene, "seed": seed, **fit,
+                 **errors(params, args.scene, fit)}
+            rows.append(r)
             print(f"{r['variant']:50s} seed {seed} {r['v0_gt_along_ray']:+8.2f} {r['v0_along_ray']:+9.2f} "
                   f"{r['v0_in_plane']:8.2f} {r['w0_error']:7.2f} {r['loss_last']:8.4f}", flush=True)
-    print(f"{'variant':50s} {'seed':6s} {'gt along':>8s} {'err along':>9s} {'in-plane':>8s} {'w0 err':>7s} {'loss':>8s}")
-    for r in rows:
-        print(f"{r['variant']:50s} seed {r['seed']} {r['v0_gt_along_ray']:+8.2f} {r['v0_along_ray']:+9.2f} "
-              f"{r['v0_in_plane']:8.2f} {r['w0_error']:7.2f} {r['loss_last']:8.4f}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return rows

@@ -83,8 +83,8 @@ def test_point_tracks_undo_a_growing_mask_bias_along_the_ray():
 
 
 def test_tracked_points_ride_the_particles_and_see_the_launch():
-    """The tracked points follow their particles' affine maps (a point on a Gaussian's mean, carried by its one
-    particle, is that Gaussian's mean under any state), and the track loss is lower at the true launch than 1 m/s
+    """The tracked points follow their particles' affine maps (a point at its one particle moves with it, as that
+    particle's Gaussian does; a point offset by d moves to x + F d), and the track loss is lower at the true launch than 1 m/s
     off along the ray; a view without texture or masks has no tracks: the fit says so instead of fitting nothing."""
     from gca.scenes.world import gaussians_at, initial_velocity
     from gca.sim.rollout import rollout
@@ -99,6 +99,10 @@ def test_tracked_points_ride_the_particles_and_see_the_launch():
     one = Tracks(pick[:, None], torch.ones(len(pick), 1), (body.means0[pick] - body.x0[pick])[:, None, :],
                  torch.zeros(len(pick), 2), [], [], [])
     assert torch.allclose(track_points(one, x, F), gaussians_at(body, x, F)[0][pick], atol=1e-6)
+    d = torch.tensor([0.01, -0.02, 0.005])
+    off = Tracks(pick[:, None], torch.ones(len(pick), 1), d.expand(len(pick), 1, 3), torch.zeros(len(pick), 2),
+                 [], [], [])
+    assert torch.allclose(track_points(off, x, F), x[pick] + F[pick] @ d, atol=1e-6)
 
     match = MatchConfig(backend="flow", flow_stride=2)
     tracks = track_anchors(body, view, 8, match)

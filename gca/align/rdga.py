@@ -244,6 +244,15 @@ def bilinear_sample(image: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return out[0, :, 0, :].T  # [M, C]
 
 
+def sample_unpremultiplied(image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """An alpha-premultiplied image [H, W, C] (zero background) bilinearly sampled at points [M, 2] (array-index
+    convention) and divided by the alpha [H, W] sampled there: the composited value [M, C] (a position image: the
+    surface point seen at p)."""
+    C = image.shape[-1]
+    sampled = bilinear_sample(torch.cat([image, alpha[..., None]], -1), p)
+    return sampled[:, :C] / sampled[:, C:].clamp_min(1e-6)
+
+
 def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
                   K: torch.Tensor | None = None) -> torch.Tensor:
     """P_render: where the surface seen at p projects, from a premultiplied position image.
@@ -263,8 +272,7 @@ def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
     if pos_image.ndim != 3 or pos_image.shape[:2] != alpha.shape or C not in (2, 3):
         raise ValueError(f"{_WHERE}: pos_image must be [H, W, 2|3] matching alpha {tuple(alpha.shape)}, "
                          f"got {tuple(pos_image.shape)}")
-    sampled = bilinear_sample(torch.cat([pos_image, alpha[..., None]], -1), p)
-    X = sampled[:, :C] / sampled[:, C:].clamp_min(1e-6)  # un-premultiply
+    X = sample_unpremultiplied(pos_image, alpha, p)
     if C == 3:
         if K is None:
             raise ValueError(f"{_WHERE}: a 3-channel (camera-frame xyz) pos_image needs the intrinsics K")

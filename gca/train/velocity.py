@@ -18,15 +18,18 @@ gave the pawn 0.58 m/s of error, 4 frames 0.11; ``benchmarks/velocity_fit.py``).
 **Point tracks** (``lambda_track`` > 0; a departure from NeuMA, which fits silhouettes only). Benchmark 2.0's
 masks come from background subtraction of the lit video (IoU 0.63-0.76 with the true silhouettes, shadows and
 highlights included), and their size errors read as motion along the ray: session 21 measured 0.35-7.3 m/s of
-launch error on the Table 1 scenes, mostly along the ray. The texture does not have that bias. At frame 0 the object
-is where the scan puts it, so the surface point seen at pixel p of the first video frame is the one the scan renders
-at p (:func:`track_anchors`: its world position X0(p) from a position image, carried by its k nearest particles
-with their affine maps, ``x_k + F_k (X0 - x0_k)``, as the Gaussians are); dense optical flow from the first frame to
-frame j (``gca.vision.matching.match_flow``, forward-backward checked, observations only) says where that texture
-point is seen at frame j, q_j(p). :func:`track_loss` is the Huber reprojection error [px] of the carried points
-against q_j. Along-ray motion shows as the tracks' expansion about the camera's centre (a 1 % change of depth moves
-the points of a 60-px object by ~0.3 px; the flow's matches are within ~0.2 px, NOTES s16), over ~100 points a
-frame.
+launch error on the Table 1 scenes, mostly along the ray. The texture does not have that bias. The surface point seen
+at pixel p of the first video frame is taken to be the one the scan renders at p at rest (:func:`track_anchors`: its
+world position X0(p) from a position image; the first video frame comes one frame interval after the launch, a few
+px of motion, which the displacements below absorb). It is carried by its k nearest particles with their affine
+maps, ``x_k + F_k (X0 - x0_k)`` (the renderer moves a Gaussian's mean by its particles' translation alone,
+``gca.render.follow``; the two differ by ``(F_k - I)`` times the offset: not measured; estimated at a rotation of
+~0.1 rad over the fitted frames times an offset of about half a particle spacing). Dense optical flow from the first
+frame to frame j (``gca.vision.matching.match_flow``, forward-backward checked, observations only) says where that
+texture point is seen at frame j, q_j(p). :func:`track_loss` is the Huber error [px] of the carried points' image
+displacements from the first video frame against ``q_j - p``. Along-ray motion shows as the tracks' expansion about
+the camera's centre (a 1 % change of depth moves the points of a 60-px object by ~0.3 px; the flow's matches are
+within ~0.2 px, NOTES s16), over ~100 points a frame.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from gca.align.rdga import bilinear_sample
+from gca.align.rdga import sample_unpremultiplied
 from gca.laws.base import Material
 from gca.scenes.store import ViewData
 from gca.scenes.world import Body, gaussians_at, initial_velocity, render_gaussians
@@ -112,8 +115,7 @@ def track_anchors(body: Body, view: ViewData, n: int, match: MatchConfig, k: int
                       torch.zeros(0, k, 3, dtype=dtype, device=device), torch.zeros(0, 2, dtype=dtype, device=device),
                       [], [], [])
     p_all = torch.tensor(list(starts), dtype=dtype, device=device)  # [M, 2] in first-seen order (dict order)
-    sampled = bilinear_sample(torch.cat([out["rgb"], alpha[..., None]], -1), p_all)
-    X0 = sampled[:, :3] / sampled[:, 3:].clamp_min(1e-6)  # [M, 3] world
+    X0 = sample_unpremultiplied(out["rgb"], alpha, p_all)  # [M, 3] world
     dist, idx = torch.cdist(X0, body.x0).topk(min(k, len(body.x0)), largest=False)
     weight = 1.0 / dist.clamp_min(1e-6)
     weight = weight / weight.sum(-1, keepdim=True)
@@ -128,7 +130,8 @@ def track_anchors(body: Body, view: ViewData, n: int, match: MatchConfig, k: int
 
 def track_points(tracks: Tracks, x: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
     """The tracked surface points [M, 3] at particle state (x [P, 3], F [P, 3, 3]): each neighbour's affine map
-    ``x_k + F_k (X0 - x0_k)``, weighted (the Gaussians' own binding, ``gca.scenes.world.gaussians_at``)."""
+    ``x_k + F_k (X0 - x0_k)``, weighted. Not the renderer's binding (``gca.render.follow`` moves a Gaussian's mean by
+    its particles' translation only): see the module's docstring."""
     moved = x[tracks.idx] + (F[tracks.idx] @ tracks.offset[..., None])[..., 0]  # [M, k, 3]
     return (tracks.weight[..., None] * moved).sum(1)
 
