@@ -4,8 +4,8 @@
 # nuisance draw), then fits every variant on every (scene, seed) with benchmarks/velocity_fit.py (the train stage's
 # own estimate, `estimate_scene_velocity`), one process per (scene, seed) under CUDA MPS. The rows (errors against the
 # calibration scenes' true launch, along the training camera's ray and in the image plane) come back as
-# $OUT/<scene>_seed<k>.log and .json (no "@": the device returns no such name); `python benchmarks/launch_choice.py $OUT` applies the selection rule declared in
-# benchmarks/NOTES.md (session 22) before the call.
+# $OUT/<scene>_seed<k>.log and .json (no "@": the device returns no such name); `python benchmarks/launch_choice.py
+# $OUT` applies the selection rule declared in benchmarks/NOTES.md (session 22) before the call.
 #   call 1 carry [".wpa"]:                        sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]: . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/launch_calib_bundle.sh
 # A CPU smoke: PROFILE=ci SCENES=calib_torus SEEDS=0 VARIANTS="velocity.iterations=2;velocity.iterations=2 velocity.lambda_track=10" sh benchmarks/launch_calib_bundle.sh

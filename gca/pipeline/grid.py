@@ -384,9 +384,10 @@ def collect(work: Path, out: Path) -> Path:
 # the tables read). Not a run's checkpoint (of a run cut off mid-training): another machine remakes the inputs,
 # which differ in float32 noise, so the checkpoint's stamp would not match there and the run would train afresh
 # (session 20); carried, it made the lease check take seven such runs for resumable (session 22: they started in a
-# call that could not finish them). Older states that hold checkpoints still restore, without them. Not the inputs (assets, particles, ground truth,
-# preprocessing: remade from params, only where a job still needs them, :func:`needed`), nor what nothing downstream
-# reads: histories, loss curves, evaluation media, the MLflow store (each call returns them: --collect, the bundle).
+# call that could not finish them). Older states that hold checkpoints still restore, without them. Not the inputs
+# (assets, particles, ground truth, preprocessing: remade from params, only where a job still needs them,
+# :func:`needed`), nor what nothing downstream reads: histories, loss curves, evaluation media, the MLflow store (each
+# call returns them: --collect, the bundle).
 STATE_RE = re.compile(r"^(\.grid/(train|evaluate)@[^/]+\.done|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
                       r"runs/[^/]+/[^/]+/(train\.json|law\.pt|checkpoint\.pt(\..+)?)|metrics/eval/[^/]+/[^/]+\.json)$")
 CHECKPOINT_RE = re.compile(r"(^|/)checkpoint\.pt(\..+)?$")  # a run's checkpoint and its stamp: never in a state
