@@ -397,3 +397,41 @@ def test_runs_of_a_scene_batched_after_the_velocity_job():
     firsts = {"train@ball:nclaw", "train@ball:nclaw@seed1"}
     assert set(batched) - firsts <= {n for n, j in batched.items() if j.after & firsts}
     assert grid.batch_runs(dict(jobs), 1) == jobs
+
+
+def test_a_runs_unit_is_its_scene_and_seed():
+    assert dispatch.unit_of("train@ball:gca") == "ball@seed0"
+    assert dispatch.unit_of("train@ball:neuma@seed1") == "ball@seed1"
+    assert dispatch.unit_of("evaluate@cat:no_cpr@seed2") == "cat@seed2"
+    assert dispatch.unit_of("train@ball:neuma@seed1+gca@seed1") == "ball@seed1"
+    assert dispatch.unit_of("train@ball") is None and dispatch.unit_of("prior@elastic") is None
+    assert dispatch.unit_of("report") is None
+
+
+def test_slots_go_to_every_method_of_a_unit_before_the_next_unit():
+    """Session 22: ordered by path alone, every slot went to GCA (4.5) before NeuMA (4.0), and a table cut off by
+    the machine's end had no NeuMA run at all. Ordered by unit, a cut-off table leaves whole (scene, seed) units."""
+    params = grid.grid_params("ci", ["ball", "duck"], ["nclaw", "gca", "neuma"], ["train.seeds=[0,1]"])
+    import yaml
+
+    jobs = grid.link(grid.split_evaluate(grid.split_train(
+        grid.expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, ["train", "evaluate"]), params), params))
+    jobs = {n: j for n, j in jobs.items() if n.startswith(("train@", "evaluate@"))}
+    for j in jobs.values():
+        j.after &= set(jobs)
+    priority = dispatch.critical_path(jobs)
+    trained = [n for n in jobs if n.startswith("train@") and ":nclaw" not in n]  # the velocity jobs are done
+    order = dispatch.launch_order(trained, priority, trained + [n for n in jobs if n.startswith("evaluate@")])
+    units = [dispatch.unit_of(n) for n in order]
+    assert len(order) == 8 and len(set(units)) == 4
+    assert all(units[i] == units[i + 1] for i in range(0, 8, 2)), order  # gca and neuma of a unit side by side
+    assert [n.split(":")[1].split("@")[0] for n in order[:2]] == ["gca", "neuma"]  # the longer path first within it
+    # negative control: by path alone (the old order) the four GCA runs come first, units split
+    by_path = sorted(trained, key=lambda n: -priority[n])
+    assert {n.split(":")[1].split("@")[0] for n in by_path[:4]} == {"gca"}
+    # a unit with more left goes first: ball seed 1's gca already done, its neuma comes after the whole units
+    pending = [n for n in trained + [n for n in jobs if n.startswith("evaluate@")] if n != "train@ball:gca@seed1"]
+    order = dispatch.launch_order([n for n in trained if n != "train@ball:gca@seed1"], priority, pending)
+    assert order[-1] == "train@ball:neuma@seed1"
+    # other jobs keep their own path
+    assert dispatch.launch_order(["a", "b"], {"a": 1.0, "b": 2.0}, ["a", "b"]) == ["b", "a"]

@@ -29,6 +29,7 @@ from __future__ import annotations
 import abc
 import argparse
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -350,6 +351,39 @@ def critical_path(jobs: dict) -> dict[str, float]:
     return {n: walk(n) for n in jobs}
 
 
+RUN_JOB_RE = re.compile(r"^(?:train|evaluate)@([^:/]+):([^:/]+)$")
+
+
+def unit_of(name: str) -> str | None:
+    """The (scene, seed) unit of a per-run job (``grid.split_train``/``split_evaluate``, or a batch of one seed's runs,
+    ``grid.batch_runs``): ``train@ball:neuma@seed1``, ``evaluate@ball:gca@seed1`` and ``train@ball:neuma@seed1+gca@seed1``
+    -> ``ball@seed1``, ``train@ball:gca`` -> ``ball@seed0``; None for any other job."""
+    m = RUN_JOB_RE.match(name)
+    if m is None:
+        return None
+    seed = re.search(r"@seed(\d+)", m.group(2))
+    return f"{m.group(1)}@seed{seed.group(1) if seed else 0}"
+
+
+def launch_order(ready, priority: dict[str, float], pending) -> list[str]:
+    """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
+    (:func:`unit_of`), the units by the longest path left among their ``pending`` (not yet done) jobs, and within a
+    unit each job by its own path; any other job by its own path. So the slots go to every method of one unit
+    before the next unit, and a table cut off by a machine's end leaves whole units, each usable for paired
+    per-unit claims (issue 22 item 4; session 22 gave every slot to GCA, costed above NeuMA, and left no NeuMA run).
+    """
+    unit_path: dict[str, float] = {}
+    for n in pending:
+        u = unit_of(n)
+        if u is not None:
+            unit_path[u] = max(unit_path.get(u, float("-inf")), priority[n])
+
+    def key(n: str):
+        u = unit_of(n)
+        return (-unit_path.get(u, priority[n]), u or "", -priority[n], n) if u else (-priority[n], "", 0.0, n)
+    return sorted(ready, key=key)
+
+
 def dependents(jobs: dict, name: str) -> set[str]:
     """Every job that (transitively) runs after ``name``."""
     out, frontier = set(), {name}
@@ -431,13 +465,15 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 skip_after(n)
 
     def ready_jobs():
-        """Jobs whose inputs are done (an engine with dependencies: done or submitted), longest path first;
-        with dependencies, what becomes ready by submitting one comes next in the same pass."""
+        """Jobs whose inputs are done (an engine with dependencies: done or submitted), in :func:`launch_order`
+        (whole (scene, seed) units first, longest path first); with dependencies, what becomes ready by submitting
+        one comes next in the same pass."""
         ok = (DONE, RUNNING) if engine.dependencies else (DONE,)
         seen: set[str] = set()
         while True:
-            ready = sorted((n for n, s in state.items() if s == "todo" and n not in seen
-                            and all(state.get(a, DONE) in ok for a in jobs[n].after)), key=lambda n: -priority[n])
+            ready = launch_order([n for n, s in state.items() if s == "todo" and n not in seen
+                                  and all(state.get(a, DONE) in ok for a in jobs[n].after)], priority,
+                                 [n for n, s in state.items() if s in ("todo", RUNNING)])
             if not ready:
                 return
             for n in ready:
