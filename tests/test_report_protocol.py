@@ -213,3 +213,27 @@ def test_launch_error_is_the_distance_to_the_true_launch():
 
     out = launch_error([0.6, -2.0, 3.0], (0.6, -2.0, -1.0))
     assert out == {"launch_v0": [0.6, -2.0, 3.0], "launch_v0_error_m_s": 4.0}
+
+
+def test_a_verdict_one_scene_carries_is_named_by_the_leave_one_scene_out_check(tmp_path):
+    """Session 23's Table 1: "48 % below NeuMA" held on six scenes and was inconclusive without pawn, where NeuMA
+    diverged. The verdict stays the six scenes'; the check beside it names the scene that carries it."""
+    seeds = tuple(range(6))  # 36 units: a resample without pawn is rare (p = (5/6)^36 ~ 0.001)
+    _cds(tmp_path, "neuma", [1.0, 1.0, 10.0, 1.0, 1.0, 1.0], seeds=seeds)
+    _cds(tmp_path, "gca", [1.0, 0.9, 1.0, 1.1, 0.95, 1.05], seeds=seeds)  # even, but for pawn
+    j = _judge(tmp_path, GCA_LT_NEUMA)
+    assert j.verdict == claims.HOLDS
+    assert dict(j.without_one)["pawn"] == claims.INCONCLUSIVE
+    assert all(v == claims.HOLDS for s, v in j.without_one if s != "pawn") and len(j.without_one) == 6
+    text = claims.without_one_text(j)
+    assert text.startswith("same without 5 of 6") and "without pawn: inconclusive" in text
+    # negative control: an effect on every scene survives the removal of any one
+    for f in tmp_path.glob("*/gca*.json"):
+        f.unlink()
+    _cds(tmp_path, "gca", [0.5, 0.5, 5.0, 0.5, 0.5, 0.5], seeds=seeds)
+    j = _judge(tmp_path, GCA_LT_NEUMA)
+    assert j.verdict == claims.HOLDS and claims.without_one_text(j) == "same verdict without any one of 6 scenes"
+    # one scene measured: no check
+    (single,) = [c for c in claims.paper_claims() if c.text == GCA_LT_NEUMA]
+    one = claims.judge(load_runs(tmp_path), claims.replace(single, scenes=("ball",)), claims.ClaimsConfig(resamples=500))
+    assert one.without_one == () and claims.without_one_text(one) == "—"

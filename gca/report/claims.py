@@ -19,12 +19,16 @@ verdict computed from that interval; nothing here is written by hand.
     *holds* when lo > 1/2, *does not hold* when hi < 1/2.
   Otherwise the verdict is *inconclusive*; it is also inconclusive, whatever the interval, with fewer than
   ``ClaimsConfig.min_units`` units (too few scenes or seeds), and says so.
+- **Without one scene** (a sensitivity check beside the verdict, never replacing it): a claim measured on several
+  scenes is judged again with each scene's units left out, by the same rule and bootstrap; the column names the
+  scenes whose removal changes the verdict. A verdict that one scene carries (a baseline diverging there, say)
+  reads so at once (session 23: Table 1's "48 % below NeuMA" holds on six scenes and is inconclusive without pawn).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -77,6 +81,7 @@ class Judgement:
     n_seeds: int
     verdict: str
     why: str
+    without_one: tuple[tuple[str, str], ...] = ()  # (scene left out, verdict without it), scenes measured >= 2
 
 
 def _value(record: Mapping, key: str) -> float | None:
@@ -160,13 +165,43 @@ def _decide(claim: Claim, lo: float, hi: float, cfg: ClaimsConfig) -> tuple[str,
 
 
 def judge(runs: Runs, claim: Claim, cfg: ClaimsConfig = ClaimsConfig()) -> Judgement:
-    """Measure ``claim`` on ``runs`` and decide it (module doc)."""
+    """Measure ``claim`` on ``runs`` and decide it, then again without each of its measured scenes (module doc:
+    ``Judgement.without_one``) where it was measured on two scenes or more."""
+    j = _judge_once(runs, claim, cfg)
+    if j.n_scenes < 2:
+        return j
+    measured = sorted({u[0] for u in _units(runs, claim)}, key=claim.scenes.index)
+    without = tuple((s, _judge_once(runs, replace(claim, scenes=tuple(x for x in claim.scenes if x != s)), cfg).verdict)
+                    for s in measured)
+    return replace(j, without_one=without)
+
+
+def without_one_text(j: Judgement) -> str:
+    """The ``Without one scene`` cell: how many leave-one-scene-out verdicts equal the verdict, and which differ."""
+    if not j.without_one:
+        return "—"
+    changed = [(s, v) for s, v in j.without_one if v != j.verdict]
+    same = f"same verdict without any one of {len(j.without_one)} scenes"
+    if not changed:
+        return same
+    return (f"same without {len(j.without_one) - len(changed)} of {len(j.without_one)}; "
+            + "; ".join(f"without {s}: {v}" for s, v in changed))
+
+
+def _units(runs: Runs, claim: Claim) -> list[tuple]:
+    """The claim's units: :func:`share_units` of a share claim, else :func:`paired_units` (scene first)."""
     if claim.kind in ("diverges", "stable"):
-        units = share_units(runs, claim.a, claim.scenes, claim.kind == "diverges")
+        return share_units(runs, claim.a, claim.scenes, claim.kind == "diverges")
+    return paired_units(runs, claim.a, claim.b, claim.scenes, claim.key)
+
+
+def _judge_once(runs: Runs, claim: Claim, cfg: ClaimsConfig) -> Judgement:
+    """Measure ``claim`` on ``runs`` and decide it (module doc), on its own scenes only."""
+    units = _units(runs, claim)
+    if claim.kind in ("diverges", "stable"):
         columns = [np.array([u[2] for u in units], dtype=float)]
         statistic = lambda s: s.mean(axis=-1)  # noqa: E731
     else:
-        units = paired_units(runs, claim.a, claim.b, claim.scenes, claim.key)
         columns = [np.array([u[2] for u in units], dtype=float), np.array([u[3] for u in units], dtype=float)]
         statistic = (lambda a, b: (a - b).mean(axis=-1)) if claim.kind == "less" else _relative  # noqa: E731
     n_scenes = len({u[0] for u in units})
@@ -300,7 +335,7 @@ def claims_frame(judgements: Sequence[Judgement]) -> pd.DataFrame:
                      "Paper": c.paper_text, "Statistic": effect, "Measured": _fmt(j.effect, c.kind),
                      "95% interval": "—" if j.lo is None else f"[{_fmt(j.lo, c.kind)}, {_fmt(j.hi, c.kind)}]",
                      "Units (scenes x seeds)": f"{j.n_units} ({j.n_scenes} x {j.n_seeds})",
-                     "Verdict": j.verdict, "Why": j.why})
+                     "Verdict": j.verdict, "Why": j.why, "Without one scene": without_one_text(j)})
     return pd.DataFrame(rows)
 
 
@@ -324,5 +359,8 @@ def claims_markdown(df: pd.DataFrame, info: Mapping[str, str], cfg: ClaimsConfig
               "lies above; `reduction` holds when the interval of mean(a)/mean(b) - 1 excludes 0 and reaches the "
               "paper's value, does not hold when it lies above it; `parity` holds when the interval lies below "
               f"+{cfg.parity_margin:.0%}; a share holds above 1/2. Otherwise inconclusive, and always inconclusive "
-              f"with fewer than {cfg.min_units} units.", ""]
+              f"with fewer than {cfg.min_units} units.",
+              "- Without one scene (a sensitivity check, not the verdict): the claim judged again by the same rule "
+              "with each measured scene's units left out; the scenes whose removal changes the verdict are named.",
+              ""]
     return "\n".join(lines) + "\n" + markdown_table(df)
