@@ -103,6 +103,8 @@ def test_a_run_that_would_outlast_the_machine_is_not_started_but_one_with_a_chec
     state = dispatch.run(jobs(), _local(tmp_path), tmp_path, lines.append, poll_s=0.1, launch_until=300.0,
                          expected_s=lambda name: 900.0)
     assert state == {"train@ball:gca": "todo", "train@ball:neuma": "done", "evaluate@ball:nclaw": "done"}
+    held = [ln for ln in lines if ln.startswith("hold  ")]  # said once, with the figures (session 23: silent)
+    assert len(held) == 1 and held[0].startswith("hold  train@ball:gca: expected 900 s, the machine has ")
     assert dispatch.run(jobs(), _local(tmp_path / "b"), tmp_path / "b", lines.append, poll_s=0.1) == \
         {"train@ball:gca": "done", "train@ball:neuma": "done", "evaluate@ball:nclaw": "done"}
 
