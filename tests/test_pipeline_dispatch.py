@@ -119,13 +119,20 @@ def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_pat
     start = grid.JOB_START_S
     assert grid.expected_train_s(tmp_path, "train@ball:gca@seed2", 900.0) == start + 850.0  # its scene's slowest
     assert grid.expected_train_s(tmp_path, "train@duck:gca", 900.0) == start + 850.0  # its method's, elsewhere
-    # nothing finished: GCA's default for a GCA ablation (it trains alike), a fraction for NCLaw (no training)
-    assert grid.expected_train_s(tmp_path, "train@duck:no_cpr", 900.0) == start + 900.0
-    assert grid.expected_train_s(tmp_path, "train@duck:nclaw", 900.0) == pytest.approx(start + 900.0 * 0.6 / 4.5)
+    # a method none of whose runs finished (Table 3's ablations after Table 1): GCA's time on the scene, scaled by
+    # the methods' costs (session 23: the default, 900 s, held every ablation back on a machine with 840 s left)
     neuma = grid.COST["train:neuma"] / grid.COST["train:gca"]
-    assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == pytest.approx(start + 900.0 * neuma)
+    assert grid.expected_train_s(tmp_path, "train@cat:no_cpr", 900.0) == start + 400.0
+    assert grid.expected_train_s(tmp_path, "train@cat:neuma", 900.0) == pytest.approx(start + 400.0 * neuma)
+    assert grid.expected_train_s(tmp_path, "train@duck:no_cpr", 900.0) == start + 850.0  # GCA's, elsewhere
     assert grid.expected_train_s(tmp_path, "train@cat:gca+neuma", 900.0) == pytest.approx(
-        start + 400.0 + 900.0 * neuma)  # a batch of runs: their sum
+        start + 400.0 + 400.0 * neuma)  # a batch of runs: their sum
+    # nothing finished at all: GCA's default for a GCA ablation (it trains alike), a fraction for NCLaw
+    empty = tmp_path / "empty"
+    (empty / "runs").mkdir(parents=True)
+    assert grid.expected_train_s(empty, "train@duck:no_cpr", 900.0) == start + 900.0
+    assert grid.expected_train_s(empty, "train@duck:nclaw", 900.0) == pytest.approx(start + 900.0 * 0.6 / 4.5)
+    assert grid.expected_train_s(empty, "train@duck:neuma", 900.0) == pytest.approx(start + 900.0 * neuma)
     # a method finished on the cat only: on the ball it takes as much longer as GCA does there (850 / 400)
     (tmp_path / "runs/cat/neuma").mkdir()
     (tmp_path / "runs/cat/neuma/train.json").write_text(json.dumps({"train_seconds": 300.0, "status": "ok"}))
@@ -437,3 +444,14 @@ def test_slots_go_to_every_method_of_a_unit_before_the_next_unit():
     assert order[-1] == "train@ball:neuma@seed1"
     # other jobs keep their own path
     assert dispatch.launch_order(["a", "b"], {"a": 1.0, "b": 2.0}, ["a", "b"]) == ["b", "a"]
+
+
+def test_units_of_equal_path_go_quickest_first():
+    """Table 3 after Table 1: every unit has the same methods left; the pawn's runs (~430 s) go before the ball's
+    (~850 s), so a machine's lease finishes whole units. Negative control: without times, by name (ball first)."""
+    ready = ["train@ball:no_cpr", "train@ball:no_rdga", "train@pawn:no_cpr", "train@pawn:no_rdga"]
+    priority = dict.fromkeys(ready, 4.77)
+    times = {"ball": 850.0, "pawn": 430.0}
+    order = dispatch.launch_order(ready, priority, ready, lambda n: times[n.split("@")[1].split(":")[0]])
+    assert order == ["train@pawn:no_cpr", "train@pawn:no_rdga", "train@ball:no_cpr", "train@ball:no_rdga"]
+    assert dispatch.launch_order(ready, priority, ready) == ready

@@ -365,22 +365,31 @@ def unit_of(name: str) -> str | None:
     return f"{m.group(1)}@seed{seed.group(1) if seed else 0}"
 
 
-def launch_order(ready, priority: dict[str, float], pending) -> list[str]:
+def launch_order(ready, priority: dict[str, float], pending,
+                 expected_s: Callable[[str], float] | None = None) -> list[str]:
     """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
-    (:func:`unit_of`), the units by the longest path left among their ``pending`` (not yet done) jobs, and within a
+    (:func:`unit_of`), the units by the longest path left among their ``pending`` (not yet done) jobs, units of
+    equal path by the least training left (``expected_s`` [s] summed over their pending training jobs), and within a
     unit each job by its own path; any other job by its own path. So the slots go to every method of one unit
-    before the next unit, and a table cut off by a machine's end leaves whole units, each usable for paired
-    per-unit claims (issue 22 item 4; session 22 gave every slot to GCA, costed above NeuMA, and left no NeuMA run).
+    before the next unit, a table cut off by a machine's end leaves whole units, each usable for paired per-unit
+    claims (issue 22 item 4; session 22 gave every slot to GCA, costed above NeuMA, and left no NeuMA run), and the
+    quicker units finish first (Table 3 after Table 1: the pawn's ~430-s runs before the ball's ~850-s ones, not by
+    the scenes' names).
     """
     unit_path: dict[str, float] = {}
+    unit_work: dict[str, float] = {}
     for n in pending:
         u = unit_of(n)
         if u is not None:
-            unit_path[u] = max(unit_path.get(u, float("-inf")), priority[n])
+            unit_path[u] = max(unit_path.get(u, float("-inf")), round(priority[n], 6))
+            if expected_s is not None and n.startswith("train@"):
+                unit_work[u] = unit_work.get(u, 0.0) + expected_s(n)
 
     def key(n: str):
         u = unit_of(n)
-        return (-unit_path.get(u, priority[n]), u or "", -priority[n], n) if u else (-priority[n], "", 0.0, n)
+        if u is None:
+            return (-priority[n], 0.0, "", 0.0, n)
+        return (-unit_path.get(u, priority[n]), unit_work.get(u, 0.0), u, -priority[n], n)
     return sorted(ready, key=key)
 
 
@@ -479,7 +488,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         while True:
             ready = launch_order([n for n, s in state.items() if s == "todo" and n not in seen
                                   and all(state.get(a, DONE) in ok for a in jobs[n].after)], priority,
-                                 [n for n, s in state.items() if s in ("todo", RUNNING)])
+                                 [n for n, s in state.items() if s in ("todo", RUNNING)], expected_s)
             if not ready:
                 return
             for n in ready:
