@@ -455,3 +455,34 @@ def test_units_of_equal_path_go_quickest_first():
     order = dispatch.launch_order(ready, priority, ready, lambda n: times[n.split("@")[1].split(":")[0]])
     assert order == ["train@pawn:no_cpr", "train@pawn:no_rdga", "train@ball:no_cpr", "train@ball:no_rdga"]
     assert dispatch.launch_order(ready, priority, ready) == ready
+
+
+def test_free_slots_wait_for_the_best_ranked_units_inputs(tmp_path):
+    """Session 23: the scenes' inputs finished one by one and each free slot went to whichever scene was ready, so
+    four units got one to three runs each. Now a slot waits for a better-ranked unit whose inputs are being made:
+    the quick scene's runs start together, although the slow scene's inputs were ready first. Negative control: a
+    better-ranked unit whose runs the lease would hold back reserves nothing."""
+    stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
+
+    def jobs():
+        out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(1.5)")}
+        for scene in ("slow", "quick"):
+            for m in ("a", "b"):
+                name = f"train@{scene}:{m}"
+                out[name] = grid.Job(name, f"python -c {stamp_code.format(f'{scene}_{m}.t')!r}", [], [], 0.01,
+                                     {f"prep@{scene}"})
+        return out
+    times = {"slow": 850.0, "quick": 430.0}
+    expected = lambda n: times[n.split("@")[1].split(":")[0]]  # noqa: E731
+    lines = []
+    state = dispatch.run(jobs(), _local(tmp_path, slots=2), tmp_path, lines.append, poll_s=0.05, expected_s=expected)
+    assert set(state.values()) == {"done"}
+    started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
+    assert started[:2] == ["train@quick:a", "train@quick:b"], started  # the slow scene was ready 1.5 s earlier
+    # negative control: the quick unit's runs cannot fit the machine: the slow scene's go at once
+    lines.clear()
+    times["quick"] = 5000.0
+    state = dispatch.run(jobs(), _local(tmp_path / "n", slots=2), tmp_path / "n", lines.append, poll_s=0.05,
+                         expected_s=expected, launch_until=1000.0)
+    started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
+    assert started == ["train@slow:a", "train@slow:b"] and state["train@quick:a"] == "todo"

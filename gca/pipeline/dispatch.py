@@ -365,31 +365,39 @@ def unit_of(name: str) -> str | None:
     return f"{m.group(1)}@seed{seed.group(1) if seed else 0}"
 
 
-def launch_order(ready, priority: dict[str, float], pending,
-                 expected_s: Callable[[str], float] | None = None) -> list[str]:
-    """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
-    (:func:`unit_of`), the units by the longest path left among their ``pending`` (not yet done) jobs, units of
-    equal path by the least training left (``expected_s`` [s] summed over their pending training jobs), and within a
-    unit each job by its own path; any other job by its own path. So the slots go to every method of one unit
-    before the next unit, a table cut off by a machine's end leaves whole units, each usable for paired per-unit
-    claims (issue 22 item 4; session 22 gave every slot to GCA, costed above NeuMA, and left no NeuMA run), and the
-    quicker units finish first (Table 3 after Table 1: the pawn's ~430-s runs before the ball's ~850-s ones, not by
-    the scenes' names).
-    """
-    unit_path: dict[str, float] = {}
-    unit_work: dict[str, float] = {}
+def unit_keys(priority: dict[str, float], pending, expected_s: Callable[[str], float] | None = None
+              ) -> dict[str, tuple[float, float, str]]:
+    """Each (scene, seed) unit's rank key among the ``pending`` (not yet done) per-run jobs, lower first: the longest
+    path left among its jobs (negated), then the least training left (``expected_s`` [s] summed over its pending
+    training jobs), then its name."""
+    path: dict[str, float] = {}
+    work: dict[str, float] = {}
     for n in pending:
         u = unit_of(n)
         if u is not None:
-            unit_path[u] = max(unit_path.get(u, float("-inf")), round(priority[n], 6))
+            path[u] = max(path.get(u, float("-inf")), round(priority[n], 6))
             if expected_s is not None and n.startswith("train@"):
-                unit_work[u] = unit_work.get(u, 0.0) + expected_s(n)
+                work[u] = work.get(u, 0.0) + expected_s(n)
+    return {u: (-path[u], work.get(u, 0.0), u) for u in path}
+
+
+def launch_order(ready, priority: dict[str, float], pending,
+                 expected_s: Callable[[str], float] | None = None) -> list[str]:
+    """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
+    (:func:`unit_of`), the units by :func:`unit_keys` (the longest path left among their ``pending`` jobs first,
+    units of equal path by the least training left), and within a unit each job by its own path; any other job by
+    its own path. So the slots go to every method of one unit before the next unit, a table cut off by a machine's
+    end leaves whole units, each usable for paired per-unit claims (issue 22 item 4; session 22 gave every slot to
+    GCA, costed above NeuMA, and left no NeuMA run), and the quicker units finish first (Table 3 after Table 1: the
+    pawn's ~430-s runs before the ball's ~850-s ones, not by the scenes' names).
+    """
+    units = unit_keys(priority, pending, expected_s)
 
     def key(n: str):
         u = unit_of(n)
-        if u is None:
+        if u is None or u not in units:
             return (-priority[n], 0.0, "", 0.0, n)
-        return (-unit_path.get(u, priority[n]), unit_work.get(u, 0.0), u, -priority[n], n)
+        return (*units[u], -priority[n], n)
     return sorted(ready, key=key)
 
 
@@ -432,15 +440,20 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     machine_end = None if launch_until is None else time.monotonic() + launch_until
     held_back: set[str] = set()  # training jobs the machine's lease held back (logged once each)
 
+    def lease_fits(name: str) -> bool:
+        """Whether training job ``name`` may start within the machine's lease (one with a checkpoint always)."""
+        if machine_end is None or not name.startswith("train@") or _has_checkpoint(work, jobs[name]):
+            return True
+        return time.monotonic() + (expected_s(name) if expected_s else 0.0) <= machine_end
+
     def fits(name: str) -> bool:
-        if machine_end is not None and name.startswith("train@") and not _has_checkpoint(work, jobs[name]):
-            need = expected_s(name) if expected_s else 0.0
-            if time.monotonic() + need > machine_end:
-                if name not in held_back:  # said once: why a call starts no training (session 23: silent)
-                    held_back.add(name)
-                    log(f"hold  {name}: expected {need:.0f} s, the machine has {machine_end - time.monotonic():.0f} s "
-                        "left (a run cut off by its end resumes nowhere); next machine")
-                return False
+        if not lease_fits(name):
+            if name not in held_back:  # said once: why a call starts no training (session 23: silent)
+                held_back.add(name)
+                need = expected_s(name) if expected_s else 0.0
+                log(f"hold  {name}: expected {need:.0f} s, the machine has {machine_end - time.monotonic():.0f} s "
+                    "left (a run cut off by its end resumes nowhere); next machine")
+            return False
         if end is None:
             return True
         need = RESUMABLE_MIN_S if name.startswith("train@") else 60 * jobs[name].cost * 1.3
@@ -497,6 +510,24 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if not engine.dependencies:
                 return
 
+    def waiting_above():
+        """With slots (one machine): ``n -> how many training runs of units ranked above n's are waiting for their
+        inputs`` (todo, not ready, every input todo or running, expected to fit the machine's lease). The free slots
+        are kept for them: session 23's Table 3 started one to three runs of four units as the scenes' inputs
+        finished one by one, instead of the best-ranked unit whole. None where nothing waits."""
+        if free is None:
+            return None
+        pending = [m for m, s in state.items() if s in ("todo", RUNNING)]
+        blocked = [m for m in pending if state[m] == "todo" and m.startswith("train@") and unit_of(m)
+                   and any(state.get(a, DONE) != DONE for a in jobs[m].after)
+                   and all(state.get(a, DONE) in (RUNNING, DONE) or (state.get(a) == "todo" and lease_fits(a))
+                           for a in jobs[m].after)
+                   and lease_fits(m)]
+        if not blocked:
+            return None
+        keys = unit_keys(priority, pending, expected_s)
+        return lambda n: sum(1 for m in blocked if keys[unit_of(m)] < keys.get(unit_of(n) or "", (float("inf"),)))
+
     def tally() -> None:
         if free is None:  # SLURM places its jobs: which share a GPU is not known here
             return
@@ -510,11 +541,14 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     while True:
         tally()
         reap()
+        waiting = waiting_above()
         for n in ready_jobs():
             if free is not None and not free:
                 break
             if not fits(n):
                 continue
+            if waiting and n.startswith("train@") and waiting(n) >= len(free):
+                continue  # the free slots are kept for better-ranked units' runs whose inputs are being made
             place = None if free is None else min(free, key=lambda p: sum(q == p for q in place_of.values()))
             env = dict(job_env(jobs[n], place)) if job_env else {}
             cmd = StageCommand(n, jobs[n].cmd, work, env, stamp)
