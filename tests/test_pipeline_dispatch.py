@@ -438,10 +438,12 @@ def test_slots_go_to_every_method_of_a_unit_before_the_next_unit():
     # negative control: by path alone (the old order) the four GCA runs come first, units split
     by_path = sorted(trained, key=lambda n: -priority[n])
     assert {n.split(":")[1].split("@")[0] for n in by_path[:4]} == {"gca"}
-    # a unit with more left goes first: ball seed 1's gca already done, its neuma comes after the whole units
-    pending = [n for n in trained + [n for n in jobs if n.startswith("evaluate@")] if n != "train@ball:gca@seed1"]
-    order = dispatch.launch_order([n for n in trained if n != "train@ball:gca@seed1"], priority, pending)
-    assert order[-1] == "train@ball:neuma@seed1"
+    # a unit under way keeps its rank and, with less left, goes first: ball seed 1's gca is done, its neuma leads
+    # (review: ranked by the pending jobs' path alone, it fell behind every fresh unit and the unit stayed split)
+    todo = [n for n in trained if n != "train@ball:gca@seed1"]
+    order = dispatch.launch_order(todo, priority, todo, lambda n: 400.0)
+    assert order[0] == "train@ball:neuma@seed1", order
+    assert dispatch.launch_order(todo, priority, todo)[0] == "train@ball:gca"  # without times: by name
     # other jobs keep their own path
     assert dispatch.launch_order(["a", "b"], {"a": 1.0, "b": 2.0}, ["a", "b"]) == ["b", "a"]
 
@@ -486,3 +488,24 @@ def test_free_slots_wait_for_the_best_ranked_units_inputs(tmp_path):
                          expected_s=expected, launch_until=1000.0)
     started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
     assert started == ["train@slow:a", "train@slow:b"] and state["train@quick:a"] == "todo"
+
+
+def test_no_slot_waits_for_runs_that_could_not_finish_after_their_inputs(tmp_path):
+    """Review: the reservation must count the inputs still to be made before a run: a quick unit whose inputs take
+    longer than the lease leaves once it could start would hold the slots for nothing. Here the quick scene's input
+    job is costed 10 minutes (780 s estimated) and the lease is 1000 s: its 430-s runs cannot finish after it, so
+    the slow scene's runs (ready, 850 s expected, within the 1000 s) start at once."""
+    stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
+    jobs = {"prep@slow": _fake("prep@slow", "pass"),
+            "prep@quick": grid.Job("prep@quick", "python -c 'import time; time.sleep(1.0)'", [], [], 10.0)}
+    for scene in ("slow", "quick"):
+        for m in ("a", "b"):
+            name = f"train@{scene}:{m}"
+            jobs[name] = grid.Job(name, f"python -c {stamp_code.format(f'{scene}_{m}.t')!r}", [], [], 0.01,
+                                  {f"prep@{scene}"})
+    times = {"slow": 850.0, "quick": 430.0}
+    lines = []
+    dispatch.run(jobs, _local(tmp_path, slots=2), tmp_path, lines.append, poll_s=0.05, launch_until=1000.0,
+                 expected_s=lambda n: times[n.split("@")[1].split(":")[0]])
+    started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
+    assert started[:2] == ["train@slow:a", "train@slow:b"], started

@@ -365,33 +365,37 @@ def unit_of(name: str) -> str | None:
     return f"{m.group(1)}@seed{seed.group(1) if seed else 0}"
 
 
-def unit_keys(priority: dict[str, float], pending, expected_s: Callable[[str], float] | None = None
+def unit_keys(priority: dict[str, float], todo, expected_s: Callable[[str], float] | None = None
               ) -> dict[str, tuple[float, float, str]]:
-    """Each (scene, seed) unit's rank key among the ``pending`` (not yet done) per-run jobs, lower first: the longest
-    path left among its jobs (negated), then the least training left (``expected_s`` [s] summed over its pending
-    training jobs), then its name."""
+    """Each (scene, seed) unit's rank key, lower first: the longest path among all its jobs (``priority``'s, done
+    or not: a unit keeps its rank as its runs finish), negated; then the training it has left (``expected_s`` [s]
+    summed over its ``todo`` training jobs: a unit already under way comes before a fresh one of the same rank, so a
+    cut-off table leaves it whole); then its name."""
     path: dict[str, float] = {}
-    work: dict[str, float] = {}
-    for n in pending:
+    for n, value in priority.items():
         u = unit_of(n)
         if u is not None:
-            path[u] = max(path.get(u, float("-inf")), round(priority[n], 6))
-            if expected_s is not None and n.startswith("train@"):
-                work[u] = work.get(u, 0.0) + expected_s(n)
-    return {u: (-path[u], work.get(u, 0.0), u) for u in path}
+            path[u] = max(path.get(u, float("-inf")), round(value, 6))
+    work = dict.fromkeys(path, 0.0)
+    if expected_s is not None:
+        for n in todo:
+            u = unit_of(n)
+            if u is not None and n.startswith("train@"):
+                work[u] += expected_s(n)
+    return {u: (-path[u], work[u], u) for u in path}
 
 
-def launch_order(ready, priority: dict[str, float], pending,
+def launch_order(ready, priority: dict[str, float], todo,
                  expected_s: Callable[[str], float] | None = None) -> list[str]:
     """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
-    (:func:`unit_of`), the units by :func:`unit_keys` (the longest path left among their ``pending`` jobs first,
-    units of equal path by the least training left), and within a unit each job by its own path; any other job by
+    (:func:`unit_of`), the units by :func:`unit_keys` (the longest path first, units of equal path by the least
+    training left in their ``todo`` jobs), and within a unit each job by its own path; any other job by
     its own path. So the slots go to every method of one unit before the next unit, a table cut off by a machine's
     end leaves whole units, each usable for paired per-unit claims (issue 22 item 4; session 22 gave every slot to
     GCA, costed above NeuMA, and left no NeuMA run), and the quicker units finish first (Table 3 after Table 1: the
     pawn's ~430-s runs before the ball's ~850-s ones, not by the scenes' names).
     """
-    units = unit_keys(priority, pending, expected_s)
+    units = unit_keys(priority, todo, expected_s)
 
     def key(n: str):
         u = unit_of(n)
@@ -439,18 +443,27 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     end = None if deadline is None else time.monotonic() + deadline
     machine_end = None if launch_until is None else time.monotonic() + launch_until
     held_back: set[str] = set()  # training jobs the machine's lease held back (logged once each)
+    expected_now: dict[str, float] = {}  # expected_s of this poll (it reads the finished runs' records)
+
+    def expected(name: str) -> float:
+        """``expected_s(name)`` [s] (0 without it), once per poll."""
+        if expected_s is None:
+            return 0.0
+        if name not in expected_now:
+            expected_now[name] = expected_s(name)
+        return expected_now[name]
 
     def lease_fits(name: str) -> bool:
         """Whether training job ``name`` may start within the machine's lease (one with a checkpoint always)."""
         if machine_end is None or not name.startswith("train@") or _has_checkpoint(work, jobs[name]):
             return True
-        return time.monotonic() + (expected_s(name) if expected_s else 0.0) <= machine_end
+        return time.monotonic() + expected(name) <= machine_end
 
     def fits(name: str) -> bool:
         if not lease_fits(name):
             if name not in held_back:  # said once: why a call starts no training (session 23: silent)
                 held_back.add(name)
-                need = expected_s(name) if expected_s else 0.0
+                need = expected(name)
                 log(f"hold  {name}: expected {need:.0f} s, the machine has {machine_end - time.monotonic():.0f} s "
                     "left (a run cut off by its end resumes nowhere); next machine")
             return False
@@ -501,7 +514,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         while True:
             ready = launch_order([n for n, s in state.items() if s == "todo" and n not in seen
                                   and all(state.get(a, DONE) in ok for a in jobs[n].after)], priority,
-                                 [n for n, s in state.items() if s in ("todo", RUNNING)], expected_s)
+                                 [n for n, s in state.items() if s == "todo"], expected)
             if not ready:
                 return
             for n in ready:
@@ -510,22 +523,44 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if not engine.dependencies:
                 return
 
+    def ready_in(name: str, memo: dict) -> float:
+        """Seconds until job ``name`` has run, estimated: 0 when done; a running job's ``60 * cost * 1.3`` less its
+        time so far; a todo job's plus the longest of its inputs' (the inputs' chain: assets -> ... -> preprocess)."""
+        if name not in memo:
+            s_ = state.get(name, DONE)
+            own = 60 * jobs[name].cost * 1.3 if name in jobs else 0.0
+            if s_ == DONE or name not in jobs:
+                memo[name] = 0.0
+            elif s_ == RUNNING:
+                memo[name] = max(0.0, own - (time.monotonic() - started.get(name, time.monotonic())))
+            else:
+                memo[name] = own + max((ready_in(a, memo) for a in jobs[name].after), default=0.0)
+        return memo[name]
+
     def waiting_above():
         """With slots (one machine): ``n -> how many training runs of units ranked above n's are waiting for their
-        inputs`` (todo, not ready, every input todo or running, expected to fit the machine's lease). The free slots
-        are kept for them: session 23's Table 3 started one to three runs of four units as the scenes' inputs
-        finished one by one, instead of the best-ranked unit whole. None where nothing waits."""
+        inputs``: todo, not ready, no input failed or skipped, and expected to start and finish in time, counting
+        the inputs still to be made (:func:`ready_in`) before the run itself (``expected``, the machine's lease;
+        :data:`RESUMABLE_MIN_S` before the deadline). The free slots are kept for them: session 23's Table 3
+        started one to three runs of four units as the scenes' inputs finished one by one, instead of the
+        best-ranked unit whole. None where nothing waits."""
         if free is None:
             return None
-        pending = [m for m, s in state.items() if s in ("todo", RUNNING)]
-        blocked = [m for m in pending if state[m] == "todo" and m.startswith("train@") and unit_of(m)
-                   and any(state.get(a, DONE) != DONE for a in jobs[m].after)
-                   and all(state.get(a, DONE) in (RUNNING, DONE) or (state.get(a) == "todo" and lease_fits(a))
-                           for a in jobs[m].after)
-                   and lease_fits(m)]
+        now, memo = time.monotonic(), {}
+
+        def coming(m: str) -> bool:
+            after = [a for a in jobs[m].after if state.get(a, DONE) != DONE]
+            if not after or any(state.get(a) not in ("todo", RUNNING) for a in after):
+                return False
+            start_at = now + max(ready_in(a, memo) for a in after)
+            if end is not None and start_at + RESUMABLE_MIN_S >= end:
+                return False
+            return machine_end is None or _has_checkpoint(work, jobs[m]) or start_at + expected(m) <= machine_end
+
+        blocked = [m for m, s_ in state.items() if s_ == "todo" and m.startswith("train@") and unit_of(m) and coming(m)]
         if not blocked:
             return None
-        keys = unit_keys(priority, pending, expected_s)
+        keys = unit_keys(priority, [m for m, s_ in state.items() if s_ == "todo"], expected)
         return lambda n: sum(1 for m in blocked if keys[unit_of(m)] < keys.get(unit_of(n) or "", (float("inf"),)))
 
     def tally() -> None:
@@ -541,6 +576,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     while True:
         tally()
         reap()
+        expected_now.clear()
         waiting = waiting_above()
         for n in ready_jobs():
             if free is not None and not free:

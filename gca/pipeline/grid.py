@@ -560,8 +560,9 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
     the runs of its scene and method that finished ``ok`` in ``work`` (``finished``: :func:`finished_train_seconds`
     of it, read here when not given); else its method's time on another scene scaled by how much slower this scene
     is for another method that finished on both (:func:`_scaled_elsewhere`); else, for a method none of whose runs
-    finished (Table 3's ablations after Table 1), GCA's time on this scene (or scaled from elsewhere) scaled by the
-    method's :func:`train_cost` against GCA's; else ``default`` scaled so (NCLaw, which does not train: ~0.13); plus
+    finished (Table 3's ablations after Table 1), GCA's time on this scene (or scaled from elsewhere) times the
+    method's :func:`train_cost` over GCA's (uncapped: full fine-tuning 1.33x); else ``default`` times that ratio capped
+    at 1 (NCLaw, which does not train: ~0.13); plus
     :data:`JOB_START_S` for the job (``train_seconds`` counts the iterations only). Session 23: without GCA's
     times, every ablation was expected at ``default`` and a machine with 840 s left started none."""
     finished = finished_train_seconds(work) if finished is None else finished
