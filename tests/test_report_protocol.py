@@ -136,6 +136,11 @@ def test_untrained_prior_pairs_with_every_seed_and_divergence_shares(tmp_path):
     _cds(tmp_path, "neuma", [1.0] * 6, seeds=(0, 1, 2))
     j = _judge(tmp_path, "CD(NeuMA) < CD(NCLaw) on the synthetic scenes")
     assert j.n_units == 18 and j.verdict == claims.HOLDS
+    # a trained method's one record is one unit (session 23: Table 3's first ablation, seed 0 only, made three)
+    _cds(tmp_path, "gca", [0.5] * 6, seeds=(0, 1, 2))
+    _write(tmp_path, "fish", "no_global", chamfer_mean=0.7)
+    j = _judge(tmp_path, "removing it hurts: CD(GCA) < CD(w/o Global Align.)")
+    assert (j.n_units, j.n_seeds) == (1, 1) and "too few" in j.why
     for scene in ("ball", "cat"):
         _write(tmp_path, scene, "pacnerf_depth", status="diverged", chamfer_mean=3.0)
         _write(tmp_path, scene, "pacnerf_depth", seed=1, status="diverged", chamfer_mean=None)
@@ -237,3 +242,11 @@ def test_a_verdict_one_scene_carries_is_named_by_the_leave_one_scene_out_check(t
     (single,) = [c for c in claims.paper_claims() if c.text == GCA_LT_NEUMA]
     one = claims.judge(load_runs(tmp_path), claims.replace(single, scenes=("ball",)), claims.ClaimsConfig(resamples=500))
     assert one.without_one == () and claims.without_one_text(one) == "—"
+
+
+def test_leaving_a_scene_out_says_when_too_few_units_are_left(tmp_path):
+    _cds(tmp_path, "neuma", [1.0, 1.0], scenes=("ball", "duck"), seeds=(0, 1))
+    _cds(tmp_path, "gca", [0.5, 0.5], scenes=("ball", "duck"), seeds=(0, 1))  # 4 units; without one scene: 2 < 3
+    j = _judge(tmp_path, GCA_LT_NEUMA)
+    assert j.verdict == claims.HOLDS
+    assert dict(j.without_one) == {"ball": "inconclusive (too few units)", "duck": "inconclusive (too few units)"}

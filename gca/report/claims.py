@@ -6,8 +6,9 @@ verdict computed from that interval; nothing here is written by hand.
 - **Units.** A unit is one (scene, seed) where both methods of a comparison left a finite value (the measured
   value, diverged runs included: their kept law's CD). A method that does not train (``nclaw``) runs every seed
   too (its launch velocity is estimated from the seed's own nuisance draw); a single record of it (results made
-  before that) is paired with every seed of the other method on that scene. The bootstrap resamples units
-  with replacement (``ClaimsConfig.resamples`` times, ``numpy.random.default_rng(ClaimsConfig.seed)``).
+  before that) is paired with every seed of the other method on that scene. A trained method's single record
+  is one unit (session 23: Table 3's first ablations, seed 0 only, counted three units each before). The
+  bootstrap resamples units with replacement (``ClaimsConfig.resamples`` times, ``numpy.random.default_rng(ClaimsConfig.seed)``).
 - **Kinds** (the statistic, and how its ``confidence`` interval [lo, hi] decides):
   - ``less``: mean of the paired differences d = a - b; *holds* when hi < 0, *does not hold* when lo > 0.
   - ``reduction``: relative change mean(a) / mean(b) - 1 against the paper's value r (< 0): *holds* when the
@@ -95,15 +96,24 @@ def _usable(records: Sequence[Mapping] | None) -> list[Mapping]:
     return [r for r in records or () if r["status"] != "failed"]
 
 
+def _trains(method: str) -> bool:
+    """Whether ``method`` trains (``gca.train.methods``; an unknown name is taken as trained: no broadcast)."""
+    from gca.train.methods import METHODS
+
+    return method not in METHODS or METHODS[method].trains
+
+
 def paired_units(runs: Runs, a: str, b: str, scenes: Sequence[str], key: str) -> list[tuple[str, int, float, float]]:
     """``(scene, seed, value of a, value of b)`` of every unit both methods measured (module doc)."""
     units = []
     for scene in scenes:
         ra = {r["seed"]: v for r in _usable(runs.get((scene, a))) if (v := _value(r, key)) is not None}
         rb = {r["seed"]: v for r in _usable(runs.get((scene, b))) if (v := _value(r, key)) is not None}
-        if len(ra) == 1 and len(rb) > 1:  # a untrained method's one record pairs with each seed of the other
+        # an untrained method's one record pairs with each seed of the other; a trained method's one record (a grid
+        # still running: Table 3's first ablations, session 23) is one unit, never three
+        if len(ra) == 1 and len(rb) > 1 and not _trains(a):
             ra = dict.fromkeys(rb, next(iter(ra.values())))
-        elif len(rb) == 1 and len(ra) > 1:
+        elif len(rb) == 1 and len(ra) > 1 and not _trains(b):
             rb = dict.fromkeys(ra, next(iter(rb.values())))
         units += [(scene, seed, ra[seed], rb[seed]) for seed in sorted(set(ra) & set(rb))]
     return units
@@ -171,9 +181,12 @@ def judge(runs: Runs, claim: Claim, cfg: ClaimsConfig = ClaimsConfig()) -> Judge
     if j.n_scenes < 2:
         return j
     measured = sorted({u[0] for u in _units(runs, claim)}, key=claim.scenes.index)
-    without = tuple((s, _judge_once(runs, replace(claim, scenes=tuple(x for x in claim.scenes if x != s)), cfg).verdict)
-                    for s in measured)
-    return replace(j, without_one=without)
+    without = []
+    for s in measured:
+        w = _judge_once(runs, replace(claim, scenes=tuple(x for x in claim.scenes if x != s)), cfg)
+        # too few units left is not the scene carrying the verdict: said so (review)
+        without.append((s, w.verdict + (" (too few units)" if w.why.startswith("too few") else "")))
+    return replace(j, without_one=tuple(without))
 
 
 def without_one_text(j: Judgement) -> str:
