@@ -351,6 +351,12 @@ def critical_path(jobs: dict) -> dict[str, float]:
     return {n: walk(n) for n in jobs}
 
 
+def estimated_s(job) -> float:
+    """A job's estimated seconds on its own from its ``cost`` [GPU-minutes], with a 30 % margin (``--deadline``
+    submits no job that would end late by it; the slot reservation counts inputs still to be made by it)."""
+    return 60 * job.cost * 1.3
+
+
 RUN_JOB_RE = re.compile(r"^(?:train|evaluate)@([^:/]+):([^:/]+)$")
 
 
@@ -469,7 +475,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             return False
         if end is None:
             return True
-        need = RESUMABLE_MIN_S if name.startswith("train@") else 60 * jobs[name].cost * 1.3
+        need = RESUMABLE_MIN_S if name.startswith("train@") else estimated_s(jobs[name])
         return time.monotonic() + need < end
 
     def skip_after(name: str) -> None:
@@ -524,17 +530,17 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 return
 
     def ready_in(name: str, memo: dict) -> float:
-        """Seconds until job ``name`` has run, estimated: 0 when done; a running job's ``60 * cost * 1.3`` less its
-        time so far; a todo job's plus the longest of its inputs' (the inputs' chain: assets -> ... -> preprocess)."""
+        """Seconds until job ``name`` has run, estimated: 0 when done (or not this grid's); a running job's
+        :func:`estimated_s` less its time so far; a todo job's plus the longest of its inputs' (the inputs' chain:
+        assets -> ... -> preprocess)."""
         if name not in memo:
             s_ = state.get(name, DONE)
-            own = 60 * jobs[name].cost * 1.3 if name in jobs else 0.0
-            if s_ == DONE or name not in jobs:
+            if s_ == DONE:
                 memo[name] = 0.0
             elif s_ == RUNNING:
-                memo[name] = max(0.0, own - (time.monotonic() - started.get(name, time.monotonic())))
+                memo[name] = max(0.0, estimated_s(jobs[name]) - (time.monotonic() - started[name]))
             else:
-                memo[name] = own + max((ready_in(a, memo) for a in jobs[name].after), default=0.0)
+                memo[name] = estimated_s(jobs[name]) + max((ready_in(a, memo) for a in jobs[name].after), default=0.0)
         return memo[name]
 
     def waiting_above():

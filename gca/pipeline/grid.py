@@ -570,18 +570,19 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
     total = JOB_START_S
     for run in runs:
         method = run.split("@", 1)[0]
-        times = finished.get(method, {})
-        if scene in times:
-            total += times[scene]
-        elif times:
-            total += _scaled_elsewhere(finished, method, scene)
+        if finished.get(method):
+            total += _seconds_on(finished, method, scene)
         elif finished.get("gca"):
-            gca = finished["gca"]
-            total += (gca[scene] if scene in gca else _scaled_elsewhere(finished, "gca", scene)) \
-                * train_cost(method) / COST["train:gca"]
+            total += _seconds_on(finished, "gca", scene) * train_cost(method) / COST["train:gca"]
         else:
             total += default * min(1.0, train_cost(method) / COST["train:gca"])
     return total
+
+
+def _seconds_on(finished: dict[str, dict[str, float]], method: str, scene: str) -> float:
+    """Seconds of ``method`` (finished somewhere) on ``scene``: its own time there, else :func:`_scaled_elsewhere`."""
+    times = finished[method]
+    return times[scene] if scene in times else _scaled_elsewhere(finished, method, scene)
 
 
 def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene: str) -> float:
