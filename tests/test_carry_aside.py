@@ -23,8 +23,7 @@ def test_results_go_aside_and_come_back_whole(tmp_path):
                                     capture_output=True, text=True)  # noqa: E731
     assert run("out").returncode == 0
     assert sorted(_tree(repo)) == ["benchmarks/results/README.md", "benchmarks/results/priors_paper/jelly.pt",
-                                   "benchmarks/results/table1_launch/state.tgz",
-                                   "benchmarks/results/table1_seeds/state.tgz", "reports/ci/table1.md"]
+                                   "benchmarks/results/table1_launch/state.tgz", "reports/ci/table1.md"]
     again = run("out")  # a second `out` before `back` would mix two sessions' files: refused
     assert again.returncode == 1 and "run 'back' first" in again.stdout
     assert run("back").returncode == 0 and _tree(repo) == before
