@@ -14,6 +14,7 @@ def test_results_go_aside_and_come_back_whole(tmp_path):
     repo, hold = tmp_path / "repo", tmp_path / "hold"
     for rel in ("benchmarks/results/README.md", "benchmarks/results/priors_paper/jelly.pt",
                 "benchmarks/results/table1_seeds/state.tgz", "benchmarks/results/table1_launch/state.tgz",
+                "benchmarks/results/table1_launch/records.tgz", "reports/paper/claims.md", "reports/benchmark/ball.gif",
                 "benchmarks/results/fast_s11/a.json",
                 "benchmarks/results/x.json", "reports/ci/figures/f.png", "reports/ci/table1.md"):
         (repo / rel).parent.mkdir(parents=True, exist_ok=True)
