@@ -232,21 +232,24 @@ def read_json(path: str | os.PathLike) -> Any:
 
 
 def pack_files(root: str | os.PathLike, files: list, archive: str | os.PathLike) -> int:
-    """Write ``files`` (paths relative to ``root``) to the gzipped tar ``archive``, atomically (an archive
-    cut off midway never replaces the last good one); returns the file count."""
+    """Write ``files`` (paths relative to ``root``, or ``(source path, name in the archive)`` pairs) to the gzipped
+    tar ``archive``, atomically (an archive cut off midway never replaces the last good one); returns the file
+    count."""
     import tarfile
 
     root, archive = Path(root), Path(archive)
     with atomic_path(archive) as tmp, tarfile.open(tmp, "w:gz") as tar:
-        for rel in files:
-            tar.add(root / rel, arcname=Path(rel).as_posix())
+        for item in files:
+            src, name = item if isinstance(item, tuple) else (root / item, item)
+            tar.add(src, arcname=Path(name).as_posix())
     return len(files)
 
 
 def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, what: str, skip=None) -> int:
     """Unpack the gzipped tar ``archive`` into ``root``, keeping a file already there (it is at least as new) and
     leaving out the members ``skip(path) -> bool`` names; returns the count unpacked. Every member must be a plain
-    file whose relative path ``allowed(path) -> bool`` accepts, or nothing is written: ``ValueError`` naming the
+    file whose relative path ``allowed(path) -> bool`` accepts, or a folder entry (passed over: ``tar czf x.tgz
+    runs`` writes them; session 24's records.tgz had them), or nothing is written: ``ValueError`` naming the
     archive, the member and ``what`` it should be."""
     import tarfile
 
@@ -257,9 +260,10 @@ def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, w
     with tarfile.open(archive, "r:gz") as tar:
         members = tar.getmembers()
         for member in members:
-            if not member.isfile() or ".." in Path(member.name).parts or Path(member.name).is_absolute() \
-                    or not allowed(member.name):
+            if ".." in Path(member.name).parts or Path(member.name).is_absolute() \
+                    or not (member.isdir() or member.isfile() and allowed(member.name)):
                 raise ValueError(f"{archive}: {member.name!r} is not a {what} file")
+        members = [m for m in members if m.isfile()]
         for member in members:
             target = root / member.name
             if target.exists() or (skip is not None and skip(member.name)):

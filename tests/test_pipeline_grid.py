@@ -271,8 +271,8 @@ def test_grid_state_moves_runs_and_evaluations_not_inputs(tmp_path):
 
 def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monkeypatch):
     """Table 3's rows after Table 1's: a state restored into a grid with more methods keeps the runs done and their
-    evaluations; only the new methods' runs are trained and evaluated (one evaluation job per run). A grid that drops
-    a method of the state is refused (negative control), and so is one with other knobs."""
+    evaluations; only the new methods' runs are trained and evaluated (one evaluation job per run). A grid with other
+    knobs is refused (negative control); one over a subset of the state's methods: test_a_grid_over_part_of_a_state...."""
     work = tmp_path / "w"
     grid.prepare(work, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], []))
     _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball:nclaw.done", ".grid/train@cat:nclaw.done",
@@ -290,11 +290,6 @@ def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monk
     jobs = grid.link(grid.split_runs(grid.expand(dvc, params, ["train", "evaluate"]), params))
     todo = {n for n in jobs if not grid.dispatch.is_done(grown, n)}
     assert todo == {"train@ball:gca", "evaluate@ball:gca"}  # ball's new run only
-    fewer = tmp_path / "fewer"
-    grid.prepare(fewer, grid.grid_params("ci", ["ball", "cat"], ["gca"], []))
-    with pytest.raises(SystemExit, match="methods this grid lacks"):
-        grid.restore_state(archive, fewer)
-    assert not (fewer / "runs").exists()
     knob = tmp_path / "knob"
     grid.prepare(knob, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], ["align.rdga.lambda1=0.5"]))
     with pytest.raises(SystemExit, match="made under other params"):
@@ -335,8 +330,7 @@ def test_evaluations_that_lack_a_metric_added_since_run_again_once(tmp_path):
 def test_a_grid_state_grows_by_scenes_into_one_report(tmp_path):
     """Tables 2, 5 and 6 after Tables 1 and 3, in one state (one report, one claims table): a state restored into a
     grid with more scenes keeps every run done; a new scene starts from nothing. Refused (negative controls, nothing
-    written): a grid without one of the state's scenes, one where a scene of the state is defined otherwise (its
-    object), and one with other knobs."""
+    written): a grid where a scene of the state is defined otherwise (its object), and one with other knobs."""
     work = tmp_path / "w"
     grid.prepare(work, grid.grid_params("ci", ["ball", "cat"], ["nclaw"], []))
     _write(work, [".grid/train@ball:nclaw.done", ".grid/evaluate@ball:nclaw.done", "runs/ball/nclaw/train.json",
@@ -349,7 +343,6 @@ def test_a_grid_state_grows_by_scenes_into_one_report(tmp_path):
     assert (more / ".grid/evaluate@ball:nclaw.done").is_file()  # evaluated: not evaluated again
     assert not (more / "runs/dragon").exists()
     for name, scenes, overrides, why in [
-            ("fewer", ["ball"], [], "scenes this grid lacks"),
             ("moved", ["ball", "cat"], ["scenes.cat.object=duck"], "scene.s. \\['cat'\\] defined otherwise"),
             ("knob", ["ball", "cat", "dragon"], ["align.rdga.lambda1=0.5"], "other seeds, profile or knobs")]:
         grid.prepare(tmp_path / name, grid.grid_params("ci", scenes, ["nclaw"], overrides))
@@ -370,6 +363,59 @@ def test_a_grid_state_grows_by_scenes_into_one_report(tmp_path):
     with pytest.raises(SystemExit, match="older format"):
         grid.restore_state(older, tmp_path / "more")
 
+
+
+def test_a_grid_over_part_of_a_state_reads_that_part_and_hands_on_the_rest(tmp_path, capsys):
+    """Table 1's report from a state that holds Table 3's runs too (``--methods gca neuma nclaw``), or a machine that
+    finishes two scenes (``--scenes ball``): only the grid's runs are unpacked where the grid reads (the report, the
+    dispatcher); the rest waits in CARRIED, and a state saved from the subset holds all of it, so a full grid restored
+    from that has every run back (nothing is lost by working on part of a state). Records of other runs stay out."""
+    work = tmp_path / "w"
+    params = grid.grid_params("ci", ["ball", "cat"], ["nclaw", "gca"], [])
+    grid.prepare(work, params)
+    files = [".grid/train@ball:nclaw.done", ".grid/evaluate@ball:gca.done", ".grid/train@ball:gca@seed1.done",
+             "runs/ball/gca/train.json", "runs/ball/gca@seed1/law.pt", "runs/ball/nclaw/train.json",
+             "runs/ball/velocity@seed1.json", "metrics/eval/ball/gca.json", "metrics/eval/ball/nclaw.json",
+             ".grid/train@cat:nclaw.done", "runs/cat/nclaw/train.json", "metrics/eval/cat/nclaw.json"]
+    _write(work, files)
+    archive = tmp_path / "state.tgz"
+    grid.save_state(work, archive)
+    part = tmp_path / "part"  # ball's NCLaw only
+    grid.prepare(part, grid.grid_params("ci", ["ball"], ["nclaw"], []))
+    assert grid.restore_state(archive, part) == 5  # its 3 run files, the launch estimate and the state's record
+    assert grid.state_files(part) == sorted([".grid/train@ball:nclaw.done", "runs/ball/nclaw/train.json",
+                                             "runs/ball/velocity@seed1.json", "metrics/eval/ball/nclaw.json"])
+    assert "kept aside" in capsys.readouterr().out
+    assert not (part / "runs/cat").exists() and not (part / "metrics/eval/ball/gca.json").exists()
+    (part / "metrics/eval/ball/nclaw@seed1.json").write_text("{}")  # the subset's own new work
+    again = tmp_path / "again.tgz"
+    grid.save_state(part, again)
+    whole = tmp_path / "whole"
+    grid.prepare(whole, params)
+    assert grid.restore_state(again, whole) == len(files) + 2
+    assert sorted(grid.state_files(whole)) == sorted([*files, "metrics/eval/ball/nclaw@seed1.json"])
+    assert not (whole / grid.CARRIED).exists()
+    with tarfile.open(again) as tar:
+        made = json.loads(tar.extractfile(grid.STATE_PARAMS).read())
+        assert len(tar.getnames()) == len(set(tar.getnames()))  # no member twice
+    assert made["methods"] == {"ball": ["nclaw", "gca"], "cat": ["nclaw", "gca"]} and set(made["scenes"]) == {"ball", "cat"}
+    records = tmp_path / "records.tgz"  # histories of both scenes: the part takes ball's NCLaw's only
+    _write(tmp_path / "r", ["runs/ball/nclaw/history.json", "runs/ball/gca/history.json", "runs/cat/nclaw/history.json"])
+    with tarfile.open(records, "w:gz") as tar:
+        tar.add(tmp_path / "r/runs", arcname="runs")
+    assert grid.unpack_records(records, part) == 1 and (part / "runs/ball/nclaw/history.json").is_file()
+
+
+def test_member_in_names_each_state_file_by_its_scene_and_method():
+    methods = {"ball": ["gca", "nclaw"]}
+    for name, ours in [(".grid/train@ball:gca@seed2.done", True), (".grid/evaluate@ball:neuma.done", False),
+                       (".grid/train@ball:gca@seed1+nclaw@seed1.done", True),
+                       (".grid/train@ball:gca@seed1+neuma@seed1.done", False), (".grid/train@cat:gca.done", False),
+                       ("runs/ball/velocity@seed1.json", True), ("runs/cat/velocity.json", False),
+                       ("runs/ball/no_rdga@seed1/law.pt", False), ("runs/ball/gca/law.pt", True),
+                       ("metrics/eval/ball/nclaw@seed2.json", True), ("metrics/eval/ball/neuma.json", False),
+                       ("metrics/eval/ball/gca@seed1/strip.png", True), (grid.STATE_PARAMS, True), ("params.yaml", True)]:
+        assert grid.member_in(name, methods) is ours, name
 
 def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
     """The command line: a second work directory restored from the first's state runs only what is left (the

@@ -91,3 +91,10 @@ def test_records_archives_may_hold_only_plain_files(tmp_path):
     with pytest.raises(SystemExit, match="bad.tgz: 'runs/ball/gca/history.json' is not a records file"):
         grid.unpack_records(bad, tmp_path / "work")
     assert not (tmp_path / "work").exists()
+    escape = tmp_path / "escape.tgz"  # a folder entry is passed over, but not one that leaves the work folder
+    with tarfile.open(escape, "w:gz") as tar:
+        up = tarfile.TarInfo("runs/../../x")
+        up.type = tarfile.DIRTYPE
+        tar.addfile(up)
+    with pytest.raises(SystemExit, match="is not a records file"):
+        grid.unpack_records(escape, tmp_path / "work")

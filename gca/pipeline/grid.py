@@ -421,22 +421,57 @@ def state_files(work: Path) -> list[str]:
                   and f.stat().st_size < 64 * 2 ** 20)
 
 
+CARRIED = ".grid/carried"  # a restored state's files of scenes or methods this grid lacks (restore_state): not
+# unpacked where the grid reads, handed on unchanged by save_state, so a grid over a subset of a state never drops
+# the rest of it
+
+
+def member_in(name: str, methods: dict[str, list[str]]) -> bool:
+    """Whether a state or records member ``name`` is this grid's: its scene is one of ``methods`` ({scene: that
+    scene's methods}, :func:`_made_under`) and each run it names is of one of them (``train@ball:gca@seed1.done``,
+    ``runs/ball/gca@seed1/...``, ``metrics/eval/ball/gca@seed1.json`` or ``.../gca@seed1/strip.png``; a scene's
+    launch estimate ``runs/ball/velocity@seed1.json`` is the scene's alone). Anything else is the grid's."""
+    marker = re.match(r"^\.grid/(?:train|evaluate)@([^:/]+):(.+)\.done$", name)
+    parts = name.split("/")
+    if marker:
+        scene, runs = marker.group(1), marker.group(2).split("+")
+    elif parts[0] == "runs" and len(parts) >= 3:
+        scene, runs = parts[1], [] if len(parts) == 3 else [parts[2]]
+    elif parts[:2] == ["metrics", "eval"] and len(parts) >= 4:
+        scene, runs = parts[2], [parts[3].removesuffix(".json")]
+    else:
+        return True
+    return scene in methods and all(run.split("@", 1)[0] in methods[scene] for run in runs)
+
+
 def save_state(work: Path, archive: Path) -> int:
     """The grid's state (:func:`state_files` and what it was made under, :func:`_made_under`) in the gzipped tar
-    ``archive`` (atomically); returns the file count."""
+    ``archive`` (atomically), with what a restored state held for scenes or methods this grid lacks (:data:`CARRIED`,
+    unchanged, and their part of the record); returns the file count."""
     from gca.io import pack_files, write_json
 
-    write_json(work / STATE_PARAMS, _made_under(work))
-    return pack_files(work, [*state_files(work), STATE_PARAMS], archive)
+    made, carried = _made_under(work), work / CARRIED
+    files: list = [*state_files(work), STATE_PARAMS]
+    if (carried / STATE_PARAMS).is_file():
+        theirs = json.loads((carried / STATE_PARAMS).read_text())
+        for scene, digest in theirs["scenes"].items():
+            made["scenes"].setdefault(scene, digest)
+        for scene, names in theirs["methods"].items():
+            mine = made["methods"].setdefault(scene, [])
+            mine += [m for m in names if m not in mine]
+        files += [(carried / rel, rel) for rel in state_files(carried) if rel not in files]
+    write_json(work / STATE_PARAMS, made)
+    return pack_files(work, files, archive)
 
 
 def restore_state(archive: Path, work: Path) -> int:
     """Unpack a :func:`save_state` archive into the prepared ``work`` (a file already there is kept); returns the
-    count unpacked. The grid may have grown since by methods (each scene's methods a superset of the state's: only
-    the new methods' runs are trained and evaluated) and by scenes (a new scene runs
-    from nothing). Refused, with nothing written, when made under other params (seeds, profile or knobs; a scene
-    of the state defined otherwise here, or missing here; a scene's method dropped: its runs are not this grid's),
-    or when it holds anything but state files. A checkpoint in an older state is not unpacked (:data:`CHECKPOINT_RE`:
+    count unpacked. The grid may have grown since by methods (only the new methods' runs are trained and evaluated)
+    and by scenes (a new scene runs from nothing), or be a subset of it (``--methods gca neuma nclaw`` for Table 1's
+    report from a state with Table 3's runs, ``--scenes ball duck`` for a machine that finishes those): the files
+    of scenes or methods the grid lacks (:func:`member_in`) go to :data:`CARRIED`, where nothing reads them, and
+    :func:`save_state` hands them on. Refused, with nothing written, when made under other params (seeds, profile or
+    knobs; a scene of both defined otherwise here), or when it holds anything but state files. A checkpoint in an older state is not unpacked (:data:`CHECKPOINT_RE`:
     it would not resume on this machine's remade inputs, and the lease check would take its run for resumable)."""
     from gca.io import unpack_files
 
@@ -454,22 +489,25 @@ def restore_state(archive: Path, work: Path) -> int:
     if made["digest"] != here["digest"]:
         raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'} (other seeds, profile or "
                          "knobs); use a new state file for this grid")
-    missing = sorted(set(made["scenes"]) - set(here["scenes"]))
-    if missing:
-        raise SystemExit(f"{archive}: made with scenes this grid lacks ({missing}); a grid may only add scenes")
-    other = sorted(n for n, d in made["scenes"].items() if here["scenes"][n] != d)
+    other = sorted(n for n, d in made["scenes"].items() if n in here["scenes"] and here["scenes"][n] != d)
     if other:
         raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'}: scene(s) {other} defined "
                          "otherwise (their spec, object, prior family or capture); use a new state file for this grid")
-    dropped = {s: sorted(set(m) - set(here["methods"].get(s, []))) for s, m in made["methods"].items()}
-    dropped = {s: m for s, m in dropped.items() if m}
-    if dropped:
-        raise SystemExit(f"{archive}: made with methods this grid lacks ({dropped}); a grid may only add methods")
+    lacked = {s: sorted(set(m) - set(here["methods"].get(s, []))) for s, m in made["methods"].items()}
+    lacked = {s: m for s, m in lacked.items() if m}
+    ours = lambda name: member_in(name, here["methods"])  # noqa: E731
+    allowed = lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name))  # noqa: E731
     try:  # a scene with new methods needs only their runs evaluated (one evaluation job per run: split_evaluate)
-        return unpack_files(archive, work, lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name)),
-                            "grid state", skip=lambda name: bool(CHECKPOINT_RE.search(name)))
+        n = unpack_files(archive, work, allowed, "grid state", skip=lambda name: bool(CHECKPOINT_RE.search(name))
+                         or not ours(name))
+        if lacked:
+            aside = unpack_files(archive, work / CARRIED, allowed, "grid state",
+                                 skip=lambda name: bool(CHECKPOINT_RE.search(name)) or (ours(name) and name != STATE_PARAMS))
+            print(f"[grid] {archive}: {max(aside - 1, 0)} state files of runs this grid lacks ({lacked}) kept aside in "
+                  f"{work / CARRIED}; --save-state hands them on")
     except ValueError as exc:
         raise SystemExit(str(exc)) from exc
+    return n
 
 
 def job_runs(name: str) -> tuple[str, list[str]]:
@@ -506,11 +544,15 @@ RECORDS_RE = re.compile(r"^(runs/[^/]+/[^/]+/(history\.json|loss\.png)|metrics/e
 
 def unpack_records(archive: Path, work: Path) -> int:
     """Unpack what the MLflow import reads beyond the state (:data:`RECORDS_RE`: histories, loss curves, evaluation
-    media) from ``archive`` into ``work`` (a file there is kept); other members are passed over."""
+    media) of this grid's runs (:func:`member_in`) from ``archive`` into ``work`` (a file there is kept); other
+    members are passed over."""
     from gca.io import unpack_files
 
     try:
-        return unpack_files(archive, work, lambda name: True, "records", skip=lambda name: not RECORDS_RE.match(name))
+        methods = _made_under(work)["methods"] if (work / "params.yaml").is_file() else None  # a grid over part of
+        # the state: the other runs' records stay out
+        return unpack_files(archive, work, lambda name: True, "records", skip=lambda name: not RECORDS_RE.match(name)
+                            or (methods is not None and not member_in(name, methods)))
     except (FileNotFoundError, ValueError) as exc:
         raise SystemExit(str(exc)) from exc
 
