@@ -109,6 +109,61 @@ def test_a_run_that_would_outlast_the_machine_is_not_started_but_one_with_a_chec
         {"train@ball:gca": "done", "train@ball:neuma": "done", "evaluate@ball:nclaw": "done"}
 
 
+
+def test_the_lease_counts_the_runs_beside_a_run_and_the_work_they_have_left():
+    """lease_admits with the grid's packing model (8 slots): at full packing it is the plain rule; at a machine's
+    tail, with three runs nearly done, a ball run expected 949 s 8-way takes 577 s 4-way and starts with 600 s
+    left (the plain rule held it: session 25); it is held when it would push a running run past the lease, or when
+    the runs beside it keep the GPU full."""
+    packed = lambda seconds, k: grid.packed_seconds(seconds, 8, k)  # noqa: E731
+    seven = [(900.0, 0.5)] * 7
+    assert dispatch.lease_admits(901.0, 900.0, seven, packed) and not dispatch.lease_admits(899.0, 900.0, seven, packed)
+    tail = [(700.0, 0.2)] * 3
+    assert packed(949.0, 4) == pytest.approx(577, abs=1) and dispatch.lease_admits(600.0, 949.0, tail, packed)
+    assert not dispatch.lease_admits(570.0, 949.0, tail, packed)  # it would not end in time even 4-way
+    late = [(700.0, 0.2), (700.0, 0.2), (1000.0, 1.0)]  # just started, 1000 s 8-way: 510 s 3-way, 608 s 4-way
+    assert packed(1000.0, 3) <= 600.0 < packed(1000.0, 4)
+    assert not dispatch.lease_admits(600.0, 949.0, late, packed)
+    over = [(700.0, 0.2), (700.0, 0.2), (1200.0, 1.0)]  # past the lease 3-way already: not "pushed past" by it
+    assert dispatch.lease_admits(600.0, 949.0, over, packed)
+    assert dispatch.lease_admits(1e9, 1.0, [], packed) and not dispatch.lease_admits(100.0, 1e4, [], packed)
+
+
+def test_a_run_held_while_the_gpu_is_full_starts_once_it_is_not(tmp_path):
+    """dispatch.run with a packing model (a toy one: k-way takes k/2 of the 2-way time): the first run starts alone
+    (450 s 1-way in the 700 s left), the second is held beside it (900 s 2-way) and starts when the first is done.
+    Negative control, no packing model: both held (900 s each). A stopped run's work left goes to the next call."""
+    def jobs():
+        return {f"train@ball:{m}": grid.Job(f"train@ball:{m}", "python -c 'import time; time.sleep(1.5)'", [],
+                                           [f"runs/ball/{m}"], 0.01) for m in ("gca", "neuma")}
+    lines = []
+    state = dispatch.run(jobs(), _local(tmp_path, slots=2), tmp_path, lines.append, poll_s=0.1, launch_until=700.0,
+                         expected_s=lambda name: 900.0, packed_s=lambda seconds, k: seconds * k / 2)
+    assert state == {"train@ball:gca": "done", "train@ball:neuma": "done"}
+    held = [ln for ln in lines if ln.startswith("hold  ")]
+    assert len(held) == 1 and "expected 900 s at 2-way" in held[0], lines
+    starts = [ln.split()[1] for ln in lines if ln.startswith(("start", "done "))]
+    assert starts[:2] == [starts[0], starts[0]] and set(starts) == set(state)  # one started, ended, then the other
+    assert not list((tmp_path / ".grid").glob("*.progress"))
+    plain = tmp_path / "plain"
+    assert dispatch.run(jobs(), _local(plain, slots=2), plain, lines.append, poll_s=0.1, launch_until=700.0,
+                        expected_s=lambda name: 900.0) == {"train@ball:gca": "todo", "train@ball:neuma": "todo"}
+    dispatch.record_progress(plain, "train@ball:gca", 0.25)
+    assert dispatch.progress_left(plain, "train@ball:gca") == 0.25 and dispatch.progress_left(plain, "x") is None
+
+
+def test_a_run_stopped_at_the_deadline_leaves_its_work_left_to_the_next_call(tmp_path, monkeypatch):
+    """A call's deadline stops a training run (it resumes next call, on this machine): the fraction of its work left
+    (its time so far over its expected time at the packing it ran at) is written for the next call's lease check."""
+    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
+    jobs = {"train@ball:gca": grid.Job("train@ball:gca", "python -c 'import time; time.sleep(30)'", [],
+                                       ["runs/ball/gca"], 0.01)}
+    state = dispatch.run(jobs, _local(tmp_path, slots=2), tmp_path, lambda m: None, deadline=2.0, poll_s=0.1,
+                         launch_until=1000.0, expected_s=lambda name: 20.0, packed_s=lambda seconds, k: seconds)
+    assert state == {"train@ball:gca": "todo"}
+    left = dispatch.progress_left(tmp_path, "train@ball:gca")
+    assert left is not None and 0.75 < left < 0.95, left  # ~2 s of 20
+
 def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_path):
     for scene, run, seconds in (("ball", "gca", 800.0), ("ball", "gca@seed1", 850.0), ("cat", "gca", 400.0),
                                 ("cat", "gca_full_ft", 5000.0), ("duck", "neuma", 100.0)):

@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yam
 STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
 RESUMABLE_MIN_S = 120.0  # --deadline: a training job is submitted while this much of the deadline remains [s]
 DONE, FAILED, RUNNING = "done", "failed", "running"
+RESTART_S = 60.0  # a resumed training's process start, data and launch-velocity estimate again (grid.JOB_START_S) [s]
 
 
 def marker(work: Path, name: str, suffix: str = ".done") -> Path:
@@ -411,6 +412,40 @@ def launch_order(ready, priority: dict[str, float], todo,
     return sorted(ready, key=key)
 
 
+def lease_admits(left_s: float, new_s: float, running: list[tuple[float, float]],
+                 packed_s: Callable[[float, float], float]) -> bool:
+    """Whether a training run expected ``new_s`` [s] at the grid's packing may start on a GPU where the trainings
+    ``running`` go on (each: its expected seconds at the grid's packing, the fraction of its work left), with
+    ``left_s`` [s] of the machine's lease left. ``packed_s(seconds, k)``: those seconds at k-way packing
+    (``grid.packed_seconds``). With k = len(running) + 1 it must end in time, and no running run that would end in
+    time at (k - 1)-way may be pushed past the lease by it. The load is taken as constant from now on (a run ending
+    earlier only speeds the rest up: a margin). At the grid's full packing this is the plain rule
+    (``new_s <= left_s``); with fewer runs on the GPU, as at the tail of a machine, a run is quicker than its
+    full-packing time and may still fit (session 25: with only ball and duck runs left, 30-45 of them were held back
+    and the slots stood idle for the machine's last ~10 min)."""
+    k = len(running) + 1
+    if packed_s(new_s, k) > left_s:
+        return False
+    return not any(frac * packed_s(full, k - 1) <= left_s < frac * packed_s(full, k) for full, frac in running)
+
+
+def record_progress(work: Path, name: str, left: float) -> None:
+    """Write the fraction of training job ``name``'s work left when a call stopped it (``.grid/<name>.progress``, not
+    a state file: a run goes on only on this machine), for the next call's :func:`lease_admits`."""
+    from gca.io import write_text
+
+    write_text(work / ".grid" / f"{name}.progress", f"left={left:.4f}\n")
+
+
+def progress_left(work: Path, name: str) -> float | None:
+    """The fraction of work left that :func:`record_progress` wrote for job ``name``, or None."""
+    path = work / ".grid" / f"{name}.progress"
+    try:
+        return float(path.read_text().split("=", 1)[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def dependents(jobs: dict, name: str) -> set[str]:
     """Every job that (transitively) runs after ``name``."""
     out, frontier = set(), {name}
@@ -422,7 +457,8 @@ def dependents(jobs: dict, name: str) -> set[str]:
 
 def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = None, poll_s: float = 1.0,
         job_env=None, stamp: str = "", launch_until: float | None = None,
-        expected_s: Callable[[str], float] | None = None) -> dict[str, str]:
+        expected_s: Callable[[str], float] | None = None,
+        packed_s: Callable[[float, float], float] | None = None) -> dict[str, str]:
     """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
 
     A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
@@ -433,8 +469,10 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     marker must hold to count (the digest of the inputs, :func:`is_done`). ``launch_until`` [s]: the time left to
     the machine (a lease that ends, beyond this command's ``deadline``): a training job without a checkpoint is
     launched only while its ``expected_s(name)`` [s] fits in it, since a run cut off by the machine's end resumes
-    on no other machine (its remade inputs differ: session 20); one with a checkpoint goes on regardless. Returns
-    each job's state: done, failed, skipped or todo.
+    on no other machine (its remade inputs differ: session 20); one with a checkpoint goes on regardless.
+    ``packed_s(seconds, k)`` (with slots): ``expected_s``'s seconds at k-way packing; the lease check then counts the
+    trainings on the run's GPU and the work they have left (:func:`lease_admits`; a stopped run's left work goes to
+    the next call, :func:`record_progress`). Returns each job's state: done, failed, skipped or todo.
     """
     work = Path(work)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
@@ -450,6 +488,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     machine_end = None if launch_until is None else time.monotonic() + launch_until
     held_back: set[str] = set()  # training jobs the machine's lease held back (logged once each)
     expected_now: dict[str, float] = {}  # expected_s of this poll (it reads the finished runs' records)
+    full: dict[str, float] = {}  # a running training's expected seconds at the grid's packing (packed_s)
+    left: dict[str, float] = {}  # and the fraction of its work left
 
     def expected(name: str) -> float:
         """``expected_s(name)`` [s] (0 without it), once per poll."""
@@ -459,18 +499,32 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             expected_now[name] = expected_s(name)
         return expected_now[name]
 
+    def place_next():
+        """The free place the next job goes to: the one with the fewest jobs."""
+        return min(free, key=lambda p: sum(q == p for q in place_of.values()))
+
+    def beside(place) -> list[str]:
+        """The training jobs running on ``place``."""
+        return [m for m in handles if m.startswith("train@") and place_of.get(m) == place]
+
     def lease_fits(name: str) -> bool:
         """Whether training job ``name`` may start within the machine's lease (one with a checkpoint always)."""
         if machine_end is None or not name.startswith("train@") or _has_checkpoint(work, jobs[name]):
             return True
-        return time.monotonic() + expected(name) <= machine_end
+        if packed_s is None or not free:
+            return time.monotonic() + expected(name) <= machine_end
+        running = [(full[m], left[m]) for m in beside(place_next()) if m in full]
+        return lease_admits(machine_end - time.monotonic(), expected(name), running, packed_s)
 
     def fits(name: str) -> bool:
         if not lease_fits(name):
             if name not in held_back:  # said once: why a call starts no training (session 23: silent)
                 held_back.add(name)
-                need = expected(name)
-                log(f"hold  {name}: expected {need:.0f} s, the machine has {machine_end - time.monotonic():.0f} s "
+                need, way = expected(name), ""
+                if packed_s is not None and free:
+                    k = len(beside(place_next())) + 1
+                    need, way = packed_s(need, k), f" at {k}-way"
+                log(f"hold  {name}: expected {need:.0f} s{way}, the machine has {machine_end - time.monotonic():.0f} s "
                     "left (a run cut off by its end resumes nowhere); next machine")
             return False
         if end is None:
@@ -499,8 +553,11 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if free is not None:
                 free.append(place_of.pop(n))
             took = time.monotonic() - started[n]
+            full.pop(n, None)
+            left.pop(n, None)
             if s == DONE:
                 state[n] = DONE
+                (work / ".grid" / f"{n}.progress").unlink(missing_ok=True)
                 log(f"done  {n} in {took:.0f} s")
                 if n in shared and took > 0:
                     record_sharing(work, n, shared.pop(n) / took)
@@ -575,8 +632,11 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         now = time.monotonic()
         training = [n for n in handles if n.startswith("train@")]
         for n in training:  # those on its GPU (``place_of``; one engine place, or none, for all)
-            beside = sum(1 for m in training if place_of.get(m) == place_of.get(n))
-            shared[n] = shared.get(n, 0.0) + beside * (now - max(last[0], started[n]))
+            k = sum(1 for m in training if place_of.get(m) == place_of.get(n))
+            dt = now - max(last[0], started[n])
+            shared[n] = shared.get(n, 0.0) + k * dt
+            if n in full and full[n] > 0:
+                left[n] = max(0.0, left[n] - dt / packed_s(full[n], k))
         last[0] = now
 
     while True:
@@ -591,7 +651,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 continue
             if waiting and n.startswith("train@") and waiting(n) >= len(free):
                 continue  # the free slots are kept for better-ranked units' runs whose inputs are being made
-            place = None if free is None else min(free, key=lambda p: sum(q == p for q in place_of.values()))
+            place = None if free is None else place_next()
             env = dict(job_env(jobs[n], place)) if job_env else {}
             cmd = StageCommand(n, jobs[n].cmd, work, env, stamp)
             after = [handles[a] for a in jobs[n].after if a in handles]
@@ -601,6 +661,10 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 free.remove(place)
                 place_of[n] = place
             state[n], started[n] = RUNNING, time.monotonic()
+            if packed_s is not None and free is not None and n.startswith("train@") and expected_s is not None:
+                full[n] = expected(n)  # resumed: what the last call left of it, and its restart again
+                was = progress_left(work, n)
+                left[n] = 1.0 if was is None else min(1.0, was + RESTART_S / max(full[n], 1.0))
             log(("attach" if attached is not None else "start") + f" {n}"
                 + ("" if free is None else f" on {'cpu' if place is None else f'gpu {place}'}")
                 + f" (log {engine.log(handles[n])})")
@@ -608,6 +672,10 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             return state
         if end is not None and time.monotonic() >= end:
             reap()
+            tally()
+            for n in left:
+                if n in handles:
+                    record_progress(work, n, left[n])
             stopping = {n: handles.pop(n) for n in list(handles)}
             for n in stopping:
                 state[n] = "todo"

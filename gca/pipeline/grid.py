@@ -838,7 +838,9 @@ def main(argv=None) -> dict[str, str]:
         state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp,
                              launch_until=args.machine_left,
                              expected_s=_expected_in(work, args.expected_train_s,
-                                                     args.slots if engine.places else None))
+                                                     args.slots if engine.places else None),
+                             packed_s=(lambda seconds, k: packed_seconds(seconds, args.slots, k))
+                             if engine.places else None)
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))
