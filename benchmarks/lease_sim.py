@@ -1,0 +1,50 @@
+"""One fresh machine on a grid state's remaining training runs, simulated on the CPU: the plain lease rule against
+dispatch.lease_admits, with grid.packed_seconds taken as the truth (8 slots, ~200 s of inputs, one 1800-s lease less
+its margins; the calls' stops and restarts are left out). A prediction aid for benchmarks/NOTES.md, no GPU.
+  python -m gca.pipeline.grid --work /tmp/mlw <the grid's options> --restore-state STATE --stages report  (any stage)
+  python benchmarks/lease_sim.py /tmp/mlw
+"""
+import sys
+
+import yaml
+from pathlib import Path
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from gca.pipeline import grid, dispatch
+
+work = Path(sys.argv[1] if len(sys.argv) > 1 else "/tmp/mlw")  # a grid work folder with the state restored
+params = yaml.safe_load((work / "params.yaml").read_text())
+jobs = grid.expand(yaml.safe_load((ROOT / "dvc.yaml").read_text()), params, ["train"])
+jobs = grid.link(grid.batch_runs(grid.split_runs(jobs, params), 1))
+todo = [n for n in jobs if n.startswith("train@") and not dispatch.is_done(work, n)]
+exp = grid._expected_in(work, 900.0, 8)
+T = {n: exp(n) for n in todo}
+prio = dispatch.critical_path({n: j for n, j in jobs.items()})
+order = dispatch.launch_order(todo, prio, todo, lambda n: T[n])
+print(len(todo), "runs left; expected 8-way [s]:", sorted(round(v) for v in T.values()))
+packed = lambda s, k: grid.packed_seconds(s, 8, k)
+MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 30, 200.0, 8, 1.0
+
+def simulate(aware):
+    t, queue, running, done, cut = INPUTS, list(order), {}, [], []
+    while t < MACHINE:
+        k = len(running)
+        for n in list(running):  # progress at the current load
+            running[n] -= DT / packed(T[n], k)
+            if running[n] <= 0:
+                done.append(n); del running[n]
+        for n in list(queue):
+            if len(running) >= SLOTS:
+                break
+            left = MACHINE - t
+            ok = (dispatch.lease_admits(left, T[n], [(T[m], f) for m, f in running.items()], packed) if aware
+                  else T[n] <= left)
+            if ok:
+                running[n] = 1.0; queue.remove(n)
+        t += DT
+    return done, list(running)
+
+for aware in (False, True):
+    done, cut = simulate(aware)
+    print(("lease_admits" if aware else "old rule    "), f"{len(done)} trainings done, {len(cut)} cut off by the lease:",
+          sorted(done)[:4], "...")
