@@ -243,6 +243,29 @@ def test_sigterm_in_training_waits_for_the_checkpoint():
     assert saved == [2]
 
 
+
+def test_sigterm_after_the_last_check_keeps_the_finished_work():
+    """stop_at_end=False (the train stage): a SIGTERM after the loop's last check, while the run writes its results,
+    ends the block normally (the run is kept) and stops at the caller's next check; the default block stops at its
+    end (negative control)."""
+    previous = signal.getsignal(signal.SIGTERM)
+    stop.install()
+    try:
+        with stop.deferred(stop_at_end=False):
+            stop.check()  # the loop's last check
+            os.kill(os.getpid(), signal.SIGTERM)  # during the final writes
+            written = True
+        assert written and stop.requested()
+        with pytest.raises(stop.Terminated):
+            stop.check()  # before the next run
+        stop.reset()
+        with pytest.raises(stop.Terminated):
+            with stop.deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        stop.reset()
+
 def _parser(stage: str, monkeypatch) -> argparse.ArgumentParser:
     """The argument parser a stage's main builds (caught at parse_args)."""
     sys.path.insert(0, str(ROOT / "stages"))

@@ -15,10 +15,15 @@ GRID = ["--scenes", "ball", "--methods", "gca", "nclaw", "--profile", "ci", "--s
 
 
 def _made_elsewhere(work, cd_gca: float):
-    """A grid work dir as a GPU machine leaves it: gca seeds 0-1 trained (seed 0 evaluated), nclaw seed 0 evaluated."""
+    """A grid work dir as a GPU machine leaves it: gca seeds 0-1 trained (seed 0 evaluated), nclaw seed 0 evaluated;
+    nclaw seed 1 stopped by its call's deadline as it wrote its train.json (no .done marker: unfinished)."""
     grid.prepare(work, grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"]))
     runs, evals = work / "runs/ball", work / "metrics/eval/ball"
-    for name, commit in (("gca", "abc1234 (given)"), ("gca@seed1", "abc1234 (given)"), ("nclaw", None)):
+    (work / ".grid").mkdir(exist_ok=True)
+    for job in ("gca", "nclaw+gca@seed1"):  # one run, and a batch of two (--runs-per-job)
+        (work / f".grid/train@ball:{job}.done").write_text("60.0\n\n")
+    for name, commit in (("gca", "abc1234 (given)"), ("gca@seed1", "abc1234 (given)"), ("nclaw", None),
+                         ("nclaw@seed1", None)):
         (runs / name).mkdir(parents=True)
         train = {"scene": "ball", "method": name.split("@")[0], "status": "ok", "train_seconds": 60.0}
         if commit:
@@ -53,7 +58,7 @@ def test_a_grids_records_reach_mlflow_as_the_stages_log_them_once(tmp_path, monk
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     _import(tmp_path, "first", 0.0123)
     # gca x 2 seeds, nclaw's seed 0; its seed 1 (a nuisance draw of its own) was not made there
-    assert "mlflow: {'logged': 3, 'not trained': 1}" in capsys.readouterr().out
+    assert "mlflow: {'logged': 3, 'unfinished': 1}" in capsys.readouterr().out
     table1 = mlflow.search_runs(experiment_names=["gca/table1"], output_format="list")
     primary = {r.info.run_name: r for r in table1 if "mirror_of" not in r.data.tags}
     assert sorted(primary) == ["ball/gca", "ball/gca@seed1", "ball/nclaw"]
@@ -71,7 +76,7 @@ def test_a_grids_records_reach_mlflow_as_the_stages_log_them_once(tmp_path, monk
                                                                           "table6", "law"}
     # the same records again: nothing new
     _import(tmp_path, "again", 0.0123)
-    assert "mlflow: {'unchanged': 3, 'not trained': 1}" in capsys.readouterr().out
+    assert "mlflow: {'unchanged': 3, 'unfinished': 1}" in capsys.readouterr().out
     assert len(_keyed("ball/gca")) == 7
     # a record that changed (an evaluation made again) replaces its runs, mirrors included
     _import(tmp_path, "changed", 0.02)

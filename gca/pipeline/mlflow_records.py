@@ -37,14 +37,25 @@ def _existing(key: str) -> list:
                               output_format="list")
 
 
+def _finished(work: Path, scene: str, name: str) -> bool:
+    """Whether run ``name`` of ``scene`` has its training job's ``.done`` marker (``.grid/train@<scene>:<runs>.done``,
+    one run or a batch). A ``train.json`` without one was written by a run its call stopped before the stage ended:
+    it trains again on the next machine (session 25: bottle no_global seed 2)."""
+    return any(name in path.name[len(f"train@{scene}:"):-len(".done")].split("+")
+               for path in (work / ".grid").glob(f"train@{scene}:*.done"))
+
+
 def import_run(settings: Settings, work: Path, scene: str, method, seed: int, name: str) -> str:
     """Log one run's records (``work/runs/<scene>/<name>/`` and ``work/metrics/eval/<scene>/<name>.json``);
-    returns ``"logged"``, ``"unchanged"`` (logged before from the same records) or ``"not trained"``."""
+    returns ``"logged"``, ``"unchanged"`` (logged before from the same records), ``"not trained"`` or
+    ``"unfinished"`` (a ``train.json`` without its job's marker: :func:`_finished`)."""
     import mlflow
 
     run_dir, eval_json = work / "runs" / scene / name, work / "metrics" / "eval" / scene / f"{name}.json"
     if not (run_dir / "train.json").is_file():
         return "not trained"
+    if not _finished(work, scene, name):
+        return "unfinished"
     train = read_json(run_dir / "train.json")
     evaluation = read_json(eval_json) if eval_json.is_file() else None
     history_file = run_dir / "history.json"
