@@ -91,15 +91,16 @@ def main(argv=None) -> dict:
     for method, seed, name in runs:
         stop.check()  # a SIGTERM during the last run's final writes: that run is kept, this one is not started
         velocity, inputs_stamp = velocities[seed]
-        with stage_run("train", settings.params, **train_run_args(args.scene, method, seed, name, scene.material)) as run:
+        # SIGTERM: checkpoint at the end of the iteration in progress, then stop; after the last iteration the run
+        # finishes, its MLflow record included (its results and the job's .done marker are kept)
+        with stop.deferred(stop_at_end=False), \
+                stage_run("train", settings.params, **train_run_args(args.scene, method, seed, name, scene.material)) as run:
             run.log_params(method_params(method, settings.rdga, settings.cpr, settings.lora))
             checkpoint = args.out / name / "checkpoint.pt"
             stamp.guard_checkpoint(checkpoint, stamp.fingerprint(settings.params, TRAIN_KEYS,
                                                                  extra=[inputs_stamp, velocity, method.name, seed]))
-            with stop.deferred(stop_at_end=False):  # SIGTERM: checkpoint at the end of the iteration, then stop;
-                # after the last iteration the run finishes (its results and the stage's .done marker are kept)
-                results[name] = train_method(settings, args.scene, method, inputs, velocity, args.out / name, run,
-                                             args.device, seed)
+            results[name] = train_method(settings, args.scene, method, inputs, velocity, args.out / name, run,
+                                         args.device, seed)
             stamp.clear_checkpoint(checkpoint)
             run.log_artifact(args.out / name / "loss.png")
         print(f"train {args.scene}/{name}: {results[name]['status']} in {results[name]['train_seconds']:.1f} s")

@@ -159,10 +159,32 @@ def test_a_run_stopped_at_the_deadline_leaves_its_work_left_to_the_next_call(tmp
     jobs = {"train@ball:gca": grid.Job("train@ball:gca", "python -c 'import time; time.sleep(30)'", [],
                                        ["runs/ball/gca"], 0.01)}
     state = dispatch.run(jobs, _local(tmp_path, slots=2), tmp_path, lambda m: None, deadline=2.0, poll_s=0.1,
-                         launch_until=1000.0, expected_s=lambda name: 20.0, packed_s=lambda seconds, k: seconds)
+                         launch_until=1000.0, expected_s=lambda name: 200.0, packed_s=lambda seconds, k: seconds)
     assert state == {"train@ball:gca": "todo"}
     left = dispatch.progress_left(tmp_path, "train@ball:gca")
-    assert left is not None and 0.75 < left < 0.95, left  # ~2 s of 20
+    assert left is not None and 0.975 < left < 0.995, left  # ~2 s of 200 (a floor of 60 / 200: not reached)
+
+
+def test_a_run_that_finishes_as_the_deadline_stops_it_is_done(tmp_path, monkeypatch):
+    """The stop's SIGTERM came as a training finished (the train stage then completes its run, stop.deferred
+    stop_at_end=False, and exits 0): the job gets the time to end on its own before the cancel, writes its .done
+    marker and counts as done (session 25: the cancel killed the job first; the finished run trained again)."""
+    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
+    code = ("import signal, time; signal.signal(signal.SIGTERM, lambda *a: None); time.sleep(3); "
+            "open('finished', 'w').write('1')")
+    jobs = {"train@ball:gca": grid.Job("train@ball:gca", f"python -c {code!r}", [], ["runs/ball/gca"], 0.01)}
+    lines = []
+    state = dispatch.run(jobs, _local(tmp_path), tmp_path, lines.append, deadline=1.0, poll_s=0.1)
+    assert state == {"train@ball:gca": "done"}, lines
+    assert (tmp_path / "finished").is_file() and dispatch.is_done(tmp_path, "train@ball:gca")
+    assert any(ln.startswith("done  train@ball:gca as it was stopped") for ln in lines)
+
+
+def test_evaluations_beside_a_run_count_in_its_packing():
+    packed = lambda seconds, k: grid.packed_seconds(seconds, 8, k)  # noqa: E731
+    tail = [(700.0, 0.2)] * 3
+    assert dispatch.lease_admits(600.0, 949.0, tail, packed)  # 4-way: 577 s
+    assert not dispatch.lease_admits(600.0, 949.0, tail, packed, others=4)  # 8-way: 949 s
 
 def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_path):
     for scene, run, seconds in (("ball", "gca", 800.0), ("ball", "gca@seed1", 850.0), ("cat", "gca", 400.0),

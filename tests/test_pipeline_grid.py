@@ -406,9 +406,56 @@ def test_a_grid_over_part_of_a_state_reads_that_part_and_hands_on_the_rest(tmp_p
     assert grid.unpack_records(records, part) == 1 and (part / "runs/ball/nclaw/history.json").is_file()
 
 
+
+def test_a_part_restored_again_or_grown_back_hands_on_nothing_stale(tmp_path):
+    """Review of session 25: a second restore replaces the first's carried files (a newer state's re-evaluation is
+    handed on, not the old one); a grid that grew back to a carried method made its runs again, and its save hands
+    on its own files, not the carried copies; a scene without methods (calibration) the grid lacks keeps its marker
+    and its definition in the saved state."""
+    work = tmp_path / "w"
+    params = grid.grid_params("ci", ["ball"], ["nclaw", "gca"], [])
+    grid.prepare(work, params)
+    _write(work, [".grid/train@ball:gca.done", "runs/ball/gca/law.pt", "metrics/eval/ball/nclaw.json"])
+    _write(work, ["metrics/eval/ball/gca.json"], "old")
+    old, new = tmp_path / "old.tgz", tmp_path / "new.tgz"
+    grid.save_state(work, old)
+    (work / "metrics/eval/ball/gca.json").write_text("re-evaluated")
+    grid.save_state(work, new)
+    part = tmp_path / "part"
+    grid.prepare(part, grid.grid_params("ci", ["ball"], ["nclaw"], []))
+    grid.restore_state(old, part)
+    grid.restore_state(new, part)
+    again = tmp_path / "again.tgz"
+    grid.save_state(part, again)
+    with tarfile.open(again) as tar:
+        assert tar.extractfile("metrics/eval/ball/gca.json").read() == b"re-evaluated"
+    grid.prepare(part, params)  # the same folder grown back to gca: it trained gca again (a new law, no evaluation)
+    (part / "runs/ball/gca").mkdir(parents=True)
+    (part / "runs/ball/gca/law.pt").write_text("NEW")
+    grown = tmp_path / "grown.tgz"
+    grid.save_state(part, grown)
+    with tarfile.open(grown) as tar:
+        names = tar.getnames()
+        assert tar.extractfile("runs/ball/gca/law.pt").read() == b"NEW" and "metrics/eval/ball/gca.json" not in names
+    calib = tmp_path / "calib"
+    grid.prepare(calib, grid.grid_params("ci", ["ball", "calib_torus"], ["nclaw"], []))
+    _write(calib, [".grid/evaluate@calib_torus.done", ".grid/train@ball:nclaw.done"])
+    both = tmp_path / "both.tgz"
+    grid.save_state(calib, both)
+    ball = tmp_path / "ball"
+    grid.prepare(ball, grid.grid_params("ci", ["ball"], ["nclaw"], []))
+    grid.restore_state(both, ball)
+    assert not (ball / ".grid/evaluate@calib_torus.done").exists()
+    handed = tmp_path / "handed.tgz"
+    grid.save_state(ball, handed)
+    with tarfile.open(handed) as tar:
+        made = json.loads(tar.extractfile(grid.STATE_PARAMS).read())
+        assert ".grid/evaluate@calib_torus.done" in tar.getnames() and "calib_torus" in made["scenes"]
+
 def test_member_in_names_each_state_file_by_its_scene_and_method():
     methods = {"ball": ["gca", "nclaw"]}
     for name, ours in [(".grid/train@ball:gca@seed2.done", True), (".grid/evaluate@ball:neuma.done", False),
+                       (".grid/evaluate@calib_torus.done", False), (".grid/evaluate@ball.done", True),
                        (".grid/train@ball:gca@seed1+nclaw@seed1.done", True),
                        (".grid/train@ball:gca@seed1+neuma@seed1.done", False), (".grid/train@cat:gca.done", False),
                        ("runs/ball/velocity@seed1.json", True), ("runs/cat/velocity.json", False),

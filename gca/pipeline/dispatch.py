@@ -297,10 +297,15 @@ class SubmititEngine(Engine):
         controller, which did not always stop the stage: in fresh-clone CI runs a job ran on to its end after the
         deadline stop), then the cancel, then wait for them to end (at most ``STOP_GRACE_S`` + 10 s), so that the next
         call never starts a job whose stopped process still writes its outputs. SLURM jobs: the cancel (their end is
-        SLURM's to see)."""
+        SLURM's to see). Between the SIGTERM and the cancel, up to ``STOP_GRACE_S / 2`` for the jobs to end on their
+        own: a training that finished as the signal came exits 0 and its job writes the ``.done`` marker (session 25:
+        the cancel killed the job first, and a finished 441-s run trained again)."""
         if not self.slurm:
             for name in handles:
                 _terminate(marker(work, name, ".pid"))
+            t_end = time.monotonic() + STOP_GRACE_S / 2
+            while time.monotonic() < t_end and any(self.running(h) for h in handles.values()):
+                time.sleep(min(poll_s, 0.2))
         super().stop_jobs(handles, work, log, poll_s)
         if not self.slurm:
             _wait_stopped(self, handles, log, poll_s, work)
@@ -413,17 +418,18 @@ def launch_order(ready, priority: dict[str, float], todo,
 
 
 def lease_admits(left_s: float, new_s: float, running: list[tuple[float, float]],
-                 packed_s: Callable[[float, float], float]) -> bool:
+                 packed_s: Callable[[float, float], float], others: int = 0) -> bool:
     """Whether a training run expected ``new_s`` [s] at the grid's packing may start on a GPU where the trainings
     ``running`` go on (each: its expected seconds at the grid's packing, the fraction of its work left), with
-    ``left_s`` [s] of the machine's lease left. ``packed_s(seconds, k)``: those seconds at k-way packing
-    (``grid.packed_seconds``). With k = len(running) + 1 it must end in time, and no running run that would end in
+    ``left_s`` [s] of the machine's lease left, beside ``others`` jobs more (evaluations: they share the GPU too).
+    ``packed_s(seconds, k)``: those seconds at k-way packing (``grid.packed_seconds``). With
+    k = len(running) + others + 1 it must end in time, and no running run that would end in
     time at (k - 1)-way may be pushed past the lease by it. The load is taken as constant from now on (a run ending
     earlier only speeds the rest up: a margin). At the grid's full packing this is the plain rule
     (``new_s <= left_s``); with fewer runs on the GPU, as at the tail of a machine, a run is quicker than its
     full-packing time and may still fit (session 25: with only ball and duck runs left, 30-45 of them were held back
     and the slots stood idle for the machine's last ~10 min)."""
-    k = len(running) + 1
+    k = len(running) + others + 1
     if packed_s(new_s, k) > left_s:
         return False
     return not any(frac * packed_s(full, k - 1) <= left_s < frac * packed_s(full, k) for full, frac in running)
@@ -504,8 +510,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         return min(free, key=lambda p: sum(q == p for q in place_of.values()))
 
     def beside(place) -> list[str]:
-        """The training jobs running on ``place``."""
-        return [m for m in handles if m.startswith("train@") and place_of.get(m) == place]
+        """The jobs running on ``place``."""
+        return [m for m in handles if place_of.get(m) == place]
 
     def lease_fits(name: str) -> bool:
         """Whether training job ``name`` may start within the machine's lease (one with a checkpoint always)."""
@@ -513,8 +519,9 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             return True
         if packed_s is None or not free:
             return time.monotonic() + expected(name) <= machine_end
-        running = [(full[m], left[m]) for m in beside(place_next()) if m in full]
-        return lease_admits(machine_end - time.monotonic(), expected(name), running, packed_s)
+        on = beside(place_next())
+        running = [(full[m], left[m]) for m in on if m in full]
+        return lease_admits(machine_end - time.monotonic(), expected(name), running, packed_s, len(on) - len(running))
 
     def fits(name: str) -> bool:
         if not lease_fits(name):
@@ -635,8 +642,10 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             k = sum(1 for m in training if place_of.get(m) == place_of.get(n))
             dt = now - max(last[0], started[n])
             shared[n] = shared.get(n, 0.0) + k * dt
-            if n in full and full[n] > 0:
-                left[n] = max(0.0, left[n] - dt / packed_s(full[n], k))
+            if n in full and full[n] > 0:  # its work left, at the load of every job beside it; never below a
+                # restart's worth (a run past its estimate is still protected by lease_admits)
+                k_all = sum(1 for m in handles if place_of.get(m) == place_of.get(n))
+                left[n] = max(min(1.0, RESTART_S / full[n]), left[n] - dt / packed_s(full[n], k_all))
         last[0] = now
 
     while True:
@@ -681,6 +690,11 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 state[n] = "todo"
                 log(f"stop  {n} at the deadline (resumes next time)")
             engine.stop_jobs(stopping, work, log, poll_s)
+            for n in stopping:  # ended on its own after the signal, its work finished (its job wrote the marker)
+                if is_done(work, n, stamp):
+                    state[n] = DONE
+                    (work / ".grid" / f"{n}.progress").unlink(missing_ok=True)
+                    log(f"done  {n} as it was stopped")
             return state
         time.sleep(poll_s)
 

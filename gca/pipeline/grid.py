@@ -369,7 +369,7 @@ def collect(work: Path, out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     path = out / "grid_results.tar.gz"
     keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
-                      r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/.*|params\.yaml)$")
+                      r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/(?!carried/).*|params\.yaml)$")
     with tarfile.open(path, "w:gz") as tar:
         for f in sorted(work.rglob("*")):
             rel = f.relative_to(work).as_posix()
@@ -431,10 +431,10 @@ def member_in(name: str, methods: dict[str, list[str]]) -> bool:
     scene's methods}, :func:`_made_under`) and each run it names is of one of them (``train@ball:gca@seed1.done``,
     ``runs/ball/gca@seed1/...``, ``metrics/eval/ball/gca@seed1.json`` or ``.../gca@seed1/strip.png``; a scene's
     launch estimate ``runs/ball/velocity@seed1.json`` is the scene's alone). Anything else is the grid's."""
-    marker = re.match(r"^\.grid/(?:train|evaluate)@([^:/]+):(.+)\.done$", name)
+    marker = re.match(r"^\.grid/(?:train|evaluate)@([^:/]+?)(?::(.+))?\.done$", name)
     parts = name.split("/")
-    if marker:
-        scene, runs = marker.group(1), marker.group(2).split("+")
+    if marker:  # a scene-level marker (a calibration scene's ``evaluate@calib_torus``) is the scene's
+        scene, runs = marker.group(1), marker.group(2).split("+") if marker.group(2) else []
     elif parts[0] == "runs" and len(parts) >= 3:
         scene, runs = parts[1], [] if len(parts) == 3 else [parts[2]]
     elif parts[:2] == ["metrics", "eval"] and len(parts) >= 4:
@@ -451,6 +451,7 @@ def save_state(work: Path, archive: Path) -> int:
     from gca.io import pack_files, write_json
 
     made, carried = _made_under(work), work / CARRIED
+    made_here = {scene: list(names) for scene, names in made["methods"].items()}
     files: list = [*state_files(work), STATE_PARAMS]
     if (carried / STATE_PARAMS).is_file():
         theirs = json.loads((carried / STATE_PARAMS).read_text())
@@ -459,7 +460,8 @@ def save_state(work: Path, archive: Path) -> int:
         for scene, names in theirs["methods"].items():
             mine = made["methods"].setdefault(scene, [])
             mine += [m for m in names if m not in mine]
-        files += [(carried / rel, rel) for rel in state_files(carried) if rel not in files]
+        files += [(carried / rel, rel) for rel in state_files(carried)  # what the grid lacks only: a grid that
+                  if rel not in files and not member_in(rel, made_here)]  # grew back made its own again
     write_json(work / STATE_PARAMS, made)
     return pack_files(work, files, archive)
 
@@ -494,12 +496,13 @@ def restore_state(archive: Path, work: Path) -> int:
         raise SystemExit(f"{archive}: made under other params than {work / 'params.yaml'}: scene(s) {other} defined "
                          "otherwise (their spec, object, prior family or capture); use a new state file for this grid")
     lacked = {s: sorted(set(m) - set(here["methods"].get(s, []))) for s, m in made["methods"].items()}
-    lacked = {s: m for s, m in lacked.items() if m}
+    lacked = {s: m for s, m in lacked.items() if m or s not in here["scenes"]}  # a scene without methods too
     ours = lambda name: member_in(name, here["methods"])  # noqa: E731
     allowed = lambda name: name == STATE_PARAMS or bool(STATE_RE.match(name))  # noqa: E731
     try:  # a scene with new methods needs only their runs evaluated (one evaluation job per run: split_evaluate)
         n = unpack_files(archive, work, allowed, "grid state", skip=lambda name: bool(CHECKPOINT_RE.search(name))
                          or not ours(name))
+        shutil.rmtree(work / CARRIED, ignore_errors=True)  # this archive's rest replaces an earlier restore's
         if lacked:
             aside = unpack_files(archive, work / CARRIED, allowed, "grid state",
                                  skip=lambda name: bool(CHECKPOINT_RE.search(name)) or (ours(name) and name != STATE_PARAMS))
