@@ -73,7 +73,7 @@ timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes
     --deadline "$((LIMIT - 90))" $ML --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
 echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | grep -v "hold  " | tail -n 40
 H=$(grep -c "hold  " "$OUT/grid.log"); [ "$H" = 0 ] || { echo "[table] $H training runs held back by the machine's lease, e.g.:"; grep -m 1 "hold  " "$OUT/grid.log"; }
-# The deadline (LIMIT - 90) leaves the stop (at most dispatch.STOP_GRACE_S + 10 s), the state and the results 65 s
+# The deadline (LIMIT - 90) leaves the stop (at most 1.5 x dispatch.STOP_GRACE_S + 10 s: 40 s), the state and the results 65 s
 # before the grid's timeout (LIMIT - 25). The grid saves its state at its end; cut off before that (rc 124: session
 # 19 lost two calls so), it is saved here from the markers and checkpoints on disk (the timeout's SIGTERM reaches the
 # training processes too: they checkpoint)
