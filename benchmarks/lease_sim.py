@@ -5,9 +5,10 @@ its margins; the calls' stops and restarts are left out). A prediction aid for b
   python benchmarks/lease_sim.py /tmp/mlw
 """
 import sys
+from pathlib import Path
 
 import yaml
-from pathlib import Path
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from gca.pipeline import grid, dispatch
@@ -19,14 +20,14 @@ jobs = grid.link(grid.batch_runs(grid.split_runs(jobs, params), 1))
 todo = [n for n in jobs if n.startswith("train@") and not dispatch.is_done(work, n)]
 exp = grid._expected_in(work, 900.0, 8)
 T = {n: exp(n) for n in todo}
-prio = dispatch.critical_path({n: j for n, j in jobs.items()})
+prio = dispatch.critical_path(jobs)
 order = dispatch.launch_order(todo, prio, todo, lambda n: T[n])
 print(len(todo), "runs left; expected 8-way [s]:", sorted(round(v) for v in T.values()))
 packed = lambda s, k: grid.packed_seconds(s, 8, k)
 MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 30, 200.0, 8, 1.0
 
 def simulate(aware):
-    t, queue, running, done, cut = INPUTS, list(order), {}, [], []
+    t, queue, running, done = INPUTS, list(order), {}, []
     while t < MACHINE:
         k = len(running)
         for n in list(running):  # progress at the current load
@@ -45,6 +46,6 @@ def simulate(aware):
     return done, list(running)
 
 for aware in (False, True):
-    done, cut = simulate(aware)
+    done, cut = simulate(aware)  # cut: the runs still going at the lease's end
     print(("lease_admits" if aware else "old rule    "), f"{len(done)} trainings done, {len(cut)} cut off by the lease:",
           sorted(done)[:4], "...")

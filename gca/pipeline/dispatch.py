@@ -440,14 +440,13 @@ def record_progress(work: Path, name: str, left: float) -> None:
     a state file: a run goes on only on this machine), for the next call's :func:`lease_admits`."""
     from gca.io import write_text
 
-    write_text(work / ".grid" / f"{name}.progress", f"left={left:.4f}\n")
+    write_text(marker(work, name, ".progress"), f"left={left:.4f}\n")
 
 
 def progress_left(work: Path, name: str) -> float | None:
     """The fraction of work left that :func:`record_progress` wrote for job ``name``, or None."""
-    path = work / ".grid" / f"{name}.progress"
     try:
-        return float(path.read_text().split("=", 1)[1])
+        return float(marker(work, name, ".progress").read_text().split("=", 1)[1])
     except (OSError, IndexError, ValueError):
         return None
 
@@ -564,7 +563,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             left.pop(n, None)
             if s == DONE:
                 state[n] = DONE
-                (work / ".grid" / f"{n}.progress").unlink(missing_ok=True)
+                marker(work, n, ".progress").unlink(missing_ok=True)
                 log(f"done  {n} in {took:.0f} s")
                 if n in shared and took > 0:
                     record_sharing(work, n, shared.pop(n) / took)
@@ -693,7 +692,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             for n in stopping:  # ended on its own after the signal, its work finished (its job wrote the marker)
                 if is_done(work, n, stamp):
                     state[n] = DONE
-                    (work / ".grid" / f"{n}.progress").unlink(missing_ok=True)
+                    marker(work, n, ".progress").unlink(missing_ok=True)
                     log(f"done  {n} as it was stopped")
             return state
         time.sleep(poll_s)
