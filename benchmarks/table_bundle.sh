@@ -71,7 +71,9 @@ M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's
 timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M \
     --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
     --deadline "$((LIMIT - 90))" $ML --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
-echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |FAIL|after|left|state:|restored" "$OUT/grid.log" | grep -v "hold  " | tail -n 40
+echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |stop |FAIL|after|left|state:|restored" "$OUT/grid.log" | grep -v "hold  " | tail -n 40
+S=$(grep -c "stop  train@.*resumes next time" "$OUT/grid.log")  # session 26: a run stopped here resumes only on this machine
+[ "$S" = 0 ] || echo "[table] $S training runs stopped mid-way: they resume only on this machine; call again before giving it back (LIMIT=150 in its last minutes)"
 H=$(grep -c "hold  " "$OUT/grid.log"); [ "$H" = 0 ] || { echo "[table] $H training runs held back by the machine's lease, e.g.:"; grep -m 1 "hold  " "$OUT/grid.log"; }
 # The deadline (LIMIT - 90) leaves the stop (at most 1.5 x dispatch.STOP_GRACE_S + 10 s: 40 s), the state and the results 65 s
 # before the grid's timeout (LIMIT - 25). The grid saves its state at its end; cut off before that (rc 124: session
