@@ -1,6 +1,6 @@
 """One fresh machine on a grid state's remaining training runs, simulated on the CPU: the plain lease rule against
 dispatch.lease_admits, with grid.packed_seconds taken as the truth (8 slots, ~200 s of inputs, one 1800-s lease less
-its margins; the calls' stops and restarts are left out). A prediction aid for benchmarks/NOTES.md, no GPU.
+its margins: DETACH=1, one grid over the machine, no stop between calls). A prediction aid for benchmarks/NOTES.md, no GPU.
   python -m gca.pipeline.grid --work /tmp/mlw <the grid's options> --restore-state STATE --stages report  (any stage)
   python benchmarks/lease_sim.py /tmp/mlw
 """
@@ -24,7 +24,7 @@ prio = dispatch.critical_path(jobs)
 order = dispatch.launch_order(todo, prio, todo, lambda n: T[n])
 print(len(todo), "runs left; expected 8-way [s]:", sorted(round(v) for v in T.values()))
 packed = lambda s, k: grid.packed_seconds(s, 8, k)
-MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 30, 200.0, 8, 1.0
+MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 120, 200.0, 8, 1.0  # table_bundle.sh DETACH=1: the grid's deadline
 
 def simulate(aware):
     t, queue, running, done = INPUTS, list(order), {}, []

@@ -14,7 +14,13 @@
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/table_bundle.sh
-#   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command
+#   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command; with DETACH=1 (the
+#            GPU machine's default) the first call starts ONE grid for the whole machine, in a process session of its
+#            own so that it outlives the call, running to the machine's end (MACHINE_S); every call waits on it for
+#            LIMIT - 45 s and returns a snapshot (its state and results so far), the call in which it ends its final
+#            state: calls 2, 3 and 4 at once, one after another, the grid ending inside call 4 (~1670 s after call 2
+#            began). DETACH=0: each call runs its own grid to LIMIT - 90 s and stops what still runs (it resumes in
+#            the next call, on this machine only; session 26 measured what that costs: NOTES)
 #   after each: commit its state.tgz (beside all.tgz) as $STATE; a large all.tgz comes as all.tgz.0, .1, ...
 #            (`cat all.tgz.* > all.tgz`): its histories go to a records.tgz
 #   GCA_COMMIT  required on the GPU machine: the commit sent (the copy there carries a stale .git); runs record it
@@ -37,7 +43,7 @@
 #            run cut off by the machine's end resumes on no other machine (session 20: remade inputs differ in float32
 #            noise, so checkpoints made elsewhere are not resumed); evaluations fill the rest
 #   SLOTS    processes on the GPU at once (default 8); LIMIT seconds for this call (default 590: the
-#            calls end ~70 s under it, session 20: 523 s at 590, under the device's 600-s command limit); PROFILE paper
+#            calls end ~45-70 s under it, session 20: 523 s at 590, under the device's 600-s command limit); PROFILE paper
 #   PRIORS   the priors' folder (default the paper ones; "" pretrains them); EXTRA more grid options (--set k=v;
 #            EXTRA="--evaluate-missing chamfer_mean_true_launch": the runs evaluated before that metric existed,
 #            Table 1's 54, are evaluated again, once, with their laws from the state: ~150 s of inputs + ~150 s).
@@ -53,27 +59,71 @@ export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
 T0=$(date +%s)
 MPS=""; P="--priors $PRIORS"; STAGES="assets particles ground_truth preprocess train evaluate report"
 [ -n "$PRIORS" ] || { P=""; STAGES="assets particles prior ground_truth preprocess train evaluate report"; }
+BUILD=""
 if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside warp, gsplat built, MPS on
   need_commit table_bundle.sh
   install_wheels
-  build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
+  build_gsplat "$W" "$OUT/gsplat_build.log" & BUILD=$!  # beside the inputs' stages (their renders wait for it)
   MPS="--mps"
   MACHINE_S=${MACHINE_S:-1800}
+  DETACH=${DETACH:-1}
 fi
-ML=""  # the machine's time left: from its first call here (W persists while the machine is held), minus ~60 s before it
+DETACH=${DETACH:-0}
+command -v setsid > /dev/null || DETACH=0
+LEFT=""  # the machine's time left [s]: from its first call here (W persists while the machine is held), minus ~60 s before it
 if [ -n "${MACHINE_S:-}" ]; then
   [ -f "$W/machine_start" ] || echo "$T0" > "$W/machine_start"
-  ML="--machine-left $((MACHINE_S - 60 - (T0 - $(cat "$W/machine_start"))))"
+  LEFT=$((MACHINE_S - 60 - (T0 - $(cat "$W/machine_start"))))
 fi
+[ "$DETACH" = 0 ] || [ -n "$LEFT" ] || { echo "table_bundle.sh: DETACH=1 runs the grid to the machine's end: give MACHINE_S"; exit 2; }
 R=$(restore_once "$STATE" "$W")
 M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's own methods
-# shellcheck disable=SC2086
-timeout "$((LIMIT - 25))" python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M \
-    --profile "$PROFILE" --set "train.seeds=$SEEDS" $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R \
-    --deadline "$((LIMIT - 90))" $ML --stages $STAGES --save-state "$OUT/state.tgz" --collect "$OUT" > "$OUT/grid.log" 2>&1
-echo "[table $(($(date +%s) - T0)) s] grid rc=$?"; grep -E "done |stop |FAIL|after|left|state:|restored" "$OUT/grid.log" | grep -v "hold  " | tail -n 40
-S=$(grep -c "stop  train@.*resumes next time" "$OUT/grid.log")  # session 26: a run stopped here resumes only on this machine
-[ "$S" = 0 ] || echo "[table] $S training runs stopped mid-way: they resume only on this machine; call again before giving it back (LIMIT=150 in its last minutes)"
+# The grid's command; its deadline, machine-left option, state, results folder and log come as $1-$5
+cat > "$W/grid.sh" << GRID
+python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M --profile "$PROFILE" --set "train.seeds=$SEEDS" \
+    $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R --stages $STAGES --deadline "\$1" \$2 --save-state "\$3" --collect "\$4" > "\$5" 2>&1
+GRID
+if [ "$DETACH" = 0 ]; then  # the grid within this call: its deadline stops what runs (it resumes in the next call)
+  ML=""; [ -z "$LEFT" ] || ML="--machine-left $LEFT"
+  timeout "$((LIMIT - 25))" sh "$W/grid.sh" "$((LIMIT - 90))" "$ML" "$OUT/state.tgz" "$OUT" "$OUT/grid.log"
+  echo "[table $(($(date +%s) - T0)) s] grid rc=$?"
+else  # session 26: one grid per machine, from its first call to the machine's end, outliving the calls (setsid: the
+  # device keeps a new session's processes); each call waits on it, then returns a snapshot of it (its state and
+  # results so far) or, in the call where it ends, its final state. No run stops between calls: stopped and restarted
+  # at two call boundaries, the ball's runs took 1139 s of wall for 724 s of iterations (NOTES s26)
+  PID=$(cat "$W/grid.pid" 2> /dev/null)  # written by the grid's own shell (setsid may fork)
+  if [ -n "$PID" ] && [ ! -f "$W/grid.rc" ] && kill -0 "$PID" 2> /dev/null; then
+    echo "[table] the machine's grid goes on (pid $PID, started by an earlier call)"
+  else
+    D=$((LEFT - 120))  # its deadline and machine-left [s]: the stop (<= 40 s), its state and results ~70 s before
+    # LEFT, inside the wait (to T0 + LIMIT - 45) of the third call after the first (calls every ~575 s)
+    rm -f "$W/grid.rc" "$W/final/state.tgz" "$W/final/grid_results.tar.gz"; mkdir -p "$W/final"
+    rm -f "$W/grid.pid"
+    setsid sh -c "echo \$\$ > '$W/grid.pid'; timeout $((D + 60)) sh '$W/grid.sh' $D '--machine-left $D' \
+'$W/final/state.tgz' '$W/final' '$W/grid.log'; echo \$? > '$W/grid.rc'" < /dev/null > /dev/null 2>&1 &
+    echo "[table] the machine's grid started: it runs to the machine's end, $D s from now, beside the calls"
+  fi
+  while [ ! -f "$W/grid.rc" ] && [ "$(date +%s)" -lt "$((T0 + LIMIT - 45))" ]; do sleep 2; done
+  cp "$W/grid.log" "$OUT/grid.log"
+  if [ -f "$W/grid.rc" ]; then
+    for f in state.tgz grid_results.tar.gz; do [ ! -f "$W/final/$f" ] || cp "$W/final/$f" "$OUT/$f"; done
+    echo "[table $(($(date +%s) - T0)) s] grid rc=$(cat "$W/grid.rc") (the machine's grid has ended; its final state)"
+  else
+    for i in 1 2; do  # a file the grid replaced meanwhile: once more
+      python3 -m gca.pipeline.grid --work "$W/grid" --collect-only --save-state "$OUT/state.tgz" --collect "$OUT" \
+          > "$OUT/snapshot.log" 2>&1 && break
+    done
+    echo "[table $(($(date +%s) - T0)) s] the machine's grid goes on ($((LEFT - $(date +%s) + T0)) s of the machine left):" \
+         "this call returns a snapshot of it; call again within 30 s"
+  fi
+fi
+grep -E "done |stop |FAIL|after|left|state:|restored" "$OUT/grid.log" | grep -v "hold  " | tail -n 40
+S=$(grep -c "stop  train@.*resumes next time" "$OUT/grid.log")
+if [ "$DETACH" = 0 ]; then  # session 26: a run stopped so resumes only on this machine
+  [ "$S" = 0 ] || echo "[table] $S training runs stopped mid-way: they resume only on this machine; call again before giving it back (LIMIT=150 in its last minutes)"
+else
+  [ "$S" = 0 ] || echo "[table] $S training runs stopped at the machine's end: they train again on the next machine"
+fi
 H=$(grep -c "hold  " "$OUT/grid.log"); [ "$H" = 0 ] || { echo "[table] $H training runs held back by the machine's lease, e.g.:"; grep -m 1 "hold  " "$OUT/grid.log"; }
 # The deadline (LIMIT - 90) leaves the stop (at most 1.5 x dispatch.STOP_GRACE_S + 10 s: 40 s), the state and the results 65 s
 # before the grid's timeout (LIMIT - 25). The grid saves its state at its end; cut off before that (rc 124: session
@@ -81,7 +131,7 @@ H=$(grep -c "hold  " "$OUT/grid.log"); [ "$H" = 0 ] || { echo "[table] $H traini
 # training processes too: they checkpoint)
 [ -f "$OUT/state.tgz" ] || [ ! -f "$W/grid/params.yaml" ] || python3 -c "from pathlib import Path; from gca.pipeline.grid import save_state; \
 print('[table] the grid was cut off before its state: saved', save_state(Path('$W/grid'), Path('$OUT/state.tgz')), 'files')"
-wait  # the gsplat build, when the grid ended first
+[ -z "$BUILD" ] || wait "$BUILD"  # the gsplat build, when the grid ended first
 [ ! -f "$W/grid/mlflow.db" ] || cp "$W/grid/mlflow.db" "$OUT/mlflow.db"
 pack_out "$OUT"
 echo "[table $(($(date +%s) - T0)) s] done: commit state.tgz from all.tgz as $STATE"

@@ -90,6 +90,31 @@ def test_collect_keeps_the_small_results(tmp_path):
                      "runs/ball/gca/law.pt", "models/prior/jelly.pt"}
 
 
+def test_collect_passes_over_a_file_a_running_grid_removed(tmp_path, monkeypatch):
+    """A snapshot of a running grid (table_bundle.sh, DETACH=1) lists the files, then packs them: one removed
+    meanwhile is passed over, the rest packed. Negative control: another error still raises."""
+    for rel in ("runs/ball/gca/train.json", "runs/ball/gca/history.json"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("x")
+    real = tarfile.TarFile.add
+
+    def add(self, name, arcname=None, *a, **k):
+        if arcname == "runs/ball/gca/history.json":
+            Path(name).unlink()  # gone between the listing and the add
+        return real(self, name, arcname, *a, **k)
+
+    monkeypatch.setattr(tarfile.TarFile, "add", add)
+    with tarfile.open(grid.collect(tmp_path, tmp_path / "out")) as tar:
+        assert tar.getnames() == ["runs/ball/gca/train.json"]
+
+    def broken(self, name, arcname=None, *a, **k):
+        raise PermissionError(name)
+
+    monkeypatch.setattr(tarfile.TarFile, "add", broken)
+    with pytest.raises(PermissionError):
+        grid.collect(tmp_path, tmp_path / "out2")
+
+
 def test_before_runs_once_ahead_of_the_jobs(tmp_path):
     work = tmp_path / "w"
     state = grid.main(["--work", str(work), "--scenes", "duck", "--profile", "ci", "--stages", "report",
@@ -511,6 +536,42 @@ def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path):
     assert not (tmp_path / "b/grid/data").exists()  # no input remade
     assert (tmp_path / "b/grid/runs/ball/nclaw@seed1/train.json").is_file()
     assert any((tmp_path / "b/grid/reports/ci").glob("table1*"))
+
+
+def test_table_bundle_keeps_one_grid_across_calls_of_a_machine(tmp_path):
+    """DETACH=1 (the GPU machine's default, session 26): the first call starts the machine's grid in a session of its
+    own (it outlives the call), returns at its LIMIT with a snapshot of it (a state that restores); the next call
+    starts no second grid but waits on the same one and returns its final state; once it has ended, a further call
+    starts a new grid (negative control: the liveness check is not always true)."""
+    import os
+    import subprocess
+
+    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
+           "SLOTS": "2", "STATE": str(tmp_path / "none.tgz"), "W": str(tmp_path / "a"), "DETACH": "1",
+           "MACHINE_S": "900"}
+
+    def call(limit: int, out: str):
+        return subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=600, env={**env, "LIMIT": str(limit), "OUT": str(tmp_path / out)})
+
+    first = call(60, "o1")  # returns after LIMIT - 45 s, the grid still at its inputs
+    assert "grid started" in first.stdout and "this call returns a snapshot" in first.stdout, first.stdout + first.stderr
+    subprocess.run(["tar", "xzf", str(tmp_path / "o1/all.tgz"), "state.tgz"], cwd=tmp_path, check=True)
+    with tarfile.open(tmp_path / "state.tgz") as tar:  # a state of the running grid, what save_state writes
+        snap = tar.getnames()
+    assert grid.STATE_PARAMS in snap and all(grid.STATE_RE.match(n) for n in snap if n != grid.STATE_PARAMS)
+    second = call(590, "o2")
+    assert "grid goes on (pid" in second.stdout and "grid started" not in second.stdout, second.stdout
+    assert "grid rc=0 (the machine's grid has ended" in second.stdout and "nothing left to run" in second.stdout
+    log = (tmp_path / "a/grid.log").read_text()
+    assert log.count("through local") == 1  # one grid over both calls
+    with tarfile.open(tmp_path / "o2/all.tgz") as tar:
+        tar.extract("state.tgz", tmp_path / "final")
+    with tarfile.open(tmp_path / "final/state.tgz") as tar:
+        names = tar.getnames()
+    assert "runs/ball/nclaw@seed1/train.json" in names and ".grid/evaluate@ball:nclaw@seed1.done" in names
+    third = call(60, "o3")  # the grid has ended: a call starts a new one (it finds nothing left)
+    assert "grid started" in third.stdout, third.stdout
 
 
 def test_table_bundle_starts_no_run_the_machine_would_cut_off(tmp_path):

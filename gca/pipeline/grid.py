@@ -373,8 +373,11 @@ def collect(work: Path, out: Path) -> Path:
     with tarfile.open(path, "w:gz") as tar:
         for f in sorted(work.rglob("*")):
             rel = f.relative_to(work).as_posix()
-            if f.is_file() and not f.is_symlink() and keep.match(rel) and f.stat().st_size < 8 * 2 ** 20:
-                tar.add(f, arcname=rel)
+            try:
+                if f.is_file() and not f.is_symlink() and keep.match(rel) and f.stat().st_size < 8 * 2 ** 20:
+                    tar.add(f, arcname=rel)
+            except FileNotFoundError:  # gone since the listing: a running grid's file replaced or removed
+                continue
     return path
 
 
@@ -741,7 +744,8 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--commit", action="store_true", help="--repo: then `dvc commit -f` every stage whose jobs all "
                                                           "finished, so `dvc repro` recomputes none of them")
     ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
-    ap.add_argument("--collect-only", action="store_true", help="only --collect what --work holds")
+    ap.add_argument("--collect-only", action="store_true",
+                    help="only --collect (and --save-state) what --work holds, also while a grid runs there")
     ap.add_argument("--restore-state", type=Path, metavar="TGZ",
                     help="--work: first unpack a --save-state archive (the runs and evaluations done elsewhere)")
     ap.add_argument("--save-state", type=Path, metavar="TGZ",
@@ -770,8 +774,11 @@ def main(argv=None) -> dict[str, str]:
     dispatch.add_engine_args(ap, slots=2)
     args = ap.parse_args(argv)
     work = (args.work or args.repo).resolve()
-    if args.collect_only:
-        print(f"[grid] results: {collect(work, args.collect)}")
+    if args.collect_only:  # also of a grid still running (table_bundle.sh: a call's snapshot of the machine's grid)
+        if args.save_state is not None:
+            print(f"[grid] state: {save_state(work, args.save_state)} files in {args.save_state}")
+        if args.collect is not None:
+            print(f"[grid] results: {collect(work, args.collect)}")
         return {}
     stamp = ""
     if args.repo is not None:  # what DVC finds up to date is not run; a job done under other params counts as not done
