@@ -435,6 +435,13 @@ def lease_admits(left_s: float, new_s: float, running: list[tuple[float, float]]
     return not any(frac * packed_s(full, k - 1) <= left_s < frac * packed_s(full, k) for full, frac in running)
 
 
+def job_runs(name: str) -> tuple[str, list[str]]:
+    """(scene, run names) of a per-run job ``<stage>@<scene>:<run>[+<run>...]`` (``grid.split_runs``,
+    ``grid.batch_runs``), also given as its marker's file stem (:func:`marker` keeps ``+``)."""
+    scene, runs = name.split("@", 1)[1].split(":", 1)
+    return scene, runs.split("+")
+
+
 def record_progress(work: Path, name: str, left: float) -> None:
     """Write the fraction of training job ``name``'s work left when a call stopped it (``.grid/<name>.progress``, not
     a state file: a run goes on only on this machine), for the next call's :func:`lease_admits`."""

@@ -516,13 +516,6 @@ def restore_state(archive: Path, work: Path) -> int:
     return n
 
 
-def job_runs(name: str) -> tuple[str, list[str]]:
-    """(scene, run names) of a per-run job ``<stage>@<scene>:<run>[+<run>...]`` (:func:`split_runs`,
-    :func:`batch_runs`), also given as its marker's file stem (``dispatch.marker`` keeps ``+``)."""
-    scene, runs = name.split("@", 1)[1].split(":", 1)
-    return scene, runs.split("+")
-
-
 def evaluate_missing(work: Path, key: str, measured: str = "chamfer_mean") -> list[str]:
     """Evaluations done before ``key`` was measured (a metric added since: session 21's
     ``chamfer_mean_true_launch``): the ``evaluate@<scene>:<run>[+<run>...]`` jobs with a run whose metrics JSON
@@ -532,7 +525,7 @@ def evaluate_missing(work: Path, key: str, measured: str = "chamfer_mean") -> li
     capture scene), stays done. Returns the jobs undone."""
     undone = []
     for marker in sorted((work / ".grid").glob("evaluate@*:*.done")):
-        scene, runs = job_runs(marker.stem)
+        scene, runs = dispatch.job_runs(marker.stem)
         for run in runs:
             path = work / "metrics" / "eval" / scene / f"{run}.json"
             record = json.loads(path.read_text()) if path.is_file() else {}
@@ -585,7 +578,7 @@ def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, di
     shares = {}
     if slots:
         for path in (work / ".grid").glob("train@*:*.done"):
-            scene, runs = job_runs(path.stem)
+            scene, runs = dispatch.job_runs(path.stem)
             ran = dispatch.sharing(work, path.stem)
             for run in runs:
                 shares[(scene, run)] = ran
@@ -614,7 +607,7 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
     :data:`JOB_START_S` for the job (``train_seconds`` counts the iterations only). Session 23: without GCA's
     times, every ablation was expected at ``default`` and a machine with 840 s left started none."""
     finished = finished_train_seconds(work) if finished is None else finished
-    scene, runs = job_runs(job)
+    scene, runs = dispatch.job_runs(job)
     total = JOB_START_S
     for run in runs:
         method = run.split("@", 1)[0]

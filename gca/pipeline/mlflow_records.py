@@ -22,6 +22,7 @@ from typing import Callable
 
 from gca.config import read_yaml, section
 from gca.io import read_json
+from gca.pipeline.dispatch import job_runs
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import method_params, mirror_runs, stage_run, train_run_args, with_millimetres
 from gca.pipeline.train import seed_runs
@@ -41,8 +42,7 @@ def _finished(work: Path, scene: str, name: str) -> bool:
     """Whether run ``name`` of ``scene`` has its training job's ``.done`` marker (``.grid/train@<scene>:<runs>.done``,
     one run or a batch). A ``train.json`` without one was written by a run its call stopped before the stage ended:
     it trains again on the next machine (session 25: bottle no_global seed 2)."""
-    return any(name in path.name[len(f"train@{scene}:"):-len(".done")].split("+")
-               for path in (work / ".grid").glob(f"train@{scene}:*.done"))
+    return any(name in job_runs(path.stem)[1] for path in (work / ".grid").glob(f"train@{scene}:*.done"))
 
 
 def import_run(settings: Settings, work: Path, scene: str, method, seed: int, name: str) -> str:
