@@ -19,11 +19,17 @@ out)
   [ ! -f benchmarks/results/table1_launch/records.tgz ] || mv benchmarks/results/table1_launch/records.tgz "$HOLD/launch/"
   for d in benchmark paper; do [ ! -d "reports/$d" ] || mv "reports/$d" "$HOLD/reports/"; done
   echo "moved aside to $HOLD: $(ls "$HOLD/results" | wc -l) result folders/files and reports/ci/figures" ;;
-back)
-  for f in "$HOLD"/results/* "$HOLD"/results/.[!.]*; do [ ! -e "$f" ] || mv "$f" benchmarks/results/; done
-  [ ! -d "$HOLD/reports_ci/figures" ] || mv "$HOLD/reports_ci/figures" reports/ci/
-  [ ! -f "$HOLD/launch/records.tgz" ] || mv "$HOLD/launch/records.tgz" benchmarks/results/table1_launch/
-  for d in "$HOLD"/reports/*; do [ ! -d "$d" ] || mv "$d" reports/; done
-  echo "moved back from $HOLD" ;;
+back)  # what was made in the tree meanwhile is newer: it stays, and the held copy stays in HOLD (said)
+  put() {  # put HELD DIR: move HELD into DIR unless DIR has that name already
+    [ -e "$1" ] || return 0
+    if [ -e "$2/$(basename "$1")" ]; then echo "kept $2/$(basename "$1") (made since 'out'); the older copy stays in $1"; kept=1
+    else mv "$1" "$2/"; fi
+  }
+  kept=0
+  for f in "$HOLD"/results/* "$HOLD"/results/.[!.]*; do put "$f" benchmarks/results; done
+  put "$HOLD/reports_ci/figures" reports/ci
+  put "$HOLD/launch/records.tgz" benchmarks/results/table1_launch
+  for d in "$HOLD"/reports/*; do put "$d" reports; done
+  [ "$kept" = 1 ] || echo "moved back from $HOLD" ;;
 *) echo "usage: sh benchmarks/carry_aside.sh out|back"; exit 2 ;;
 esac

@@ -29,3 +29,23 @@ def test_results_go_aside_and_come_back_whole(tmp_path):
     assert again.returncode == 1 and "run 'back' first" in again.stdout
     assert run("back").returncode == 0 and _tree(repo) == before
     assert run("sideways").returncode == 2
+
+
+def test_back_keeps_what_was_made_meanwhile(tmp_path):
+    """A records.tgz made in the tree between `out` and `back` (session 25: the merge of a session's records) is newer:
+    `back` keeps it and leaves the held copy in HOLD, saying so (it used to overwrite it); the rest comes back."""
+    repo, hold = tmp_path / "repo", tmp_path / "hold"
+    for rel in ("benchmarks/results/table1_launch/state.tgz", "benchmarks/results/table1_launch/records.tgz",
+                "benchmarks/results/x.json"):
+        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
+        (repo / rel).write_text("old")
+    (repo / "reports").mkdir()
+    run = lambda *a: subprocess.run(["sh", str(SCRIPT), *a], cwd=repo, env={"HOLD": str(hold), "PATH": "/usr/bin:/bin"},
+                                    capture_output=True, text=True)  # noqa: E731
+    assert run("out").returncode == 0
+    (repo / "benchmarks/results/table1_launch/records.tgz").write_text("new")
+    back = run("back")
+    assert back.returncode == 0 and "kept benchmarks/results/table1_launch/records.tgz" in back.stdout, back.stdout
+    assert (repo / "benchmarks/results/table1_launch/records.tgz").read_text() == "new"
+    assert (hold / "launch/records.tgz").read_text() == "old"  # not lost either
+    assert (repo / "benchmarks/results/x.json").read_text() == "old"  # the rest came back
