@@ -2,7 +2,7 @@
 dispatch.lease_admits, with grid.packed_seconds taken as the truth (8 slots, ~200 s of inputs, one 1800-s lease less
 its margins: DETACH=1, one grid over the machine, no stop between calls). A prediction aid for benchmarks/NOTES.md, no GPU.
   python -m gca.pipeline.grid --work /tmp/mlw <the grid's options> --restore-state STATE --stages report  (any stage)
-  python benchmarks/lease_sim.py /tmp/mlw
+  python benchmarks/lease_sim.py /tmp/mlw [methods first, as grid --first-methods]
 """
 import sys
 from pathlib import Path
@@ -21,7 +21,8 @@ todo = [n for n in jobs if n.startswith("train@") and not dispatch.is_done(work,
 exp = grid._expected_in(work, 900.0, 8)
 T = {n: exp(n) for n in todo}
 prio = dispatch.critical_path(jobs)
-order = dispatch.launch_order(todo, prio, todo, lambda n: T[n])
+first = grid.first_methods(sys.argv[2:])  # python benchmarks/lease_sim.py WORK [FIRST METHODS ...]
+order = dispatch.launch_order(todo, prio, todo, lambda n: T[n], first)
 print(len(todo), "runs left; expected 8-way [s]:", sorted(round(v) for v in T.values()))
 packed = lambda s, k: grid.packed_seconds(s, 8, k)
 MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 120, 200.0, 8, 1.0  # table_bundle.sh DETACH=1: the grid's deadline
@@ -47,5 +48,11 @@ def simulate(aware):
 
 for aware in (False, True):
     done, cut = simulate(aware)  # cut: the runs still going at the lease's end
+    per = {}
+    for n in done:  # train@<scene>:<method>[@seed<k>]
+        scene, runs = dispatch.job_runs(n)
+        for run in runs:
+            per.setdefault(scene, {}).setdefault(run.split("@", 1)[0], 0)
+            per[scene][run.split("@", 1)[0]] += 1
     print(("lease_admits" if aware else "old rule    "), f"{len(done)} trainings done, {len(cut)} cut off by the lease:",
-          sorted(done)[:4], "...")
+          "; ".join(f"{scene} " + ", ".join(f"{m} x{k}" for m, k in sorted(ms.items())) for scene, ms in sorted(per.items())))

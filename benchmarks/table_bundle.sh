@@ -38,6 +38,9 @@
 #            Cost at ~650 s a run under 8-way MPS (~81 s of throughput each, benchmarks/NOTES.md s18-19): Table 1
 #            ~50 min of H100, all of it ~4.5 h. Table 4's seconds are then MPS-packed seconds (its LoRA vs full
 #            fine-tuning ratio compares runs packed alike); solo timings: benchmarks/harness.py.
+#   FIRST    methods whose (scene, seed) units go before all others (grid --first-methods): a table finished
+#            first, the rest filling the slots, e.g. METHODS=params with FIRST="no_global no_anchor rank_to_l1
+#            no_rdga no_cpr gca_full_ft" (Table 3 first, then Tables 2, 5, 6)
 #   MACHINE_S  the machine's lease [s] (default on the GPU machine 1800: it goes back 30 min after the stage call):
 #            a training run starts only if its expected time fits what is left of it (grid --machine-left), since a
 #            run cut off by the machine's end resumes on no other machine (session 20: remade inputs differ in float32
@@ -51,7 +54,7 @@
 set -u
 OUT=${OUT:-/tmp/table_out}; W=${W:-/tmp/table}; SLOTS=${SLOTS:-8}; LIMIT=${LIMIT:-590}; PROFILE=${PROFILE:-paper}
 SCENES=${SCENES:-"ball duck pawn cat fish bottle"}; METHODS=${METHODS:-"gca neuma nclaw"}; SEEDS=${SEEDS:-"[0,1,2]"}
-STATE=${STATE:-benchmarks/results/table1_launch/state.tgz}; EXTRA=${EXTRA:-}
+STATE=${STATE:-benchmarks/results/table1_launch/state.tgz}; EXTRA=${EXTRA:-}; FIRST=${FIRST:-}
 PRIORS=${PRIORS-benchmarks/results/priors_paper}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
@@ -78,38 +81,57 @@ fi
 [ "$DETACH" = 0 ] || [ -n "$LEFT" ] || { echo "table_bundle.sh: DETACH=1 runs the grid to the machine's end: give MACHINE_S"; exit 2; }
 R=$(restore_once "$STATE" "$W")
 M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's own methods
-# The grid's command; its deadline, machine-left option, state, results folder and log come as $1-$5
-cat > "$W/grid.sh" << GRID
+[ -z "$FIRST" ] || M="$M --first-methods $FIRST"
+# The grid's command; its deadline, machine-left option, state, results folder and log come as $1-$5 (written anew
+# only where no grid reads it: sh reads a script as it goes)
+write_grid_sh() {
+  cat > "$W/grid.sh.tmp" << GRID
 python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M --profile "$PROFILE" --set "train.seeds=$SEEDS" \
     $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R --stages $STAGES --deadline "\$1" \$2 --save-state "\$3" --collect "\$4" > "\$5" 2>&1
 GRID
+  mv "$W/grid.sh.tmp" "$W/grid.sh"
+}
 if [ "$DETACH" = 0 ]; then  # the grid within this call: its deadline stops what runs (it resumes in the next call)
+  write_grid_sh
   ML=""; [ -z "$LEFT" ] || ML="--machine-left $LEFT"
   timeout "$((LIMIT - 25))" sh "$W/grid.sh" "$((LIMIT - 90))" "$ML" "$OUT/state.tgz" "$OUT" "$OUT/grid.log"
   echo "[table $(($(date +%s) - T0)) s] grid rc=$?"
 else  # session 26: one grid per machine, from its first call to the machine's end, outliving the calls (setsid: the
   # device keeps a new session's processes); each call waits on it, then returns a snapshot of it (its state and
-  # results so far) or, in the call where it ends, its final state. No run stops between calls: stopped and restarted
-  # at two call boundaries, the ball's runs took 1139 s of wall for 724 s of iterations (NOTES s26)
-  PID=$(cat "$W/grid.pid" 2> /dev/null)  # written by the grid's own shell (setsid may fork)
-  if [ -n "$PID" ] && [ ! -f "$W/grid.rc" ] && kill -0 "$PID" 2> /dev/null; then
+  # results so far) or, once it has ended, its final state. No run stops between calls: stopped and restarted at two
+  # call boundaries, the ball's runs took 1139 s of wall for 724 s of iterations (NOTES s26)
+  running() {  # the machine's grid runs (its shell wrote grid.pid: setsid may fork; it writes grid.rc at its end)
+    PID=$(cat "$W/grid.pid" 2> /dev/null)
+    [ -n "$PID" ] && [ ! -f "$W/grid.rc" ] && kill -0 "$PID" 2> /dev/null
+  }
+  OPTIONS="$SCENES|$M|$PROFILE|$SEEDS|$EXTRA|$P|$SLOTS|$MPS|$STAGES"
+  D=$((LEFT - 150 - ($(date +%s) - T0)))  # a new grid's deadline and machine-left [s]: its stop (<= 40 s), state and
+  # results ~100 s before the machine's end, inside the third bundle call's wait (calls every ~580 s)
+  if running; then
     echo "[table] the machine's grid goes on (pid $PID, started by an earlier call)"
+    [ "$(cat "$W/grid.options" 2> /dev/null)" = "$OPTIONS" ] || echo "[table] this call's grid options differ from the running grid's: they are not used"
+  elif [ -f "$W/grid.rc" ] && { [ ! -f "$W/final/delivered" ] || [ "$D" -lt 300 ]; }; then
+    echo "[table] the machine's grid has ended: its final state (again, if an earlier call returned it)"
+  elif [ "$D" -lt 300 ]; then
+    echo "[table] $D s left before the machine's end less its margin: too little for a grid, none started"
   else
-    D=$((LEFT - 120))  # its deadline and machine-left [s]: the stop (<= 40 s), its state and results ~70 s before
-    # LEFT, inside the wait (to T0 + LIMIT - 45) of the third call after the first (calls every ~575 s)
-    rm -f "$W/grid.rc" "$W/final/state.tgz" "$W/final/grid_results.tar.gz"; mkdir -p "$W/final"
-    rm -f "$W/grid.pid"
+    write_grid_sh
+    echo "$OPTIONS" > "$W/grid.options"
+    rm -f "$W/grid.rc" "$W/grid.pid" "$W/final/state.tgz" "$W/final/grid_results.tar.gz" "$W/final/delivered"
+    mkdir -p "$W/final"
     setsid sh -c "echo \$\$ > '$W/grid.pid'; timeout $((D + 60)) sh '$W/grid.sh' $D '--machine-left $D' \
 '$W/final/state.tgz' '$W/final' '$W/grid.log'; echo \$? > '$W/grid.rc'" < /dev/null > /dev/null 2>&1 &
+    sleep 1
     echo "[table] the machine's grid started: it runs to the machine's end, $D s from now, beside the calls"
   fi
-  while [ ! -f "$W/grid.rc" ] && [ "$(date +%s)" -lt "$((T0 + LIMIT - 45))" ]; do sleep 2; done
-  cp "$W/grid.log" "$OUT/grid.log"
+  while running && [ "$(date +%s)" -lt "$((T0 + LIMIT - 45))" ] && [ "$(date +%s)" -lt "$((T0 + LEFT))" ]; do sleep 2; done
+  [ ! -f "$W/grid.log" ] || cp "$W/grid.log" "$OUT/grid.log"
   if [ -f "$W/grid.rc" ]; then
     for f in state.tgz grid_results.tar.gz; do [ ! -f "$W/final/$f" ] || cp "$W/final/$f" "$OUT/$f"; done
+    touch "$W/final/delivered"
     echo "[table $(($(date +%s) - T0)) s] grid rc=$(cat "$W/grid.rc") (the machine's grid has ended; its final state)"
-  else
-    for i in 1 2; do  # a file the grid replaced meanwhile: once more
+  elif running; then
+    for i in 1 2; do  # a snapshot of the running grid (files it replaces meanwhile are read whole, old or new)
       python3 -m gca.pipeline.grid --work "$W/grid" --collect-only --save-state "$OUT/state.tgz" --collect "$OUT" \
           > "$OUT/snapshot.log" 2>&1 && break
     done
@@ -117,6 +139,7 @@ else  # session 26: one grid per machine, from its first call to the machine's e
          "this call returns a snapshot of it; call again within 30 s"
   fi
 fi
+touch "$OUT/grid.log"
 grep -E "done |stop |FAIL|after|left|state:|restored" "$OUT/grid.log" | grep -v "hold  " | tail -n 40
 S=$(grep -c "stop  train@.*resumes next time" "$OUT/grid.log")
 if [ "$DETACH" = 0 ]; then  # session 26: a run stopped so resumes only on this machine

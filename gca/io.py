@@ -238,11 +238,26 @@ def pack_files(root: str | os.PathLike, files: list, archive: str | os.PathLike)
     import tarfile
 
     root, archive = Path(root), Path(archive)
+    n = 0
     with atomic_path(archive) as tmp, tarfile.open(tmp, "w:gz") as tar:
         for item in files:
             src, name = item if isinstance(item, tuple) else (root / item, item)
-            tar.add(src, arcname=Path(name).as_posix())
-    return len(files)
+            n += add_file(tar, src, Path(name).as_posix())
+    return n
+
+
+def add_file(tar, src: str | os.PathLike, name: str) -> bool:
+    """Add the file ``src`` to the open ``tarfile`` ``tar`` as ``name``, its size and bytes from one open file, so a
+    file that a running writer replaces meanwhile (atomically: :func:`atomic_path`) goes in whole, old or new
+    (``tar.add`` takes the size from the path, then opens it: a replaced file came out cut or raised). False, and
+    nothing added, when the file is gone (removed since it was listed)."""
+    try:
+        f = open(src, "rb")
+    except FileNotFoundError:
+        return False
+    with f:
+        tar.addfile(tar.gettarinfo(arcname=name, fileobj=f), f)
+    return True
 
 
 def unpack_files(archive: str | os.PathLike, root: str | os.PathLike, allowed, what: str, skip=None) -> int:

@@ -536,6 +536,27 @@ def test_units_of_equal_path_go_quickest_first():
     assert dispatch.launch_order(ready, priority, ready) == ready
 
 
+def test_first_methods_put_their_units_before_the_others():
+    """Session 26: the whole protocol's grid ranks duck's Table 3 units (5 runs of ~1100 s left each) last, behind
+    the short runs of Tables 2, 5 and 6, so Table 3 would stay unfinished. With ``first`` (grid --first-methods), the
+    units with a run of those methods left go first, inputs and other jobs among them; negative control: without it,
+    the quicker unit first, as before."""
+    ready = ["train@duck:no_cpr", "train@duck:no_global", "train@cat:pacnerf_depth", "train@cat:neuma_multiview",
+             "assets@wolf"]
+    priority = {**dict.fromkeys(ready, 4.77), "assets@wolf": 9.0}
+    times = {"duck": 1100.0, "cat": 500.0}
+    expected = lambda n: times[n.split("@")[1].split(":")[0]]  # noqa: E731
+    plain = dispatch.launch_order(ready, priority, ready, expected)
+    assert plain == ["assets@wolf", "train@cat:neuma_multiview", "train@cat:pacnerf_depth", "train@duck:no_cpr",
+                     "train@duck:no_global"]
+    first = grid.first_methods(["no_cpr", "no_global"])
+    order = dispatch.launch_order(ready, priority, ready, expected, first)
+    assert order == ["assets@wolf", "train@duck:no_cpr", "train@duck:no_global", "train@cat:neuma_multiview",
+                     "train@cat:pacnerf_depth"]
+    assert grid.first_methods(None) is None and grid.first_methods([]) is None
+    assert first("train@duck:gca@seed1+no_cpr@seed1") and not first("evaluate@duck:no_cpr")
+
+
 def test_free_slots_wait_for_the_best_ranked_units_inputs(tmp_path):
     """Session 23: the scenes' inputs finished one by one and each free slot went to whichever scene was ready, so
     four units got one to three runs each. Now a slot waits for a better-ranked unit whose inputs are being made:

@@ -3,6 +3,7 @@ through the engine's local executor. Running the jobs (failures, GPU slots, requ
 tests/test_pipeline_dispatch.py."""
 
 import argparse
+import contextlib
 import json
 import tarfile
 from pathlib import Path
@@ -92,27 +93,41 @@ def test_collect_keeps_the_small_results(tmp_path):
 
 def test_collect_passes_over_a_file_a_running_grid_removed(tmp_path, monkeypatch):
     """A snapshot of a running grid (table_bundle.sh, DETACH=1) lists the files, then packs them: one removed
-    meanwhile is passed over, the rest packed. Negative control: another error still raises."""
-    for rel in ("runs/ball/gca/train.json", "runs/ball/gca/history.json"):
+    meanwhile is passed over, the rest packed, by collect and by save_state's pack_files. Negative control: a file
+    that became a folder still raises."""
+    for rel in ("runs/ball/gca/train.json", "runs/ball/gca/history.json", ".grid/train@ball:gca.done"):
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text("x")
-    real = tarfile.TarFile.add
-
-    def add(self, name, arcname=None, *a, **k):
-        if arcname == "runs/ball/gca/history.json":
-            Path(name).unlink()  # gone between the listing and the add
-        return real(self, name, arcname, *a, **k)
-
-    monkeypatch.setattr(tarfile.TarFile, "add", add)
+    stale = grid._listed(tmp_path)
+    (tmp_path / "runs/ball/gca/history.json").unlink()  # gone between the listing and the add
+    (tmp_path / ".grid/train@ball:gca.done").unlink()
+    monkeypatch.setattr(grid, "_listed", lambda work, tries=3: stale)
     with tarfile.open(grid.collect(tmp_path, tmp_path / "out")) as tar:
         assert tar.getnames() == ["runs/ball/gca/train.json"]
-
-    def broken(self, name, arcname=None, *a, **k):
-        raise PermissionError(name)
-
-    monkeypatch.setattr(tarfile.TarFile, "add", broken)
-    with pytest.raises(PermissionError):
+    from gca.io import pack_files
+    assert pack_files(tmp_path, [".grid/train@ball:gca.done", "runs/ball/gca/train.json"], tmp_path / "s.tgz") == 1
+    (tmp_path / "runs/ball/gca/history.json").mkdir()
+    with pytest.raises(IsADirectoryError):
         grid.collect(tmp_path, tmp_path / "out2")
+
+
+def test_the_listing_is_made_again_when_a_folder_vanished_midway(tmp_path, monkeypatch):
+    """grid._listed: rglob raises when a folder it walks is removed midway (a temporary of gca.io.atomic_path in a
+    running grid); the listing is made again. Negative control: a listing that keeps failing raises."""
+    (tmp_path / "a.json").write_text("x")
+    real, calls = Path.rglob, []
+
+    def flaky(self, pattern):
+        calls.append(1)
+        if len(calls) == 1:
+            raise FileNotFoundError("tmp folder gone")
+        return real(self, pattern)
+
+    monkeypatch.setattr(Path, "rglob", flaky)
+    assert [rel for _, rel, _ in grid._listed(tmp_path)] == ["a.json"] and len(calls) == 2
+    monkeypatch.setattr(Path, "rglob", lambda self, pattern: (_ for _ in ()).throw(FileNotFoundError("gone")))
+    with pytest.raises(FileNotFoundError):
+        grid._listed(tmp_path)
 
 
 def test_before_runs_once_ahead_of_the_jobs(tmp_path):
@@ -538,40 +553,73 @@ def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path):
     assert any((tmp_path / "b/grid/reports/ci").glob("table1*"))
 
 
+def _end_session(pid_file: Path) -> None:
+    """Signal every process of the process session that ``pid_file``'s process leads (a detached grid, its
+    ``timeout`` and its jobs), so a failed test leaves none running."""
+    import os
+    import signal
+
+    try:
+        sid = int(pid_file.read_text())
+    except (OSError, ValueError):
+        return
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid:  # after ") ": state, ppid, pgrp, session
+            with contextlib.suppress(OSError):
+                os.kill(int(stat.parent.name), signal.SIGKILL)
+
+
 def test_table_bundle_keeps_one_grid_across_calls_of_a_machine(tmp_path):
-    """DETACH=1 (the GPU machine's default, session 26): the first call starts the machine's grid in a session of its
-    own (it outlives the call), returns at its LIMIT with a snapshot of it (a state that restores); the next call
-    starts no second grid but waits on the same one and returns its final state; once it has ended, a further call
-    starts a new grid (negative control: the liveness check is not always true)."""
+    """DETACH=1 (the GPU machine's default, session 26), on a state with NCLaw's runs done: the first call starts the
+    machine's grid in a process session of its own (it outlives the call) and returns at its LIMIT with a snapshot of
+    it that holds the restored runs; the next call starts no second grid but waits on the same one and returns its
+    final state with GCA's runs. A grid that ended and whose final state no call returned gives it again and starts
+    nothing; once returned, a further call starts a new grid (negative controls of the liveness check)."""
     import os
     import subprocess
 
     env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
-           "SLOTS": "2", "STATE": str(tmp_path / "none.tgz"), "W": str(tmp_path / "a"), "DETACH": "1",
-           "MACHINE_S": "900"}
+           "SLOTS": "2", "STATE": str(tmp_path / "none.tgz"), "W": str(tmp_path / "a0"), "DETACH": "0"}
 
-    def call(limit: int, out: str):
+    def call(limit: int, out: str, **more):
         return subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True,
-                              timeout=600, env={**env, "LIMIT": str(limit), "OUT": str(tmp_path / out)})
+                              timeout=600, env={**env, "LIMIT": str(limit), "OUT": str(tmp_path / out), **more})
 
-    first = call(60, "o1")  # returns after LIMIT - 45 s, the grid still at its inputs
-    assert "grid started" in first.stdout and "this call returns a snapshot" in first.stdout, first.stdout + first.stderr
-    subprocess.run(["tar", "xzf", str(tmp_path / "o1/all.tgz"), "state.tgz"], cwd=tmp_path, check=True)
-    with tarfile.open(tmp_path / "state.tgz") as tar:  # a state of the running grid, what save_state writes
-        snap = tar.getnames()
-    assert grid.STATE_PARAMS in snap and all(grid.STATE_RE.match(n) for n in snap if n != grid.STATE_PARAMS)
-    second = call(590, "o2")
-    assert "grid goes on (pid" in second.stdout and "grid started" not in second.stdout, second.stdout
-    assert "grid rc=0 (the machine's grid has ended" in second.stdout and "nothing left to run" in second.stdout
-    log = (tmp_path / "a/grid.log").read_text()
-    assert log.count("through local") == 1  # one grid over both calls
-    with tarfile.open(tmp_path / "o2/all.tgz") as tar:
-        tar.extract("state.tgz", tmp_path / "final")
-    with tarfile.open(tmp_path / "final/state.tgz") as tar:
-        names = tar.getnames()
-    assert "runs/ball/nclaw@seed1/train.json" in names and ".grid/evaluate@ball:nclaw@seed1.done" in names
-    third = call(60, "o3")  # the grid has ended: a call starts a new one (it finds nothing left)
-    assert "grid started" in third.stdout, third.stdout
+    def names(archive: Path) -> list[str]:
+        with tarfile.open(archive) as tar:
+            tar.extract("state.tgz", archive.parent / "x")
+        with tarfile.open(archive.parent / "x/state.tgz") as tar:
+            return tar.getnames()
+
+    zero = call(590, "o0")  # the state of an earlier machine: NCLaw's runs
+    assert zero.returncode == 0 and ".grid/train@ball:nclaw@seed1.done" in names(tmp_path / "o0/all.tgz"), zero.stdout
+    (tmp_path / "o0/x/state.tgz").rename(tmp_path / "nclaw.tgz")
+    env.update(METHODS="nclaw gca", STATE=str(tmp_path / "nclaw.tgz"), W=str(tmp_path / "a"), DETACH="1",
+               MACHINE_S="1200")
+    pid = tmp_path / "a/grid.pid"
+    try:
+        first = call(75, "o1")  # returns after LIMIT - 45 s, GCA still training
+        assert "grid started" in first.stdout and "this call returns a snapshot" in first.stdout, first.stdout
+        snap = names(tmp_path / "o1/all.tgz")
+        assert "runs/ball/nclaw@seed1/train.json" in snap and ".grid/evaluate@ball:gca@seed1.done" not in snap
+        assert all(grid.STATE_RE.match(n) for n in snap if n != grid.STATE_PARAMS)
+        second = call(590, "o2")
+        assert "grid goes on (pid" in second.stdout and "grid started" not in second.stdout, second.stdout
+        assert "grid rc=0 (the machine's grid has ended" in second.stdout and "nothing left to run" in second.stdout
+        assert (tmp_path / "a/grid.log").read_text().count("through local") == 1  # one grid over both calls
+        assert ".grid/evaluate@ball:gca@seed1.done" in names(tmp_path / "o2/all.tgz")
+        (tmp_path / "a/final/delivered").unlink()  # as if the grid ended after the last call's wait
+        third = call(60, "o3")
+        assert "its final state (again" in third.stdout and "grid started" not in third.stdout, third.stdout
+        assert ".grid/evaluate@ball:gca@seed1.done" in names(tmp_path / "o3/all.tgz")
+        fourth = call(60, "o4")  # returned: a new grid (it finds nothing left)
+        assert "grid started" in fourth.stdout, fourth.stdout
+    finally:
+        _end_session(pid)
 
 
 def test_table_bundle_starts_no_run_the_machine_would_cut_off(tmp_path):

@@ -377,42 +377,47 @@ def unit_of(name: str) -> str | None:
     return f"{m.group(1)}@seed{seed.group(1) if seed else 0}"
 
 
-def unit_keys(priority: dict[str, float], todo, expected_s: Callable[[str], float] | None = None
-              ) -> dict[str, tuple[float, float, str]]:
-    """Each (scene, seed) unit's rank key, lower first: the longest path among all its jobs (``priority``'s, done
-    or not: a unit keeps its rank as its runs finish), negated; then the training it has left (``expected_s`` [s]
-    summed over its ``todo`` training jobs: a unit already under way comes before a fresh one of the same rank, so a
-    cut-off table leaves it whole); then its name."""
+def unit_keys(priority: dict[str, float], todo, expected_s: Callable[[str], float] | None = None,
+              first: Callable[[str], bool] | None = None) -> dict[str, tuple[int, float, float, str]]:
+    """Each (scene, seed) unit's rank key, lower first: 0 for a unit with a ``todo`` training job that ``first``
+    names (a table to finish before the next begins, session 26), else 1 (0 for all without ``first``); then the
+    longest path among all its jobs (``priority``'s, done or not: a unit keeps its rank as its runs finish), negated;
+    then the training it has left (``expected_s`` [s] summed over its ``todo`` training jobs: a unit already under
+    way comes before a fresh one of the same rank, so a cut-off table leaves it whole); then its name."""
     path: dict[str, float] = {}
     for n, value in priority.items():
         u = unit_of(n)
         if u is not None:
             path[u] = max(path.get(u, float("-inf")), round(value, 6))
     work = dict.fromkeys(path, 0.0)
-    if expected_s is not None:
-        for n in todo:
-            u = unit_of(n)
-            if u is not None and n.startswith("train@"):
-                work[u] += expected_s(n)
-    return {u: (-path[u], work[u], u) for u in path}
+    rank = dict.fromkeys(path, 0 if first is None else 1)
+    for n in todo:
+        u = unit_of(n)
+        if u is not None and n.startswith("train@"):
+            work[u] += 0.0 if expected_s is None else expected_s(n)
+            if first is not None and first(n):
+                rank[u] = 0
+    return {u: (rank[u], -path[u], work[u], u) for u in path}
 
 
 def launch_order(ready, priority: dict[str, float], todo,
-                 expected_s: Callable[[str], float] | None = None) -> list[str]:
+                 expected_s: Callable[[str], float] | None = None,
+                 first: Callable[[str], bool] | None = None) -> list[str]:
     """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
     (:func:`unit_of`), the units by :func:`unit_keys` (the longest path first, units of equal path by the least
     training left in their ``todo`` jobs), and within a unit each job by its own path; any other job by
     its own path. So the slots go to every method of one unit before the next unit, a table cut off by a machine's
     end leaves whole units, each usable for paired per-unit claims (issue 22 item 4; session 22 gave every slot to
     GCA, costed above NeuMA, and left no NeuMA run), and the quicker units finish first (Table 3 after Table 1: the
-    pawn's ~430-s runs before the ball's ~850-s ones, not by the scenes' names).
+    pawn's ~430-s runs before the ball's ~850-s ones, not by the scenes' names). ``first(name)``: the units with
+    such a training job left go before all others (:func:`unit_keys`).
     """
-    units = unit_keys(priority, todo, expected_s)
+    units = unit_keys(priority, todo, expected_s, first)
 
     def key(n: str):
         u = unit_of(n)
-        if u is None or u not in units:
-            return (-priority[n], 0.0, "", 0.0, n)
+        if u is None or u not in units:  # inputs, a scene-level job, the report: among the first units
+            return (0, -priority[n], 0.0, "", 0.0, n)
         return (*units[u], -priority[n], n)
     return sorted(ready, key=key)
 
@@ -470,7 +475,8 @@ def dependents(jobs: dict, name: str) -> set[str]:
 def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = None, poll_s: float = 1.0,
         job_env=None, stamp: str = "", launch_until: float | None = None,
         expected_s: Callable[[str], float] | None = None,
-        packed_s: Callable[[float, float], float] | None = None) -> dict[str, str]:
+        packed_s: Callable[[float, float], float] | None = None,
+        first: Callable[[str], bool] | None = None) -> dict[str, str]:
     """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
 
     A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
@@ -484,7 +490,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     on no other machine (its remade inputs differ: session 20); one with a checkpoint goes on regardless.
     ``packed_s(seconds, k)`` (with slots): ``expected_s``'s seconds at k-way packing; the lease check then counts the
     trainings on the run's GPU and the work they have left (:func:`lease_admits`; a stopped run's left work goes to
-    the next call, :func:`record_progress`). Returns each job's state: done, failed, skipped or todo.
+    the next call, :func:`record_progress`). ``first(name)``: training jobs whose (scene, seed) units go before
+    the others (:func:`launch_order`). Returns each job's state: done, failed, skipped or todo.
     """
     work = Path(work)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
@@ -590,7 +597,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         while True:
             ready = launch_order([n for n, s in state.items() if s == "todo" and n not in seen
                                   and all(state.get(a, DONE) in ok for a in jobs[n].after)], priority,
-                                 [n for n, s in state.items() if s == "todo"], expected)
+                                 [n for n, s in state.items() if s == "todo"], expected, first)
             if not ready:
                 return
             for n in ready:

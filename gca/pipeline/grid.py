@@ -365,19 +365,18 @@ def prepare(work: Path, params: dict) -> None:
 
 def collect(work: Path, out: Path) -> Path:
     """The small results of a grid in one archive: metrics, reports, train/eval summaries, the learned laws
-    (~40 kB each: a run can be evaluated again elsewhere), priors, logs."""
+    (~40 kB each: a run can be evaluated again elsewhere), priors, logs. Also of a grid that runs meanwhile
+    (:func:`_listed`, ``gca.io.add_file``)."""
+    from gca.io import add_file
+
     out.mkdir(parents=True, exist_ok=True)
     path = out / "grid_results.tar.gz"
     keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
                       r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/(?!carried/).*|params\.yaml)$")
     with tarfile.open(path, "w:gz") as tar:
-        for f in sorted(work.rglob("*")):
-            rel = f.relative_to(work).as_posix()
-            try:
-                if f.is_file() and not f.is_symlink() and keep.match(rel) and f.stat().st_size < 8 * 2 ** 20:
-                    tar.add(f, arcname=rel)
-            except FileNotFoundError:  # gone since the listing: a running grid's file replaced or removed
-                continue
+        for f, rel, size in _listed(work):
+            if keep.match(rel) and size < 8 * 2 ** 20:
+                add_file(tar, f, rel)  # passes over a file gone since the listing
     return path
 
 
@@ -419,9 +418,30 @@ def _made_under(work: Path) -> dict:
 def state_files(work: Path) -> list[str]:
     """:data:`STATE_RE`'s files in ``work`` (relative, sorted; files of 64 MiB or more and checkpoints,
     :data:`CHECKPOINT_RE`, are left out)."""
-    return sorted(rel for f in work.rglob("*") if f.is_file() and not f.is_symlink()
-                  and STATE_RE.match(rel := f.relative_to(work).as_posix()) and not CHECKPOINT_RE.search(rel)
-                  and f.stat().st_size < 64 * 2 ** 20)
+    return [rel for _, rel, size in _listed(work)
+            if STATE_RE.match(rel) and not CHECKPOINT_RE.search(rel) and size < 64 * 2 ** 20]
+
+
+def _listed(work: Path, tries: int = 3) -> list[tuple[Path, str, int]]:
+    """(path, path relative to ``work``, size [B]) of each plain file (not a link) under ``work``, sorted. Also of a
+    grid that runs meanwhile (table_bundle.sh's snapshots): a file gone between the listing and its size is passed
+    over, and a listing that a folder removed midway broke (``rglob`` raises; a temporary folder of
+    ``gca.io.atomic_path``) is made again."""
+    for attempt in range(tries):
+        try:
+            paths = sorted(work.rglob("*"))
+            break
+        except FileNotFoundError:
+            if attempt == tries - 1:
+                raise
+    out = []
+    for f in paths:
+        try:
+            if f.is_file() and not f.is_symlink():
+                out.append((f, f.relative_to(work).as_posix(), f.stat().st_size))
+        except FileNotFoundError:
+            continue
+    return out
 
 
 CARRIED = ".grid/carried"  # a restored state's files of scenes or methods this grid lacks (restore_state): not
@@ -514,6 +534,15 @@ def restore_state(archive: Path, work: Path) -> int:
     except ValueError as exc:
         raise SystemExit(str(exc)) from exc
     return n
+
+
+def first_methods(methods) -> Callable[[str], bool] | None:
+    """``dispatch.run``'s ``first``: whether a training job trains a run of one of ``methods`` (None: no order)."""
+    if not methods:
+        return None
+    wanted = set(methods)
+    return lambda name: name.startswith("train@") and any(
+        run.split("@", 1)[0] in wanted for run in dispatch.job_runs(name)[1])
 
 
 def evaluate_missing(work: Path, key: str, measured: str = "chamfer_mean") -> list[str]:
@@ -737,6 +766,9 @@ def main(argv=None) -> dict[str, str]:
     ap.add_argument("--commit", action="store_true", help="--repo: then `dvc commit -f` every stage whose jobs all "
                                                           "finished, so `dvc repro` recomputes none of them")
     ap.add_argument("--collect", type=Path, help="write grid_results.tar.gz (small results) into this folder")
+    ap.add_argument("--first-methods", nargs="+", metavar="METHOD",
+                    help="launch the (scene, seed) units with a training run of these methods left before all others "
+                         "(a table finished first, the rest filling the slots: Table 3's ablations, then Tables 2, 5, 6)")
     ap.add_argument("--collect-only", action="store_true",
                     help="only --collect (and --save-state) what --work holds, also while a grid runs there")
     ap.add_argument("--restore-state", type=Path, metavar="TGZ",
@@ -843,7 +875,7 @@ def main(argv=None) -> dict[str, str]:
                              expected_s=_expected_in(work, args.expected_train_s,
                                                      args.slots if engine.places else None),
                              packed_s=(lambda seconds, k: packed_seconds(seconds, args.slots, k))
-                             if engine.places else None)
+                             if engine.places else None, first=first_methods(args.first_methods))
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))
