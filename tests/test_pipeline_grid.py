@@ -531,21 +531,38 @@ def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
     assert seen[-1] == ["assets@ball", "ground_truth@ball", "particles@ball", "preprocess@ball", "train@ball:gca"]
 
 
-def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path):
+def _bundle_env(**more) -> dict:
+    """table_bundle.sh's environment for its CPU twin at the CI profile (ball, NCLaw, two seeds, two slots)."""
+    import os
+
+    return {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
+            "SLOTS": "2", "LIMIT": "590", **more}
+
+
+@pytest.fixture(scope="module")
+def nclaw_bundle(tmp_path_factory):
+    """One table_bundle.sh call (DETACH=0) that runs the CI grid of ball x NCLaw x two seeds from nothing: its stdout
+    and its state.tgz (shared by the bundle tests: each such call costs ~65 s of CI)."""
+    import subprocess
+
+    root = tmp_path_factory.mktemp("nclaw_bundle")
+    first = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                           env=_bundle_env(STATE=str(root / "none.tgz"), W=str(root / "a"), OUT=str(root / "out_a"),
+                                           DETACH="0"))
+    subprocess.run(["tar", "xzf", str(root / "out_a/all.tgz"), "state.tgz"], cwd=root, check=True)
+    return first, root / "state.tgz"
+
+
+def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path, nclaw_bundle):
     """benchmarks/table_bundle.sh, the GPU path's CPU twin at the CI profile: a first call runs the grid and returns
     its state in all.tgz (``tar xzf all.tgz state.tgz`` finds it); a call on "another machine" (a fresh work
     folder) restores it and remakes no input, only the report; the table is there."""
-    import os
     import subprocess
 
-    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
-           "SLOTS": "2", "LIMIT": "590", "STATE": str(tmp_path / "state.tgz")}
-    first = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                           env={**env, "W": str(tmp_path / "a"), "OUT": str(tmp_path / "out_a")})
+    first, state = nclaw_bundle
     assert "nothing left to run" in first.stdout and "cut off" not in first.stdout, first.stdout + first.stderr
-    subprocess.run(["tar", "xzf", str(tmp_path / "out_a/all.tgz"), "state.tgz"], cwd=tmp_path, check=True)
     second = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                            env={**env, "W": str(tmp_path / "b"), "OUT": str(tmp_path / "out_b")})
+                            env=_bundle_env(STATE=str(state), W=str(tmp_path / "b"), OUT=str(tmp_path / "out_b")))
     assert "state files restored" in second.stdout and "nothing left to run" in second.stdout, second.stdout
     assert "done  report" in second.stdout and "done  assets@ball" not in second.stdout
     assert not (tmp_path / "b/grid/data").exists()  # no input remade
@@ -573,17 +590,16 @@ def _end_session(pid_file: Path) -> None:
                 os.kill(int(stat.parent.name), signal.SIGKILL)
 
 
-def test_table_bundle_keeps_one_grid_across_calls_of_a_machine(tmp_path):
+def test_table_bundle_keeps_one_grid_across_calls_of_a_machine(tmp_path, nclaw_bundle):
     """DETACH=1 (the GPU machine's default, session 26), on a state with NCLaw's runs done: the first call starts the
     machine's grid in a process session of its own (it outlives the call) and returns at its LIMIT with a snapshot of
     it that holds the restored runs; the next call starts no second grid but waits on the same one and returns its
     final state with GCA's runs. A grid that ended and whose final state no call returned gives it again and starts
     nothing; once returned, a further call starts a new grid (negative controls of the liveness check)."""
-    import os
     import subprocess
 
-    env = {**os.environ, "PROFILE": "ci", "PRIORS": "", "SCENES": "ball", "METHODS": "nclaw", "SEEDS": "[0,1]",
-           "SLOTS": "2", "STATE": str(tmp_path / "none.tgz"), "W": str(tmp_path / "a0"), "DETACH": "0"}
+    env = _bundle_env(METHODS="nclaw gca", STATE=str(nclaw_bundle[1]), W=str(tmp_path / "a"), DETACH="1",
+                      MACHINE_S="1200")  # on the state of an earlier machine: NCLaw's runs
 
     def call(limit: int, out: str, **more):
         return subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True,
@@ -595,11 +611,6 @@ def test_table_bundle_keeps_one_grid_across_calls_of_a_machine(tmp_path):
         with tarfile.open(archive.parent / "x/state.tgz") as tar:
             return tar.getnames()
 
-    zero = call(590, "o0")  # the state of an earlier machine: NCLaw's runs
-    assert zero.returncode == 0 and ".grid/train@ball:nclaw@seed1.done" in names(tmp_path / "o0/all.tgz"), zero.stdout
-    (tmp_path / "o0/x/state.tgz").rename(tmp_path / "nclaw.tgz")
-    env.update(METHODS="nclaw gca", STATE=str(tmp_path / "nclaw.tgz"), W=str(tmp_path / "a"), DETACH="1",
-               MACHINE_S="1200")
     pid = tmp_path / "a/grid.pid"
     try:
         first = call(75, "o1")  # returns after LIMIT - 45 s, GCA still training
