@@ -5,6 +5,7 @@ its margins: DETACH=1, one grid over the machine, no stop between calls). A pred
   python benchmarks/lease_sim.py /tmp/mlw [methods first, as grid --first-methods]
 """
 import sys
+from collections import Counter
 from pathlib import Path
 
 import yaml
@@ -48,11 +49,6 @@ def simulate(aware):
 
 for aware in (False, True):
     done, cut = simulate(aware)  # cut: the runs still going at the lease's end
-    per = {}
-    for n in done:  # train@<scene>:<method>[@seed<k>]
-        scene, runs = dispatch.job_runs(n)
-        for run in runs:
-            per.setdefault(scene, {}).setdefault(run.split("@", 1)[0], 0)
-            per[scene][run.split("@", 1)[0]] += 1
+    per = Counter((scene, run.split("@", 1)[0]) for scene, runs in map(dispatch.job_runs, done) for run in runs)
     print(("lease_admits" if aware else "old rule    "), f"{len(done)} trainings done, {len(cut)} cut off by the lease:",
-          "; ".join(f"{scene} " + ", ".join(f"{m} x{k}" for m, k in sorted(ms.items())) for scene, ms in sorted(per.items())))
+          ", ".join(f"{scene} {method} x{k}" for (scene, method), k in sorted(per.items())))

@@ -41,7 +41,8 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yam
 STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
 RESUMABLE_MIN_S = 120.0  # --deadline: a training job is submitted while this much of the deadline remains [s]
 DONE, FAILED, RUNNING = "done", "failed", "running"
-RESTART_S = 60.0  # a resumed training's process start, data and launch-velocity estimate again (grid.JOB_START_S) [s]
+JOB_START_S = 60.0  # a training job's process start, data and launch-velocity estimate (~30-60 s, session 20), also
+# each time it resumes: grid.expected_train_s adds it to a run's time, the lease check to a resumed run's work left [s]
 
 
 def marker(work: Path, name: str, suffix: str = ".done") -> Path:
@@ -658,7 +659,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if n in full and full[n] > 0:  # its work left, at the load of every job beside it; never below a
                 # restart's worth (a run past its estimate is still protected by lease_admits)
                 k_all = sum(1 for m in handles if place_of.get(m) == place_of.get(n))
-                left[n] = max(min(1.0, RESTART_S / full[n]), left[n] - dt / packed_s(full[n], k_all))
+                left[n] = max(min(1.0, JOB_START_S / full[n]), left[n] - dt / packed_s(full[n], k_all))
         last[0] = now
 
     while True:
@@ -686,7 +687,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
             if packed_s is not None and free is not None and n.startswith("train@") and expected_s is not None:
                 full[n] = expected(n)  # resumed: what the last call left of it, and its restart again
                 was = progress_left(work, n)
-                left[n] = 1.0 if was is None else min(1.0, was + RESTART_S / max(full[n], 1.0))
+                left[n] = 1.0 if was is None else min(1.0, was + JOB_START_S / max(full[n], 1.0))
             log(("attach" if attached is not None else "start") + f" {n}"
                 + ("" if free is None else f" on {'cpu' if place is None else f'gpu {place}'}")
                 + f" (log {engine.log(handles[n])})")

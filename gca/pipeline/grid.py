@@ -585,7 +585,7 @@ def unpack_records(archive: Path, work: Path) -> int:
         raise SystemExit(str(exc)) from exc
 
 
-JOB_START_S = 60.0  # a training job's process start, data and launch-velocity estimate (~30-60 s, session 20) [s]
+JOB_START_S = dispatch.JOB_START_S  # one source: the dispatcher's lease check counts the same start [s]
 
 
 PACKING_OFFSET = 2.2  # runs' worth of a run's work that does not slow down with sharing the GPU: a run's time under
