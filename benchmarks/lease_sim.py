@@ -26,7 +26,7 @@ first = grid.first_methods(sys.argv[2:])  # python benchmarks/lease_sim.py WORK 
 order = dispatch.launch_order(todo, prio, todo, lambda n: T[n], first)
 print(len(todo), "runs left; expected 8-way [s]:", sorted(round(v) for v in T.values()))
 packed = lambda s, k: grid.packed_seconds(s, 8, k)
-MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 120, 200.0, 8, 1.0  # table_bundle.sh DETACH=1: the grid's deadline
+MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 150, 200.0, 8, 1.0  # table_bundle.sh DETACH=1: the grid's deadline (LEFT - 150)
 
 def simulate(aware):
     t, queue, running, done = INPUTS, list(order), {}, []

@@ -18,7 +18,7 @@
 #            GPU machine's default) the first call starts ONE grid for the whole machine, in a process session of its
 #            own so that it outlives the call, running to the machine's end (MACHINE_S); every call waits on it for
 #            LIMIT - 45 s and returns a snapshot (its state and results so far), the call in which it ends its final
-#            state: calls 2, 3 and 4 at once, one after another, the grid ending inside call 4 (~1670 s after call 2
+#            state: calls 2, 3 and 4 at once, one after another, the grid ending inside call 4 (~1640 s after call 2
 #            began). DETACH=0: each call runs its own grid to LIMIT - 90 s and stops what still runs (it resumes in
 #            the next call, on this machine only; session 26 measured what that costs: NOTES)
 #   after each: commit its state.tgz (beside all.tgz) as $STATE; a large all.tgz comes as all.tgz.0, .1, ...
