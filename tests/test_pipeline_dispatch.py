@@ -129,6 +129,24 @@ def test_the_lease_counts_the_runs_beside_a_run_and_the_work_they_have_left():
     assert dispatch.lease_admits(1e9, 1.0, [], packed) and not dispatch.lease_admits(100.0, 1e4, [], packed)
 
 
+def test_a_short_run_slows_the_runs_beside_it_for_its_own_time_only():
+    """Session 27 (machine 12): 60-s NCLaw runs were held beside duck runs near the lease ("expected 60 s at 8-way,
+    the machine has 935 s left"): the rule took the new run's load as lasting to the machine's end. Now it slows a
+    running run to k-way for the new run's time only (``pushed_end``). A duck run with 60 % of its work left, 1500 s
+    whole at 5-way (900 s left) and 1610 s 6-way, in a 935-s lease: a 60-s run (75 s 6-way) pushes it by ~5 s, to
+    ~905 s, and starts; a 949-s run (the negative control) slows it for all its time, past the lease, and is held."""
+    packed = lambda seconds, k: grid.packed_seconds(seconds, 8, k)  # noqa: E731
+    duck = (1500.0 * (2.2 + 8) / (2.2 + 5), 0.6)  # 1500 s at 5-way
+    running = [duck] * 5
+    assert 0.6 * packed(duck[0], 5) == pytest.approx(900.0) and 0.6 * packed(duck[0], 6) > 935.0
+    assert dispatch.lease_admits(935.0, 60.0, running, packed)
+    assert not dispatch.lease_admits(935.0, 949.0, running, packed)
+    t = packed(60.0, 6)
+    end = dispatch.pushed_end(0.6, packed(duck[0], 5), packed(duck[0], 6), t)
+    assert end == pytest.approx(t + (0.6 - t / packed(duck[0], 6)) * packed(duck[0], 5)) and 900.0 < end < 910.0
+    assert dispatch.pushed_end(0.01, 1000.0, 1200.0, 100.0) == pytest.approx(12.0)  # ends within the new run's time
+
+
 def test_a_run_held_while_the_gpu_is_full_starts_once_it_is_not(tmp_path):
     """dispatch.run with a packing model (a toy one: k-way takes k/2 of the 2-way time): the first run starts alone
     (450 s 1-way in the 700 s left), the second is held beside it (900 s 2-way) and starts when the first is done.
@@ -586,6 +604,36 @@ def test_free_slots_wait_for_the_best_ranked_units_inputs(tmp_path):
                          expected_s=expected, launch_until=1000.0)
     started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
     assert started == ["train@slow:a", "train@slow:b"] and state["train@quick:a"] == "todo"
+
+
+def test_free_slots_wait_only_for_units_ranked_above_by_first(tmp_path):
+    """Session 27 (machine 12): the reservation ranked units without ``first``, so the dragon's NCLaw units (long
+    inputs being made) ranked above duck's Table 3 units and kept three of eight slots idle for 7 min. Here the quick
+    scene's unit would rank above the slow one's, but ``first`` names the slow scene's methods: its runs start while
+    the quick scene's input is still being made. Negative control: without ``first`` the slots wait for it."""
+    stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
+
+    def jobs():
+        out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(1.5)")}
+        for scene, methods in (("slow", ("x", "y")), ("quick", ("a", "b"))):
+            for m in methods:
+                name = f"train@{scene}:{m}"
+                out[name] = grid.Job(name, f"python -c {stamp_code.format(f'{scene}_{m}.t')!r}", [], [], 0.01,
+                                     {f"prep@{scene}"})
+        return out
+    times = {"slow": 850.0, "quick": 430.0}
+    expected = lambda n: times[n.split("@")[1].split(":")[0]]  # noqa: E731
+
+    def order(folder, first):
+        lines = []
+        state = dispatch.run(jobs(), _local(folder, slots=2), folder, lines.append, poll_s=0.05, expected_s=expected,
+                             first=first)
+        assert set(state.values()) == {"done"}
+        return [ln.split()[1] for ln in lines if ln.startswith(("start train@", "done  prep@quick"))]
+    got = order(tmp_path / "first", grid.first_methods(["x", "y"]))
+    assert got[:3] == ["train@slow:x", "train@slow:y", "prep@quick"], got
+    got = order(tmp_path / "plain", None)
+    assert got[:3] == ["prep@quick", "train@quick:a", "train@quick:b"], got
 
 
 def test_no_slot_waits_for_runs_that_could_not_finish_after_their_inputs(tmp_path):

@@ -430,15 +430,29 @@ def lease_admits(left_s: float, new_s: float, running: list[tuple[float, float]]
     ``left_s`` [s] of the machine's lease left, beside ``others`` jobs more (evaluations: they share the GPU too).
     ``packed_s(seconds, k)``: those seconds at k-way packing (``grid.packed_seconds``). With
     k = len(running) + others + 1 it must end in time, and no running run that would end in
-    time at (k - 1)-way may be pushed past the lease by it. The load is taken as constant from now on (a run ending
-    earlier only speeds the rest up: a margin). At the grid's full packing this is the plain rule
-    (``new_s <= left_s``); with fewer runs on the GPU, as at the tail of a machine, a run is quicker than its
-    full-packing time and may still fit (session 25: with only ball and duck runs left, 30-45 of them were held back
-    and the slots stood idle for the machine's last ~10 min)."""
+    time at (k - 1)-way may be pushed past the lease by it: the new run slows it to k-way for the new run's own
+    time T = ``packed_s(new_s, k)`` only, (k - 1)-way again after it (:func:`pushed_end`). The other load is taken as
+    constant from now on (a run ending earlier only speeds the rest up: a margin). At the grid's full packing this is
+    the plain rule (``new_s <= left_s``); with fewer runs on the GPU, as at the tail of a machine, a run is quicker
+    than its full-packing time and may still fit (session 25: with only ball and duck runs left, 30-45 of them were
+    held back and the slots stood idle for the machine's last ~10 min). Session 27: the rule took the new run's load
+    as lasting to the machine's end, and held 60-s NCLaw runs beside duck runs near the lease for ~13 min."""
     k = len(running) + others + 1
-    if packed_s(new_s, k) > left_s:
+    t_new = packed_s(new_s, k)
+    if t_new > left_s:
         return False
-    return not any(frac * packed_s(full, k - 1) <= left_s < frac * packed_s(full, k) for full, frac in running)
+    return not any(frac * packed_s(full, k - 1) <= left_s < pushed_end(frac, packed_s(full, k - 1), packed_s(full, k), t_new)
+                   for full, frac in running)
+
+
+def pushed_end(frac: float, alone_s: float, beside_s: float, t_new: float) -> float:
+    """Seconds until a running run with ``frac`` of its work left ends, when it shares the GPU one way more for
+    ``t_new`` [s] (a new run's time) and as now after: ``alone_s`` / ``beside_s`` [s] its whole work's time at the
+    present / the one-more packing. Ends within the new run's time: ``frac * beside_s``; else ``t_new`` plus the rest
+    of its work (``frac - t_new / beside_s``) at ``alone_s``."""
+    if frac * beside_s <= t_new:
+        return frac * beside_s
+    return t_new + (frac - t_new / beside_s) * alone_s
 
 
 def job_runs(name: str) -> tuple[str, list[str]]:
@@ -644,7 +658,9 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         blocked = [m for m, s_ in state.items() if s_ == "todo" and m.startswith("train@") and unit_of(m) and coming(m)]
         if not blocked:
             return None
-        keys = unit_keys(priority, [m for m, s_ in state.items() if s_ == "todo"], expected)
+        keys = unit_keys(priority, [m for m, s_ in state.items() if s_ == "todo"], expected, first)  # the launch
+        # order's ranks (session 27: without ``first`` the dragon's NCLaw units ranked above duck's Table 3 units by
+        # their long inputs, and kept three of eight slots free for them for 7 min)
         return lambda n: sum(1 for m in blocked if keys[unit_of(m)] < keys.get(unit_of(n) or "", (float("inf"),)))
 
     def tally() -> None:
