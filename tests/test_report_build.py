@@ -78,9 +78,10 @@ def _row(df: pd.DataFrame, label: str, source: str) -> dict:
 def test_table1_cells(metrics):
     df = tables.table1_synthetic_cd(load_runs(metrics)).df
     ours, nclaw, neuma = (_row(df, m, "measured") for m in ("Ours", "NCLaw", "NeuMA"))
-    assert ours["Ball (Elastomer)"] == "0.50000"  # measured CDs [m] with 5 decimals, the paper's with 3
+    assert ours["Ball (Elastomer)"] == "0.50000 (1 of 2 seeds)"  # measured CDs [m] with 5 decimals, the paper's
+    # with 3; one seed beside the duck's two: said (session 27)
     assert ours["Duck (Gel)"] == "0.50000 ± 0.14142"  # mean and sample std of 0.4, 0.6
-    assert ours["Pawn (Rubber)"] == "55.00000 (diverged)"  # the measured CD, its status beside it
+    assert ours["Pawn (Rubber)"] == "55.00000 (diverged) (1 of 2 seeds)"  # the measured CD, its status beside it
     assert ours["Cat (Plasticine)"] == "—"
     assert ours["Average"] == "18.66667 (diverged) (3/6 scenes)"  # (0.5 + 0.5 + 55) / 3
     assert nclaw["Average"] == "3.50000"  # mean of 1..6

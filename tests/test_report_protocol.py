@@ -33,6 +33,28 @@ def test_three_significant_digits_everywhere():
     assert format_cell(Cell("diverged"), 2) == "diverged (no finite value)"
 
 
+def test_a_cell_over_fewer_seeds_than_the_table_says_so(tmp_path):
+    """Session 27: Table 3's duck Rank->L1 cell averaged two seeds beside cells of three and read like them. A cell
+    with fewer seeds than the table's most (here a seed not run, or failed) is marked; a full cell is not, nor is a
+    table whose cells all have one seed (negative control)."""
+    for seed in (0, 1, 2):
+        _write(tmp_path, "ball", "gca", seed, chamfer_mean=0.005 + 0.001 * seed)
+        _write(tmp_path, "ball", "no_global", seed, chamfer_mean=0.006, status="failed" if seed == 2 else "ok")
+        if seed < 2:
+            _write(tmp_path, "ball", "rank_to_l1", seed, chamfer_mean=0.007 + 0.001 * seed)
+    t3 = tables.table3_ablation_cd(load_runs(tmp_path)).df
+    cell = lambda label: t3[(t3["Method"] == label) & (t3["Source"] == "measured")].iloc[0]["Ball (Elastomer)"]  # noqa: E731
+    assert cell("Replace Rank w/ L1") == "0.00750 ± 0.00071 (2 of 3 seeds)"
+    assert cell("w/o Global Align.") == "0.00600 ± 0.00000 (2 of 3 seeds)"  # its failed seed has no value
+    assert cell("Ours (Full)") == "0.00600 ± 0.00100"
+    assert format_cell(Cell("ok", 0.0123, None, 1), 2, seeds=1) == "0.0123"
+    one = tmp_path / "one"
+    _write(one, "ball", "gca", chamfer_mean=0.005)
+    _write(one, "ball", "rank_to_l1", chamfer_mean=0.007)
+    t3 = tables.table3_ablation_cd(load_runs(one)).df
+    assert "seeds" not in " ".join(t3["Ball (Elastomer)"].astype(str))
+
+
 def test_divergence_rule_marks_cd_above_the_multiple_of_the_prior(tmp_path):
     _write(tmp_path, "ball", "nclaw", chamfer_mean=0.01)
     _write(tmp_path, "ball", "gca", chamfer_mean=0.0999)  # 9.99 x the prior: not diverged

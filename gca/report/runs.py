@@ -142,10 +142,25 @@ def format_number(value: float, decimals: int, significant: int = SIGNIFICANT) -
     return f"{value:.{decimals_for(value, decimals, significant)}f}"
 
 
-def format_cell(cell: Cell, decimals: int, mark_diverged: bool = True) -> str:
+def format_cell(cell: Cell, decimals: int, mark_diverged: bool = True, seeds: int = 0) -> str:
     """Render a :class:`Cell`: ``0.422``, ``0.422 ± 0.010`` (the std with the mean's decimals), the measured
     value of a diverged cell with its status beside it (``0.0123 (diverged)``; ``mark_diverged=False``
-    drops the mark), or a status marker. Numbers keep at least :data:`SIGNIFICANT` significant digits."""
+    drops the mark), or a status marker. Numbers keep at least :data:`SIGNIFICANT` significant digits.
+    ``seeds``: the table's seed count (:func:`table_seeds`); a mean over fewer says so, ``0.00548 ± 0.00071 (2 of 3
+    seeds)`` (session 27: Table 3's duck Rank->L1 cell averaged two seeds beside cells of three, unmarked)."""
+    text = _format_cell(cell, decimals, mark_diverged)
+    if cell.mean is not None and 0 < cell.n < seeds:
+        text += f" ({cell.n} of {seeds} seeds)"
+    return text
+
+
+def table_seeds(runs: Mapping, methods, scenes) -> int:
+    """The most seeds of any (scene, method) among ``methods`` x ``scenes`` in ``runs`` (records, failed ones
+    included): a table's seed count, against which a cell of fewer is marked (:func:`format_cell`)."""
+    return max((len(runs.get((scene, method)) or ()) for method in methods for scene in scenes), default=0)
+
+
+def _format_cell(cell: Cell, decimals: int, mark_diverged: bool) -> str:
     if cell.status == "missing":
         return MISSING
     if cell.status == "failed":

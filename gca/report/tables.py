@@ -18,7 +18,7 @@ import pandas as pd
 
 from gca.report import paper
 from gca.report.runs import (DIVERGED_CELL, DIVERGED_MARK, MISSING, NO_VALUE, SIGNIFICANT, Cell, DivergenceRule, Runs,
-                             finite, format_cell, format_number, reduce_seeds)
+                             finite, format_cell, format_number, reduce_seeds, table_seeds)
 
 MEASURED, PUBLISHED = "measured", "paper"
 PAPER_DIVERGED_CELL = "> 100 (Diverged)"  # how the paper prints divergence (published rows only)
@@ -84,13 +84,13 @@ MEASURED_CD_DECIMALS = 5  # our CDs are in metres, ~1e-3 to 1e-2: three decimals
 def _cd_rows(runs: Runs, methods: Mapping[str, str], scenes: Sequence[str], published: Mapping,
              decimals: int, with_average: bool) -> list[dict]:
     """Measured and paper rows of a Chamfer table with one column per scene (+ optional average)."""
-    rows = []
+    rows, seeds = [], table_seeds(runs, methods, scenes)
     for method, label in methods.items():
         measured = {"Method": label, "Source": MEASURED}
         printed = {"Method": label, "Source": PUBLISHED}
         for scene in scenes:
             measured[scene_label(scene)] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY),
-                                                       MEASURED_CD_DECIMALS)
+                                                       MEASURED_CD_DECIMALS, seeds=seeds)
             printed[scene_label(scene)] = paper_cell(published[method].get(scene), decimals)
         if with_average:
             measured["Average"] = format_average(scene_average(runs, method, scenes), len(scenes),
@@ -219,13 +219,13 @@ def _measured_status(runs: Runs, method: str, scenes: Iterable[str]) -> str:
 def table5_explicit(runs: Runs) -> Table:
     """Table 5: explicit (PAC-NeRF) vs implicit methods under multi-view and monocular supervision."""
     scenes = ("ball", "cat")
-    rows = []
+    rows, seeds = [], table_seeds(runs, paper.TABLE5_LABELS, scenes)
     for method, label in paper.TABLE5_LABELS.items():
         base = {"Method": label, "Supervision": paper.TABLE5_SUPERVISION[method]}
         measured = {**base, "Source": MEASURED}
         printed = {**base, "Source": PUBLISHED}
         for scene in scenes:
-            measured[scene_label(scene)] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), 2)
+            measured[scene_label(scene)] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), 2, seeds=seeds)
             printed[scene_label(scene)] = paper_cell(paper.TABLE5_EXPLICIT[method][scene], 2)
         measured["Status"] = _measured_status(runs, method, scenes)
         printed["Status"] = paper.TABLE5_STATUS[method]
@@ -237,12 +237,13 @@ def table5_explicit(runs: Runs) -> Table:
 
 def table6_ood(runs: Runs) -> Table:
     """Table 6: out-of-distribution materials (target law removed from the CPR library; composite)."""
-    rows = []
+    rows, seeds = [], table_seeds(runs, paper.TABLE6_LABELS, paper.TABLE6_COLUMNS)
     for method, label in paper.TABLE6_LABELS.items():
         measured = {"Configuration": label, "Source": MEASURED}
         printed = {"Configuration": label, "Source": PUBLISHED}
         for scene, column in paper.TABLE6_COLUMNS.items():
-            measured[column] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), MEASURED_CD_DECIMALS)
+            measured[column] = format_cell(reduce_seeds(runs.get((scene, method)), CD_KEY), MEASURED_CD_DECIMALS,
+                                           seeds=seeds)
             printed[column] = paper_cell(paper.TABLE6_OOD[method][scene], 3)
         rows += [measured, printed]
     return Table("table6_ood", "Table 6: robustness to out-of-distribution materials (CD, lower is better)",
@@ -423,7 +424,8 @@ def markdown(table: Table, info: Mapping[str, str]) -> str:
              "definition, profile and device): compare orderings and ratios.",
              f"- Cells: mean over seeds (± sample std when several seeds ran, with the mean's decimals), at least "
              f"{SIGNIFICANT} significant digits; `x {DIVERGED_MARK}` = the measured value of a run that diverged, "
-             f"`{DIVERGED_CELL}` = a diverged run without a finite value; `{MISSING}` = not run; `failed` = "
+             f"`{DIVERGED_CELL}` = a diverged run without a finite value; `(k of n seeds)` = a mean over fewer seeds "
+             f"than the table's most (a run not made yet, failed or without a value); `{MISSING}` = not run; `failed` = "
              "the run failed; `n/a` = the run did not report this metric; `--` = not reported in the paper; "
              f"`{PAPER_DIVERGED_CELL}` is the paper's own mark (published rows only).",
              f"- Divergence (defined before the runs): {info.get('divergence', DivergenceRule().describe())}."]
