@@ -47,7 +47,10 @@ def main(argv: list[str] | None = None) -> dict:
         with io.reading(mesh_path, "mesh"):
             mesh, mesh_report = scan.check_mesh(trimesh.load(mesh_path, force="mesh"), mesh_path)
     with cli.phase("particles", f"{args.object}: {cloud.n} Gaussians to particles"):
-        result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
+        try:
+            result = particles.convert(cloud, cfg, density=obj.density, mesh=mesh)
+        except particles.LatticeTooLarge as exc:  # refused before it is allocated: one line naming the object
+            raise config.ConfigError(f"particles@{args.object}: {exc}") from None
     bound = np.bincount(result.binding_rows, minlength=len(result.gaussian_index))
     s = float(result.sim_from_world[0, 0])
     volume_m3 = float(result.vol.sum()) / s**3  # the object frame is metres: SI volume and mass

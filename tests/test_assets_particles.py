@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 import trimesh
@@ -58,6 +60,45 @@ def test_target_count_sizes_the_lattice_per_object(sphere, with_mesh):
     assert fixed.spacing == 0.025
     with pytest.raises(ValueError, match="target_count"):
         pa.ParticleConfig(target_count=-1, floor_gap=0.05)
+
+
+def _traced_peak(fn):
+    """(fn(), peak bytes Python and numpy allocated while it ran)."""
+    tracemalloc.start()
+    try:
+        out = fn()
+        return out, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_dragon_mesh_interior_memory_is_bounded_without_embree(monkeypatch):
+    """particles@dragon (paper) was killed by the OOM killer at 123 GB: the dragon fills 7.7 % of its box, so its
+    lattice is 405k points for 30k particles, and ``mesh.contains`` without embree (the GPU hosts have none) listed
+    ~500 (oblique ray, triangle box) pairs per point at once, ~330 B each. The interior test must stay within a
+    bound whatever trimesh's ray backend. The small size first (a fuse: the old code took ~1.9 GB there), then the
+    paper's."""
+    monkeypatch.setattr(trimesh.ray, "has_embree", False)  # as on the GPU hosts
+    mesh, _ = objects.make_object("dragon", seed=7, size=0.38)
+    for target, bound_mib in ((300, 48), (30000, 256)):
+        cfg = pa.ParticleConfig(target_count=target)
+        T = pa.fit_sim_from_world(*mesh.bounds, cfg)
+        h = pa.lattice_spacing(cfg, float(mesh.volume) * T[0, 0] ** 3)
+        cells = pa.lattice_cells(*mesh.copy().apply_transform(T).bounds, h)
+        x, peak = _traced_peak(lambda: pa.sample_mesh_interior(mesh, T, h))
+        assert cells > 10 * target  # the dragon's shape: a lattice an order of magnitude above its particles
+        assert peak < bound_mib * 2**20, (target, cells, peak / 2**20)
+        assert abs(len(x) / target - 1) < 0.05, (target, len(x))
+
+
+def test_a_huge_mesh_lattice_is_refused_before_it_is_allocated(sphere):
+    """A spacing that would need more than MAX_LATTICE_CELLS cells: one error naming the size, nothing allocated."""
+    mesh, cloud = sphere
+    cfg = pa.ParticleConfig(spacing=0.025, target_count=10**9, floor_gap=0.05)
+    with pytest.raises(pa.LatticeTooLarge, match=r"a lattice of 1\.\d+e\+09 cells .* raise particles.spacing"):
+        pa.convert(cloud, cfg, density=1000.0, mesh=mesh)
+    with pytest.raises(pa.LatticeTooLarge):
+        pa.sample_mesh_interior(mesh, np.eye(4), 1e-5)
 
 
 def test_gaussians_only_detects_unsealed_surface():

@@ -56,3 +56,28 @@ def test_assets_then_particles(tmp_path, monkeypatch):
     # the object's bottom rests at floor_gap; the lowest lattice point is within one spacing above it
     assert 0.05 <= p.x[:, 1].min() <= 0.05 + written["spacing_sim_m"]
     assert p.x.min() > 0 and p.x.max() < 1
+
+
+def test_particles_refuses_a_huge_lattice_in_one_line_naming_the_object(tmp_path, monkeypatch, capsys):
+    """A lattice over MAX_LATTICE_CELLS (here: target_count 1e9) is refused before it is allocated: exit 2 and one
+    line naming the object, not a process that grows until the OOM killer ends it (particles@dragon, 123 GB)."""
+    from gca.assets import objects
+    from gca.assets.ply import write_ply
+    from gca.pipeline import cli
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    monkeypatch.delenv("DVC_ROOT", raising=False)
+    huge = {**PARAMS, "particles": {**PARAMS["particles"], "target_count": 10**9}}
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump(huge))
+    out = tmp_path / "data/assets/duck"
+    out.mkdir(parents=True)
+    mesh, _, cloud = objects.scan_object("duck", objects.ObjectConfig(size=0.3, seed=1, n_gaussians=300, sh_degree=0))
+    write_ply(out / "gaussians.ply", cloud)
+    mesh.export(out / "mesh.ply")
+    npz = tmp_path / "data/particles/duck.npz"
+    rc = cli.run(particles_stage.main, ["--object", "duck", "--assets", str(out), "--out", str(npz), "--metrics",
+                                        str(tmp_path / "particles.json"), "--params", str(params)], name="particles")
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert rc == 2 and not npz.exists()
+    assert len(errors) == 1 and errors[0].startswith("particles: error: particles@duck: ") and "a lattice of" in errors[0]

@@ -8,7 +8,8 @@ Pipeline of :func:`convert` (facts from PhysGaussian and NeuMA, code our own):
    walls, resting ``floor_gap`` above the floor (``placement="floor"``) or centred;
 3. particles on a regular lattice of cell centres ``(i + 1/2) * spacing`` (sim units) inside the
    object (with ``target_count`` N, each object's own spacing (V / N)^(1/3) from its volume V, so
-   every object gets ~N particles whatever its size): ``mesh.contains`` when a mesh exists;
+   every object gets ~N particles whatever its size): inside the mesh when one exists
+   (:func:`gca.assets.inside.mesh_contains`, vertical-ray parity in bounded memory);
    otherwise the summed opacity field of the Gaussians (covariances inflated by half a cell so thin
    surface sheets register) is thresholded, closed and hole-filled (scipy.ndimage);
 4. volumes: uniform, total = mesh volume in sim units (mesh path) or the lattice estimate that
@@ -43,6 +44,7 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from gca.assets.inside import mesh_contains
 from gca.assets.ply import GaussianCloud, normalized_quats, opacities, quats_to_rotmats, scales
 from gca.io import InputError, atomic_path, load_arrays
 
@@ -160,11 +162,39 @@ def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float, pad: int = 0) -> tup
     return grid.reshape(-1, 3), grid.shape[:3]
 
 
+class LatticeTooLarge(ValueError):
+    """The lattice an object would need is refused before it is allocated (:data:`MAX_LATTICE_CELLS`)."""
+
+
+def lattice_cells(lo: np.ndarray, hi: np.ndarray, spacing: float, pad: int = 0) -> int:
+    """The number of cells :func:`lattice` would make for [lo, hi], without making them."""
+    i0 = np.floor(np.asarray(lo) / spacing).astype(np.int64) - pad
+    i1 = np.ceil(np.asarray(hi) / spacing).astype(np.int64) + pad
+    return int(np.prod((i1 - i0).astype(np.float64)))
+
+
+def check_lattice(lo: np.ndarray, hi: np.ndarray, spacing: float, pad: int = 0) -> None:
+    """Refuse a lattice over [lo, hi] of more than :data:`MAX_LATTICE_CELLS` cells (one line naming the size)."""
+    cells = lattice_cells(lo, hi, spacing, pad)
+    if cells > MAX_LATTICE_CELLS:
+        extent = np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
+        raise LatticeTooLarge(f"gca/assets/particles.py: a lattice of {cells:.3g} cells at spacing {spacing:.4g} sim m "
+                              f"over a box of {np.array2string(extent, precision=3)} sim m (more than "
+                              f"{MAX_LATTICE_CELLS:.0e}): raise particles.spacing or lower target_count")
+
+
 def sample_mesh_interior(mesh, sim_from_world: np.ndarray, spacing: float) -> np.ndarray:
-    """Lattice points inside a watertight world mesh, in the sim frame [P, 3]."""
+    """Lattice points inside a watertight world mesh, in the sim frame [P, 3].
+
+    The inside test is :func:`gca.assets.inside.mesh_contains` (vertical rays, memory bounded by its pair
+    budget), not ``mesh.contains``: without embree, trimesh lists every (oblique ray, triangle box) pair of
+    the whole lattice at once, ~330 B a pair; for the paper dragon (405k lattice points, ~500 triangles a
+    ray) that was ~130 GB.
+    """
     mesh_sim = mesh.copy().apply_transform(sim_from_world)
+    check_lattice(*mesh_sim.bounds, spacing)
     points, _ = lattice(*mesh_sim.bounds, spacing)
-    return points[mesh_sim.contains(points)]
+    return points[mesh_contains(mesh_sim, points)]
 
 
 def precisions(R: np.ndarray, sigmas: np.ndarray, inflate: float = 0.0) -> np.ndarray:
@@ -234,10 +264,7 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
     A6 = precisions(R, sigmas, inflate=h / 2)
     r_cut = 3.0 * float(np.sqrt(np.quantile((sigmas**2).max(axis=1), 0.99) + (h / 2) ** 2))
     field = lambda p: opacity_field(p, means, A6, alphas, r_cut, cfg.n_candidates)  # noqa: E731
-    cells = np.prod(np.ceil((means.max(axis=0) - means.min(axis=0)) / h) + 7)
-    if cells > MAX_LATTICE_CELLS:
-        raise ValueError(f"gca/assets/particles.py: a lattice of {cells:.3g} cells at spacing {h:.4g} sim m "
-                         f"(more than {MAX_LATTICE_CELLS:.0e}): raise particles.spacing or lower target_count")
+    check_lattice(means.min(axis=0), means.max(axis=0), h, pad=3)
     points, shape = lattice(means.min(axis=0), means.max(axis=0), h, pad=3)
     level = cfg.density_threshold * float(np.median(field(means)))
     solid = _solid_from_field((field(points) > level).reshape(shape))
