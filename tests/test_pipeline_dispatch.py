@@ -575,21 +575,25 @@ def test_first_methods_put_their_units_before_the_others():
     assert first("train@duck:gca@seed1+no_cpr@seed1") and not first("evaluate@duck:no_cpr")
 
 
+def _slow_and_quick(slow=("a", "b"), quick=("a", "b")) -> dict:
+    """Two scenes' training runs after their input jobs: ``prep@slow`` is done at once, ``prep@quick`` after 1.5 s;
+    each run writes when it ran."""
+    stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
+    out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(1.5)")}
+    for scene, methods in (("slow", slow), ("quick", quick)):
+        for m in methods:
+            name = f"train@{scene}:{m}"
+            out[name] = grid.Job(name, f"python -c {stamp_code.format(f'{scene}_{m}.t')!r}", [], [], 0.01,
+                                 {f"prep@{scene}"})
+    return out
+
+
 def test_free_slots_wait_for_the_best_ranked_units_inputs(tmp_path):
     """Session 23: the scenes' inputs finished one by one and each free slot went to whichever scene was ready, so
     four units got one to three runs each. Now a slot waits for a better-ranked unit whose inputs are being made:
     the quick scene's runs start together, although the slow scene's inputs were ready first. Negative control: a
     better-ranked unit whose runs the lease would hold back reserves nothing."""
-    stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
-
-    def jobs():
-        out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(1.5)")}
-        for scene in ("slow", "quick"):
-            for m in ("a", "b"):
-                name = f"train@{scene}:{m}"
-                out[name] = grid.Job(name, f"python -c {stamp_code.format(f'{scene}_{m}.t')!r}", [], [], 0.01,
-                                     {f"prep@{scene}"})
-        return out
+    jobs = _slow_and_quick
     times = {"slow": 850.0, "quick": 430.0}
     expected = lambda n: times[n.split("@")[1].split(":")[0]]  # noqa: E731
     lines = []
@@ -611,16 +615,7 @@ def test_free_slots_wait_only_for_units_ranked_above_by_first(tmp_path):
     inputs being made) ranked above duck's Table 3 units and kept three of eight slots idle for 7 min. Here the quick
     scene's unit would rank above the slow one's, but ``first`` names the slow scene's methods: its runs start while
     the quick scene's input is still being made. Negative control: without ``first`` the slots wait for it."""
-    stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
-
-    def jobs():
-        out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(1.5)")}
-        for scene, methods in (("slow", ("x", "y")), ("quick", ("a", "b"))):
-            for m in methods:
-                name = f"train@{scene}:{m}"
-                out[name] = grid.Job(name, f"python -c {stamp_code.format(f'{scene}_{m}.t')!r}", [], [], 0.01,
-                                     {f"prep@{scene}"})
-        return out
+    jobs = lambda: _slow_and_quick(slow=("x", "y"))  # noqa: E731
     times = {"slow": 850.0, "quick": 430.0}
     expected = lambda n: times[n.split("@")[1].split(":")[0]]  # noqa: E731
 
