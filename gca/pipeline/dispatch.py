@@ -441,8 +441,11 @@ def lease_admits(left_s: float, new_s: float, running: list[tuple[float, float]]
     t_new = packed_s(new_s, k)
     if t_new > left_s:
         return False
-    return not any(frac * packed_s(full, k - 1) <= left_s < pushed_end(frac, packed_s(full, k - 1), packed_s(full, k), t_new)
-                   for full, frac in running)
+    for full, frac in running:
+        alone, beside = packed_s(full, k - 1), packed_s(full, k)
+        if frac * alone <= left_s < pushed_end(frac, alone, beside, t_new):
+            return False
+    return True
 
 
 def pushed_end(frac: float, alone_s: float, beside_s: float, t_new: float) -> float:
