@@ -3,7 +3,9 @@ dispatch.lease_admits, with grid.packed_seconds taken as the truth (8 slots, ~20
 its margins: DETACH=1, one grid over the machine, no stop between calls). A prediction aid for benchmarks/NOTES.md, no GPU.
   python -m gca.pipeline.grid --work /tmp/mlw <the grid's options> --restore-state STATE --stages report  (any stage)
   python benchmarks/lease_sim.py /tmp/mlw [methods first, as grid --first-methods]
+  MACHINE_S=1400 SLOTS=12 python benchmarks/lease_sim.py ...   (table_bundle.sh's MACHINE_S and SLOTS; defaults 1800, 8)
 """
+import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -26,7 +28,8 @@ first = grid.first_methods(sys.argv[2:])  # python benchmarks/lease_sim.py WORK 
 order = dispatch.launch_order(todo, prio, todo, lambda n: T[n], first)
 print(len(todo), "runs left; expected 8-way [s]:", sorted(round(v) for v in T.values()))
 packed = lambda s, k: grid.packed_seconds(s, 8, k)
-MACHINE, INPUTS, SLOTS, DT = 1800 - 60 - 150, 200.0, 8, 1.0  # table_bundle.sh DETACH=1: the grid's deadline (LEFT - 150)
+SLOTS = int(os.environ.get("SLOTS", 8))
+MACHINE, INPUTS, DT = int(os.environ.get("MACHINE_S", 1800)) - 60 - 150, 200.0, 1.0  # DETACH=1: the grid's deadline (LEFT - 150)
 
 def simulate(aware):
     t, queue, running, done = INPUTS, list(order), {}, []
