@@ -41,7 +41,9 @@
 #   FIRST    methods whose (scene, seed) units go before all others (grid --first-methods): a table finished
 #            first, the rest filling the slots, e.g. METHODS=params with FIRST="no_global no_anchor rank_to_l1
 #            no_rdga no_cpr gca_full_ft" (Table 3 first, then Tables 2, 5, 6)
-#   MACHINE_S  the machine's lease [s] (default on the GPU machine 1800: it goes back 30 min after the stage call):
+#   MACHINE_S  the machine's lease [s] (default on the GPU machine 1800: it goes back 30 min after the stage call; where
+#            the machine counts its held time in full against a smaller device budget, the budget left after the stage
+#            call less ~30 s: session 29's H200 did, and three runs started for an 1800-s machine were lost):
 #            a training run starts only if its expected time fits what is left of it (grid --machine-left), since a
 #            run cut off by the machine's end resumes on no other machine (session 20: remade inputs differ in float32
 #            noise, so checkpoints made elsewhere are not resumed); evaluations fill the rest
