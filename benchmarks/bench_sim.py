@@ -79,7 +79,7 @@ def _state(n, cfg, device, order: str = "random"):
 def make_material(law: str, device, dtype: torch.dtype) -> Material:
     """``corotated`` (analytic) or ``neural``: NCLaw networks with LoRA r=16 on every layer (a GCA step),
     features and heads in warp kernels (``gca.laws.fused``); ``neural_ref``: the same through the torch
-    reference path."""
+    reference path; ``neo_hookean`` / ``neo_hookean_ref``: the elastomer law with learnable E and nu, fused / torch."""
     if law in ("neural", "neural_ref"):
         from gca.laws.lora import apply_lora
         from gca.laws.neural import NeuralElasticity, NeuralPlasticity
@@ -88,6 +88,11 @@ def make_material(law: str, device, dtype: torch.dtype) -> Material:
         apply_lora(p, 16, 16.0)
         e.fast_path = p.fast_path = law == "neural"
         return Material(e, p, RHO).to(device=device, dtype=dtype)
+    if law in ("neo_hookean", "neo_hookean_ref"):  # the PAC-NeRF-style elastic rows' law (learnable E, nu)
+        from gca.laws.ood import NeoHookeanElasticity
+        e = NeoHookeanElasticity(1e5, 0.3, learnable=True)
+        e.fast_path = law == "neo_hookean"
+        return Material(e, IdentityPlasticity(), RHO).to(device=device, dtype=dtype)
     return Material(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), RHO).to(device=device, dtype=dtype)
 
 
@@ -202,7 +207,8 @@ def _parse(argv=None):
     p.add_argument("--rollout-grid", type=int, default=32)
     p.add_argument("--no-checkpoint", action="store_true", help="also measure the rollout without checkpoints")
     p.add_argument("--skip-rollout", action="store_true")
-    p.add_argument("--law", nargs="+", default=["none"], choices=["none", "corotated", "neural", "neural_ref"],
+    p.add_argument("--law", nargs="+", default=["none"], choices=["none", "corotated", "neural", "neural_ref",
+                                                                     "neo_hookean", "neo_hookean_ref"],
                    help="law evaluated each step in the throughput chains (none: fixed stress)")
     p.add_argument("--rollout-law", default="corotated", choices=["corotated", "neural"])
     p.add_argument("--graph", nargs="+", default=["off"], choices=["off", "on"],

@@ -41,7 +41,9 @@ N_FEATURES = 13
 
 @functools.cache
 def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
-    """Build the feature and head kernels and their adjoints for float32 or float64."""
+    """Build the feature and head kernels and their adjoints for float32 or float64 (warp initialised: the SVD-free
+    laws reach warp through here first)."""
+    wp.init()
     T = WARP_FLOATS[dtype]
     vec3 = wp.types.vector(3, T)
     mat33 = wp.types.matrix((3, 3), T)
@@ -187,8 +189,39 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         v_mu[p] = T(2.0) * acc
         v_lam[p] = trG * J * (J - T(1.0))
 
+    @wp.kernel(module=module)
+    def neo_hookean(F: wp.array(dtype=mat33), mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int, j_min: T,
+                    tau: wp.array(dtype=mat33)):
+        p = wp.tid()
+        f = F[p]
+        log_J = wp.log(wp.max(wp.determinant(f), j_min))
+        eye = wp.identity(3, dtype=T)
+        tau[p] = mu[p * per] * (f @ wp.transpose(f) - eye) + (lam[p * per] * log_J) * eye
+
+    @wp.kernel(module=module)
+    def neo_hookean_adjoint(F: wp.array(dtype=mat33), mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int,
+                            j_min: T, v_tau: wp.array(dtype=mat33), v_F: wp.array(dtype=mat33),
+                            v_mu: wp.array(dtype=T), v_lam: wp.array(dtype=T)):
+        p = wp.tid()
+        f = F[p]
+        G = v_tau[p]
+        J = wp.determinant(f)
+        trG = wp.trace(G)
+        grad = mu[p * per] * (G + wp.transpose(G)) @ f
+        if J >= j_min:  # as torch's clamp: the gradient passes where J >= j_min (the bound included)
+            grad += (lam[p * per] * trG / J) * cofactor(f)
+        v_F[p] = grad
+        D = f @ wp.transpose(f)
+        acc = T(0.0)
+        for i in range(3):
+            for j in range(3):
+                acc += G[i, j] * D[i, j]
+        v_mu[p] = acc - trG
+        v_lam[p] = trG * wp.log(wp.max(J, j_min))
+
     return types.SimpleNamespace(features=features, features_adjoint=features_adjoint, elastic_head=elastic_head,
                                  corotated=corotated, corotated_adjoint=corotated_adjoint,
+                                 neo_hookean=neo_hookean, neo_hookean_adjoint=neo_hookean_adjoint,
                                  elastic_head_adjoint=elastic_head_adjoint, plastic_head=plastic_head,
                                  plastic_head_adjoint=plastic_head_adjoint, mat33=mat33, vec3=vec3, T=T)
 
@@ -351,6 +384,64 @@ def corotated_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor) -> torch
         raise ValueError(f"{_WHERE}: corotated_tau: mu and lam must both be scalars or both of shape [N={n}], got "
                          f"{tuple(mu.shape)} and {tuple(lam.shape)}")
     return _Corotated.apply(F, mu_v, lam_v)
+
+
+class _NeoHookean(torch.autograd.Function):
+    """(F [N,3,3], mu, lam [1] or [N], j_min) -> tau = mu (F F^T - I) + lam log(max(J, j_min)) I [N,3,3]."""
+
+    @staticmethod
+    def forward(ctx, F, mu, lam, j_min):
+        F = F.detach().contiguous()
+        mu, lam = mu.detach().contiguous(), lam.detach().contiguous()
+        k = make_law_kernels(F.dtype)
+        tau = torch.empty_like(F)
+        per = int(mu.shape[0] > 1)
+        if F.shape[0]:
+            _launch(k.neo_hookean, F.shape[0], F.device, [_m(F, k), _a(mu), _a(lam), per, k.T(j_min), _m(tau, k)])
+        ctx.save_for_backward(F, mu, lam)
+        ctx.per, ctx.j_min = per, j_min
+        return tau
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_tau):
+        F, mu, lam = ctx.saved_tensors
+        k = make_law_kernels(F.dtype)
+        n = F.shape[0]
+        v_F = torch.empty_like(F)
+        v_mu, v_lam = (torch.zeros(n, dtype=F.dtype, device=F.device) for _ in range(2))
+        if n:
+            _launch(k.neo_hookean_adjoint, n, F.device,
+                    [_m(F, k), _a(mu), _a(lam), ctx.per, k.T(ctx.j_min), _m(v_tau, k), _m(v_F, k), _a(v_mu),
+                     _a(v_lam)])
+        if not ctx.per:  # one modulus for every particle: the sum of the particles' shares
+            v_mu, v_lam = v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
+        return v_F, v_mu, v_lam, None
+
+
+def neo_hookean_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, j_min: float) -> torch.Tensor:
+    """Compressible neo-Hookean Kirchhoff stress ``mu (F F^T - I) + lam log(max(J, j_min)) I`` [N,3,3] (Pa) in
+    one warp kernel, with a hand-written adjoint (one kernel); the same law as :func:`gca.laws.ood.neo_hookean_tau`
+    (tested in values and gradients, float64 gradchecks), for the PAC-NeRF-style elastic rows and the elastomer's
+    ground truth (issue 20 item 2: ~15 torch kernels per step forward and more backward before).
+
+    Args:
+        F: elastic deformation gradients [N, 3, 3] (float32/float64).
+        mu, lam: Lame parameters [Pa] as tensors of shape [] or [N] (differentiable; no host read, so the
+            law is capturable in a CUDA graph).
+        j_min: lower clamp of J = det F inside the log [1] (no volumetric gradient below it, as torch's clamp).
+
+    Adjoint: with G = v_tau, v_F = mu (G + G^T) F + lam tr(G) cof(F) / J (J >= j_min), v_mu = <G, F F^T - I>,
+    v_lam = tr(G) log(max(J, j_min)).
+    """
+    if F.dtype not in WARP_FLOATS:
+        raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
+    n = F.shape[0]
+    mu_v, lam_v = mu.reshape(-1).to(F.dtype), lam.reshape(-1).to(F.dtype)
+    if mu_v.shape[0] != lam_v.shape[0] or mu_v.shape[0] not in (1, n):
+        raise ValueError(f"{_WHERE}: neo_hookean_tau: mu and lam must both be scalars or both of shape [N={n}], got "
+                         f"{tuple(mu.shape)} and {tuple(lam.shape)}")
+    return _NeoHookean.apply(F, mu_v, lam_v, float(j_min))
 
 
 def features(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

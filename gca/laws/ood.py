@@ -1,6 +1,7 @@
 """Ground-truth-only laws, deliberately outside the CPR hypothesis library (paper Tab. "OOD").
 
-- :func:`neo_hookean_tau`: compressible neo-Hookean elastomer (SVD-free).
+- :func:`neo_hookean_tau`: compressible neo-Hookean elastomer (SVD-free; also the PAC-NeRF-style rows' elastic law;
+  its fast path, :func:`gca.laws.fused.neo_hookean_tau`, is one warp kernel each way).
 - :func:`viscoplastic_plastic`: Herschel-Bulkley-type viscoplastic flow (yield stress plus a
   rate-dependent relaxation of the excess deviatoric strain), for the non-Newtonian bottle scene.
 """
@@ -9,9 +10,10 @@ from __future__ import annotations
 
 import torch
 
+from gca.laws import fused
 from gca.laws.base import Elasticity, Plasticity, YoungPoisson, per_particle
 from gca.laws.plastic import SIGMA_MIN, hencky_split
-from gca.laws.svd import bmm3, check_F, det3, svd_map
+from gca.laws.svd import bmm3, check_F, det3, svd_map, warp_runs
 
 __all__ = ["neo_hookean_tau", "viscoplastic_plastic", "NeoHookeanElasticity", "ViscoplasticPlasticity"]
 
@@ -86,13 +88,25 @@ def viscoplastic_plastic(F: torch.Tensor, mu, sigma_y, eta, n, dt: float,
 
 
 class NeoHookeanElasticity(YoungPoisson, Elasticity):
-    """Neo-Hookean elastomer (see :func:`neo_hookean_tau`); ground truth only."""
+    """Neo-Hookean elastomer (see :func:`neo_hookean_tau`): the elastomer's ground truth and the PAC-NeRF-style
+    rows' elastic law (``gca.train.law.CATEGORY_LAWS``, learnable E and nu there).
+
+    ``fast_path`` (default True): the stress in one warp kernel each way with a hand-written adjoint
+    (:func:`gca.laws.fused.neo_hookean_tau`) where warp runs; False, or elsewhere, the torch reference
+    :func:`neo_hookean_tau`. Same values and gradients to rounding (tested); an implementation choice, not part of
+    the law.
+    """
+
+    fast_path: bool = True
 
     def __init__(self, E: float = 2e5, nu: float = 0.4, learnable: bool = False):
         super().__init__()
         self._init_young_poisson(E, nu, learnable)
 
     def forward(self, F: torch.Tensor) -> torch.Tensor:
+        if self.fast_path and warp_runs(F):
+            check_F(F, "NeoHookeanElasticity")
+            return fused.neo_hookean_tau(F, self.mu, self.lam, J_MIN)
         return neo_hookean_tau(F, self.mu, self.lam)
 
 
