@@ -186,3 +186,23 @@ def test_sim_frame_gaussians_in_unit_cube(sphere):
     assert p.x.min() > 0.0 and p.x.max() < 1.0
     assert scales(cloud).max() * p.sim_from_world[0, 0] < 0.1  # scales are mapped by s too
     _ = normalized_quats(cloud)
+
+
+def test_gaussians_only_thin_object_on_a_coarse_lattice(monkeypatch):
+    """A slab under three lattice cells thick (the fish at the CI profile's 3-cm spacing): its surface band leaves no
+    core at the particle spacing h, so the band is analysed on a finer lattice (h / k) and the h-lattice points inside
+    it become the particles; the volume and the count follow the slab's. Without the refinement: the old refusal."""
+    mesh = trimesh.creation.box(extents=(0.3, 0.3, 0.05))
+    cloud = objects.gaussians_from_mesh(mesh, lambda x: np.full((len(x), 3), 0.5), 8000, 800, seed=0)
+    cfg = pa.ParticleConfig(spacing=0.03, margin=0.25, floor_gap=0.05)
+    p = pa.convert(cloud, cfg, density=1000.0)
+    s = p.sim_from_world[0, 0]
+    V = 0.3 * 0.3 * 0.05 * s**3
+    assert 0.05 * s / cfg.spacing < 3  # the slab is under three cells thick
+    assert abs(p.vol.sum() / V - 1) < 0.15, p.vol.sum() / V
+    assert abs(p.n * cfg.spacing**3 / V - 1) < 0.25, p.n * cfg.spacing**3 / V
+    centre = pa.apply_affine(p.sim_from_world, np.zeros((1, 3)))[0]
+    assert np.abs(p.x[:, 2] - centre[2]).max() <= 0.025 * s + cfg.spacing / 2  # inside the slab's thickness
+    monkeypatch.setattr(pa, "REFINE", ())
+    with pytest.raises(ValueError, match="did not enclose a volume"):
+        pa.convert(cloud, cfg, density=1000.0)

@@ -117,3 +117,18 @@ def test_neo_hookean_elasticity_takes_the_fused_path_and_learns_E_and_nu_through
     finally:
         fused._NeoHookean.apply = apply
     assert calls == [1]
+
+
+@pytest.mark.parametrize("fn", [lambda F, mu, lam: fused.neo_hookean_tau(F, mu, lam, J_MIN), fused.corotated_tau],
+                         ids=["neo_hookean", "corotated"])
+@pytest.mark.parametrize("shape", [(), (0,)])
+def test_fused_laws_take_an_empty_batch(fn, shape):
+    """No particle (a composite part left empty): an empty stress, and gradients of the moduli's own shape (review:
+    per-particle moduli of shape [0] were summed to [1])."""
+    F = torch.zeros(0, 3, 3, dtype=f64, requires_grad=True)
+    mu, lam = (torch.ones(shape, dtype=f64, requires_grad=True) for _ in range(2))
+    tau = fn(F, mu, lam)
+    assert tau.shape == (0, 3, 3)
+    v_F, v_mu, v_lam = torch.autograd.grad(tau.sum(), [F, mu, lam], allow_unused=True)
+    assert v_F.shape == (0, 3, 3) and v_mu.shape == shape and v_lam.shape == shape
+    assert float(v_mu.abs().sum()) == 0.0 and float(v_lam.abs().sum()) == 0.0

@@ -248,6 +248,32 @@ def _solid_from_field(occupied: np.ndarray) -> np.ndarray:
     return ndi.binary_fill_holes(ndi.binary_closing(occupied, iterations=1))
 
 
+REFINE = (2, 3, 4)  # finer analysis lattices (h / k) tried where the particle lattice is too coarse for the object's
+# thickness (its surface band leaves no core: the fish at the CI profile's 3-cm spacing, session 29)
+
+
+def _band_solid(means: np.ndarray, R: np.ndarray, sigmas: np.ndarray, alphas: np.ndarray, cfg: ParticleConfig,
+                g: float, pad: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The field's solid on a lattice of spacing ``g`` [sim m]: (points [M, 3], solid [nx, ny, nz] bool, depth
+    [nx, ny, nz] [cells of g] to the nearest outside cell centre, b = the surface's median depth [cells of g])."""
+    A6 = precisions(R, sigmas, inflate=g / 2)
+    r_cut = 3.0 * float(np.sqrt(np.quantile((sigmas**2).max(axis=1), 0.99) + (g / 2) ** 2))
+    field = lambda p: opacity_field(p, means, A6, alphas, r_cut, cfg.n_candidates)  # noqa: E731
+    check_lattice(means.min(axis=0), means.max(axis=0), g, pad=pad)
+    points, shape = lattice(means.min(axis=0), means.max(axis=0), g, pad=pad)
+    level = cfg.density_threshold * float(np.median(field(means)))
+    solid = _solid_from_field((field(points) > level).reshape(shape))
+    depth = ndi.distance_transform_edt(solid)
+    b = float(np.median(ndi.map_coordinates(depth, ((means - points[0]) / g).T, order=1)))
+    return points, solid, depth, b
+
+
+def _encloses(depth: np.ndarray, b: float) -> bool:
+    """Whether the solid has a core deeper than its surface band (else the flood fill leaked, or the lattice is too
+    coarse for the object's thickness)."""
+    return depth.max() >= 2 * b + 1
+
+
 def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarray, alphas: np.ndarray,
                              cfg: ParticleConfig) -> tuple[np.ndarray, float]:
     """Lattice points inside the volume the Gaussians enclose (no mesh), sim frame.
@@ -257,26 +283,40 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
     over the Gaussians (mostly surface ones in a scan), of the distance to the outside. Particles
     are the cells at least ``b`` deep; the volume counts the cells around depth ``b`` fractionally.
 
+    Where the particle lattice (``cfg.spacing`` = h) is too coarse for the object's thickness (the band, a cell or
+    two deep from each side, leaves no core), the band is analysed again on a finer lattice h / k (k in
+    :data:`REFINE`, while h / k is no finer than the Gaussians' median nearest-neighbour distance: finer, the band
+    has gaps, a leak no refinement seals): the particles are then the h-lattice points whose depth, interpolated from the fine lattice, is
+    at least ``b``, and the volume is the fine lattice's. An object that encloses a core at h takes the h lattice
+    alone (unchanged results).
+
     Returns:
         (points [P, 3], volume estimate [sim m^3]).
     """
     h = cfg.spacing
-    A6 = precisions(R, sigmas, inflate=h / 2)
-    r_cut = 3.0 * float(np.sqrt(np.quantile((sigmas**2).max(axis=1), 0.99) + (h / 2) ** 2))
-    field = lambda p: opacity_field(p, means, A6, alphas, r_cut, cfg.n_candidates)  # noqa: E731
-    check_lattice(means.min(axis=0), means.max(axis=0), h, pad=3)
-    points, shape = lattice(means.min(axis=0), means.max(axis=0), h, pad=3)
-    level = cfg.density_threshold * float(np.median(field(means)))
-    solid = _solid_from_field((field(points) > level).reshape(shape))
-    depth = ndi.distance_transform_edt(solid)  # [cells] to the nearest outside cell centre
-    b = float(np.median(ndi.map_coordinates(depth, ((means - points[0]) / h).T, order=1)))
-    if depth.max() < 2 * b + 1:  # nothing deeper than the band itself: the flood fill leaked inside
-        raise ValueError(f"gca/assets/particles.py: the Gaussians' surface band did not enclose a volume "
-                         f"(max depth {depth.max():.1f} cells, surface depth {b:.1f}): spacing {h:.4g} sim m "
-                         f"is too fine for the Gaussian density (raise particles.spacing), or density_threshold "
-                         f"{cfg.density_threshold} too high (lower it); a thin or open scan may need its mesh")
-    volume = float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * h**3
-    return points[(depth >= b).reshape(-1) & solid.reshape(-1)], volume
+    points, solid, depth, b = _band_solid(means, R, sigmas, alphas, cfg, h, 3)
+    if _encloses(depth, b):
+        volume = float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * h**3
+        return points[(depth >= b).reshape(-1) & solid.reshape(-1)], volume
+    coarse = (depth.max(), b)
+    gap = float(np.median(cKDTree(means).query(means, k=2)[0][:, 1]))  # the Gaussians' typical spacing [sim m]
+    for k in REFINE:
+        g = h / k
+        if g < gap:  # a lattice finer than the Gaussians' spacing sees the gaps between them: it leaks, not seals
+            break
+        try:
+            fine, solid, depth, b = _band_solid(means, R, sigmas, alphas, cfg, g, 3 * k)
+        except LatticeTooLarge:
+            break
+        if _encloses(depth, b):
+            volume = float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * g**3
+            d = ndi.map_coordinates(depth, ((points - fine[0]) / g).T, order=1, cval=0.0)  # depth at the h points
+            return points[d >= b], volume
+    finer = f"; none on lattices down to h/{max(REFINE)} either" if REFINE else ""
+    raise ValueError(f"gca/assets/particles.py: the Gaussians' surface band did not enclose a volume (max depth "
+                     f"{coarse[0]:.1f} cells, surface depth {coarse[1]:.1f}{finer}): spacing {h:.4g} sim m is too fine for the Gaussian density (raise "
+                     f"particles.spacing), or density_threshold {cfg.density_threshold} too high (lower it); a thin "
+                     f"or open scan may need its mesh")
 
 
 # ----------------------------------------------------------------------------- binding

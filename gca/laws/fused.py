@@ -339,7 +339,7 @@ class _Corotated(torch.autograd.Function):
         U, sigma, Vh = _svd_rotations(F)
         k = make_law_kernels(F.dtype)
         tau = torch.empty_like(F)
-        per = int(mu.shape[0] > 1)
+        per = int(mu.shape[0] != 1)  # [N] moduli (N = 0 included) or one for all
         if F.shape[0]:
             _launch(k.corotated, F.shape[0], F.device, [_m(F, k), _m(U, k), _m(Vh, k), _a(mu), _a(lam), per, _m(tau, k)])
         ctx.save_for_backward(F, U, sigma, Vh, mu, lam)
@@ -395,7 +395,7 @@ class _NeoHookean(torch.autograd.Function):
         mu, lam = mu.detach().contiguous(), lam.detach().contiguous()
         k = make_law_kernels(F.dtype)
         tau = torch.empty_like(F)
-        per = int(mu.shape[0] > 1)
+        per = int(mu.shape[0] != 1)  # [N] moduli (N = 0 included) or one for all
         if F.shape[0]:
             _launch(k.neo_hookean, F.shape[0], F.device, [_m(F, k), _a(mu), _a(lam), per, k.T(j_min), _m(tau, k)])
         ctx.save_for_backward(F, mu, lam)
