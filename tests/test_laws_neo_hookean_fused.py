@@ -10,7 +10,7 @@ from gca.laws import fused
 from gca.laws.ood import J_MIN, NeoHookeanElasticity, neo_hookean_tau
 from gca.train.law import CATEGORY_LAWS
 
-from test_laws_corotated_fused import _moduli
+from test_laws_corotated_fused import _moduli, compare_laws
 from test_laws_neural_fused import hard_F
 
 f64 = torch.float64
@@ -28,18 +28,9 @@ def _with_crushed(F):
 def test_fused_neo_hookean_equals_the_torch_law_in_values_and_gradients(per_particle, dtype, rtol):
     F = _with_crushed(hard_F(40, seed=3, dtype=dtype))
     mu, lam = _moduli(F.shape[0], per_particle, dtype)
-    g = torch.Generator().manual_seed(7)
-    cot = torch.randn(F.shape, generator=g, dtype=f64).to(dtype)
-    results = []
-    for fn in (lambda F, mu, lam: fused.neo_hookean_tau(F, mu, lam, J_MIN), neo_hookean_tau):
-        ins = [t.clone().requires_grad_() for t in (F, mu, lam)]
-        tau = fn(*ins)
-        results.append((tau, *torch.autograd.grad(tau, ins, cot)))
-    for name, a, b in zip(("tau", "F", "mu", "lam"), *results):
-        assert a.shape == b.shape, name
-        assert float(b.detach().abs().max()) > 0, name
-        assert float((a - b).detach().abs().max()) <= rtol * float(b.detach().abs().max()), name
-    assert float(results[0][0][:4].detach().abs().max()) == 0.0  # F = I: exactly no stress
+    results, cot = compare_laws(lambda F, mu, lam: fused.neo_hookean_tau(F, mu, lam, J_MIN), neo_hookean_tau,
+                                F, mu, lam, rtol)
+    assert float(results[0][0][:4].abs().max()) == 0.0  # F = I: exactly no stress
     # inverted and crushed rows (J < J_MIN): the pressure is the clamp's, and no volumetric gradient reaches F there
     tau, v_F = results[0][0], results[0][1]
     for row in (5, F.shape[0] - 2):
@@ -89,7 +80,7 @@ def test_neo_hookean_refuses_mismatched_moduli():
         fused.neo_hookean_tau(F, torch.ones(12, dtype=f64), torch.ones((), dtype=f64), J_MIN)
 
 
-def test_neo_hookean_elasticity_takes_the_fused_path_and_learns_E_and_nu_through_it():
+def test_neo_hookean_elasticity_takes_the_fused_path_and_learns_E_and_nu_through_it(monkeypatch):
     """The PAC-NeRF-style elastic row's law (learnable E and nu) and the elastomer's ground truth go through the
     fused kernels by default; the torch reference gives the same gradients of log E and nu."""
     assert CATEGORY_LAWS["elastic"]["elasticity"] == "neo_hookean"
@@ -106,16 +97,11 @@ def test_neo_hookean_elasticity_takes_the_fused_path_and_learns_E_and_nu_through
     for a, b in zip(*grads):
         assert float(b.abs().max()) > 0
         torch.testing.assert_close(a, b, rtol=1e-10, atol=0)
-    calls = []
-    apply = fused._NeoHookean.apply
-    fused._NeoHookean.apply = lambda *a: calls.append(1) or apply(*a)
-    try:
-        law.fast_path = True
+    calls, apply = [], fused._NeoHookean.apply
+    monkeypatch.setattr(fused._NeoHookean, "apply", lambda *a: calls.append(1) or apply(*a))
+    for fast in (True, False):  # the fused Function runs on the fast path only
+        law.fast_path = fast
         law(F)
-        law.fast_path = False
-        law(F)
-    finally:
-        fused._NeoHookean.apply = apply
     assert calls == [1]
 
 

@@ -329,6 +329,35 @@ class _PlasticHead(torch.autograd.Function):
         return v_X, v_R, v_Fe, None
 
 
+def _lame(name: str, F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mu [1] or [N], lam likewise) in F's dtype for an analytic law ``name``, checked (one line naming the law)."""
+    if F.dtype not in WARP_FLOATS:
+        raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
+    n = F.shape[0]
+    mu_v, lam_v = mu.reshape(-1).to(F.dtype), lam.reshape(-1).to(F.dtype)
+    if mu_v.shape[0] != lam_v.shape[0] or mu_v.shape[0] not in (1, n):
+        raise ValueError(f"{_WHERE}: {name}: mu and lam must both be scalars or both of shape [N={n}], got "
+                         f"{tuple(mu.shape)} and {tuple(lam.shape)}")
+    return mu_v, lam_v
+
+
+def _per(mu: torch.Tensor) -> int:
+    """1 for [N] moduli (N = 0 included: review, session 29), 0 for one modulus for every particle."""
+    return int(mu.shape[0] != 1)
+
+
+def _lame_grads(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Zeroed per-particle (v_mu, v_lam) [N] for an adjoint kernel to fill."""
+    return tuple(torch.zeros(F.shape[0], dtype=F.dtype, device=F.device) for _ in range(2))
+
+
+def _lame_out(per: int, v_mu: torch.Tensor, v_lam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The moduli's gradients in their own shape: one modulus for every particle takes the particles' summed shares."""
+    if per:
+        return v_mu, v_lam
+    return v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
+
+
 class _Corotated(torch.autograd.Function):
     """(F [N,3,3], mu, lam [1] or [N]) -> tau = 2 mu (F - R) F^T + lam J (J - 1) I [N,3,3]."""
 
@@ -339,7 +368,7 @@ class _Corotated(torch.autograd.Function):
         U, sigma, Vh = _svd_rotations(F)
         k = make_law_kernels(F.dtype)
         tau = torch.empty_like(F)
-        per = int(mu.shape[0] != 1)  # [N] moduli (N = 0 included) or one for all
+        per = _per(mu)
         if F.shape[0]:
             _launch(k.corotated, F.shape[0], F.device, [_m(F, k), _m(U, k), _m(Vh, k), _a(mu), _a(lam), per, _m(tau, k)])
         ctx.save_for_backward(F, U, sigma, Vh, mu, lam)
@@ -353,14 +382,12 @@ class _Corotated(torch.autograd.Function):
         k = make_law_kernels(F.dtype)
         n = F.shape[0]
         v_F = torch.empty_like(F)
-        v_mu, v_lam = (torch.zeros(n, dtype=F.dtype, device=F.device) for _ in range(2))
+        v_mu, v_lam = _lame_grads(F)
         if n:
             _launch(k.corotated_adjoint, n, F.device,
                     [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _a(mu), _a(lam), ctx.per, _m(v_tau, k),
                      k.T(default_eps(F.dtype)), _m(v_F, k), _a(v_mu), _a(v_lam)])
-        if not ctx.per:  # one modulus for every particle: the sum of the particles' shares
-            v_mu, v_lam = v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
-        return v_F, v_mu, v_lam
+        return (v_F, *_lame_out(ctx.per, v_mu, v_lam))
 
 
 def corotated_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
@@ -376,14 +403,7 @@ def corotated_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor) -> torch
     Adjoint: with G = v_tau, v_F = 2 mu ((G + G^T) F - G^T R) + lam (2J - 1) tr(G) cof(F) + polar_vjp(-2 mu G F),
     v_mu = 2 <G, (F - R) F^T>, v_lam = tr(G) J (J - 1).
     """
-    if F.dtype not in WARP_FLOATS:
-        raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
-    n = F.shape[0]
-    mu_v, lam_v = mu.reshape(-1).to(F.dtype), lam.reshape(-1).to(F.dtype)
-    if mu_v.shape[0] != lam_v.shape[0] or mu_v.shape[0] not in (1, n):
-        raise ValueError(f"{_WHERE}: corotated_tau: mu and lam must both be scalars or both of shape [N={n}], got "
-                         f"{tuple(mu.shape)} and {tuple(lam.shape)}")
-    return _Corotated.apply(F, mu_v, lam_v)
+    return _Corotated.apply(F, *_lame("corotated_tau", F, mu, lam))
 
 
 class _NeoHookean(torch.autograd.Function):
@@ -395,7 +415,7 @@ class _NeoHookean(torch.autograd.Function):
         mu, lam = mu.detach().contiguous(), lam.detach().contiguous()
         k = make_law_kernels(F.dtype)
         tau = torch.empty_like(F)
-        per = int(mu.shape[0] != 1)  # [N] moduli (N = 0 included) or one for all
+        per = _per(mu)
         if F.shape[0]:
             _launch(k.neo_hookean, F.shape[0], F.device, [_m(F, k), _a(mu), _a(lam), per, k.T(j_min), _m(tau, k)])
         ctx.save_for_backward(F, mu, lam)
@@ -409,14 +429,12 @@ class _NeoHookean(torch.autograd.Function):
         k = make_law_kernels(F.dtype)
         n = F.shape[0]
         v_F = torch.empty_like(F)
-        v_mu, v_lam = (torch.zeros(n, dtype=F.dtype, device=F.device) for _ in range(2))
+        v_mu, v_lam = _lame_grads(F)
         if n:
             _launch(k.neo_hookean_adjoint, n, F.device,
                     [_m(F, k), _a(mu), _a(lam), ctx.per, k.T(ctx.j_min), _m(v_tau, k), _m(v_F, k), _a(v_mu),
                      _a(v_lam)])
-        if not ctx.per:  # one modulus for every particle: the sum of the particles' shares
-            v_mu, v_lam = v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
-        return v_F, v_mu, v_lam, None
+        return (v_F, *_lame_out(ctx.per, v_mu, v_lam), None)
 
 
 def neo_hookean_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, j_min: float) -> torch.Tensor:
@@ -434,14 +452,7 @@ def neo_hookean_tau(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, j_min:
     Adjoint: with G = v_tau, v_F = mu (G + G^T) F + lam tr(G) cof(F) / J (J >= j_min), v_mu = <G, F F^T - I>,
     v_lam = tr(G) log(max(J, j_min)).
     """
-    if F.dtype not in WARP_FLOATS:
-        raise TypeError(f"{_WHERE}: F must be float32 or float64, got {F.dtype}")
-    n = F.shape[0]
-    mu_v, lam_v = mu.reshape(-1).to(F.dtype), lam.reshape(-1).to(F.dtype)
-    if mu_v.shape[0] != lam_v.shape[0] or mu_v.shape[0] not in (1, n):
-        raise ValueError(f"{_WHERE}: neo_hookean_tau: mu and lam must both be scalars or both of shape [N={n}], got "
-                         f"{tuple(mu.shape)} and {tuple(lam.shape)}")
-    return _NeoHookean.apply(F, mu_v, lam_v, float(j_min))
+    return _NeoHookean.apply(F, *_lame("neo_hookean_tau", F, mu, lam), float(j_min))
 
 
 def features(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
