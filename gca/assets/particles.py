@@ -268,6 +268,11 @@ def _band_solid(means: np.ndarray, R: np.ndarray, sigmas: np.ndarray, alphas: np
     return points, solid, depth, b
 
 
+def _band_volume(solid: np.ndarray, depth: np.ndarray, b: float, g: float) -> float:
+    """The enclosed volume [sim m^3]: the solid's cells counted fractionally around the surface depth ``b`` [cells]."""
+    return float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * g**3
+
+
 def _encloses(depth: np.ndarray, b: float) -> bool:
     """Whether the solid has a core deeper than its surface band (else the flood fill leaked, or the lattice is too
     coarse for the object's thickness)."""
@@ -286,9 +291,9 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
     Where the particle lattice (``cfg.spacing`` = h) is too coarse for the object's thickness (the band, a cell or
     two deep from each side, leaves no core), the band is analysed again on a finer lattice h / k (k in
     :data:`REFINE`, while h / k is no finer than the Gaussians' median nearest-neighbour distance: finer, the band
-    has gaps, a leak no refinement seals): the particles are then the h-lattice points whose depth, interpolated from the fine lattice, is
-    at least ``b``, and the volume is the fine lattice's. An object that encloses a core at h takes the h lattice
-    alone (unchanged results).
+    has gaps, a leak no refinement seals): the particles are then the h-lattice points whose depth, interpolated
+    from the fine lattice, is at least ``b``, and the volume is the fine lattice's. An object that encloses a core
+    at h takes the h lattice alone (unchanged results).
 
     Returns:
         (points [P, 3], volume estimate [sim m^3]).
@@ -296,8 +301,7 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
     h = cfg.spacing
     points, solid, depth, b = _band_solid(means, R, sigmas, alphas, cfg, h, 3)
     if _encloses(depth, b):
-        volume = float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * h**3
-        return points[(depth >= b).reshape(-1) & solid.reshape(-1)], volume
+        return points[(depth >= b).reshape(-1) & solid.reshape(-1)], _band_volume(solid, depth, b, h)
     coarse = (depth.max(), b)
     gap = float(np.median(cKDTree(means).query(means, k=2)[0][:, 1]))  # the Gaussians' typical spacing [sim m]
     for k in REFINE:
@@ -309,14 +313,13 @@ def sample_gaussian_interior(means: np.ndarray, R: np.ndarray, sigmas: np.ndarra
         except LatticeTooLarge:
             break
         if _encloses(depth, b):
-            volume = float(np.clip(depth - b + 0.5, 0.0, 1.0)[solid].sum()) * g**3
             d = ndi.map_coordinates(depth, ((points - fine[0]) / g).T, order=1, cval=0.0)  # depth at the h points
-            return points[d >= b], volume
+            return points[d >= b], _band_volume(solid, depth, b, g)
     finer = f"; none on lattices down to h/{max(REFINE)} either" if REFINE else ""
     raise ValueError(f"gca/assets/particles.py: the Gaussians' surface band did not enclose a volume (max depth "
-                     f"{coarse[0]:.1f} cells, surface depth {coarse[1]:.1f}{finer}): spacing {h:.4g} sim m is too fine for the Gaussian density (raise "
-                     f"particles.spacing), or density_threshold {cfg.density_threshold} too high (lower it); a thin "
-                     f"or open scan may need its mesh")
+                     f"{coarse[0]:.1f} cells, surface depth {coarse[1]:.1f}{finer}): spacing {h:.4g} sim m is too fine "
+                     f"for the Gaussian density (raise particles.spacing), or density_threshold "
+                     f"{cfg.density_threshold} too high (lower it); a thin or open scan may need its mesh")
 
 
 # ----------------------------------------------------------------------------- binding

@@ -352,7 +352,8 @@ def _lame_grads(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _lame_out(per: int, v_mu: torch.Tensor, v_lam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The moduli's gradients in their own shape: one modulus for every particle takes the particles' summed shares."""
+    """The moduli's gradients in their own shape: one modulus for every particle takes the particles' summed
+    shares."""
     if per:
         return v_mu, v_lam
     return v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
