@@ -165,14 +165,18 @@ def initial_state(n: int, n_grid: int, dt: float, device: torch.device, v_drop: 
 # -- ours ----------------------------------------------------------------------------------------
 
 
-def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solver_cache: dict):
-    """Final positions after ``steps`` steps, and a closure that re-runs them (for timing)."""
+def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solver_cache: dict, fuse: bool = True):
+    """Final positions after ``steps`` steps, and a closure that re-runs them (for timing). ``fuse``: graphed frames
+    take the fused analytic step (``MPMSolver.step_fused``, the default); False: the generic step (law, then
+    transfers; the default before session 30)."""
     cfg, x0, v0, C0, F0, vol, mass, _ = state
-    if "solver" not in solver_cache:
-        solver_cache["solver"] = MPMSolver(cfg, device)
-        solver_cache["material"] = Material(CorotatedElasticity(E, NU), IdentityPlasticity(), RHO).to(
+    key = "solver" if fuse else "solver_generic"
+    if key not in solver_cache:
+        solver_cache[key] = MPMSolver(cfg, device)
+        solver_cache[key].fuse_analytic = fuse
+        solver_cache[key + "_material"] = Material(CorotatedElasticity(E, NU), IdentityPlasticity(), RHO).to(
             device=device, dtype=cfg.torch_dtype)
-    solver, material = solver_cache["solver"], solver_cache["material"]
+    solver, material = solver_cache[key], solver_cache[key + "_material"]
     runner = None
     if graph:
         if steps % steps_per_frame:
@@ -259,12 +263,14 @@ def measure(mod, n, n_grid, args, device) -> dict:
     row = {"particles": int(x0.shape[0]), "n_grid": n_grid, "steps": args.steps, "dt": args.dt, "block_side": side,
            "ms_per_step": {}, "final_x": {}}
     cache: dict = {}
-    variants = ["ours", "ours_graph", "theirs", "theirs_nosync"] + (["theirs_graph"] if device.type == "cuda" else [])
+    variants = ["ours", "ours_graph_generic", "ours_graph", "theirs", "theirs_nosync"] + \
+        (["theirs_graph"] if device.type == "cuda" else [])
     finals = {}
     for name in variants:
         try:
             if name.startswith("ours"):
-                go, info = run_ours(state, args.steps, device, name == "ours_graph", args.steps_per_frame, cache)
+                go, info = run_ours(state, args.steps, device, name != "ours", args.steps_per_frame, cache,
+                                    fuse=name != "ours_graph_generic")
                 finals[name] = go()  # warm-up + trajectory
                 best = float("inf")
                 for _ in range(args.repeats):
@@ -273,8 +279,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
                     go()
                     _sync(device)
                     best = min(best, time.perf_counter() - t0)
-                if name == "ours_graph":
-                    row["ours_graph_captured"] = info["captured"]
+                if name != "ours":
+                    row[f"{name}_captured"] = info["captured"]
             else:
                 go = run_theirs(mod, state, args.steps, device, name)
                 finals[name], _ = go()  # warm-up + trajectory
@@ -291,6 +297,7 @@ def measure(mod, n, n_grid, args, device) -> dict:
         return {"max": float(d.max()), "mean": float(d.mean())}
 
     row["trajectory"] = {"ours_vs_theirs": diff("ours", "theirs"), "ours_vs_ours_graph": diff("ours", "ours_graph"),
+                         "ours_graph_vs_ours_graph_generic": diff("ours_graph", "ours_graph_generic"),
                          "theirs_vs_theirs_nosync": diff("theirs", "theirs_nosync"),
                          "theirs_vs_theirs_graph": diff("theirs", "theirs_graph")}
     if "ours" in finals:
@@ -307,7 +314,7 @@ def measure(mod, n, n_grid, args, device) -> dict:
 
 
 def _table(results: dict) -> str:
-    names = ["ours", "ours_graph", "theirs", "theirs_nosync", "theirs_graph"]
+    names = ["ours", "ours_graph_generic", "ours_graph", "theirs", "theirs_nosync", "theirs_graph"]
     lines = ["| particles | grid | " + " | ".join(f"{k} ms/step" for k in names)
              + " | speed-up (ours_graph / best theirs) | max / mean |dx| ours vs theirs (block sides) | mean displacement |",
              "|" + " --- |" * (len(names) + 5)]

@@ -108,16 +108,20 @@ class FixedStress(Elasticity):
 
 
 def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str, repeats: int = 3,
-               law: str = "none", graph: bool = False, steps_per_frame: int = 10, order: str = "random") -> dict:
+               law: str = "none", graph: bool = False, steps_per_frame: int = 10, order: str = "random",
+               fuse: bool = True) -> dict:
     """Forward and forward+backward particle-steps per second (best of ``repeats``).
 
     ``law="none"``: the bare step with a fixed stress; otherwise the law is evaluated every step
     (tau = elasticity(F) before, F = plasticity(F_trial) after), as in training. ``graph``: frames
     of ``steps_per_frame`` steps replayed through ``gca.sim.graph`` (CUDA graphs; forward and the
-    recompute-backward), as a rollout does on a GPU; otherwise the steps are launched one by one.
+    recompute-backward), as a rollout does on a GPU; otherwise the steps are launched one by one. ``fuse``: graphed
+    forward frames of an analytic law take the fused step (``MPMSolver.step_fused``, the default); False: the
+    generic step (the law's kernels, then the transfers).
     """
     cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
+    solver.fuse_analytic = fuse
     x, v, C, F, tau, vol, mass = _state(n, cfg, device, order)
     n = x.shape[0]
     if law == "none":
@@ -145,7 +149,7 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
             (xs.sum() + vs.sum() + Fs.sum()).backward()
         _sync(device)
 
-    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law, "graph": graph, "order": order,
+    result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law, "graph": graph, "order": order, "fuse": fuse,
               "captured": bool(runner is not None and runner.capture)}
     for name, grad in (("fwd", False), ("fwd_bwd", True)):
         with torch.set_grad_enabled(grad):
@@ -214,16 +218,19 @@ def _parse(argv=None):
     p.add_argument("--graph", nargs="+", default=["off"], choices=["off", "on"],
                    help="step launches one by one (off) and/or frames replayed from CUDA graphs (on)")
     p.add_argument("--json", default=None, help="output path (default benchmarks/results/sim_<device>.json)")
+    p.add_argument("--fuse", nargs="+", default=["on"], choices=["on", "off"],
+                   help="graphed forward frames of an analytic law: fused step (on) and/or generic step (off)")
     p.add_argument("--order", nargs="+", default=["random"], choices=["random", "lattice"],
                    help="particle orders of the block (throughput rows; each one side by side)")
     return p.parse_args(argv)
 
 
 def _table(results: dict) -> str:
-    lines = ["| law | graph | order | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| law | graph | fuse | order | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | "
+             "fwd+bwd Mparticle-steps/s |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results["throughput"]:
-        lines.append(f"| {r['law']} | {'on' if r.get('captured') else 'twin' if r.get('graph') else 'off'} | {r.get('order', 'random')} | "
+        lines.append(f"| {r['law']} | {'on' if r.get('captured') else 'twin' if r.get('graph') else 'off'} | "
+                     f"{'on' if r.get('fuse', True) else 'off'} | {r.get('order', 'random')} | "
                      f"{r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
                      f"{r['fwd_particle_steps_per_s'] / 1e6:.3f} | {r['fwd_bwd_ms_per_step']:.2f} | "
                      f"{r['fwd_bwd_particle_steps_per_s'] / 1e6:.3f} |")
@@ -247,9 +254,11 @@ def main(argv=None) -> dict:
             for graph in graphs:  # side by side in one run
                 n, n_grid = (int(s) for s in spec.split(":"))
                 for order in args.order:
-                    results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype, args.repeats,
-                                                            law, graph, args.steps_per_frame, order))
-                print(results["throughput"][-1], flush=True)
+                    for fuse in [f == "on" for f in args.fuse]:
+                        results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype,
+                                                                args.repeats, law, graph, args.steps_per_frame, order,
+                                                                fuse))
+                        print(results["throughput"][-1], flush=True)
     if not args.skip_rollout:
         for checkpoint in (True, False) if args.no_checkpoint else (True,):
             for graph in graphs:

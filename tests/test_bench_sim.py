@@ -47,3 +47,12 @@ def test_bench_runs_times_sequential_and_batched_rollouts_on_the_cpu():
     for row in rows:
         assert row["runs"] == 2 and row["particles_per_run"] == 216  # 6^3 lattice
         assert row["sequential_s"] > 0 and row["batched_s"] > 0 and row["speedup"] > 0
+
+
+def test_bench_sim_times_the_fused_and_the_generic_analytic_step_side_by_side(tmp_path):
+    res = _load("bench_sim").main(["--device", "cpu", "--sizes", "500:16", "--steps", "10", "--repeats", "1",
+                                   "--law", "neo_hookean", "--graph", "on", "--fuse", "on", "off", "--order",
+                                   "lattice", "--skip-rollout", "--json", str(tmp_path / "sim.json")])
+    rows = res["throughput"]
+    assert [r["fuse"] for r in rows] == [True, False]
+    assert all(r["fwd_ms_per_step"] > 0 and r["fwd_bwd_ms_per_step"] > 0 for r in rows)

@@ -72,6 +72,11 @@ class Elasticity(nn.Module):
         """Largest P-wave speed sqrt((lam + 2 mu) / rho) [m/s] (for the CFL check)."""
         raise NotImplementedError(f"gca/laws/base.py: {type(self).__name__} does not define wave_speed(rho)")
 
+    def analytic_stress(self, F: torch.Tensor):
+        """This law as a :class:`gca.laws.fused.AnalyticStress` that a transfer kernel can evaluate inline (forward
+        only), or None (the default: neural and torch-only laws, or the fast path off)."""
+        return None
+
 
 class Plasticity(nn.Module):
     """Plastic return map: trial F [N,3,3] -> elastic F_e [N,3,3]."""

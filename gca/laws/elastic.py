@@ -131,6 +131,10 @@ class CorotatedElasticity(YoungPoisson, Elasticity):
             return fused.corotated_tau(F, self.mu, self.lam)
         return corotated_tau(F, self.mu, self.lam)
 
+    def analytic_stress(self, F: torch.Tensor):
+        """The law for a fused transfer (:func:`gca.laws.fused.analytic`), or None where the fast path is off."""
+        return fused.analytic("corotated", F, self.mu, self.lam) if self.fast_path and warp_runs(F) else None
+
 
 class StVKElasticity(YoungPoisson, Elasticity):
     """St. Venant-Kirchhoff elasticity (see :func:`stvk_tau`) with learnable log_E, fixed nu."""

@@ -24,6 +24,7 @@ with float64 gradient checks and against the torch implementation.
 """
 
 # no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
+import dataclasses
 import functools
 import types
 
@@ -32,11 +33,13 @@ import warp as wp
 from torch.autograd.function import once_differentiable
 
 from gca.laws.svd import _svd_rotations, default_eps
-from gca.laws.svd_kernel import WARP_FLOATS
+from gca.laws.svd_kernel import WARP_FLOATS, make_svd_kernel
 from gca.warp_stream import on_torch_stream
 
 _WHERE = "gca/laws/fused.py"
 N_FEATURES = 13
+COROTATED, NEO_HOOKEAN = 0, 1  # analytic laws a transfer kernel can evaluate inline (``analytic_stress``)
+ANALYTIC_KINDS = {"corotated": COROTATED, "neo_hookean": NEO_HOOKEAN}
 
 
 @functools.cache
@@ -157,14 +160,17 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
                     K[i, j] = (X[i, j] - X[j, i]) * safe_recip(sv[i] + sv[j], eps)
         return u @ K @ vh
 
+    @wp.func
+    def corotated_stress(f: mat33, R: mat33, mu: T, lam: T):
+        """tau = 2 mu (F - R) F^T + lam J (J - 1) I of one particle, R = U Vh its polar rotation."""
+        J = wp.determinant(f)
+        return (T(2.0) * mu) * (f - R) @ wp.transpose(f) + (lam * J * (J - T(1.0))) * wp.identity(3, dtype=T)
+
     @wp.kernel(module=module)
     def corotated(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), Vh: wp.array(dtype=mat33),
                   mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int, tau: wp.array(dtype=mat33)):
         p = wp.tid()
-        f = F[p]
-        J = wp.determinant(f)
-        tau[p] = (T(2.0) * mu[p * per]) * (f - U[p] @ Vh[p]) @ wp.transpose(f) + \
-            (lam[p * per] * J * (J - T(1.0))) * wp.identity(3, dtype=T)
+        tau[p] = corotated_stress(F[p], U[p] @ Vh[p], mu[p * per], lam[p * per])
 
     @wp.kernel(module=module)
     def corotated_adjoint(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
@@ -189,14 +195,29 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         v_mu[p] = T(2.0) * acc
         v_lam[p] = trG * J * (J - T(1.0))
 
+    @wp.func
+    def neo_hookean_stress(f: mat33, mu: T, lam: T, j_min: T):
+        """tau = mu (F F^T - I) + lam log(max(J, j_min)) I of one particle."""
+        log_J = wp.log(wp.max(wp.determinant(f), j_min))
+        eye = wp.identity(3, dtype=T)
+        return mu * (f @ wp.transpose(f) - eye) + (lam * log_J) * eye
+
+    svd3 = make_svd_kernel(dtype).svd3
+
+    @wp.func
+    def analytic_stress(kind: int, f: mat33, mu: T, lam: T, j_min: T):
+        """Kirchhoff stress of the analytic law ``kind`` (:data:`ANALYTIC_KINDS`) of one particle, the SVD inlined:
+        the same functions as the laws' kernels, for kernels that fuse the stress into a transfer."""
+        if kind == COROTATED:
+            U, s, Vh = svd3(f)
+            return corotated_stress(f, U @ Vh, mu, lam)
+        return neo_hookean_stress(f, mu, lam, j_min)
+
     @wp.kernel(module=module)
     def neo_hookean(F: wp.array(dtype=mat33), mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int, j_min: T,
                     tau: wp.array(dtype=mat33)):
         p = wp.tid()
-        f = F[p]
-        log_J = wp.log(wp.max(wp.determinant(f), j_min))
-        eye = wp.identity(3, dtype=T)
-        tau[p] = mu[p * per] * (f @ wp.transpose(f) - eye) + (lam[p * per] * log_J) * eye
+        tau[p] = neo_hookean_stress(F[p], mu[p * per], lam[p * per], j_min)
 
     @wp.kernel(module=module)
     def neo_hookean_adjoint(F: wp.array(dtype=mat33), mu: wp.array(dtype=T), lam: wp.array(dtype=T), per: int,
@@ -223,7 +244,8 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
                                  corotated=corotated, corotated_adjoint=corotated_adjoint,
                                  neo_hookean=neo_hookean, neo_hookean_adjoint=neo_hookean_adjoint,
                                  elastic_head_adjoint=elastic_head_adjoint, plastic_head=plastic_head,
-                                 plastic_head_adjoint=plastic_head_adjoint, mat33=mat33, vec3=vec3, T=T)
+                                 plastic_head_adjoint=plastic_head_adjoint, analytic_stress=analytic_stress,
+                                 mat33=mat33, vec3=vec3, T=T)
 
 
 def _launch(kernel, n: int, device: torch.device, args: list) -> None:
@@ -357,6 +379,35 @@ def _lame_out(per: int, v_mu: torch.Tensor, v_lam: torch.Tensor) -> tuple[torch.
     if per:
         return v_mu, v_lam
     return v_mu.sum(0, keepdim=True), v_lam.sum(0, keepdim=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class AnalyticStress:
+    """An analytic elastic law in the form a transfer kernel evaluates inline (``analytic_stress`` of
+    :func:`make_law_kernels`; ``gca.sim.fused_step`` puts it inside P2G).
+
+    Attributes:
+        kind: :data:`COROTATED` or :data:`NEO_HOOKEAN`.
+        mu, lam: Lame parameters [Pa], [1] (every particle) or [N], F's dtype, contiguous.
+        j_min: lower clamp of J inside the neo-Hookean log [1] (unused by the corotated law).
+    """
+
+    kind: int
+    mu: torch.Tensor
+    lam: torch.Tensor
+    j_min: float = 0.0
+
+    @property
+    def per(self) -> int:
+        """1 for [N] moduli, 0 for one pair for every particle (the kernels index ``mu[p * per]``)."""
+        return _per(self.mu)
+
+
+def analytic(name: str, F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, j_min: float = 0.0) -> AnalyticStress:
+    """The :class:`AnalyticStress` of law ``name`` (a key of :data:`ANALYTIC_KINDS`) for F [N,3,3], moduli checked
+    and detached (no autograd: the fused transfer is forward only)."""
+    mu_v, lam_v = _lame(f"{name} (fused)", F, mu.detach(), lam.detach())
+    return AnalyticStress(ANALYTIC_KINDS[name], mu_v.contiguous(), lam_v.contiguous(), float(j_min))
 
 
 class _Corotated(torch.autograd.Function):

@@ -109,6 +109,10 @@ class NeoHookeanElasticity(YoungPoisson, Elasticity):
             return fused.neo_hookean_tau(F, self.mu, self.lam, J_MIN)
         return neo_hookean_tau(F, self.mu, self.lam)
 
+    def analytic_stress(self, F: torch.Tensor):
+        """The law for a fused transfer (:func:`gca.laws.fused.analytic`), or None where the fast path is off."""
+        return fused.analytic("neo_hookean", F, self.mu, self.lam, J_MIN) if self.fast_path and warp_runs(F) else None
+
 
 class ViscoplasticPlasticity(YoungPoisson, Plasticity):
     """Herschel-Bulkley viscoplastic flow (see :func:`viscoplastic_plastic`); ground truth only.

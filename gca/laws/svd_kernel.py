@@ -100,11 +100,11 @@ def make_svd_kernel(dtype: torch.dtype) -> types.SimpleNamespace:
             return a / n
         return fallback
 
-    @wp.kernel(module=module)
-    def svd3_kernel(F: wp.array(dtype=mat33), U_out: wp.array(dtype=mat33), s_out: wp.array(dtype=vec3),
-                    Vh_out: wp.array(dtype=mat33)):
-        p = wp.tid()
-        B = F[p]
+    @wp.func
+    def svd3_func(f: mat33):
+        """(U, sigma, Vh) of one matrix in the sign-fixed convention; inlined by :func:`svd3_kernel` and by kernels
+        that need the rotation of F without a pass through memory (``gca.sim.fused_step``)."""
+        B = f
         V = wp.identity(n=3, dtype=T)
         for _sweep in range(MAX_SWEEPS):
             B, V, r01 = jacobi_rotate(0, 1, B, V)
@@ -124,11 +124,18 @@ def make_svd_kernel(dtype: torch.dtype) -> types.SimpleNamespace:
             e = vec3(T(1.0), T(0.0), T(0.0))
         u1 = unit_or(b1, wp.normalize(e - wp.dot(e, u0) * u0))
         u2 = wp.cross(u0, u1)
-        U_out[p] = wp.matrix_from_cols(u0, u1, u2)
-        s_out[p] = vec3(wp.length(b0), wp.length(b1), wp.dot(b2, u2))
-        Vh_out[p] = wp.transpose(V)
+        return wp.matrix_from_cols(u0, u1, u2), vec3(wp.length(b0), wp.length(b1), wp.dot(b2, u2)), wp.transpose(V)
 
-    return types.SimpleNamespace(kernel=svd3_kernel, vec3=vec3, mat33=mat33)
+    @wp.kernel(module=module)
+    def svd3_kernel(F: wp.array(dtype=mat33), U_out: wp.array(dtype=mat33), s_out: wp.array(dtype=vec3),
+                    Vh_out: wp.array(dtype=mat33)):
+        p = wp.tid()
+        U, s, Vh = svd3_func(F[p])
+        U_out[p] = U
+        s_out[p] = s
+        Vh_out[p] = Vh
+
+    return types.SimpleNamespace(kernel=svd3_kernel, svd3=svd3_func, vec3=vec3, mat33=mat33)
 
 
 def svd3(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -8,6 +8,9 @@ The lowest module of ``gca.sim`` above the kernels: ``graph`` replays these step
 
 from __future__ import annotations
 
+import torch
+
+from gca.laws.base import Material
 from gca.laws.lora import merged_weights
 
 
@@ -33,9 +36,27 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
     not once per step: same values and gradients, ~60 fewer small kernels per step forward and backward.
     """
     F_trial = F
+    law = fused_law(solver, material, x, v, C, F)
     with merged_weights(material):
         for _ in range(n_steps):
-            tau = material.stress(F)
-            x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
+            if law is not None:
+                x, v, C, F_trial = solver.step_fused(x, v, C, F, law, vol, mass)
+            else:
+                tau = material.stress(F)
+                x, v, C, F_trial = solver.step(x, v, C, F, tau, vol, mass)
             F = material.project(F_trial)
     return x, v, C, F, F_trial
+
+
+def fused_law(solver, material, x, v, C, F):
+    """The material's elastic law for :meth:`gca.sim.solver.MPMSolver.step_fused` (its stress inside P2G), formed
+    once for the frame; None where a frame must take the generic step: the solver's ``fuse_analytic`` off, a law
+    with no analytic form (neural, composite, torch-only), a material whose ``stress`` is not its elasticity's, or a
+    gradient asked for (the state or a parameter of the material requires one while autograd records).
+    """
+    if not getattr(solver, "fuse_analytic", False) or getattr(type(material), "stress", None) is not Material.stress:
+        return None
+    if torch.is_grad_enabled() and (any(t.requires_grad for t in (x, v, C, F))
+                                    or any(p.requires_grad for p in material.parameters())):
+        return None
+    return material.elasticity.analytic_stress(F)

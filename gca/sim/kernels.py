@@ -94,8 +94,28 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         G = n_grid + 1 + 2 * PAD
         return wp.clamp(run[p], 0, n_first // G - 1) * G
 
+    @wp.func
+    def scatter(x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int, dt: T, inv_dx: T,
+                n_grid: int, grid_mv: wp.array3d(dtype=vec3), grid_m: wp.array3d(dtype=T)):
+        """P2G of one particle (Kirchhoff stress ``tau_p``) onto its 27 nodes of the grid at offset ``off``: forward
+        only (``gca.sim.fused_step``)."""
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        affine = (-dt * vol_p * T(4.0) * inv_dx * inv_dx) * tau_p + m_p * C_p
+        mv_p = m_p * v_p
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    I = base[0] + i + PAD + off
+                    J = base[1] + j + PAD
+                    K = base[2] + k + PAD
+                    wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
+                    wp.atomic_add(grid_m, I, J, K, w * m_p)
+
     @wp.kernel(module=module)
-    def p2g(
+    def p2g(  # the loop of `scatter` written out: warp's adjoint of atomic adds inside a func (into its array
+        # arguments) is not reentrant (the step's float64 gradcheck fails), and this kernel's adjoint is the step's
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
         C: wp.array(dtype=mat33),
@@ -182,6 +202,27 @@ def make_kernels(T: type) -> types.SimpleNamespace:
             return vec3(T(0.0))
         return vt * (T(1.0) - mu_b * vn / wp.sqrt(vt2))
 
+    @wp.func
+    def node_velocity(mv: vec3, m: T, s0: int, s1: int, s2: int, gravity: vec3, dt: T, eps: T, m_min: T, n_grid: int,
+                      bound: int, kind: int, mu_b: T):
+        """Velocity of the stored node (s0, s1, s2) from its momentum and mass, gravity and the walls."""
+        # empty node, or one whose mass comes from B-spline weights so small that the adjoint of
+        # mv / m (ret / m, i.e. v / m) overflows float32 to inf and turns the gradients NaN
+        if m <= m_min:
+            return vec3(T(0.0))
+        v = mv / (m + eps) + dt * gravity
+        I = s0 % (n_grid + 1 + 2 * PAD) - PAD  # the node's index within its run's grid
+        J = s1 - PAD
+        K = s2 - PAD
+        hi = n_grid - bound
+        v = wall(v, vec3(T(-1.0), T(0.0), T(0.0)), int(I < bound), kind, mu_b)
+        v = wall(v, vec3(T(1.0), T(0.0), T(0.0)), int(I > hi), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(-1.0), T(0.0)), int(J < bound), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(1.0), T(0.0)), int(J > hi), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(0.0), T(-1.0)), int(K < bound), kind, mu_b)
+        v = wall(v, vec3(T(0.0), T(0.0), T(1.0)), int(K > hi), kind, mu_b)
+        return v
+
     @wp.kernel(module=module)
     def grid_update(
         grid_mv: wp.array3d(dtype=vec3),
@@ -197,24 +238,8 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         grid_v: wp.array3d(dtype=vec3),
     ):
         s0, s1, s2 = wp.tid()
-        m = grid_m[s0, s1, s2]
-        # empty node, or one whose mass comes from B-spline weights so small that the adjoint of
-        # mv / m (ret / m, i.e. v / m) overflows float32 to inf and turns the gradients NaN
-        if m <= m_min:
-            grid_v[s0, s1, s2] = vec3(T(0.0))
-            return
-        v = grid_mv[s0, s1, s2] / (m + eps) + dt * gravity
-        I = s0 % (n_grid + 1 + 2 * PAD) - PAD  # the node's index within its run's grid
-        J = s1 - PAD
-        K = s2 - PAD
-        hi = n_grid - bound
-        v = wall(v, vec3(T(-1.0), T(0.0), T(0.0)), int(I < bound), kind, mu_b)
-        v = wall(v, vec3(T(1.0), T(0.0), T(0.0)), int(I > hi), kind, mu_b)
-        v = wall(v, vec3(T(0.0), T(-1.0), T(0.0)), int(J < bound), kind, mu_b)
-        v = wall(v, vec3(T(0.0), T(1.0), T(0.0)), int(J > hi), kind, mu_b)
-        v = wall(v, vec3(T(0.0), T(0.0), T(-1.0)), int(K < bound), kind, mu_b)
-        v = wall(v, vec3(T(0.0), T(0.0), T(1.0)), int(K > hi), kind, mu_b)
-        grid_v[s0, s1, s2] = v
+        grid_v[s0, s1, s2] = node_velocity(grid_mv[s0, s1, s2], grid_m[s0, s1, s2], s0, s1, s2, gravity, dt, eps,
+                                           m_min, n_grid, bound, kind, mu_b)
 
     @wp.kernel(module=module)
     def g2p(
@@ -252,7 +277,8 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         F_out[p] = (wp.identity(3, dtype=T) + dt * C_new) @ F[p]
         x_out[p] = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
 
-    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T)
+    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T,
+                                 scatter=scatter, run_offset=run_offset, node_velocity=node_velocity, module=module)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

@@ -30,6 +30,7 @@ import torch
 import warp as wp
 from torch.autograd.function import once_differentiable
 
+from gca.sim.fused_step import make_fused_step_kernels
 from gca.sim.graph import FrameGraphs, GraphCache
 from gca.sim.kernels import BOUNDARY_KINDS, KERNELS, PAD, grid_size
 from gca.warp_stream import on_torch_stream as _stream
@@ -116,6 +117,9 @@ class MPMSolver:
     # H100 (benchmarks/bench_p2g.py, NOTES session 13) it is faster only for particles in random order (30k: 60 vs
     # 82 us) and 2x slower for the lattice-ordered particles the pipeline samples (70 vs 35 us); ~7x slower on a CPU
     split_p2g: bool = False
+    # steps of an analytic law (gca.laws.fused.AnalyticStress) where no gradient is asked for go through
+    # :meth:`step_fused` (gca.sim.fused_step: the stress inside P2G, three kernels); False: the generic step
+    fuse_analytic: bool = True
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -127,6 +131,7 @@ class MPMSolver:
         self.k = KERNELS[cfg.dtype]
         self.dtype = cfg.torch_dtype
         self._grids: dict[tuple, tuple] = {}
+        self._zero_grids: dict[int, tuple] = {}
         self._zero_runs: dict[int, torch.Tensor] = {}
         self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
@@ -138,6 +143,7 @@ class MPMSolver:
             return self
         if k not in self._refined:
             fine = MPMSolver(dataclasses.replace(self.cfg, dt=self.cfg.dt / k, max_refine=1), self.device)
+            fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
             self._refined[k] = fine if self._batch is None else fine.with_runs(*self._batch)
         return self._refined[k]
 
@@ -182,6 +188,48 @@ class MPMSolver:
         run = self._runs(run, x.shape[0], n_runs)
         keep = self.keep_grid and torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, tau))
         return _MPMStep.apply(self, keep, n_runs, run, x, v, C, F, tau, vol, mass)
+
+    def step_fused(self, x, v, C, F, law, vol, mass, run=None, n_runs: int = 1):
+        """:meth:`step` with the analytic law ``law`` evaluated inside P2G (``gca.sim.fused_step``), forward only.
+
+        Args:
+            x, v, C, F, vol, mass, run, n_runs: as in :meth:`step` (none of x, v, C, F may require a gradient
+                while autograd records: this step has no backward).
+            law: a :class:`gca.laws.fused.AnalyticStress` in the solver's dtype and device, moduli [1] or [N].
+
+        Returns:
+            ``(x', v', C', F_trial)`` as :meth:`step` with ``tau = law(F)``; equal to it to rounding (tested).
+        """
+        if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F)):
+            raise ValueError(f"{_WHERE}: step_fused has no backward; x, v, C or F requires a gradient (use step)")
+        self._check(x, v, C, F, F, vol, mass)
+        n = x.shape[0]
+        for name, t in (("mu", law.mu), ("lam", law.lam)):
+            if t.dim() != 1 or t.shape[0] not in (1, n) or t.dtype != self.dtype or t.device.type != self.device.type:
+                raise ValueError(f"{_WHERE}: step_fused: {name} must be {self.dtype} of shape [1] or [{n}] on "
+                                 f"{self.device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+        if run is None and self._batch is not None:
+            run, n_runs = self._batch
+        run = self._runs(run, n, n_runs)
+        cfg, k = self.cfg, make_fused_step_kernels(self.dtype)
+        outs = [torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F)]
+        with torch.no_grad(), _stream(self.device):
+            wx, wv, wC, wF, _, wvol, wmass = self._wrap(x, v, C, F, F, vol, mass)
+            wrun = wp.from_torch(run, dtype=wp.int32)
+            mv, m, gv = self._zeroed_grid(n_runs)
+            wouts = [wp.from_torch(o, dtype=ty, requires_grad=False)
+                     for o, ty in zip(outs, (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33))]
+            lo, hi = cfg.clamp_range
+            inv_dx, T = 1.0 / cfg.dx, self.k.T
+            wp.launch(k.p2g_stress, dim=n, device=self.wp_device,
+                      inputs=[wx, wv, wC, wF, law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T),
+                              law.per, law.j_min, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
+            wp.launch(k.grid_update_zero, dim=mv.shape, device=self.wp_device,
+                      inputs=[mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid,
+                              cfg.bound, BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv])
+            wp.launch(k.g2p, dim=n, device=self.wp_device,
+                      inputs=[wx, wF, wrun, gv, cfg.dt, inv_dx, cfg.n_grid, lo, hi, *wouts])
+        return tuple(outs)
 
     def grid(self, x, v, C, tau, vol, mass):
         """P2G only (diagnostics and tests): node masses and momenta of the padded grid.
@@ -251,6 +299,15 @@ class MPMSolver:
             if requires_grad:
                 a.grad.zero_()
         return self._grids[key]
+
+    def _zeroed_grid(self, n_runs: int):
+        """Grid buffers (mv, m, v) of ``n_runs`` stacked grids for :meth:`step_fused`: mv and m are zero when made
+        and its grid update leaves them zero, so no step zeroes them (and a CUDA graph holds no memset)."""
+        if n_runs not in self._zero_grids:
+            G = grid_size(self.cfg.n_grid)
+            self._zero_grids[n_runs] = tuple(wp.zeros((n_runs * G, G, G), dtype=ty, device=self.wp_device)
+                                             for ty in (self.k.vec3, self.k.T, self.k.vec3))
+        return self._zero_grids[n_runs]
 
     def _p2g_args(self, args, run, mv, m):
         x, v, C, _, tau, vol, mass = args

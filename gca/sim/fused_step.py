@@ -1,0 +1,92 @@
+"""One MLS-MPM step with an analytic elastic law evaluated inside P2G: three kernels, forward only.
+
+The generic step (``gca.sim.solver``, ``gca.sim.frame``) evaluates the law, then transfers:
+
+    law (SVD kernel, stress kernel, ~6 torch kernels for mu and lam)  ->  tau [N,3,3] in memory
+    memsets of mv, m, v_grid  ->  P2G  ->  grid update  ->  G2P                         (~12 kernels)
+
+PhysGaussian's warp solver launches ~6 per step and ran 1.4-1.5x faster than ours on the same job
+(``benchmarks/NOTES.md``, session 13; issue 20 item 2). Here, for the analytic laws
+(:class:`gca.laws.fused.AnalyticStress`: fixed corotated, neo-Hookean) and where no gradient is asked for
+(ground-truth generation, evaluation rollouts, the forward pass of a graphed training frame):
+
+    p2g_stress        tau_p = analytic_stress(F_p) (``gca.laws.fused``: the same warp functions as the laws'
+                      kernels, SVD included) inside the particle's scatter (``kernels.scatter``)
+    grid_update_zero  the grid update (``kernels.node_velocity``), then the node's mv and m set to zero for the
+                      next step, so the step needs no memset
+    g2p               unchanged
+
+mu and lam are formed once per frame, not per step (:func:`gca.sim.frame.simulate_frame_trial`). The grid
+buffers are the solver's own (:meth:`gca.sim.solver.MPMSolver._zeroed_grid`): zero when made and zero again
+after every grid update. Same values as the generic step to rounding (tested on the CPU in float64 and
+float32); gradients never go through here (the backward recompute of a frame takes the generic step).
+"""
+
+# no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
+import functools
+import types
+
+import torch
+import warp as wp
+
+from gca.laws.fused import make_law_kernels
+from gca.laws.svd_kernel import WARP_FLOATS
+from gca.sim.kernels import KERNELS
+
+
+@functools.cache
+def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
+    """Build ``p2g_stress`` and ``grid_update_zero`` for ``torch.float32`` or ``torch.float64``."""
+    T = WARP_FLOATS[dtype]
+    k = KERNELS[T.__name__]
+    law = make_law_kernels(dtype)
+    vec3, mat33 = k.vec3, k.mat33
+    scatter, run_offset, node_velocity, analytic_stress = k.scatter, k.run_offset, k.node_velocity, law.analytic_stress
+    module = f"gca_sim_fused_step_{T.__name__}"
+
+    @wp.kernel(module=module)
+    def p2g_stress(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        kind: int,
+        mu: wp.array(dtype=T),
+        lam: wp.array(dtype=T),
+        per: int,
+        j_min: T,
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+    ):
+        p = wp.tid()
+        tau = analytic_stress(kind, F[p], mu[p * per], lam[p * per], j_min)
+        scatter(x[p], v[p], C[p], tau, vol[p], mass[p], run_offset(run, p, n_grid, grid_m.shape[0]), dt, inv_dx,
+                n_grid, grid_mv, grid_m)
+
+    @wp.kernel(module=module)
+    def grid_update_zero(
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+        gravity: vec3,
+        dt: T,
+        eps: T,
+        m_min: T,
+        n_grid: int,
+        bound: int,
+        kind: int,
+        mu_b: T,
+        grid_v: wp.array3d(dtype=vec3),
+    ):
+        s0, s1, s2 = wp.tid()
+        grid_v[s0, s1, s2] = node_velocity(grid_mv[s0, s1, s2], grid_m[s0, s1, s2], s0, s1, s2, gravity, dt, eps,
+                                           m_min, n_grid, bound, kind, mu_b)
+        grid_mv[s0, s1, s2] = vec3(T(0.0))
+        grid_m[s0, s1, s2] = T(0.0)
+
+    return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p)

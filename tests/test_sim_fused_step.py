@@ -1,0 +1,175 @@
+"""gca.sim.fused_step / MPMSolver.step_fused: the analytic law's stress inside P2G and the grid zeroed by its
+update (three kernels a step), against the generic step (law, then transfers) on the CPU: frames of several
+steps, both analytic laws, one modulus or one per particle, inverted and crushed rows, a plastic law after the
+step, runs sharing a launch; with negative controls (a missing zeroing, a wrong law) and the frame's choice of
+path (fused only where no gradient is asked for)."""
+
+import pytest
+import torch
+
+from gca.laws import fused
+from gca.laws.base import Material
+from gca.laws.elastic import CorotatedElasticity
+from gca.laws.ood import NeoHookeanElasticity
+from gca.laws.plastic import IdentityPlasticity, VonMisesPlasticity
+from gca.sim import fused_step
+from gca.sim.frame import fused_law, simulate_frame
+from gca.sim.kernels import KERNELS
+from gca.sim.solver import MPMSolver, SimConfig
+
+LAWS = {"corotated": lambda: CorotatedElasticity(1e5, 0.3, learnable=False),
+        "neo_hookean": lambda: NeoHookeanElasticity(2e5, 0.4, learnable=False)}
+
+
+def _state(n: int, dtype, seed: int = 0):
+    """A moving, strained blob: (x, v, C, F, vol, mass), two rows of F inverted and one crushed (J < 1e-3)."""
+    g = torch.Generator().manual_seed(seed)
+    x = 0.3 + 0.4 * torch.rand(n, 3, generator=g, dtype=dtype)
+    v = 0.3 * torch.randn(n, 3, generator=g, dtype=dtype)
+    C = 0.5 * torch.randn(n, 3, 3, generator=g, dtype=dtype)
+    F = torch.eye(3, dtype=dtype) + 0.15 * torch.randn(n, 3, 3, generator=g, dtype=dtype)
+    F[0] = torch.diag(torch.tensor([1.1, 0.9, -0.8], dtype=dtype))
+    F[1] = -F[1]
+    F[2] = torch.diag(torch.tensor([0.05, 0.1, 0.1], dtype=dtype))
+    vol = torch.full((n,), 1e-5, dtype=dtype)
+    return x, v, C, F, vol, 1000.0 * vol
+
+
+def _material(law: str, dtype, per_particle: bool = False, plastic: bool = False, n: int = 0) -> Material:
+    e = LAWS[law]()
+    if per_particle:  # one Young's modulus per particle, 0.5-2x
+        g = torch.Generator().manual_seed(1)
+        e.log_E = torch.nn.Parameter(e.log_E.detach() + torch.log(0.5 + 1.5 * torch.rand(n, generator=g)),
+                                     requires_grad=False)
+    p = VonMisesPlasticity(3e5, 0.25, 2e3, learnable=False) if plastic else IdentityPlasticity()
+    return Material(e, p, 1000.0).to(dtype)
+
+
+def _frames(solver, material, n_steps, state):
+    """(fused, generic) outputs of one frame of ``n_steps`` steps from ``state`` under no_grad."""
+    with torch.no_grad():
+        fast = simulate_frame(solver, material, n_steps, *state[:4], *state[4:])
+        solver.fuse_analytic = False
+        try:
+            slow = simulate_frame(solver, material, n_steps, *state[:4], *state[4:])
+        finally:
+            solver.fuse_analytic = True
+    return fast, slow
+
+
+def _assert_close(fast, slow, rtol):
+    for name, a, b in zip("xvCF", fast, slow):
+        scale = float(b.abs().max())
+        assert torch.isfinite(a).all(), name
+        assert float((a - b).abs().max()) <= rtol * scale, (name, float((a - b).abs().max()), scale)
+
+
+@pytest.mark.parametrize("plastic", [False, True])
+@pytest.mark.parametrize("per_particle", [False, True])
+@pytest.mark.parametrize("law", sorted(LAWS))
+@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_a_fused_frame_equals_the_generic_frame(law, per_particle, plastic, dtype, rtol, monkeypatch):
+    cfg = SimConfig(n_grid=16, dtype="float64" if dtype == torch.float64 else "float32")
+    solver = MPMSolver(cfg)
+    n = 400
+    state = _state(n, dtype)
+    material = _material(law, dtype, per_particle, plastic, n)
+    calls = []
+    monkeypatch.setattr(MPMSolver, "step_fused", lambda self, *a, **k: calls.append(1) or
+                        _ORIGINAL_STEP_FUSED(self, *a, **k))
+    fast, slow = _frames(solver, material, 6, state)
+    assert len(calls) == 6  # the fused frame took the fused step, every step
+    _assert_close(fast, slow, rtol)
+    assert float((fast[0] - state[0]).abs().max()) > 1e-4  # the particles moved: the comparison is not vacuous
+
+
+_ORIGINAL_STEP_FUSED = MPMSolver.step_fused
+
+
+def test_runs_sharing_a_launch_and_a_refined_solver_match_the_generic_step():
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    n = 300
+    state = _state(n, dtype, seed=4)
+    run = (torch.arange(n) >= n // 2).to(torch.int32)
+    batched = solver.with_runs(run, 2).refined(2)
+    assert batched.fuse_analytic and batched._batch is not None
+    fast, slow = _frames(batched, _material("corotated", dtype), 3, state)
+    _assert_close(fast, slow, 1e-12)
+
+
+def test_the_grid_is_zero_after_each_fused_step_and_a_missing_zeroing_is_caught(monkeypatch):
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    state = _state(200, dtype, seed=2)
+    material = _material("neo_hookean", dtype)
+    fast, slow = _frames(solver, material, 3, state)
+    _assert_close(fast, slow, 1e-12)
+    mv, m, _ = (t.numpy() for t in solver._zeroed_grid(1))
+    assert not mv.any() and not m.any()
+    # negative control: the plain grid update (no zeroing) lets every step's P2G pile onto the last one's
+    kernels = fused_step.make_fused_step_kernels(dtype)
+    broken = type(kernels)(**{**vars(kernels), "grid_update_zero": KERNELS["float64"].grid_update})
+    monkeypatch.setattr(fused_step, "make_fused_step_kernels", lambda dt: broken)
+    monkeypatch.setattr("gca.sim.solver.make_fused_step_kernels", lambda dt: broken)
+    fresh = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    fast, slow = _frames(fresh, material, 3, state)
+    assert float((fast[1] - slow[1]).abs().max()) > 1e-3 * float(slow[1].abs().max())
+
+
+def test_a_wrong_law_in_the_fused_step_is_caught():
+    # negative control of the equality: the corotated material's state stepped with the neo-Hookean stress
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    x, v, C, F, vol, mass = _state(200, dtype, seed=3)
+    material = _material("corotated", dtype)
+    right = material.elasticity.analytic_stress(F)
+    wrong = fused.AnalyticStress(fused.NEO_HOOKEAN, right.mu, right.lam, 1e-3)
+    with torch.no_grad():
+        a = solver.step_fused(x, v, C, F, right, vol, mass)
+        b = solver.step_fused(x, v, C, F, wrong, vol, mass)
+        ref = solver.step(x, v, C, F, material.stress(F), vol, mass)
+    assert torch.allclose(a[1], ref[1], rtol=1e-12, atol=1e-12)
+    assert float((b[1] - ref[1]).abs().max()) > 1e-3 * float(ref[1].abs().max())
+
+
+def test_the_frame_fuses_only_where_no_gradient_is_asked_for():
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    x, v, C, F, vol, mass = _state(100, dtype)
+    learnable = Material(CorotatedElasticity(1e5, 0.3, learnable=True), IdentityPlasticity(), 1000.0).to(dtype)
+    fixed = _material("corotated", dtype)
+    assert fused_law(solver, learnable, x, v, C, F) is None  # a parameter requires a gradient, autograd records
+    assert fused_law(solver, fixed, x, v.requires_grad_(), C, F) is None  # the state requires one
+    v = v.detach()
+    assert isinstance(fused_law(solver, fixed, x, v, C, F), fused.AnalyticStress)
+    with torch.no_grad():
+        assert isinstance(fused_law(solver, learnable, x, v, C, F), fused.AnalyticStress)
+    solver.fuse_analytic = False
+    assert fused_law(solver, fixed, x, v, C, F) is None
+    solver.fuse_analytic = True
+    fixed.elasticity.fast_path = False
+    assert fused_law(solver, fixed, x, v, C, F) is None
+
+    class Damped(Material):  # a stress that is not the elasticity's alone: never fused
+        def stress(self, F):
+            return super().stress(F) * 0.5
+    assert fused_law(solver, Damped(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), 1000.0).to(dtype),
+                     x, v, C, F) is None
+    # the gradient path still differentiates the law's modulus through the generic step
+    out = simulate_frame(solver, learnable, 2, x, v.requires_grad_(), C, F, vol, mass)
+    out[0].sum().backward()
+    assert learnable.elasticity.log_E.grad is not None and float(learnable.elasticity.log_E.grad.abs()) > 0
+
+
+def test_step_fused_refuses_a_gradient_and_bad_moduli_in_one_line():
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    x, v, C, F, vol, mass = _state(50, dtype)
+    law = _material("corotated", dtype).elasticity.analytic_stress(F)
+    with pytest.raises(ValueError, match="gca/sim/solver.py: step_fused has no backward"):
+        solver.step_fused(x.requires_grad_(), v, C, F, law, vol, mass)
+    bad = fused.AnalyticStress(law.kind, torch.ones(7, dtype=dtype), torch.ones(7, dtype=dtype))
+    with pytest.raises(ValueError, match=r"gca/sim/solver.py: step_fused: mu must be .* shape \[1\] or \[50\]"):
+        with torch.no_grad():
+            solver.step_fused(x, v, C, F, bad, vol, mass)
