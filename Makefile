@@ -7,4 +7,4 @@ setup:
 pipeline: setup
 	bash scripts/pipeline.sh
 test: setup
-	. .venv/bin/activate && HF_HUB_OFFLINE=1 DVC_NO_ANALYTICS=1 OMP_WAIT_POLICY=PASSIVE python -m pytest -m "not gpu" -q
+	. .venv/bin/activate && HF_HUB_OFFLINE=1 DVC_NO_ANALYTICS=1 OMP_WAIT_POLICY=PASSIVE python -m pytest -m "not gpu" -q -n 2 --dist loadfile
