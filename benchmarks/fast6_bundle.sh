@@ -8,6 +8,7 @@
 #       bench_sim.py (corotated, neo_hookean fused / _ref torch, neural; graphs; fused step on / off; lattice order;
 #       30k / 32^3, 100k / 64^3)                                                       -> $OUT/sim.json, sim.txt
 #       PhysGaussian's solver beside ours (generic and fused) on the lattice and the random block -> physgaussian_*.json
+#   LAWS="corotated neo_hookean": bench_sim's laws (the second call of session 30: the fused elastic frame)
 set -u
 OUT=${OUT:-/tmp/fast6_out}
 mkdir -p "$OUT"
@@ -17,7 +18,8 @@ stamp() { python3 -c "import time; print(f'[fast6 {int(time.time()) - $T0:>4} s]
 . benchmarks/gpu_wheels.sh && install_wheels
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 stamp "bench_sim"
-timeout 260 python3 benchmarks/bench_sim.py --device cuda --law corotated neo_hookean neo_hookean_ref neural --graph on \
+# shellcheck disable=SC2086
+timeout 260 python3 benchmarks/bench_sim.py --device cuda --law ${LAWS:-corotated neo_hookean neo_hookean_ref neural} --graph on \
     --fuse on off --order lattice --sizes 30000:32 100000:64 --steps 200 --repeats 3 --skip-rollout \
     --json "$OUT/sim.json" > "$OUT/sim.txt" 2>&1
 echo "sim rc=$?"; grep -E "^\| (neural|corotated|neo_hookean)" "$OUT/sim.txt"

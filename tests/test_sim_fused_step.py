@@ -75,15 +75,33 @@ def test_a_fused_frame_equals_the_generic_frame(law, per_particle, plastic, dtyp
     state = _state(n, dtype)
     material = _material(law, dtype, per_particle, plastic, n)
     calls = []
-    monkeypatch.setattr(MPMSolver, "step_fused", lambda self, *a, **k: calls.append(1) or
-                        _ORIGINAL_STEP_FUSED(self, *a, **k))
+    monkeypatch.setattr(MPMSolver, "frame_fused", lambda self, *a, **k: calls.append(a[7]) or
+                        _ORIGINAL_FRAME_FUSED(self, *a, **k))
     fast, slow = _frames(solver, material, 6, state)
-    assert len(calls) == 6  # the fused frame took the fused step, every step
+    # a plastic material: the fused step, every step; a purely elastic one: the whole frame in one fused call
+    assert calls == ([1] * 6 if plastic else [6])
     _assert_close(fast, slow, rtol)
     assert float((fast[0] - state[0]).abs().max()) > 1e-4  # the particles moved: the comparison is not vacuous
 
 
-_ORIGINAL_STEP_FUSED = MPMSolver.step_fused
+_ORIGINAL_FRAME_FUSED = MPMSolver.frame_fused
+
+
+@pytest.mark.parametrize("n_steps", [1, 2, 5])
+def test_a_fused_elastic_frame_equals_its_fused_steps_bitwise_on_the_cpu(n_steps):
+    # frame_fused (G2P of each step and P2G of the next in one pass) against step_fused n times: the same operations
+    dtype = torch.float32
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float32"))
+    x, v, C, F, vol, mass = _state(300, dtype, seed=5)
+    law = _material("neo_hookean", dtype, per_particle=True, n=300).elasticity.analytic_stress(F)
+    with torch.no_grad():
+        frame = solver.frame_fused(x, v, C, F, law, vol, mass, n_steps)
+        state = (x, v, C, F)
+        for _ in range(n_steps):
+            state = solver.step_fused(*state, law, vol, mass)
+    for a, b in zip(frame, state):
+        assert torch.equal(a, b)
+    assert torch.equal(x, _state(300, dtype, seed=5)[0])  # the inputs are left alone
 
 
 def test_runs_sharing_a_launch_and_a_refined_solver_match_the_generic_step():

@@ -12,6 +12,7 @@ import torch
 
 from gca.laws.base import Material
 from gca.laws.lora import merged_weights
+from gca.laws.plastic import IdentityPlasticity
 
 
 def law_name(material) -> str:
@@ -37,6 +38,9 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
     """
     F_trial = F
     law = fused_law(solver, material, x, v, C, F)
+    if law is not None and isinstance(material.plasticity, IdentityPlasticity):  # F_e = F_trial: a whole frame fused
+        x, v, C, F_trial = solver.frame_fused(x, v, C, F, law, vol, mass, n_steps)
+        return x, v, C, material.project(F_trial), F_trial
     with merged_weights(material):
         for _ in range(n_steps):
             if law is not None:

@@ -16,6 +16,11 @@ PhysGaussian's warp solver launches ~6 per step and ran 1.4-1.5x faster than our
                       next step, so the step needs no memset
     g2p               unchanged
 
+and for a purely elastic material (identity plasticity: the next step's stress needs no torch in between), a frame of
+n steps in 2n + 1 kernels instead of 3n (:meth:`gca.sim.solver.MPMSolver.frame_fused`): ``p2g_stress`` once, then
+per step the zeroing grid update and ``g2p_p2g`` (this step's G2P and the next step's stress and P2G in one particle
+pass: x and F stored, v and C scattered at once), and one ``g2p`` at the end.
+
 mu and lam are formed once per frame, not per step (:func:`gca.sim.frame.simulate_frame_trial`). The grid
 buffers are the solver's own (:meth:`gca.sim.solver.MPMSolver._zeroed_grid`): zero when made and zero again
 after every grid update. Same values as the generic step to rounding (tested on the CPU in float64 and
@@ -41,7 +46,8 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
     k = KERNELS[T.__name__]
     law = make_law_kernels(dtype)
     vec3, mat33 = k.vec3, k.mat33
-    scatter, run_offset, node_velocity, analytic_stress = k.scatter, k.run_offset, k.node_velocity, law.analytic_stress
+    scatter, gather, run_offset, node_velocity = k.scatter, k.gather, k.run_offset, k.node_velocity
+    analytic_stress = law.analytic_stress
     module = f"gca_sim_fused_step_{T.__name__}"
 
     @wp.kernel(module=module)
@@ -89,4 +95,38 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         grid_mv[s0, s1, s2] = vec3(T(0.0))
         grid_m[s0, s1, s2] = T(0.0)
 
-    return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p)
+    @wp.kernel(module=module)
+    def g2p_p2g(
+        x_src: wp.array(dtype=vec3),
+        F_src: wp.array(dtype=mat33),
+        run: wp.array(dtype=int),
+        grid_v: wp.array3d(dtype=vec3),
+        kind: int,
+        mu: wp.array(dtype=T),
+        lam: wp.array(dtype=T),
+        per: int,
+        j_min: T,
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        lo: T,
+        hi: T,
+        x_dst: wp.array(dtype=vec3),
+        F_dst: wp.array(dtype=mat33),
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+    ):
+        """G2P of one step and P2G of the next in one particle pass, for a purely elastic material (F_e = F_trial):
+        the particle's new x and F are stored (``*_dst`` may be ``*_src``: each thread reads its particle before it
+        writes it), its new v and C go straight into the scatter onto the zeroed mv and m."""
+        p = wp.tid()
+        off = run_offset(run, p, n_grid, grid_v.shape[0])
+        x1, v1, C1, F1 = gather(x_src[p], F_src[p], off, grid_v, dt, inv_dx, n_grid, lo, hi)
+        x_dst[p] = x1
+        F_dst[p] = F1
+        tau = analytic_stress(kind, F1, mu[p * per], lam[p * per], j_min)
+        scatter(x1, v1, C1, tau, vol[p], mass[p], off, dt, inv_dx, n_grid, grid_mv, grid_m)
+
+    return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p, g2p_p2g=g2p_p2g)

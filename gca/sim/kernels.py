@@ -241,6 +241,26 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         grid_v[s0, s1, s2] = node_velocity(grid_mv[s0, s1, s2], grid_m[s0, s1, s2], s0, s1, s2, gravity, dt, eps,
                                            m_min, n_grid, bound, kind, mu_b)
 
+    @wp.func
+    def gather(x_p: vec3, F_p: mat33, off: int, grid_v: wp.array3d(dtype=vec3), dt: T, inv_dx: T, n_grid: int, lo: T,
+               hi: T):
+        """G2P of one particle from the grid at offset ``off``: (x' clamped to [lo, hi], v', C', F_trial)."""
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        v_new = vec3(T(0.0))
+        B = mat33(T(0.0))
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
+                    v_new += w * v_i
+                    B += w * wp.outer(v_i, dpos)
+        C_new = (T(4.0) * inv_dx * inv_dx) * B
+        x_new = x_p + dt * v_new
+        x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
+        return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+
     @wp.kernel(module=module)
     def g2p(
         x: wp.array(dtype=vec3),
@@ -258,27 +278,15 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         F_out: wp.array(dtype=mat33),
     ):
         p = wp.tid()
-        base, fx, W = stencil(x[p], inv_dx, n_grid)
-        off = run_offset(run, p, n_grid, grid_v.shape[0])
-        v_new = vec3(T(0.0))
-        B = mat33(T(0.0))
-        for i in range(3):
-            for j in range(3):
-                for k in range(3):
-                    w = W[i, 0] * W[j, 1] * W[k, 2]
-                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-                    v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
-                    v_new += w * v_i
-                    B += w * wp.outer(v_i, dpos)
-        C_new = (T(4.0) * inv_dx * inv_dx) * B
-        x_new = x[p] + dt * v_new
+        x_new, v_new, C_new, F_new = gather(x[p], F[p], run_offset(run, p, n_grid, grid_v.shape[0]), grid_v, dt, inv_dx,
+                                            n_grid, lo, hi)
         v_out[p] = v_new
         C_out[p] = C_new
-        F_out[p] = (wp.identity(3, dtype=T) + dt * C_new) @ F[p]
-        x_out[p] = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
+        F_out[p] = F_new
+        x_out[p] = x_new
 
     return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T,
-                                 scatter=scatter, run_offset=run_offset, node_velocity=node_velocity, module=module)
+                                 scatter=scatter, gather=gather, run_offset=run_offset, node_velocity=node_velocity, module=module)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

@@ -118,7 +118,8 @@ class MPMSolver:
     # 82 us) and 2x slower for the lattice-ordered particles the pipeline samples (70 vs 35 us); ~7x slower on a CPU
     split_p2g: bool = False
     # steps of an analytic law (gca.laws.fused.AnalyticStress) where no gradient is asked for go through
-    # :meth:`step_fused` (gca.sim.fused_step: the stress inside P2G, three kernels); False: the generic step
+    # :meth:`step_fused` (gca.sim.fused_step: the stress inside P2G, three kernels), a purely elastic material's whole
+    # frame through :meth:`frame_fused` (2 n + 1 kernels for n steps); False: the generic step
     fuse_analytic: bool = True
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
@@ -200,8 +201,21 @@ class MPMSolver:
         Returns:
             ``(x', v', C', F_trial)`` as :meth:`step` with ``tau = law(F)``; equal to it to rounding (tested).
         """
+        return self.frame_fused(x, v, C, F, law, vol, mass, 1, run, n_runs)
+
+    def frame_fused(self, x, v, C, F, law, vol, mass, n_steps: int, run=None, n_runs: int = 1):
+        """``n_steps`` steps of a purely elastic material (plasticity the identity, F_e = F_trial) whose law is
+        ``law``, in 2 n + 1 kernels (``gca.sim.fused_step``: each step's G2P and the next step's P2G in one pass);
+        forward only. Arguments as :meth:`step_fused`.
+
+        Returns:
+            ``(x, v, C, F_trial)`` after the last step, equal to ``n_steps`` calls of :meth:`step_fused` with F = F_trial
+            between them to rounding (tested; bitwise on the CPU).
+        """
         if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F)):
             raise ValueError(f"{_WHERE}: step_fused has no backward; x, v, C or F requires a gradient (use step)")
+        if int(n_steps) != n_steps or n_steps < 1:
+            raise ValueError(f"{_WHERE}: frame_fused: n_steps={n_steps} must be an integer >= 1")
         self._check(x, v, C, F, F, vol, mass)
         n = x.shape[0]
         for name, t in (("mu", law.mu), ("lam", law.lam)):
@@ -221,14 +235,21 @@ class MPMSolver:
                      for o, ty in zip(outs, (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33))]
             lo, hi = cfg.clamp_range
             inv_dx, T = 1.0 / cfg.dx, self.k.T
+            moduli = [law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T), law.per, law.j_min]
+            update = [mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid, cfg.bound,
+                      BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]
             wp.launch(k.p2g_stress, dim=n, device=self.wp_device,
-                      inputs=[wx, wv, wC, wF, law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T),
-                              law.per, law.j_min, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
-            wp.launch(k.grid_update_zero, dim=mv.shape, device=self.wp_device,
-                      inputs=[mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid,
-                              cfg.bound, BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv])
+                      inputs=[wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
+            wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
+            src = (wx, wF)
+            for _ in range(int(n_steps) - 1):
+                wp.launch(k.g2p_p2g, dim=n, device=self.wp_device,
+                          inputs=[*src, wrun, gv, *moduli, wvol, wmass, cfg.dt, inv_dx, cfg.n_grid, lo, hi, wouts[0],
+                                  wouts[3], mv, m])
+                wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
+                src = (wouts[0], wouts[3])
             wp.launch(k.g2p, dim=n, device=self.wp_device,
-                      inputs=[wx, wF, wrun, gv, cfg.dt, inv_dx, cfg.n_grid, lo, hi, *wouts])
+                      inputs=[src[0], src[1], wrun, gv, cfg.dt, inv_dx, cfg.n_grid, lo, hi, *wouts])
         return tuple(outs)
 
     def grid(self, x, v, C, tau, vol, mass):
