@@ -6,6 +6,7 @@ path (fused only where no gradient is asked for)."""
 
 import pytest
 import torch
+import warp as wp
 
 from gca.laws import fused
 from gca.laws.base import Material
@@ -13,6 +14,7 @@ from gca.laws.elastic import CorotatedElasticity
 from gca.laws.ood import NeoHookeanElasticity
 from gca.laws.plastic import IdentityPlasticity, VonMisesPlasticity
 from gca.sim import fused_step
+from gca.sim import rollout
 from gca.sim.frame import fused_law, simulate_frame
 from gca.sim.kernels import KERNELS
 from gca.sim.solver import MPMSolver, SimConfig
@@ -22,10 +24,16 @@ LAWS = {"corotated": lambda: CorotatedElasticity(1e5, 0.3, learnable=False),
 
 
 def _state(n: int, dtype, seed: int = 0):
-    """A moving, strained blob: (x, v, C, F, vol, mass), two rows of F inverted and one crushed (J < 1e-3)."""
+    """A moving, strained blob: (x, v, C, F, vol, mass), two rows of F inverted and one crushed (J < 1e-3); a
+    quarter of the particles in the floor's and a side wall's regions, thrown into them with a tangential
+    velocity (the walls and their friction act), three of them on the position clamp moving out (it acts)."""
     g = torch.Generator().manual_seed(seed)
     x = 0.3 + 0.4 * torch.rand(n, 3, generator=g, dtype=dtype)
     v = 0.3 * torch.randn(n, 3, generator=g, dtype=dtype)
+    q = n // 4
+    x[-q:, :2] = 0.04 + 0.08 * torch.rand(q, 2, generator=g, dtype=dtype)  # within 2 cells of x = 0 and y = 0
+    v[-q:] = torch.tensor([-2.0, -3.0, 1.5], dtype=dtype)
+    x[-3:, 1] = 0.5 / 16  # on the clamp of a 16-cell grid (clip 0.5 cells), moving down
     C = 0.5 * torch.randn(n, 3, 3, generator=g, dtype=dtype)
     F = torch.eye(3, dtype=dtype) + 0.15 * torch.randn(n, 3, 3, generator=g, dtype=dtype)
     F[0] = torch.diag(torch.tensor([1.1, 0.9, -0.8], dtype=dtype))
@@ -104,6 +112,59 @@ def test_a_fused_elastic_frame_equals_its_fused_steps_bitwise_on_the_cpu(n_steps
     assert torch.equal(x, _state(300, dtype, seed=5)[0])  # the inputs are left alone
 
 
+@pytest.mark.parametrize("boundary,bound", [("sticky", 2), ("slip", 2), ("friction", 2), ("friction", 0)])
+def test_the_walls_and_the_clamp_act_alike_in_both_paths(boundary, bound):
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64", boundary=boundary, bound=bound, friction=0.5))
+    state = _state(400, dtype, seed=7)
+    for plastic in (False, True):
+        fast, slow = _frames(solver, _material("corotated", dtype, plastic=plastic), 4, state)
+        _assert_close(fast, slow, 1e-12)
+    if bound:  # the thrown quarter: stopped (sticky) or turned along the walls, not still falling at 3 m/s
+        assert float(fast[1][-100:, 1].min()) > -3.0 + 0.5
+    else:  # no walls: the clamp holds the particles thrown out of the domain
+        assert float(fast[0][-3:, 1].max()) == pytest.approx(solver.cfg.clamp_range[0])
+
+
+def test_a_frame_stopped_between_scatter_and_zeroing_leaves_the_grid_clean(monkeypatch):
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    material = _material("neo_hookean", dtype)
+    a, b = _state(200, dtype, seed=8), _state(200, dtype, seed=9)
+    real_launch = wp.launch
+
+    def interrupted(kernel, *args, **kwargs):
+        if "grid_update_zero" in kernel.key:
+            raise KeyboardInterrupt
+        return real_launch(kernel, *args, **kwargs)
+    monkeypatch.setattr(wp, "launch", interrupted)
+    with pytest.raises(KeyboardInterrupt), torch.no_grad():
+        simulate_frame(solver, material, 3, *a[:4], *a[4:])
+    monkeypatch.setattr(wp, "launch", real_launch)
+    mv, m, _ = (t.numpy() for t in solver._zeroed_grid(1))
+    assert not mv.any() and not m.any()
+    fast, slow = _frames(solver, material, 3, b)  # another state: a dirty grid would have shown here
+    _assert_close(fast, slow, 1e-12)
+
+
+def test_a_trainable_analytic_law_graphed_equals_its_checkpointed_rollout():
+    # the graph's forward replay takes the fused frame, its recompute-backward the generic step: values and
+    # gradients (launch velocity, log E) equal to the checkpointed rollout's, which never fuses
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64", max_refine=1))
+    x, v, C, F, vol, mass = _state(150, dtype, seed=10)
+    results = []
+    for graph in (True, False):
+        material = Material(NeoHookeanElasticity(2e5, 0.4, learnable=True), IdentityPlasticity(), 1000.0).to(dtype)
+        v0 = v.clone().requires_grad_(True)
+        out = rollout(solver, material, x, v0, vol, mass, 6, 2, checkpoint=True, graph=graph)
+        loss = (out.x[-1] * torch.linspace(0.5, 1.5, x.shape[0], dtype=dtype)[:, None]).sum() + (out.F[-1] ** 2).sum()
+        results.append((out.x, *torch.autograd.grad(loss, [v0, material.elasticity.log_E])))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    assert float(results[0][2].abs()) > 0
+
+
 def test_runs_sharing_a_launch_and_a_refined_solver_match_the_generic_step():
     dtype = torch.float64
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
@@ -174,10 +235,47 @@ def test_the_frame_fuses_only_where_no_gradient_is_asked_for():
             return super().stress(F) * 0.5
     assert fused_law(solver, Damped(CorotatedElasticity(1e5, 0.3), IdentityPlasticity(), 1000.0).to(dtype),
                      x, v, C, F) is None
+
+    class Stiffer(CorotatedElasticity):  # a subclass that changes the law but inherits its analytic form: not fused
+        def forward(self, F):
+            return 3.0 * super().forward(F)
+    assert fused_law(solver, Material(Stiffer(1e5, 0.3, learnable=False), IdentityPlasticity(), 1000.0).to(dtype),
+                     x, v, C, F) is None
+    # a buffer the moduli come from requires a gradient: the generic step keeps it
+    through_nu = _material("neo_hookean", dtype)
+    through_nu.elasticity.nu.requires_grad_(True)
+    assert fused_law(solver, through_nu, x, v, C, F) is None
+    with torch.no_grad():
+        assert fused_law(solver, through_nu, x, v, C, F) is not None
     # the gradient path still differentiates the law's modulus through the generic step
     out = simulate_frame(solver, learnable, 2, x, v.requires_grad_(), C, F, vol, mass)
     out[0].sum().backward()
     assert learnable.elasticity.log_E.grad is not None and float(learnable.elasticity.log_E.grad.abs()) > 0
+
+
+def test_only_a_purely_elastic_material_is_fused_a_frame_at_a_time(monkeypatch):
+    dtype = torch.float64
+    solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    state = _state(100, dtype, seed=11)
+
+    class Softening(IdentityPlasticity):  # looks like the identity, is not
+        def forward(self, F_trial):
+            return 0.99 * F_trial
+
+    class Projecting(Material):  # the material's own projection between steps
+        def project(self, F_trial):
+            return 0.99 * F_trial
+    for material in (Material(CorotatedElasticity(1e5, 0.3, learnable=False), Softening(), 1000.0).to(dtype),
+                     Projecting(CorotatedElasticity(1e5, 0.3, learnable=False), IdentityPlasticity(), 1000.0).to(dtype)):
+        calls = []
+        monkeypatch.setattr(MPMSolver, "frame_fused", lambda self, *a, **k: calls.append(a[7]) or
+                            _ORIGINAL_FRAME_FUSED(self, *a, **k))
+        fast, slow = _frames(solver, material, 3, state)
+        assert calls == [1, 1, 1]  # step by step, the projection between steps
+        _assert_close(fast, slow, 1e-12)
+    with torch.no_grad():  # no steps: the state as it was
+        out = simulate_frame(solver, _material("corotated", dtype), 0, *state[:4], *state[4:])
+    assert all(torch.equal(a, b) for a, b in zip(out, state[:4]))
 
 
 def test_step_fused_refuses_a_gradient_and_bad_moduli_in_one_line():
@@ -185,9 +283,11 @@ def test_step_fused_refuses_a_gradient_and_bad_moduli_in_one_line():
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
     x, v, C, F, vol, mass = _state(50, dtype)
     law = _material("corotated", dtype).elasticity.analytic_stress(F)
-    with pytest.raises(ValueError, match="gca/sim/solver.py: step_fused has no backward"):
+    with pytest.raises(ValueError, match="gca/sim/solver.py: step_fused / frame_fused have no backward"):
         solver.step_fused(x.requires_grad_(), v, C, F, law, vol, mass)
+    with pytest.raises(ValueError, match="gca/laws/fused.py: AnalyticStress: kind=7"):
+        fused.AnalyticStress(7, law.mu, law.lam)
     bad = fused.AnalyticStress(law.kind, torch.ones(7, dtype=dtype), torch.ones(7, dtype=dtype))
-    with pytest.raises(ValueError, match=r"gca/sim/solver.py: step_fused: mu must be .* shape \[1\] or \[50\]"):
+    with pytest.raises(ValueError, match=r"gca/sim/solver.py: step_fused / frame_fused: mu must be .* shape \[1\] or \[50\]"):
         with torch.no_grad():
             solver.step_fused(x, v, C, F, bad, vol, mass)

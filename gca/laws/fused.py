@@ -397,15 +397,22 @@ class AnalyticStress:
     lam: torch.Tensor
     j_min: float = 0.0
 
+    def __post_init__(self):
+        if self.kind not in ANALYTIC_KINDS.values():
+            raise ValueError(f"{_WHERE}: AnalyticStress: kind={self.kind} is none of {ANALYTIC_KINDS}")
+
     @property
     def per(self) -> int:
         """1 for [N] moduli, 0 for one pair for every particle (the kernels index ``mu[p * per]``)."""
         return _per(self.mu)
 
 
-def analytic(name: str, F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, j_min: float = 0.0) -> AnalyticStress:
+def analytic(name: str, F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, j_min: float = 0.0):
     """The :class:`AnalyticStress` of law ``name`` (a key of :data:`ANALYTIC_KINDS`) for F [N,3,3], moduli checked
-    and detached (no autograd: the fused transfer is forward only)."""
+    and detached; None where autograd records and a modulus requires a gradient (the fused transfer has no
+    backward: a gradient through them must take the generic step)."""
+    if torch.is_grad_enabled() and (mu.requires_grad or lam.requires_grad):
+        return None
     mu_v, lam_v = _lame(f"{name} (fused)", F, mu.detach(), lam.detach())
     return AnalyticStress(ANALYTIC_KINDS[name], mu_v.contiguous(), lam_v.contiguous(), float(j_min))
 

@@ -38,7 +38,7 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
     """
     F_trial = F
     law = fused_law(solver, material, x, v, C, F)
-    if law is not None and isinstance(material.plasticity, IdentityPlasticity):  # F_e = F_trial: a whole frame fused
+    if law is not None and n_steps >= 1 and _purely_elastic(material):  # F_e = F_trial: a whole frame fused
         x, v, C, F_trial = solver.frame_fused(x, v, C, F, law, vol, mass, n_steps)
         return x, v, C, material.project(F_trial), F_trial
     with merged_weights(material):
@@ -55,12 +55,26 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
 def fused_law(solver, material, x, v, C, F):
     """The material's elastic law for :meth:`gca.sim.solver.MPMSolver.step_fused` (its stress inside P2G), formed
     once for the frame; None where a frame must take the generic step: the solver's ``fuse_analytic`` off, a law
-    with no analytic form (neural, composite, torch-only), a material whose ``stress`` is not its elasticity's, or a
-    gradient asked for (the state or a parameter of the material requires one while autograd records).
+    with no analytic form (neural, composite, torch-only), an elasticity whose ``forward`` is not the class's that
+    defines its analytic form (a subclass that changes the law), a material whose ``stress`` is not its
+    elasticity's, or a gradient asked for (the state, a parameter of the material or a tensor its moduli come from
+    requires one while autograd records: ``gca.laws.fused.analytic`` says None then).
     """
     if not getattr(solver, "fuse_analytic", False) or getattr(type(material), "stress", None) is not Material.stress:
+        return None
+    if _owner(type(material.elasticity), "forward") is not _owner(type(material.elasticity), "analytic_stress"):
         return None
     if torch.is_grad_enabled() and (any(t.requires_grad for t in (x, v, C, F))
                                     or any(p.requires_grad for p in material.parameters())):
         return None
     return material.elasticity.analytic_stress(F)
+
+
+def _purely_elastic(material) -> bool:
+    """F_e = F_trial exactly: the identity plastic law itself (not a subclass) and the material's own ``project``."""
+    return type(material.plasticity) is IdentityPlasticity and type(material).project is Material.project
+
+
+def _owner(cls: type, name: str) -> type | None:
+    """The class of ``cls``'s MRO whose body defines attribute ``name``."""
+    return next((c for c in cls.__mro__ if name in vars(c)), None)

@@ -144,9 +144,10 @@ class MPMSolver:
             return self
         if k not in self._refined:
             fine = MPMSolver(dataclasses.replace(self.cfg, dt=self.cfg.dt / k, max_refine=1), self.device)
-            fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
             self._refined[k] = fine if self._batch is None else fine.with_runs(*self._batch)
-        return self._refined[k]
+        fine = self._refined[k]  # the path switches follow this solver's (a captured CUDA graph keeps its own)
+        fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
+        return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
         """This solver for a batch of ``n_runs`` independent runs in one launch: every :meth:`step` (and so a
@@ -213,14 +214,15 @@ class MPMSolver:
             between them to rounding (tested; bitwise on the CPU).
         """
         if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F)):
-            raise ValueError(f"{_WHERE}: step_fused has no backward; x, v, C or F requires a gradient (use step)")
+            raise ValueError(f"{_WHERE}: step_fused / frame_fused have no backward; x, v, C or F requires a gradient "
+                             "(use step)")
         if int(n_steps) != n_steps or n_steps < 1:
             raise ValueError(f"{_WHERE}: frame_fused: n_steps={n_steps} must be an integer >= 1")
         self._check(x, v, C, F, F, vol, mass)
         n = x.shape[0]
         for name, t in (("mu", law.mu), ("lam", law.lam)):
             if t.dim() != 1 or t.shape[0] not in (1, n) or t.dtype != self.dtype or t.device.type != self.device.type:
-                raise ValueError(f"{_WHERE}: step_fused: {name} must be {self.dtype} of shape [1] or [{n}] on "
+                raise ValueError(f"{_WHERE}: step_fused / frame_fused: {name} must be {self.dtype} of shape [1] or [{n}] on "
                                  f"{self.device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
         if run is None and self._batch is not None:
             run, n_runs = self._batch
@@ -238,18 +240,23 @@ class MPMSolver:
             moduli = [law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T), law.per, law.j_min]
             update = [mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid, cfg.bound,
                       BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]
-            wp.launch(k.p2g_stress, dim=n, device=self.wp_device,
-                      inputs=[wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
-            wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
-            src = (wx, wF)
-            for _ in range(int(n_steps) - 1):
-                wp.launch(k.g2p_p2g, dim=n, device=self.wp_device,
-                          inputs=[*src, wrun, gv, *moduli, wvol, wmass, cfg.dt, inv_dx, cfg.n_grid, lo, hi, wouts[0],
-                                  wouts[3], mv, m])
+            try:
+                wp.launch(k.p2g_stress, dim=n, device=self.wp_device,
+                          inputs=[wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
                 wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
-                src = (wouts[0], wouts[3])
-            wp.launch(k.g2p, dim=n, device=self.wp_device,
-                      inputs=[src[0], src[1], wrun, gv, cfg.dt, inv_dx, cfg.n_grid, lo, hi, *wouts])
+                src = (wx, wF)
+                for _ in range(int(n_steps) - 1):
+                    wp.launch(k.g2p_p2g, dim=n, device=self.wp_device,
+                              inputs=[*src, wrun, gv, *moduli, wvol, wmass, cfg.dt, inv_dx, cfg.n_grid, lo, hi,
+                                      wouts[0], wouts[3], mv, m])
+                    wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
+                    src = (wouts[0], wouts[3])
+                wp.launch(k.g2p, dim=n, device=self.wp_device,
+                          inputs=[src[0], src[1], wrun, gv, cfg.dt, inv_dx, cfg.n_grid, lo, hi, *wouts])
+            except BaseException:  # stopped between a scatter and its zeroing update (Ctrl-C, SIGTERM): re-zero
+                mv.zero_()
+                m.zero_()
+                raise
         return tuple(outs)
 
     def grid(self, x, v, C, tau, vol, mass):
