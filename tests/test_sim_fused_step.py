@@ -79,6 +79,8 @@ def _assert_close(fast, slow, rtol):
 def test_a_fused_frame_equals_the_generic_frame(law, per_particle, plastic, dtype, rtol, monkeypatch):
     cfg = SimConfig(n_grid=16, dtype="float64" if dtype == torch.float64 else "float32")
     solver = MPMSolver(cfg)
+    assert not solver.frames_fused  # on a CPU by default the frame goes step by step (measured faster there)
+    solver.fuse_frames = True
     n = 400
     state = _state(n, dtype)
     material = _material(law, dtype, per_particle, plastic, n)
@@ -116,6 +118,7 @@ def test_a_fused_elastic_frame_equals_its_fused_steps_bitwise_on_the_cpu(n_steps
 def test_the_walls_and_the_clamp_act_alike_in_both_paths(boundary, bound):
     dtype = torch.float64
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64", boundary=boundary, bound=bound, friction=0.5))
+    solver.fuse_frames = True
     state = _state(400, dtype, seed=7)
     for plastic in (False, True):
         fast, slow = _frames(solver, _material("corotated", dtype, plastic=plastic), 4, state)
@@ -129,6 +132,7 @@ def test_the_walls_and_the_clamp_act_alike_in_both_paths(boundary, bound):
 def test_a_frame_stopped_between_scatter_and_zeroing_leaves_the_grid_clean(monkeypatch):
     dtype = torch.float64
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    solver.fuse_frames = True
     material = _material("neo_hookean", dtype)
     a, b = _state(200, dtype, seed=8), _state(200, dtype, seed=9)
     real_launch = wp.launch
@@ -152,6 +156,7 @@ def test_a_trainable_analytic_law_graphed_equals_its_checkpointed_rollout():
     # gradients (launch velocity, log E) equal to the checkpointed rollout's, which never fuses
     dtype = torch.float64
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64", max_refine=1))
+    solver.fuse_frames = True
     x, v, C, F, vol, mass = _state(150, dtype, seed=10)
     results = []
     for graph in (True, False):
@@ -171,8 +176,9 @@ def test_runs_sharing_a_launch_and_a_refined_solver_match_the_generic_step():
     n = 300
     state = _state(n, dtype, seed=4)
     run = (torch.arange(n) >= n // 2).to(torch.int32)
+    solver.fuse_frames = True
     batched = solver.with_runs(run, 2).refined(2)
-    assert batched.fuse_analytic and batched._batch is not None
+    assert batched.fuse_analytic and batched.frames_fused and batched._batch is not None
     fast, slow = _frames(batched, _material("corotated", dtype), 3, state)
     _assert_close(fast, slow, 1e-12)
 
@@ -180,6 +186,7 @@ def test_runs_sharing_a_launch_and_a_refined_solver_match_the_generic_step():
 def test_the_grid_is_zero_after_each_fused_step_and_a_missing_zeroing_is_caught(monkeypatch):
     dtype = torch.float64
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    solver.fuse_frames = True
     state = _state(200, dtype, seed=2)
     material = _material("neo_hookean", dtype)
     fast, slow = _frames(solver, material, 3, state)
@@ -192,6 +199,7 @@ def test_the_grid_is_zero_after_each_fused_step_and_a_missing_zeroing_is_caught(
     monkeypatch.setattr(fused_step, "make_fused_step_kernels", lambda dt: broken)
     monkeypatch.setattr("gca.sim.solver.make_fused_step_kernels", lambda dt: broken)
     fresh = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    fresh.fuse_frames = True
     fast, slow = _frames(fresh, material, 3, state)
     assert float((fast[1] - slow[1]).abs().max()) > 1e-3 * float(slow[1].abs().max())
 
@@ -256,6 +264,7 @@ def test_the_frame_fuses_only_where_no_gradient_is_asked_for():
 def test_only_a_purely_elastic_material_is_fused_a_frame_at_a_time(monkeypatch):
     dtype = torch.float64
     solver = MPMSolver(SimConfig(n_grid=16, dtype="float64"))
+    solver.fuse_frames = True
     state = _state(100, dtype, seed=11)
 
     class Softening(IdentityPlasticity):  # looks like the identity, is not

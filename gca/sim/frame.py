@@ -38,7 +38,7 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass):
     """
     F_trial = F
     law = fused_law(solver, material, x, v, C, F)
-    if law is not None and n_steps >= 1 and _purely_elastic(material):  # F_e = F_trial: a whole frame fused
+    if law is not None and n_steps >= 1 and solver.frames_fused and _purely_elastic(material):  # a whole frame
         x, v, C, F_trial = solver.frame_fused(x, v, C, F, law, vol, mass, n_steps)
         return x, v, C, material.project(F_trial), F_trial
     with merged_weights(material):
