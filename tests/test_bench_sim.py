@@ -56,3 +56,10 @@ def test_bench_sim_times_the_fused_and_the_generic_analytic_step_side_by_side(tm
     rows = res["throughput"]
     assert [r["fuse"] for r in rows] == [True, False]
     assert all(r["fwd_ms_per_step"] > 0 and r["fwd_bwd_ms_per_step"] > 0 for r in rows)
+
+
+def test_bench_fused_frame_times_the_three_forward_paths_on_the_cpu():
+    rows = _load("bench_fused_frame").main(["--device", "cpu", "--law", "corotated", "--particles", "500",
+                                            "--n-grid", "16", "--steps", "3", "--repeats", "1"])
+    assert [r["law"] for r in rows] == ["corotated"]
+    assert all(rows[0][k] > 0 for k in ("frame_fused", "step_fused", "generic"))
