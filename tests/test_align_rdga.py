@@ -217,7 +217,7 @@ def test_global_reductions_on_hand_computed_residuals():
     q = torch.zeros(2, 2, dtype=torch.float64)
     for reduction, value in (("norm", 5.0), ("mean", 2.5), ("mean_sq", 12.5)):
         P = torch.tensor([[3.0, 4.0], [0.0, 0.0]], dtype=torch.float64, requires_grad=True)
-        assert float(global_term(P, q, reduction)) == pytest.approx(value, rel=1e-6)  # sqrt(. + 1e-12)
+        assert float(global_term(P, q, reduction).detach()) == pytest.approx(value, rel=1e-6)  # sqrt(. + 1e-12)
         (g_big,) = torch.autograd.grad(global_term(P, q, reduction), P)
         P_small = (0.1 * P.detach()).requires_grad_(True)
         (g_small,) = torch.autograd.grad(global_term(P_small, q, reduction), P_small)

@@ -275,7 +275,8 @@ def test_only_a_purely_elastic_material_is_fused_a_frame_at_a_time(monkeypatch):
         def project(self, F_trial):
             return 0.99 * F_trial
     for material in (Material(CorotatedElasticity(1e5, 0.3, learnable=False), Softening(), 1000.0).to(dtype),
-                     Projecting(CorotatedElasticity(1e5, 0.3, learnable=False), IdentityPlasticity(), 1000.0).to(dtype)):
+                     Projecting(CorotatedElasticity(1e5, 0.3, learnable=False), IdentityPlasticity(),
+                                1000.0).to(dtype)):
         calls = []
         monkeypatch.setattr(MPMSolver, "frame_fused", lambda self, *a, **k: calls.append(a[7]) or
                             _ORIGINAL_FRAME_FUSED(self, *a, **k))
@@ -297,6 +298,7 @@ def test_step_fused_refuses_a_gradient_and_bad_moduli_in_one_line():
     with pytest.raises(ValueError, match="gca/laws/fused.py: AnalyticStress: kind=7"):
         fused.AnalyticStress(7, law.mu, law.lam)
     bad = fused.AnalyticStress(law.kind, torch.ones(7, dtype=dtype), torch.ones(7, dtype=dtype))
-    with pytest.raises(ValueError, match=r"gca/sim/solver.py: step_fused / frame_fused: mu must be .* shape \[1\] or \[50\]"):
+    with pytest.raises(ValueError,
+                       match=r"gca/sim/solver.py: step_fused / frame_fused: mu must be .* shape \[1\] or \[50\]"):
         with torch.no_grad():
             solver.step_fused(x, v, C, F, bad, vol, mass)

@@ -529,7 +529,8 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name):
     phases = []
     value, stats = objective(0.0).gradient(traj(), n_video, law, phases.append)
     # finite and nonzero; not positive: the anchor term (eq. 7, a sum of -gamma) under the tuned lambda_2 may lead
-    assert phases == ["render_losses", "backward"] and math.isfinite(float(whole.detach())) and float(whole.detach()) != 0
+    assert phases == ["render_losses", "backward"]
+    assert math.isfinite(float(whole.detach())) and float(whole.detach()) != 0
     torch.testing.assert_close(value, whole.detach(), rtol=1e-5, atol=0)
     for p, r in zip(params, g_ref):
         ref = torch.zeros_like(p) if r is None else r

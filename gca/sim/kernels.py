@@ -285,8 +285,9 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         F_out[p] = F_new
         x_out[p] = x_new
 
-    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3, mat33=mat33, T=T,
-                                 scatter=scatter, gather=gather, run_offset=run_offset, node_velocity=node_velocity, module=module)
+    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3,
+                                 mat33=mat33, T=T, scatter=scatter, gather=gather, run_offset=run_offset,
+                                 node_velocity=node_velocity, module=module)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

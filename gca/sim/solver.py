@@ -220,7 +220,8 @@ class MPMSolver:
         forward only. Arguments as :meth:`step_fused`.
 
         Returns:
-            ``(x, v, C, F_trial)`` after the last step, equal to ``n_steps`` calls of :meth:`step_fused` with F = F_trial
+            ``(x, v, C, F_trial)`` after the last step, equal to ``n_steps`` calls of :meth:`step_fused` with
+            F = F_trial
             between them to rounding (tested; bitwise on the CPU).
         """
         if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F)):
@@ -232,7 +233,8 @@ class MPMSolver:
         n = x.shape[0]
         for name, t in (("mu", law.mu), ("lam", law.lam)):
             if t.dim() != 1 or t.shape[0] not in (1, n) or t.dtype != self.dtype or t.device.type != self.device.type:
-                raise ValueError(f"{_WHERE}: step_fused / frame_fused: {name} must be {self.dtype} of shape [1] or [{n}] on "
+                raise ValueError(f"{_WHERE}: step_fused / frame_fused: {name} must be {self.dtype} of shape [1] or "
+                                 f"[{n}] on "
                                  f"{self.device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
         if run is None and self._batch is not None:
             run, n_runs = self._batch
