@@ -221,8 +221,7 @@ class MPMSolver:
 
         Returns:
             ``(x, v, C, F_trial)`` after the last step, equal to ``n_steps`` calls of :meth:`step_fused` with
-            F = F_trial
-            between them to rounding (tested; bitwise on the CPU).
+            F = F_trial between them to rounding (tested; bitwise on the CPU).
         """
         if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F)):
             raise ValueError(f"{_WHERE}: step_fused / frame_fused have no backward; x, v, C or F requires a gradient "
@@ -234,8 +233,7 @@ class MPMSolver:
         for name, t in (("mu", law.mu), ("lam", law.lam)):
             if t.dim() != 1 or t.shape[0] not in (1, n) or t.dtype != self.dtype or t.device.type != self.device.type:
                 raise ValueError(f"{_WHERE}: step_fused / frame_fused: {name} must be {self.dtype} of shape [1] or "
-                                 f"[{n}] on "
-                                 f"{self.device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+                                 f"[{n}] on {self.device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
         if run is None and self._batch is not None:
             run, n_runs = self._batch
         run = self._runs(run, n, n_runs)
@@ -250,8 +248,7 @@ class MPMSolver:
             lo, hi = cfg.clamp_range
             inv_dx, T = 1.0 / cfg.dx, self.k.T
             moduli = [law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T), law.per, law.j_min]
-            update = [mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid, cfg.bound,
-                      BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]
+            update = self._update_args(mv, m, gv)
             try:
                 wp.launch(k.p2g_stress, dim=n, device=self.wp_device,
                           inputs=[wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
@@ -349,6 +346,13 @@ class MPMSolver:
                                              for ty in (self.k.vec3, self.k.T, self.k.vec3))
         return self._zero_grids[n_runs]
 
+    def _update_args(self, mv, m, gv) -> list:
+        """Arguments of the grid update (``grid_update``, or ``grid_update_zero`` of the fused step) on the wrapped
+        grid (mv, m) into velocities ``gv``."""
+        cfg = self.cfg
+        return [mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid, cfg.bound,
+                BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]
+
     def _p2g_args(self, args, run, mv, m):
         x, v, C, _, tau, vol, mass = args
         return [x, v, C, tau, vol, mass, run, self.cfg.dt, 1.0 / self.cfg.dx, self.cfg.n_grid, mv, m]
@@ -367,8 +371,7 @@ class MPMSolver:
         lo, hi = cfg.clamp_range
         n = args[0].shape[0]
         return [(k.p2g, n, self._p2g_args(args, run, mv, m)),
-                (k.grid_update, mv.shape, [mv, m, k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass,
-                                           cfg.n_grid, cfg.bound, BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]),
+                (k.grid_update, mv.shape, self._update_args(mv, m, gv)),
                 (k.g2p, n, [args[0], args[3], run, gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])]
 
     def _launch(self, args, run, outs, requires_grad: bool, grid=None, n_runs: int = 1):
