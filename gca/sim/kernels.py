@@ -287,7 +287,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3,
                                  mat33=mat33, T=T, scatter=scatter, gather=gather, run_offset=run_offset,
-                                 node_velocity=node_velocity, module=module)
+                                 node_velocity=node_velocity)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}
