@@ -13,6 +13,7 @@ the top kernels by CUDA time. Details go to ``--out`` when given.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import io
 import pstats
@@ -25,27 +26,46 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def build(work: Path, scene: str, method_name: str, device: str):
-    """(solver, law, data, objective, cfg, opt) of ``method`` as the train stage would build them."""
+    """(solver, law, data, objective, cfg, opt) of ``method`` (seed 0) as the train stage builds them
+    (:func:`gca.pipeline.train.train_job`)."""
     from gca import config
     from gca.pipeline.settings import Settings
     from gca.train import state
     from gca.train.methods import get_method
-    from gca.pipeline.train import (SceneInputs, law_for, load_train_data, objective_for, read_velocity,
-                               solver_for)
+    from gca.pipeline.train import SceneInputs, read_velocity, train_job
     params = Settings(config.load(path=work / "params.yaml", via_dvc=False))
     spec = params.params["scenes"][scene]
     inputs = SceneInputs(scene_dir=work / "scene", prep_dir=work / "prep", particles=work / "particles.npz",
                          gaussians=work / "assets" / spec["object"] / "gaussians.ply",
                          prior=work / "prior" / f"{spec['prior']}.pt")
-    method = get_method(method_name)
-    data = load_train_data(params, inputs, method, read_velocity(work / "runs" / "velocity.json"),
-                           params.video.background, device)
-    law = law_for(params, method, params.scene(scene), inputs,
-                  float(data.body.mass.sum() / data.body.vol.sum()), device)
-    objective = objective_for(params, method, data, params.scene(scene))
-    cfg = params.train
-    opt, _ = state.make_optimizer(law, cfg)
-    return solver_for(params, params.scene(scene), device), law, data, objective, cfg, opt
+    job = train_job(params, scene, get_method(method_name), inputs, read_velocity(work / "runs" / "velocity.json"),
+                    device)
+    opt, _ = state.make_optimizer(job.law, job.cfg)
+    return job.solver, job.law, job.data, job.objective, job.cfg, opt
+
+
+@contextlib.contextmanager
+def labelled(objective, loop):
+    """Name the iteration's parts in the torch.profiler trace (``phase/...`` ranges): the rollout, the frames'
+    render, CPR, the frames' losses and the backward, by wrapping those functions while the block runs."""
+    from torch.profiler import record_function
+
+    def wrap(owner, name, label):
+        original = getattr(owner, name)
+
+        def wrapped(*a, **k):
+            with record_function(f"phase/{label}"):
+                return original(*a, **k)
+        setattr(owner, name, wrapped)
+        return lambda: setattr(owner, name, original)
+    undo = [wrap(loop, "simulate", "simulate"), wrap(objective, "_render_frames", "render"),
+            wrap(objective, "prior_gradient", "cpr"), wrap(objective, "_frame_losses", "frame_losses"),
+            wrap(torch.Tensor, "backward", "backward")]
+    try:
+        yield
+    finally:
+        for u in reversed(undo):
+            u()
 
 
 def main(argv=None) -> None:
@@ -58,6 +78,7 @@ def main(argv=None) -> None:
     ap.add_argument("--iterations", type=int, default=2)
     ap.add_argument("--horizon", type=int, default=0, help="video frames supervised (0: all)")
     ap.add_argument("--top", type=int, default=35)
+    ap.add_argument("--torch-profile", action="store_true", help="also torch.profiler off CUDA (on CUDA always)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     from gca.train import loop
@@ -82,15 +103,19 @@ def main(argv=None) -> None:
     phases = {k: sum(r[k] for r in records) / len(records) for k in records[0] if k.startswith("time/")}
     print("per iteration [s]:", {k[5:]: round(v, 3) for k, v in phases.items()})
     print(text.getvalue()[-9000:])
-    if args.device == "cuda":
+    if args.device == "cuda" or args.torch_profile:
         from torch.profiler import ProfilerActivity, profile
-        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as tp:
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device == "cuda" else [])
+        with profile(activities=activities) as tp, labelled(objective, loop):
             step()
-        table = tp.key_averages().table(sort_by="cuda_time_total", row_limit=args.top, max_name_column_width=50)
-        print(table[-6000:])
+        events = tp.key_averages()
+        table = events.table(sort_by="self_cuda_time_total" if args.device == "cuda" else "self_cpu_time_total", row_limit=args.top, max_name_column_width=60)
+        ranges = events.table(sort_by="cuda_time_total" if args.device == "cuda" else "cpu_time_total", row_limit=args.top, max_name_column_width=60)
+        print(table[-8000:])
+        print(ranges[-4000:])
         if args.out:
             args.out.mkdir(parents=True, exist_ok=True)
-            (args.out / f"profile_train_{args.method}_cuda.txt").write_text(table)
+            (args.out / f"profile_train_{args.method}_cuda.txt").write_text(table + "\n\n" + ranges)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"profile_train_{args.method}_cprofile.txt").write_text(text.getvalue())

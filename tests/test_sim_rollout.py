@@ -143,3 +143,67 @@ def test_cfl_refinement_takes_smaller_steps_with_the_same_frames():
     with pytest.raises(CFLError, match="max_refine=3 sub-steps allow \\(needs 4\\)"):
         rollout(MPMSolver(SimConfig(n_grid=16, dt=1e-3, dtype="float64", max_refine=3, bound=3, boundary="sticky", friction=0.0)), material,
                 x0, v0, vol, mass, n_steps=4, steps_per_frame=2)
+
+
+def _swept_gradients(solver, material, x0, v0, vol, mass, frames, loss_at, skip=()):
+    """(launch scale's, log E's) gradients of sum_f loss_at(f, x_f, F_f) over ``frames`` through the reverse sweep:
+    each frame's loss differentiated to its own (x_f, F_f) leaves, last frame first (``skip``: frames left out)."""
+    a = torch.tensor(1.0, dtype=F64, requires_grad=True)
+    log_E = material.elasticity.log_E
+    log_E.grad = None
+    out = rollout(solver, material, x0, a * v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    assert not out.x.requires_grad and not out.F.requires_grad
+    for f in sorted(frames, reverse=True):
+        if f in skip:
+            continue
+        x, F = (t[f].detach().requires_grad_() for t in (out.x, out.F))
+        out.sweep.add(f, *torch.autograd.grad(loss_at(f, x, F), [x, F]))
+    out.sweep.finish()
+    return out, a.grad, log_E.grad.clone()
+
+
+def test_reverse_sweep_equals_autograd_through_the_rollout():
+    """rollout(..., sweep=True) + ReverseSweep (the losses' cotangents handed in frame by frame, last first) gives
+    autograd's gradients through the rollout, to the law's parameter and through a launch parameter (v0 = a v),
+    in float64; the frames are the same. Negative control: a frame's cotangent left out changes both."""
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
+    solver = MPMSolver(cfg)
+    x0, v0, vol, mass = _blob(60, seed=1)
+    material = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    g = torch.Generator().manual_seed(3)
+    wx, wF = torch.randn(4, 60, 3, generator=g, dtype=F64), torch.randn(4, 60, 3, 3, generator=g, dtype=F64)
+    frames = [0, 1, 3]  # frame 2 unsupervised, frame 0 the launch
+
+    def loss_at(f, x, F):  # nonlinear in both, as an image loss is
+        return (wx[f] * x).square().sum() + (wF[f] * F).sin().sum()
+
+    a = torch.tensor(1.0, dtype=F64, requires_grad=True)
+    ref = rollout(solver, material, x0, a * v0, vol, mass, n_steps=12, steps_per_frame=4)
+    g_ref = torch.autograd.grad(sum(loss_at(f, ref.x[f], ref.F[f]) for f in frames), [a, material.elasticity.log_E])
+    out, g_a, g_E = _swept_gradients(solver, material, x0, v0, vol, mass, frames, loss_at)
+    torch.testing.assert_close(out.x, ref.x.detach(), rtol=0, atol=0)
+    torch.testing.assert_close(out.F, ref.F.detach(), rtol=0, atol=0)
+    assert abs(float(g_ref[0])) > 0 and abs(float(g_ref[1])) > 0
+    torch.testing.assert_close(g_a, g_ref[0], rtol=1e-10, atol=0)
+    torch.testing.assert_close(g_E, g_ref[1], rtol=1e-10, atol=0)
+    _, g_a3, g_E3 = _swept_gradients(solver, material, x0, v0, vol, mass, frames, loss_at, skip=(3,))
+    assert not torch.allclose(g_a3, g_ref[0], rtol=1e-3) and not torch.allclose(g_E3, g_ref[1], rtol=1e-3)
+
+
+def test_reverse_sweep_refuses_frames_out_of_order():
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
+    x0, v0, vol, mass = _blob(20, seed=2)
+    material = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    out = rollout(MPMSolver(cfg), material, x0, v0, vol, mass, n_steps=8, steps_per_frame=4, sweep=True)
+    sweep = out.sweep
+    with pytest.raises(ValueError, match="frame 3"):
+        sweep.add(3, None, None)  # only frames 0..2 exist
+    sweep.add(1, None, None)
+    for again in (2, 1):  # later, or the same frame twice
+        with pytest.raises(ValueError, match="last first"):
+            sweep.add(again, None, None)
+    sweep.finish()
+    with pytest.raises(ValueError, match="twice"):
+        sweep.finish()
+    with pytest.raises(ValueError, match="finish"):
+        sweep.add(0, None, None)

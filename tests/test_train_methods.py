@@ -90,6 +90,32 @@ def test_every_method_runs_one_iteration(scene, name):
         assert law.trainable() == [] and result.iterations == 0
 
 
+@pytest.mark.parametrize("name", sorted(n for n, m in METHODS.items() if m.trains))
+def test_every_method_gradient_swept_equals_autograd(scene, name):
+    """One training gradient (loop._gradient) with train.reverse_sweep (the rollout differentiated frame by frame,
+    last first, beside the losses) equals the one autograd pass through the whole rollout: same loss, same
+    gradient to float32 rounding, for every training method (a learned launch included: PAC-NeRF rows)."""
+    from gca.train.loop import _gradient
+
+    method = get_method(name)
+    results = []
+    for sweep in (False, True):
+        cfg = TrainConfig(iterations=1, curriculum_start=1.0, term_shares_every=0, reverse_sweep=sweep)
+        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2,
+                        family_presets={"jelly": {**JELLY, "E": 4.0e4}}, category="elastic", seed=0)
+        data = _data(scene, method)
+        objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
+                              MatchConfig(), cpr_target=("corotated", "identity"))
+        record = _gradient(tiny_solver(), law, data, objective, cfg, len(data.video_frames))
+        results.append((record, [p.grad.detach().clone() for p in law.trainable()]))
+    (ref, g_ref), (swept, g) = results
+    assert swept["loss"] == pytest.approx(ref["loss"], rel=1e-5) and ref["grad_norm"] > 0
+    assert swept["grad_norm"] == pytest.approx(ref["grad_norm"], rel=1e-4)
+    scale = max(float(b.abs().max()) for b in g_ref)  # float32 sums in another order: relative to the largest entry
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * scale)
+
+
 def test_target_removed_drops_the_hypotheses(scene):
     method = get_method("cpr_target_removed")
     objective = Objective(method, _data(scene, method), TrainConfig(), RDGAConfig(r=5, k=5),
@@ -249,11 +275,11 @@ def _diverging_simulate(monkeypatch, fail_calls, error=None):
 
     real, seen = loop.simulate, []
 
-    def fake(solver, law, data, n_video):
+    def fake(solver, law, data, n_video, sweep=False):
         seen.append([p.detach().clone() for p in law.trainable()])
         if len(seen) - 1 in fail_calls:
             raise error(f"planted divergence at call {len(seen) - 1}")
-        return real(solver, law, data, n_video)
+        return real(solver, law, data, n_video, sweep)
 
     monkeypatch.setattr(loop, "simulate", fake)
     return seen
@@ -503,11 +529,14 @@ def test_lora_init_is_seeded(scene):
     assert any(not torch.equal(a, b) for a, b in zip(same, other))
 
 
+@pytest.mark.parametrize("sweep", [False, True])
 @pytest.mark.parametrize("name", ["gca", "neuma", "no_rdga"])
-def test_objective_gradient_equals_its_reference_loss(textured_scene, name):
+def test_objective_gradient_equals_its_reference_loss(textured_scene, name, sweep):
     """Objective.gradient (what training differentiates: CPR chunked, image terms backward separately) =
     the autograd gradient of Objective.loss (every term with its graph, one call) when CPR's gradient is not
-    rescaled (max_grad_ratio = 0: eq. 8 as written), same loss value; with a ratio the CPR share is scaled."""
+    rescaled (max_grad_ratio = 0: eq. 8 as written), same loss value; with a ratio the CPR share is scaled.
+    ``sweep``: on a swept rollout (train.reverse_sweep: each frame's loss differentiated last frame first into
+    the rollout's ReverseSweep) the same, to float rounding."""
     from gca.sim.rollout import rollout
 
     scene, method = textured_scene, get_method(name)
@@ -520,11 +549,11 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name):
                                         CPRConfig(subset_size=16, n_groups=2, chunk_frames=1, max_grad_ratio=ratio),
                                         MatchConfig())
 
-    def traj():
+    def traj(swept=sweep):
         return rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                       n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+                       n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, sweep=swept)
 
-    whole, _ = objective(0.0).loss(traj(), n_video, law)
+    whole, _ = objective(0.0).loss(traj(False), n_video, law)
     g_ref = torch.autograd.grad(whole, params, allow_unused=True)
     phases = []
     value, stats = objective(0.0).gradient(traj(), n_video, law, phases.append)

@@ -180,6 +180,31 @@ def velocity_field(body: Body, velocity: tuple[list, list]) -> torch.Tensor:
     return initial_velocity(body.x0, v0, w0)
 
 
+@dataclasses.dataclass
+class TrainJob:
+    """What one training run is made of, as the train stage builds it (:func:`train_job`)."""
+    cfg: TrainConfig
+    data: TrainData
+    law: LearnedLaw
+    objective: Objective
+    solver: MPMSolver
+
+
+def train_job(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
+              device="cpu", seed: int | None = None) -> TrainJob:
+    """The run of ``method`` on a scene with ``seed``: its config, observed data (its seed's, :func:`observed_inputs`),
+    law, objective and solver; ``velocity`` is its seed's estimate. The one place a run is assembled (the stage and
+    ``benchmarks/profile_train.py`` both call it)."""
+    scene = settings.scene(scene_name)
+    tcfg = train_config(settings, method, scene, seed)
+    data = load_train_data(settings, observed_inputs(settings, scene_name, inputs, tcfg.seed), method, velocity,
+                           settings.video.background, device, dt=scene.dt)
+    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
+                  velocity)
+    return TrainJob(tcfg, data, law, objective_for(settings, method, data, scene, tcfg.seed),
+                    solver_for(settings, scene, device))
+
+
 def train_method(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
                  out_dir: Path, run=None, device="cpu", seed: int | None = None) -> dict:
     """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
@@ -188,16 +213,12 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     ``inputs`` are the scene's (seed 0's directories); the run reads its seed's observations
     (:func:`observed_inputs`), and ``velocity`` must be its seed's estimate (:func:`velocity_path`)."""
     scene = settings.scene(scene_name)
-    tcfg = train_config(settings, method, scene, seed)
-    data = load_train_data(settings, observed_inputs(settings, scene_name, inputs, tcfg.seed), method, velocity,
-                           settings.video.background, device, dt=scene.dt)
-    law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,
-                  velocity)
-    objective = objective_for(settings, method, data, scene, tcfg.seed)
+    job = train_job(settings, scene_name, method, inputs, velocity, device, seed)
+    tcfg, data, law = job.cfg, job.data, job.law
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
     with measure(device) as cost:
-        result: TrainResult = train(solver_for(settings, scene, device), law, data, objective, tcfg,
+        result: TrainResult = train(job.solver, law, data, job.objective, tcfg,
                                     checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
     save_law(out_dir / "law.pt", law, scene.prior, {"method": method.name, "scene": scene_name})
     write_json(out_dir / "history.json", {"history": result.history})

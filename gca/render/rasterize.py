@@ -58,7 +58,9 @@ class RenderError(ValueError):
     """Bad renderer input (names the file and the problem)."""
 
 
-def _check_inputs(means, covs, colors, opacities, bg) -> None:
+def _check_inputs(means, covs, colors, opacities, bg, checks: list | None = None) -> None:
+    """Shapes, dtypes and devices now; the values (finite, opacities in [0, 1]) now with one host read, or, given
+    ``checks``, appended there as :func:`input_stats` for the caller to judge later (:func:`judge_inputs`)."""
     N = means.shape[0]
     if means.ndim != 2 or means.shape[1] != 3:
         raise RenderError(f"{_WHERE}: means must be [N, 3], got {tuple(means.shape)}")
@@ -70,19 +72,33 @@ def _check_inputs(means, covs, colors, opacities, bg) -> None:
         raise RenderError(f"{_WHERE}: opacities must be [{N}], got {tuple(opacities.shape)}")
     if bg.shape != (colors.shape[1],):
         raise RenderError(f"{_WHERE}: bg must be [{colors.shape[1]}], got {tuple(bg.shape)}")
-    names = ("means", "covs", "colors", "opacities")
     kinds = {(x.dtype, x.device) for x in (means, covs, colors, opacities, bg)}
     if len(kinds) != 1 or not means.is_floating_point():
         raise RenderError(f"{_WHERE}: means, covs, colors, opacities and bg must share one floating dtype and "
                           f"device, got {sorted(map(str, kinds))}")
+    if checks is None:
+        judge_inputs(input_stats(means, covs, colors, opacities).tolist())
+    else:
+        checks.append(input_stats(means, covs, colors, opacities))
+
+
+def input_stats(means, covs, colors, opacities) -> torch.Tensor:
+    """Non-finite entries of means, covs, colors, opacities and the opacities' min and max, as a device tensor [6]
+    (no host read: :func:`judge_inputs` reads them)."""
     o = opacities.detach()
-    stats = torch.stack([(~torch.isfinite(x.detach())).sum().to(o.dtype) for x in (means, covs, colors, o)]
-                        + [o.min() if N else o.new_zeros(()), o.max() if N else o.new_zeros(())]).tolist()
-    for name, bad in zip(names, stats[:4]):
+    N = o.shape[0]
+    return torch.stack([(~torch.isfinite(x.detach())).sum().to(o.dtype) for x in (means, covs, colors, o)]
+                       + [o.min() if N else o.new_zeros(()), o.max() if N else o.new_zeros(())])
+
+
+def judge_inputs(stats, where: str = "") -> None:
+    """Raise :class:`RenderError` when the :func:`input_stats` values ``stats`` (host floats) are bad; ``where``
+    (e.g. "frame 3: ") goes into the message."""
+    for name, bad in zip(("means", "covs", "colors", "opacities"), stats[:4]):
         if bad:
-            raise RenderError(f"{_WHERE}: {name} has {int(bad)} non-finite entries (diverged upstream?)")
+            raise RenderError(f"{_WHERE}: {where}{name} has {int(bad)} non-finite entries (diverged upstream?)")
     if stats[4] < 0 or stats[5] > 1:
-        raise RenderError(f"{_WHERE}: opacities must lie in [0, 1], got [{stats[4]:.3g}, {stats[5]:.3g}]")
+        raise RenderError(f"{_WHERE}: {where}opacities must lie in [0, 1], got [{stats[4]:.3g}, {stats[5]:.3g}]")
 
 
 def _project(means, covs, camera: Camera, cfg: RasterConfig) -> Projected:
@@ -338,7 +354,7 @@ _BACKENDS = {"torch": _render_torch, "gsplat": _render_gsplat}
 
 def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
            camera: Camera, bg: torch.Tensor, backend: str = "torch",
-           cfg: RasterConfig = RasterConfig()) -> dict:
+           cfg: RasterConfig = RasterConfig(), checks: list | None = None) -> dict:
     """Render Gaussians; differentiable w.r.t. means, covs, colors and opacities.
 
     Args:
@@ -351,6 +367,8 @@ def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacit
         backend: ``"torch"`` (tiled, CPU or CUDA) or ``"gsplat"`` (CUDA only; its alpha clamp 0.999
             and 3.33-sigma extents differ slightly from ours).
         cfg: :class:`RasterConfig`.
+        checks: None: the inputs' values are checked now (one host read); a list: their :func:`input_stats` are
+            appended to it instead, for the caller to read with other frames' (:func:`judge_inputs`).
 
     Returns:
         dict with ``rgb [H, W, C]``, ``alpha [H, W]``, ``depth [H, W]`` (accumulated
@@ -359,7 +377,7 @@ def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacit
     """
     if backend not in _BACKENDS:
         raise RenderError(f"{_WHERE}: unknown backend {backend!r}; expected one of {sorted(_BACKENDS)}")
-    _check_inputs(means, covs, colors, opacities, bg)
+    _check_inputs(means, covs, colors, opacities, bg, checks)
     if backend == "torch" and cfg.checkpoint and torch.is_grad_enabled() \
             and any(t.requires_grad for t in (means, covs, colors, opacities, bg)):
         return _render_torch_checkpointed(means, covs, colors, opacities, camera, bg, cfg)

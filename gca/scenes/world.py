@@ -129,14 +129,15 @@ def body_colors(body: Body, means: torch.Tensor, camera: Camera) -> torch.Tensor
 
 
 def render_gaussians(body: Body, means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, camera: Camera,
-                     bg: torch.Tensor) -> dict:
+                     bg: torch.Tensor, checks: list | None = None) -> dict:
     """Render the body's Gaussians at (means [G,3], covs [G,3,3]) with per-Gaussian ``colors`` [G,C]
     through the body's rasterizer settings: ``{rgb [H,W,C], alpha [H,W], depth [H,W], ...}``.
     ``colors`` given as ``body.colors`` itself means the scan's colours: view-dependent
-    (:func:`body_colors`) when it has SH bands 1-3."""
+    (:func:`body_colors`) when it has SH bands 1-3. ``checks``: as :func:`gca.render.rasterize.render`'s."""
     if colors is body.colors:
         colors = body_colors(body, means, camera)
-    return render(means, covs, colors, body.opacities, camera, bg, backend=body.backend, cfg=body.raster)
+    return render(means, covs, colors, body.opacities, camera, bg, backend=body.backend, cfg=body.raster,
+                  checks=checks)
 
 
 def render_body(body: Body, x: torch.Tensor, F: torch.Tensor, camera: Camera, background,

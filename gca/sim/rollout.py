@@ -7,9 +7,10 @@ Memory. With ``checkpoint=True`` each frame's steps run under ``torch.utils.chec
 (non-reentrant): autograd keeps only the state at frame starts and recomputes a frame's steps
 (laws included) during backward, so memory grows with the number of frames, not of steps.
 
-Health checks, once per frame (one host sync): non-finite state, particles moving more than one
-cell per step, and too many particles sitting on the position clamp (they left the domain) all
-raise :class:`SimulationDiverged` with the step, the particle counts and the law.
+Health checks, once per frame (one host sync; a swept rollout reads them all after its last frame):
+non-finite state, particles moving more than one cell per step, and too many particles sitting on the
+position clamp (they left the domain) all raise :class:`SimulationDiverged` with the step, the particle
+counts and the law.
 
 Speed. With ``graph`` (default on CUDA) each frame's forward and recompute-backward are replayed
 from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step from Python.
@@ -17,6 +18,7 @@ from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step f
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import torch
@@ -57,10 +59,11 @@ class Rollout:
     F_trial: torch.Tensor | None = None
     refine: int = 1  # each step was taken as this many steps of dt / refine (CFL refinement)
     wave_speed: float | None = None  # the material's wave speed estimate the CFL check used [m/s]
+    sweep: "ReverseSweep | None" = None  # rollout(..., sweep=True): its reverse-mode pass (no autograd graph)
 
 
 def check_state(solver: MPMSolver, x, v, F, step: int, law: str) -> int:
-    """Raise :class:`SimulationDiverged` on broken state; return the count of clamped particles.
+    """Raise :class:`SimulationDiverged` on broken state; return the count of clamped particles (one host read).
 
     Args:
         solver: for dt, dx, the clamp range and the tolerated clamped fraction.
@@ -68,16 +71,27 @@ def check_state(solver: MPMSolver, x, v, F, step: int, law: str) -> int:
         step: steps taken so far.
         law: law name for the message.
     """
-    cfg = solver.cfg
-    n = x.shape[0]
-    lo, hi = cfg.clamp_range
+    return judge_state(solver, x.shape[0], state_stats(solver, x, v, F).tolist(), step, law)
+
+
+def state_stats(solver: MPMSolver, x, v, F) -> torch.Tensor:
+    """(non-finite particles, particles on the clamp, max speed [m/s]) of a state, as a device tensor [3] (no host
+    read: :func:`judge_state` reads them)."""
+    lo, hi = solver.cfg.clamp_range
     with torch.no_grad():
         finite = torch.isfinite(x).all(1) & torch.isfinite(v).all(1) & torch.isfinite(F).flatten(1).all(1)
-        tol = 1e-3 * cfg.dx  # float32 rounding of the clamp bounds is far below this
+        tol = 1e-3 * solver.cfg.dx  # float32 rounding of the clamp bounds is far below this
         on_clamp = ((x <= lo + tol) | (x >= hi - tol)).any(1) & finite
         speed = torch.where(finite, v.norm(dim=1), torch.zeros_like(v[:, 0]))
-        n_bad, n_clamped, v_max = torch.stack([(~finite).sum().to(x.dtype), on_clamp.sum().to(x.dtype),
-                                               speed.max()]).tolist()
+        return torch.stack([(~finite).sum().to(x.dtype), on_clamp.sum().to(x.dtype), speed.max()])
+
+
+def judge_state(solver: MPMSolver, n: int, stats, step: int, law: str) -> int:
+    """Raise :class:`SimulationDiverged` when the :func:`state_stats` values ``stats`` (host floats) of a state of
+    ``n`` particles after ``step`` steps are broken; else return its clamped count."""
+    cfg = solver.cfg
+    lo, hi = cfg.clamp_range
+    n_bad, n_clamped, v_max = stats
     where = f"{_WHERE}: after step {step}, law {law}"
     if n_bad:
         raise SimulationDiverged(f"{where}: {int(n_bad)} of {n} particles have non-finite x, v or F "
@@ -104,7 +118,7 @@ def _check_inputs(x0, v0, vol, mass, n_steps, steps_per_frame):
 
 def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_per_frame: int,
             checkpoint: bool = True, C0=None, F0=None, wave_speed: float | None = None,
-            graph: bool | None = None) -> Rollout:
+            graph: bool | None = None, sweep: bool = False) -> Rollout:
     """Simulate ``material`` from ``(x0, v0)`` and return every frame.
 
     Args:
@@ -124,6 +138,10 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         graph: run each frame through :class:`gca.sim.graph.FrameGraphs` (CUDA graphs on a GPU, their
             eager twin on the CPU; same memory profile as ``checkpoint``). Default: on when the
             solver runs on CUDA and ``cfg.cuda_graphs`` is set.
+        sweep: run the frames without autograd (through the frame runner, graphed where ``graph``) and
+            attach a :class:`ReverseSweep` as ``Rollout.sweep``: the caller then differentiates frame by frame,
+            last first, instead of through an autograd graph of the whole rollout. The returned tensors do
+            not require grad; ``v0``'s graph (a learned launch) is reached by :meth:`ReverseSweep.finish`.
 
     Returns:
         :class:`Rollout` with ``n_steps // steps_per_frame + 1`` frames.
@@ -142,24 +160,142 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
     # the CFL estimate and the refinement in every diagnostic: a law stiffer under large strain than its estimate
     # (taken at small strain) shows as a blow-up at refine 1
     x, v, law = x0, v0, f"{law_name(material)} (CFL: wave speed estimate {c:.4g} m/s, {k} sub-step(s) per step)"
-    xs, vs, Fs, Ftrs, clamped = [x], [v], [F], [F], [check_state(solver, x, v, F, 0, law)]
+    # the swept rollout (training) reads its health checks once, after its last frame, so that the host queues the
+    # frames and goes on (to the renders) while the GPU simulates; a broken frame is still named by its step (the
+    # frames after it ran on broken state: the stencil's clamped base index keeps every access in the grid)
+    checks = [state_stats(solver, x, v, F)] if sweep else None
+    xs, vs, Fs, Ftrs, clamped = [x], [v], [F], [F], [] if sweep else [check_state(solver, x, v, F, 0, law)]
     if graph is None:
         graph = solver.cfg.cuda_graphs and solver.device.type == "cuda"
-    runner = solver.frame_graphs(material, steps_per_frame, x0.shape[0]) if graph else None
+    runner = solver.frame_graphs(material, steps_per_frame, x0.shape[0]) if graph or sweep else None
     if runner is not None:
         runner.bind(vol, mass)
+    Cs = [C]
+    if sweep:
+        x, v, C, F = (t.detach() for t in (x, v, C, F))
     for frame in range(n_steps // steps_per_frame):
         args = (solver, material, steps_per_frame, x, v, C, F, vol, mass)
-        if runner is not None:
+        if sweep:
+            x, v, C, F, F_trial = runner.forward(x, v, C, F)
+        elif runner is not None:
             x, v, C, F, F_trial = graphed_frame(runner, x, v, C, F)
         elif checkpoint and torch.is_grad_enabled():
             x, v, C, F, F_trial = torch_checkpoint(simulate_frame_trial, *args, use_reentrant=False)
         else:
             x, v, C, F, F_trial = simulate_frame_trial(*args)
-        clamped.append(check_state(solver, x, v, F, (frame + 1) * steps_per_frame, law))
+        if sweep:
+            checks.append(state_stats(solver, x, v, F))
+        else:
+            clamped.append(check_state(solver, x, v, F, (frame + 1) * steps_per_frame, law))
         xs.append(x)
         vs.append(v)
+        Cs.append(C)
         Fs.append(F)
         Ftrs.append(F_trial)
-    return Rollout(x=torch.stack(xs), F=torch.stack(Fs), v=torch.stack(vs), C=C, clamped=clamped,
-                   F_trial=torch.stack(Ftrs), refine=k, wave_speed=c)
+    if sweep:
+        clamped = [judge_state(solver, x0.shape[0], row, f * steps_per_frame, law)
+                   for f, row in enumerate(torch.stack(checks).tolist())]
+    detach = (lambda t: t.detach()) if sweep else (lambda t: t)  # noqa: E731
+    traj = Rollout(x=torch.stack([detach(t) for t in xs]), F=torch.stack([detach(t) for t in Fs]),
+                   v=torch.stack([detach(t) for t in vs]), C=C, clamped=clamped,
+                   F_trial=torch.stack([detach(t) for t in Ftrs]), refine=k, wave_speed=c)
+    if sweep:
+        traj.sweep = ReverseSweep(runner, traj, Cs, v0)
+    return traj
+
+
+class ReverseSweep:
+    """The reverse-mode pass of a rollout run with ``sweep=True``, one frame at a time, last frame first.
+
+    Reverse-mode differentiation of the rollout, as autograd would do it through the frames' graph, but driven
+    by the caller: it hands in the cotangents of ``x_f`` and ``F_f`` (its losses' gradients at frame ``f``) in
+    decreasing ``f`` (:meth:`add`); each frame's adjoint (:meth:`gca.sim.graph.FrameGraphs.backward`: the frame
+    recomputed from its saved start state and differentiated, replayed from CUDA graphs on a GPU) runs as soon
+    as the cotangent of that frame's outputs is complete. On CUDA the adjoints go to a side stream (after an
+    event of the caller's stream), so the caller's host work for the earlier frames (losses, their host reads)
+    overlaps the adjoints of the later ones instead of preceding all of them. The result equals autograd's
+    through the same frames up to float rounding (the parameters' per-frame gradients are summed in another
+    order; tests/test_sim_rollout.py).
+
+    Args:
+        runner: the frame runner the forward used (``gca.sim.graph.FrameGraphs``).
+        traj: the rollout (frame-start states x, v, F of every frame).
+        Cs: the APIC fields at every frame [n_frames + 1] of [N, 3, 3].
+        v0: the initial velocity as given to the rollout (with its graph when it requires grad).
+    """
+
+    def __init__(self, runner, traj: Rollout, Cs: list, v0: torch.Tensor):
+        self.runner, self.traj, self.Cs, self.v0 = runner, traj, Cs, v0
+        self.top = traj.x.shape[0] - 1  # frames above top have been swept; cot is that of frame top's outputs
+        self.next = self.top + 1  # add() takes frames below this one
+        zero = lambda t: torch.zeros_like(t)  # noqa: E731
+        self.stream = _side_stream(traj.x.device)
+        with self._on_side():
+            self.cot = [zero(traj.x[-1]), zero(traj.v[-1]), zero(Cs[-1]), zero(traj.F[-1])]
+            self.grads: list = [None] * len(runner.params)
+        self.done = False
+
+    def _on_side(self):
+        return torch.cuda.stream(self.stream) if self.stream is not None else contextlib.nullcontext()
+
+    def add(self, frame: int, g_x: torch.Tensor | None, g_F: torch.Tensor | None) -> None:
+        """Add the cotangents [N, 3] / [N, 3, 3] of ``x`` and ``F`` at ``frame`` (None: zero); frames must come in
+        decreasing order (each at most once). Sweeps the frames above ``frame`` first (asynchronously on CUDA)."""
+        if self.done:
+            raise ValueError(f"{_WHERE}: cotangents for frame {frame} after finish()")
+        if not 0 <= frame < self.next:
+            raise ValueError(f"{_WHERE}: cotangents for frame {frame} after those of frame {self.next} (or past the "
+                             f"last frame, {self.traj.x.shape[0] - 1}): frames must come last first, once each")
+        self.next = frame
+        if self.stream is not None:  # the side stream starts after what the caller queued so far (g_x, g_F)
+            self.stream.wait_stream(torch.cuda.current_stream(self.stream.device))
+            for g in (g_x, g_F):
+                if g is not None:
+                    g.record_stream(self.stream)
+        with self._on_side():
+            self._sweep_to(frame)
+            if g_x is not None:
+                self.cot[0] = self.cot[0] + g_x
+            if g_F is not None:
+                self.cot[3] = self.cot[3] + g_F
+
+    def _sweep_to(self, frame: int) -> None:
+        """Adjoints of the frames ``top .. frame + 1`` (the current stream is the side stream)."""
+        traj, params = self.traj, self.runner.params
+        for f in range(self.top, frame, -1):
+            state = (traj.x[f - 1], traj.v[f - 1], self.Cs[f - 1], traj.F[f - 1])
+            out = self.runner.backward(state, (*self.cot, torch.zeros_like(self.cot[3])))
+            self.cot = list(out[:4])
+            self.grads = [g if a is None else a + g for a, g in zip(self.grads, out[4:])]
+        self.top = min(self.top, frame)
+
+    def finish(self) -> None:
+        """Sweep the remaining frames, add the parameters' gradients into their ``.grad`` and backpropagate the
+        initial velocity's cotangent into ``v0``'s graph (when it requires grad); the caller's stream then waits
+        for the side stream."""
+        if self.done:
+            raise ValueError(f"{_WHERE}: finish() called twice")
+        if self.stream is not None:
+            self.stream.wait_stream(torch.cuda.current_stream(self.stream.device))
+        with self._on_side():
+            self._sweep_to(0)
+        if self.stream is not None:
+            torch.cuda.current_stream(self.stream.device).wait_stream(self.stream)
+        self.done = True
+        for p, g in zip(self.runner.params, self.grads):
+            if g is not None:
+                p.grad = g if p.grad is None else p.grad + g
+        if self.v0.requires_grad:
+            torch.autograd.backward(self.v0, self.cot[1])
+
+
+_SIDE_STREAMS: dict = {}
+
+
+def _side_stream(device: torch.device):
+    """One side CUDA stream per device for the reverse sweeps (None off CUDA)."""
+    if device.type != "cuda":
+        return None
+    if device not in _SIDE_STREAMS:
+        _SIDE_STREAMS[device] = torch.cuda.Stream(device)
+    return _SIDE_STREAMS[device]

@@ -47,6 +47,10 @@ class TrainConfig:
             ``frame_decay_start`` to 1 over the first ``frame_decay_until`` of the iterations; start 1 = off.
         neuma_lr_scale: multiplies NeuMA's published learning rates (:func:`neuma_recipe`); 1 = as published. A
             tuning knob (``gca.pipeline.tuning``): NeuMA's rates are its recipe's, not ``lr_elasticity``'s.
+        reverse_sweep: differentiate the rollout frame by frame, last first, while the frames' losses are evaluated
+            (``gca.sim.rollout.ReverseSweep``; on CUDA the simulator's backward then overlaps the losses' host work)
+            instead of one autograd pass after all of them; the same gradient up to float rounding. Term-share
+            iterations take the autograd pass (each term is differentiated through the whole rollout there).
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
@@ -75,6 +79,7 @@ class TrainConfig:
     term_shares_every: int = 20
     neuma_lr_scale: float = 1.7511264560616377
     optimizer: str = "radam"
+    reverse_sweep: bool = True
     frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_until: float = dataclasses.field(default=0.33, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_every: float = dataclasses.field(default=0.2, metadata=NOT_A_PARAM)  # set by the method's recipe

@@ -67,13 +67,14 @@ def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
     return max(1, min(n_video, math.ceil(frac * n_video)))
 
 
-def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int) -> Rollout:
+def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int, sweep: bool = False) -> Rollout:
     """Differentiable rollout up to the ``n_video``-th video frame, from the law's learned launch (explicit rows)
-    or the shared estimate ``data.v_init``."""
+    or the shared estimate ``data.v_init``; with ``sweep``, differentiated by its reverse sweep instead of
+    autograd (``gca.sim.rollout.ReverseSweep``)."""
     n_frames = data.video_frames[n_video - 1]
     b = data.body
     return rollout(solver, law.material, b.x0, law.initial_velocity(b.x0, data.v_init), b.vol, b.mass,
-                   n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
+                   n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True, sweep=sweep)
 
 
 def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
@@ -193,7 +194,7 @@ def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) 
     timer.start()
     for p in law.trainable():
         p.grad = None
-    traj = simulate(solver, law, data, n_video)
+    traj = simulate(solver, law, data, n_video, sweep=cfg.reverse_sweep and not shares and objective.can_sweep())
     probe = objective.probe = GradProbe()
     probe.watch("particles", "x", -1, traj.x)
     probe.watch("particles", "F", -1, traj.F)

@@ -20,6 +20,7 @@ import torch
 from gca.align.cpr import CPR, CPRConfig
 from gca.align.rdga import RDGAConfig, position_colors, position_image, rdga_loss
 from gca.render.camera import Camera
+from gca.render.rasterize import judge_inputs
 from gca.scenes.store import ViewData
 from gca.scenes.world import Body, body_colors, gaussians_at, render_gaussians
 from gca.sim.rollout import Rollout
@@ -86,6 +87,7 @@ class Objective:
         self._term_weight = 1.0  # the current frame's weight in the loss, applied to the terms collected for shares
         self.frame_weights: list[float] | None = None  # per video frame, set per iteration by the loop (NeuMA's rollout weighting)
         self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares
+        self._checks: list | None = None  # the rasterizer's input stats of the frames being rendered (_render_frames)
         self.last_term_grads: dict[str, list] | None = None  # each term's gradient of the last gradient(shares=True)
         switches = method.rdga_switches()  # the method's RDGA terms (silhouette, global, anchor) or None
         self.rdga = dataclasses.replace(rdga, **(switches or {}))
@@ -151,6 +153,11 @@ class Objective:
         Raises:
             FloatingPointError: a non-finite loss (before any backward).
         """
+        if traj.sweep is not None:
+            if shares:
+                raise ValueError("gca/train/objective.py: term shares differentiate each term through the whole "
+                                 "rollout's graph; simulate without sweep for them")
+            return self._gradient_swept(traj, n_video, law, lap)
         params = law.trainable()
         prior = self.cpr is not None
         self._terms = {} if shares else None
@@ -187,6 +194,69 @@ class Objective:
         lap("backward")
         return loss, stats
 
+    def can_sweep(self) -> bool:
+        """Whether :meth:`gradient` can take a swept rollout (``rollout(..., sweep=True)``): the image terms are
+        per-frame functions of (x_f, F_f), and CPR, when used, does not differentiate through the rollout
+        (``align.cpr.detach_F``)."""
+        return self.cpr is None or self.cpr.cfg.detach_F
+
+    def _gradient_swept(self, traj: Rollout, n_video: int, law: LearnedLaw,
+                        lap: Callable[[str], None]) -> tuple[torch.Tensor, dict]:
+        """:meth:`gradient` on a swept rollout: the same loss and, up to float rounding, the same gradient.
+
+        The frames are rendered from autograd leaves of (x_f, F_f) (:class:`_FrameLeaves`); CPR's gradient is
+        taken as in :meth:`gradient`; then the frames' losses are evaluated **last frame first**, each one's
+        gradient with respect to its (x_f, F_f) handed to the rollout's :class:`gca.sim.rollout.ReverseSweep`,
+        which runs the adjoints of the later frames meanwhile (on CUDA on a side stream: the losses' host work,
+        host reads included, overlaps the simulator's backward instead of preceding it). The "render_losses" phase
+        ends when the last frame's loss is queued, "backward" when the sweep is done and CPR's gradient added.
+        """
+        params = law.trainable()
+        prior = self.cpr is not None
+        self._terms = None
+        view = _FrameLeaves(traj, self.data.video_frames[:n_video])
+        renders = self._render_frames(view, n_video)
+        matching = self._start_matching(renders)
+        prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior \
+            else (0.0, None, {})
+        data_loss, mean_stats, differentiable = self._frame_losses_swept(view, renders, matching, traj.sweep)
+        stats = mean_stats.read()
+        stats.update(prior_stats)
+        loss = data_loss + prior_value
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
+        lap("render_losses")
+        traj.sweep.finish()
+        if prior:  # as in gradient(): no image term differentiable (no_rdga): the prior alone, unscaled
+            stats.update(add_prior_gradient(params, g_prior, self.cpr.cfg.max_grad_ratio if differentiable else 0.0))
+        lap("backward")
+        return loss, stats
+
+    def _frame_losses_swept(self, view: "_FrameLeaves", renders: list[dict], matching: list[Future] | None,
+                            sweep) -> tuple[torch.Tensor, "_MeanStats", bool]:
+        """The frames' losses, last first, each differentiated into ``sweep`` at once (its render's graph freed):
+        (their weighted sum, detached; their stats; whether any was differentiable)."""
+        n_video = len(renders)
+        loss, stats, differentiable = self.data.body.x0.new_zeros(()), _MeanStats(n_video), False
+        for j in reversed(range(n_video)):
+            self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
+            l_j = self._frame_loss(view, j, renders[j], matching[j].result() if matching is not None else None, stats)
+            renders[j] = None
+            if self.frame_weights is not None:
+                l_j = self.frame_weights[j] * l_j
+            loss = loss + l_j.detach()
+            if l_j.requires_grad:
+                f = view.frames[j]
+                g_x, g_F = torch.autograd.grad(l_j, [view.x[f], view.F[f]], allow_unused=True)
+                if self.probe is not None:
+                    for name, g in (("x", g_x), ("F", g_F)):
+                        if g is not None:
+                            self.probe.record("particles", name, j, g)
+                sweep.add(f, g_x, g_F)
+                differentiable = True
+        self._term_weight = 1.0
+        return loss, stats, differentiable
+
     def loss(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
         """Sum of the method's losses over video frames ``0 .. n_video - 1`` (CPR's in one call, with its
         graph: the reference of :meth:`prior_gradient`) and their mean stats."""
@@ -212,8 +282,18 @@ class Objective:
         return self._frame_losses(traj, renders, self._start_matching(renders))
 
     def _render_frames(self, traj: Rollout, n_video: int) -> list[dict[str, dict]]:
-        """Every view's render outputs at video frames ``0 .. n_video - 1``, back to back (with their graphs)."""
-        return [self._render_frame(traj, j) for j in range(n_video)]
+        """Every view's render outputs at video frames ``0 .. n_video - 1``, back to back (with their graphs); the
+        rasterizer's input values are checked once for all frames (one host read after the last frame is queued, so
+        the host does not wait for each frame, nor for a swept rollout, before queueing the next)."""
+        self._checks = []
+        try:
+            renders = [self._render_frame(traj, j) for j in range(n_video)]
+            checks, views = self._checks, len(self.data.views)
+        finally:
+            self._checks = None
+        for i, row in enumerate(torch.stack(checks).tolist() if checks else []):
+            judge_inputs(row, f"video frame {i // views}, view {list(self.data.views)[i % views]}: ")
+        return renders
 
     def _frame_losses(self, traj: Rollout, renders: list[dict], matching: list[Future] | None
                       ) -> tuple[torch.Tensor, "_MeanStats"]:
@@ -221,7 +301,7 @@ class Objective:
         train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats."""
         n_video = len(renders)
         matches = [f.result() for f in matching] if matching is not None else [None] * n_video
-        loss, stats = traj.x.new_zeros(()), _MeanStats(n_video)
+        loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
         for j in range(n_video):
             self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
             l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
@@ -289,7 +369,7 @@ class Objective:
 
     def _frame_loss(self, traj: Rollout, j: int, outs: dict[str, dict], pq, stats: "_MeanStats") -> torch.Tensor:
         """Loss at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None)."""
-        loss = traj.x.new_zeros(())
+        loss = self.data.body.x0.new_zeros(())
         for name, out in outs.items():
             if self.method.uses("color"):
                 l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
@@ -348,10 +428,10 @@ class Objective:
         (background 0), so the frame is rasterized once."""
         body = self.data.body
         if not with_positions:
-            return render_gaussians(body, means, covs, body.colors, view.camera, self.bg)
+            return render_gaussians(body, means, covs, body.colors, view.camera, self.bg, checks=self._checks)
         extra = position_colors(view.camera.to_camera(means), self.train0_rdga.global_gradient)
         out = render_gaussians(body, means, covs, torch.cat([body_colors(body, means, view.camera), extra], 1), view.camera,
-                               torch.cat([self.bg, self.bg.new_zeros(extra.shape[1])]))
+                               torch.cat([self.bg, self.bg.new_zeros(extra.shape[1])]), checks=self._checks)
         return {**out, "rgb": out["rgb"][..., :3],
                 "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
 
@@ -443,6 +523,16 @@ def term_shares(term_grads: dict[str, list], total: list) -> dict[str, float]:
             else 0.0
         out[f"share/{name}/norm"], out[f"share/{name}/cos"] = norm, cos
     return out
+
+
+class _FrameLeaves:
+    """A swept rollout's x and F at the supervised video frames as autograd leaves: ``x[f]`` [N, 3] and ``F[f]``
+    [N, 3, 3] for each simulated frame ``f`` of ``frames`` (what the per-frame losses are differentiated to)."""
+
+    def __init__(self, traj: Rollout, frames: list[int]):
+        self.frames = list(frames)
+        self.x = {f: traj.x[f].detach().requires_grad_(True) for f in self.frames}
+        self.F = {f: traj.F[f].detach().requires_grad_(True) for f in self.frames}
 
 
 class _MeanStats:

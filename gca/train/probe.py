@@ -30,9 +30,11 @@ class GradProbe:
         if stage not in STAGES:
             raise ValueError(f"gca/train/probe.py: unknown stage {stage!r}; one of {STAGES}")
         if isinstance(t, torch.Tensor) and t.requires_grad:
-            t.register_hook(lambda g: self._record(stage, name, frame, g))
+            t.register_hook(lambda g: self.record(stage, name, frame, g))
 
-    def _record(self, stage: str, name: str, frame: int, g: torch.Tensor) -> None:
+    def record(self, stage: str, name: str, frame: int, g: torch.Tensor) -> None:
+        """Count the non-finite entries of ``g``, a gradient that reached ``stage``'s tensor ``name`` at ``frame``
+        (what :meth:`watch`'s hook does; called directly where the gradient is taken by hand)."""
         self.counts.append((stage, name, frame, (~torch.isfinite(g)).sum()))
 
     def report(self) -> str:

@@ -1,0 +1,72 @@
+#!/bin/sh
+# Issue 20, session 31: the reverse sweep (train.reverse_sweep: the rollout differentiated frame by frame, last first,
+# on a side stream beside the losses; health and render checks read once per rollout) against the autograd pass, and
+# solo 200-iteration GCA trainings of the Table 1 scenes with it, on one GPU.
+#
+#   call 1 carry [".wpa"]:                                   sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:            . .wpb/activate.sh && PART=a OUT=$OUT sh benchmarks/fast8_bundle.sh
+#       gsplat's build; the ball's data (paper profile, the committed jelly prior); 10 iterations with the sweep, then
+#       without (train.reverse_sweep=false), then with again (same data); profile_train.py of one full-horizon
+#       iteration with the sweep                                 -> $OUT/{sweep,autograd,sweep2}/, profile_train_*.txt
+#   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck" OUT=$OUT sh benchmarks/fast8_bundle.sh
+#       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> $OUT/solo_<scene>/
+set -u
+OUT=${OUT:-/tmp/fast8_out}; PART=${PART:-a}
+mkdir -p "$OUT"
+export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
+T0=$(date +%s)
+stamp() { python3 -c "import time; print(f'[fast8 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+. benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
+prior_of() { python3 -c "import yaml; print(yaml.safe_load(open('params.yaml'))['scenes']['$1']['prior'])"; }
+run() {  # tag scene work iterations timeout [extra harness args...]
+  tag=$1 scene=$2 w=$3 its=$4 limit=$5; shift 5
+  mkdir -p "$OUT/$tag" "$w/prior"
+  cp "benchmarks/results/priors_paper/$(prior_of "$scene").pt" "$w/prior/"
+  # shellcheck disable=SC2068
+  timeout "$limit" python3 benchmarks/harness.py --scene "$scene" --methods gca --profile paper --work "$w" --reuse-prior \
+      --set velocity.iterations=20 --set render.backend=gsplat --set train.iterations="$its" --out "$OUT/$tag" \
+      --tag "$tag" $@ > "$OUT/$tag.log" 2>&1
+  echo "$tag rc=$?"; tail -n 2 "$OUT/$tag.log"
+}
+summary() {
+  python3 - "$OUT" "$@" <<'PY'
+import glob, json, statistics, sys
+out = sys.argv[1]
+print(f"{'run':>12} {'its':>4} {'s/it':>6} {'full-horizon s/it':>17} {'sim':>5} {'render+loss':>11} {'bwd':>5} {'peak GiB':>8} "
+      f"{'train s':>7} {'CD':>9} status")
+for tag in sys.argv[2:]:
+    for f in glob.glob(f"{out}/{tag}/harness_*.json"):
+        r = json.load(open(f))
+        hist = r.get("history", [])
+        full = [h for h in hist[1:] if h.get("horizon") == max(x.get("horizon", 0) for x in hist)
+                and "share/total/norm" not in h]
+        med = lambda k: statistics.median(h.get(f"time/{k}", 0.0) for h in full) if full else float("nan")  # noqa
+        per_it = med("simulate") + med("render_losses") + med("backward") + med("optimizer")
+        cd = r.get("chamfer_mean")
+        print(f"{tag:>12} {r['iterations']:>4} {r['seconds_per_iteration']:6.2f} {per_it:17.3f} {med('simulate'):5.2f} "
+              f"{med('render_losses'):11.2f} {med('backward'):5.2f} {r['peak_memory_gib']:8.2f} {r['train_seconds']:7.1f} "
+              f"{cd if cd is None else round(cd, 6)!s:>9} {r['status']}")
+        print(f"{'':>12} losses: " + " ".join(f"{h['loss']:.6g}" for h in hist[:6]))
+PY
+}
+
+if [ "$PART" = a ]; then
+  stamp "gsplat: build its extension once"
+  timeout 240 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "build rc=$?"
+  W=/tmp/fast8_ball
+  stamp "sweep: data + 10 iterations"; run sweep ball $W 10 240
+  stamp "autograd: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval; run autograd ball $W 10 150 --reuse-data --stages train evaluate --set train.reverse_sweep=false
+  stamp "sweep again"; rm -rf $W/runs/ball $W/eval; run sweep2 ball $W 10 150 --reuse-data --stages train evaluate
+  stamp "profile one full-horizon iteration with the sweep"
+  timeout 150 python3 benchmarks/profile_train.py --work $W --scene ball --method gca --iterations 2 --top 60 --out "$OUT" \
+      > "$OUT/profile.log" 2>&1; echo "profile rc=$?"; grep "per iteration" "$OUT/profile.log"
+  summary sweep autograd sweep2
+fi
+
+if [ "$PART" = b ]; then
+  for scene in ${SCENES:-ball}; do
+    stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast8_$scene" 200 "${LIMIT:-560}"
+  done
+  summary $(for s in ${SCENES:-ball}; do printf 'solo_%s ' "$s"; done)
+fi
+stamp done
