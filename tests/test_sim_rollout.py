@@ -207,3 +207,34 @@ def test_reverse_sweep_refuses_frames_out_of_order():
         sweep.finish()
     with pytest.raises(ValueError, match="finish"):
         sweep.add(0, None, None)
+
+
+class _NaNLaw(Material):
+    """A corotated Material whose stress turns NaN: a swept rollout must still stop with the diagnostic."""
+
+    def stress(self, F):
+        return torch.full_like(F, float("nan"))
+
+
+def test_swept_rollout_judges_its_frames_once_and_names_the_step():
+    """rollout(..., sweep=True) returns before reading its health checks (the host goes on while the GPU
+    simulates); ReverseSweep.judge reads them once and raises SimulationDiverged at the first broken frame's step,
+    as the per-frame checks do; add() and finish() judge first when the caller has not."""
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
+    x0, v0, vol, mass = _blob(20, seed=2)
+    bad = _NaNLaw(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    with pytest.raises(SimulationDiverged, match="after step 4, law") as per_frame:
+        rollout(MPMSolver(cfg), bad, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, graph=True)
+    out = rollout(MPMSolver(cfg), bad, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    assert out.clamped == []
+    with pytest.raises(SimulationDiverged) as swept:
+        out.sweep.judge()
+    assert str(swept.value) == str(per_frame.value)
+    out = rollout(MPMSolver(cfg), bad, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    with pytest.raises(SimulationDiverged, match="after step 4"):
+        out.sweep.add(3, None, None)
+    good = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    out = rollout(MPMSolver(cfg), good, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    out.sweep.finish()
+    ref = rollout(MPMSolver(cfg), good, x0, v0, vol, mass, n_steps=12, steps_per_frame=4)
+    assert out.clamped == ref.clamped and len(out.clamped) == 4

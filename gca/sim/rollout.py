@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+from typing import Callable
 
 import torch
 from torch.utils.checkpoint import checkpoint as torch_checkpoint
@@ -141,7 +142,9 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         sweep: run the frames without autograd (through the frame runner, graphed where ``graph``) and
             attach a :class:`ReverseSweep` as ``Rollout.sweep``: the caller then differentiates frame by frame,
             last first, instead of through an autograd graph of the whole rollout. The returned tensors do
-            not require grad; ``v0``'s graph (a learned launch) is reached by :meth:`ReverseSweep.finish`.
+            not require grad; ``v0``'s graph (a learned launch) is reached by :meth:`ReverseSweep.finish`. The
+            health checks are read by :meth:`ReverseSweep.judge` (``clamped`` is empty until then), so the call
+            returns while the GPU still simulates.
 
     Returns:
         :class:`Rollout` with ``n_steps // steps_per_frame + 1`` frames.
@@ -192,15 +195,14 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         Cs.append(C)
         Fs.append(F)
         Ftrs.append(F_trial)
-    if sweep:
-        clamped = [judge_state(solver, x0.shape[0], row, f * steps_per_frame, law)
-                   for f, row in enumerate(torch.stack(checks).tolist())]
     detach = (lambda t: t.detach()) if sweep else (lambda t: t)  # noqa: E731
     traj = Rollout(x=torch.stack([detach(t) for t in xs]), F=torch.stack([detach(t) for t in Fs]),
                    v=torch.stack([detach(t) for t in vs]), C=C, clamped=clamped,
                    F_trial=torch.stack([detach(t) for t in Ftrs]), refine=k, wave_speed=c)
     if sweep:
-        traj.sweep = ReverseSweep(runner, traj, Cs, v0)
+        traj.sweep = ReverseSweep(runner, traj, Cs, v0, lambda: [
+            judge_state(solver, x0.shape[0], row, f * steps_per_frame, law)
+            for f, row in enumerate(torch.stack(checks).tolist())])
     return traj
 
 
@@ -222,10 +224,13 @@ class ReverseSweep:
         traj: the rollout (frame-start states x, v, F of every frame).
         Cs: the APIC fields at every frame [n_frames + 1] of [N, 3, 3].
         v0: the initial velocity as given to the rollout (with its graph when it requires grad).
+        checks: reads the rollout's per-frame health checks (one host read), raising :class:`SimulationDiverged` at
+            the first broken frame, and returns the clamped counts (:meth:`judge`).
     """
 
-    def __init__(self, runner, traj: Rollout, Cs: list, v0: torch.Tensor):
-        self.runner, self.traj, self.Cs, self.v0 = runner, traj, Cs, v0
+    def __init__(self, runner, traj: Rollout, Cs: list, v0: torch.Tensor, checks: Callable[[], list]):
+        self.runner, self.traj, self.Cs, self.v0, self._checks = runner, traj, Cs, v0, checks
+        self.judged = False
         self.top = traj.x.shape[0] - 1  # frames above top have been swept; cot is that of frame top's outputs
         self.next = self.top + 1  # add() takes frames below this one
         zero = lambda t: torch.zeros_like(t)  # noqa: E731
@@ -235,6 +240,15 @@ class ReverseSweep:
             self.grads: list = [None] * len(runner.params)
         self.done = False
 
+    def judge(self) -> None:
+        """Read the rollout's health checks (once; one host read, which waits for the simulation): raise
+        :class:`SimulationDiverged` naming the first broken frame's step, else fill ``traj.clamped``. The swept
+        rollout returns before its frames are checked so that the host can queue work (the renders) meanwhile;
+        :meth:`add` and :meth:`finish` judge first when the caller has not."""
+        if not self.judged:
+            self.traj.clamped = self._checks()
+            self.judged = True
+
     def _on_side(self):
         return torch.cuda.stream(self.stream) if self.stream is not None else contextlib.nullcontext()
 
@@ -243,6 +257,7 @@ class ReverseSweep:
         decreasing order (each at most once). Sweeps the frames above ``frame`` first (asynchronously on CUDA)."""
         if self.done:
             raise ValueError(f"{_WHERE}: cotangents for frame {frame} after finish()")
+        self.judge()
         if not 0 <= frame < self.next:
             raise ValueError(f"{_WHERE}: cotangents for frame {frame} after those of frame {self.next} (or past the "
                              f"last frame, {self.traj.x.shape[0] - 1}): frames must come last first, once each")
@@ -275,6 +290,7 @@ class ReverseSweep:
         for the side stream."""
         if self.done:
             raise ValueError(f"{_WHERE}: finish() called twice")
+        self.judge()
         if self.stream is not None:
             self.stream.wait_stream(torch.cuda.current_stream(self.stream.device))
         with self._on_side():

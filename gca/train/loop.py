@@ -167,19 +167,26 @@ def _select(best: BestLaw, undo, solver, law, data, objective, cfg, n_video: int
 
 
 class PhaseTimer:
-    """Wall time per phase [s], synchronising CUDA so asynchronous kernels are charged to their phase."""
+    """Wall time per phase [s], synchronising CUDA so asynchronous kernels are charged to their phase.
 
-    def __init__(self, device: torch.device):
-        self.device, self.seconds, self._t = device, {}, None
+    ``synced``: the phases whose end synchronises (None: all). A swept iteration (``train.reverse_sweep``) overlaps
+    its phases on purpose (the GPU simulates while the host renders, and differentiates while the host evaluates
+    the losses), so only its last phase synchronises: its earlier phases' times are the host's, and the total is
+    the iteration's wall time either way."""
 
-    def _now(self) -> float:
-        return synced_clock(self.device)
+    def __init__(self, device: torch.device, synced: set[str] | None = None):
+        self.device, self.seconds, self._t, self.synced = device, {}, None, synced
+
+    def _now(self, phase: str | None = None) -> float:
+        if self.synced is None or phase is None or phase in self.synced:
+            return synced_clock(self.device)
+        return time.perf_counter()
 
     def start(self) -> None:
         self._t = self._now()
 
     def lap(self, phase: str) -> None:
-        t = self._now()
+        t = self._now(phase)
         self.seconds[phase] = self.seconds.get(phase, 0.0) + t - self._t
         self._t = t
 
@@ -190,18 +197,23 @@ def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) 
     Returns the iteration's record (loss, gradient norm before clipping, horizon, stats, phase times).
     Raises one of ``DIVERGENCE_ERRORS`` when the rollout, the loss or a gradient is not usable.
     """
-    timer = PhaseTimer(data.body.x0.device)
+    swept = cfg.reverse_sweep and not shares and objective.can_sweep()
+    timer = PhaseTimer(data.body.x0.device, synced={"backward"} if swept else None)
     timer.start()
     for p in law.trainable():
         p.grad = None
-    traj = simulate(solver, law, data, n_video, sweep=cfg.reverse_sweep and not shares and objective.can_sweep())
+    traj = simulate(solver, law, data, n_video, sweep=swept)
     probe = objective.probe = GradProbe()
     probe.watch("particles", "x", -1, traj.x)
     probe.watch("particles", "F", -1, traj.F)
     timer.lap("simulate")
-    _check_drift(traj, data, n_video, cfg)
-    loss, stats = objective.gradient(traj, n_video, law, timer.lap, shares=shares) if shares else \
-        objective.gradient(traj, n_video, law, timer.lap)
+    if swept:  # the rollout's checks are read once its frames are rendered (the GPU simulates meanwhile)
+        loss, stats = objective.gradient(traj, n_video, law, timer.lap,
+                                         on_rendered=lambda: _check_drift(traj, data, n_video, cfg))
+    else:
+        _check_drift(traj, data, n_video, cfg)
+        loss, stats = objective.gradient(traj, n_video, law, timer.lap, shares=shares) if shares else \
+            objective.gradient(traj, n_video, law, timer.lap)
     _check_gradients(law, probe)
     params = law.trainable()
     grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)

@@ -121,7 +121,8 @@ class Objective:
             self.cpr.load_state(state["cpr"])
 
     def gradient(self, traj: Rollout, n_video: int, law: LearnedLaw,
-                 lap: Callable[[str], None] = lambda phase: None, shares: bool = False) -> tuple[torch.Tensor, dict]:
+                 lap: Callable[[str], None] = lambda phase: None, shares: bool = False,
+                 on_rendered: Callable[[], None] = lambda: None) -> tuple[torch.Tensor, dict]:
         """The training loss over video frames ``0 .. n_video - 1`` and its gradient, left in the law's
         trainable parameters' ``.grad`` (which must be None or zero on entry).
 
@@ -142,6 +143,8 @@ class Objective:
         Args:
             traj: the law's differentiable rollout; n_video: supervised video frames (the horizon).
             law: the law being trained; lap: called with "render_losses" and "backward" as each phase ends.
+            on_rendered: a swept rollout's checks (e.g. the caller's drift check), called once its frames are
+                rendered, after the rollout's own health checks (:meth:`gca.sim.rollout.ReverseSweep.judge`).
             shares: also each declared term's gradient (``torch.autograd.grad`` of that term alone, one extra
                 backward pass per image term; ``train.term_shares_every``): its norm and its cosine with the total
                 gradient go into the stats (:func:`term_shares`), the gradients into ``last_term_grads``.
@@ -157,7 +160,7 @@ class Objective:
             if shares:
                 raise ValueError("gca/train/objective.py: term shares differentiate each term through the whole "
                                  "rollout's graph; simulate without sweep for them")
-            return self._gradient_swept(traj, n_video, law, lap)
+            return self._gradient_swept(traj, n_video, law, lap, on_rendered)
         params = law.trainable()
         prior = self.cpr is not None
         self._terms = {} if shares else None
@@ -200,26 +203,28 @@ class Objective:
         (``align.cpr.detach_F``)."""
         return self.cpr is None or self.cpr.cfg.detach_F
 
-    def _gradient_swept(self, traj: Rollout, n_video: int, law: LearnedLaw,
-                        lap: Callable[[str], None]) -> tuple[torch.Tensor, dict]:
+    def _gradient_swept(self, traj: Rollout, n_video: int, law: LearnedLaw, lap: Callable[[str], None],
+                        on_rendered: Callable[[], None]) -> tuple[torch.Tensor, dict]:
         """:meth:`gradient` on a swept rollout: the same loss and, up to float rounding, the same gradient.
 
-        The frames are rendered from autograd leaves of (x_f, F_f) (:class:`_FrameLeaves`); CPR's gradient is
-        taken as in :meth:`gradient`; then the frames' losses are evaluated **last frame first**, each one's
-        gradient with respect to its (x_f, F_f) handed to the rollout's :class:`gca.sim.rollout.ReverseSweep`,
+        The frames are rendered from autograd leaves of (x_f, F_f) (:class:`_FrameLeaves`) while the GPU still
+        simulates (their checks, the rollout's and ``on_rendered`` are read after the last one is queued); their
+        train0 matching starts, last frame first; then the frames' losses are evaluated **last frame first**, each
+        one's gradient with respect to its (x_f, F_f) handed to the rollout's :class:`gca.sim.rollout.ReverseSweep`,
         which runs the adjoints of the later frames meanwhile (on CUDA on a side stream: the losses' host work,
-        host reads included, overlaps the simulator's backward instead of preceding it). The "render_losses" phase
-        ends when the last frame's loss is queued, "backward" when the sweep is done and CPR's gradient added.
+        host reads included, overlaps the simulator's backward instead of preceding it); CPR's gradient is taken
+        last, as in :meth:`gradient`, while the sweep finishes. The "render_losses" phase ends when CPR's gradient is
+        queued, "backward" when the sweep is done and CPR's gradient added.
         """
         params = law.trainable()
         prior = self.cpr is not None
         self._terms = None
         view = _FrameLeaves(traj, self.data.video_frames[:n_video])
-        renders = self._render_frames(view, n_video)
-        matching = self._start_matching(renders)
+        renders = self._render_frames(view, n_video, first=lambda: (traj.sweep.judge(), on_rendered()))
+        matching = self._start_matching(renders, last_first=True)
+        data_loss, mean_stats, differentiable = self._frame_losses_swept(view, renders, matching, traj.sweep)
         prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior \
             else (0.0, None, {})
-        data_loss, mean_stats, differentiable = self._frame_losses_swept(view, renders, matching, traj.sweep)
         stats = mean_stats.read()
         stats.update(prior_stats)
         loss = data_loss + prior_value
@@ -281,16 +286,18 @@ class Objective:
         renders = self._render_frames(traj, n_video)
         return self._frame_losses(traj, renders, self._start_matching(renders))
 
-    def _render_frames(self, traj: Rollout, n_video: int) -> list[dict[str, dict]]:
+    def _render_frames(self, traj, n_video: int, first: Callable[[], None] = lambda: None) -> list[dict[str, dict]]:
         """Every view's render outputs at video frames ``0 .. n_video - 1``, back to back (with their graphs); the
         rasterizer's input values are checked once for all frames (one host read after the last frame is queued, so
-        the host does not wait for each frame, nor for a swept rollout, before queueing the next)."""
+        the host does not wait for each frame, nor for a swept rollout, before queueing the next), after ``first``
+        (a swept rollout's own checks: a diverged rollout is named as such, not as bad renderer input)."""
         self._checks = []
         try:
             renders = [self._render_frame(traj, j) for j in range(n_video)]
             checks, views = self._checks, len(self.data.views)
         finally:
             self._checks = None
+        first()
         for i, row in enumerate(torch.stack(checks).tolist() if checks else []):
             judge_inputs(row, f"video frame {i // views}, view {list(self.data.views)[i % views]}: ")
         return renders
@@ -388,12 +395,12 @@ class Objective:
         rdga = self.train0_rdga
         return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
 
-    def _start_matching(self, renders: list[dict]) -> list[Future] | None:
+    def _start_matching(self, renders: list[dict], last_first: bool = False) -> list[Future] | None:
         """Start matching every frame's train0 render with its video frame (``vision.matching.backend``: SIFT
         against the frame's cached keypoints, or dense flow against the frame itself, inside the rendered
         mask ``alpha >= align.rdga.alpha_threshold`` and the frame's mask); None when the method's terms need
         no matches. Returns one future per frame, each giving (p [M, 2] in the render, q [M, 2] in the video
-        frame) [px].
+        frame) [px]; ``last_first``: the frames are queued to the threads last first (a swept gradient's order).
 
         The frames (RGB and, as a 4th channel, the rendered mask) go to the host in one copy, asynchronous on
         CUDA (pinned memory and an event: the caller goes on queueing GPU work, e.g. CPR, while the copy and the
@@ -420,7 +427,9 @@ class Objective:
             return match_frame(frames[j, ..., :3], self._gt_u8[j], *keypoints[j], self.match,
                                render_mask=frames[j, ..., 3] > 0, gt_mask=self._gt_mask[j])
 
-        return [_match_pool().submit(work, j) for j in range(len(renders))]
+        order = range(len(renders) - 1, -1, -1) if last_first else range(len(renders))
+        futures = {j: _match_pool().submit(work, j) for j in order}
+        return [futures[j] for j in range(len(renders))]
 
     def _render(self, means, covs, view: ViewData, with_positions: bool) -> dict:
         """RGB/alpha/depth; with ``with_positions`` also the premultiplied camera-frame positions
