@@ -238,3 +238,26 @@ def test_swept_rollout_judges_its_frames_once_and_names_the_step():
     out.sweep.finish()
     ref = rollout(MPMSolver(cfg), good, x0, v0, vol, mass, n_steps=12, steps_per_frame=4)
     assert out.clamped == ref.clamped and len(out.clamped) == 4
+
+
+def test_a_swept_rollout_is_freed_without_the_garbage_collector():
+    """The sweep holds the frames, not the Rollout: with the cyclic collector off, a swept rollout's frames are freed
+    as soon as the caller drops it (a Rollout <-> sweep cycle kept every iteration's frames until a collection:
+    9.4 GiB at the peak of a 200-iteration ball run on the H100, session 31)."""
+    import gc
+    import weakref
+
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
+    x0, v0, vol, mass = _blob(20, seed=2)
+    material = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        out = rollout(MPMSolver(cfg), material, x0, v0, vol, mass, n_steps=8, steps_per_frame=4, sweep=True)
+        out.sweep.finish()
+        frames = weakref.ref(out.x)
+        del out
+        assert frames() is None
+    finally:
+        if enabled:
+            gc.enable()

@@ -199,8 +199,9 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
     traj = Rollout(x=torch.stack([detach(t) for t in xs]), F=torch.stack([detach(t) for t in Fs]),
                    v=torch.stack([detach(t) for t in vs]), C=C, clamped=clamped,
                    F_trial=torch.stack([detach(t) for t in Ftrs]), refine=k, wave_speed=c)
-    if sweep:
-        traj.sweep = ReverseSweep(runner, traj, Cs, v0, lambda: [
+    if sweep:  # the sweep holds the frames, not the Rollout (no reference cycle: each iteration's frames are freed
+        # as soon as it ends, not at the next garbage collection; a 200-iteration run peaked at 9.4 GiB with the cycle)
+        traj.sweep = ReverseSweep(runner, (traj.x, traj.v, Cs, traj.F), v0, traj.clamped, lambda: [
             judge_state(solver, x0.shape[0], row, f * steps_per_frame, law)
             for f, row in enumerate(torch.stack(checks).tolist())])
     return traj
@@ -221,22 +222,24 @@ class ReverseSweep:
 
     Args:
         runner: the frame runner the forward used (``gca.sim.graph.FrameGraphs``).
-        traj: the rollout (frame-start states x, v, F of every frame).
-        Cs: the APIC fields at every frame [n_frames + 1] of [N, 3, 3].
+        frames: the frame-start states of every frame: x [n_frames + 1, N, 3], v [n_frames + 1, N, 3], C (a list of
+            n_frames + 1 [N, 3, 3]) and F [n_frames + 1, N, 3, 3].
         v0: the initial velocity as given to the rollout (with its graph when it requires grad).
+        clamped: the rollout's ``clamped`` list, filled by :meth:`judge`.
         checks: reads the rollout's per-frame health checks (one host read), raising :class:`SimulationDiverged` at
             the first broken frame, and returns the clamped counts (:meth:`judge`).
     """
 
-    def __init__(self, runner, traj: Rollout, Cs: list, v0: torch.Tensor, checks: Callable[[], list]):
-        self.runner, self.traj, self.Cs, self.v0, self._checks = runner, traj, Cs, v0, checks
+    def __init__(self, runner, frames: tuple, v0: torch.Tensor, clamped: list, checks: Callable[[], list]):
+        self.runner, self.v0, self.clamped, self._checks = runner, v0, clamped, checks
+        self.xs, self.vs, self.Cs, self.Fs = frames
         self.judged = False
-        self.top = traj.x.shape[0] - 1  # frames above top have been swept; cot is that of frame top's outputs
+        self.top = self.xs.shape[0] - 1  # frames above top have been swept; cot is that of frame top's outputs
         self.next = self.top + 1  # add() takes frames below this one
         zero = lambda t: torch.zeros_like(t)  # noqa: E731
-        self.stream = _side_stream(traj.x.device)
+        self.stream = _side_stream(self.xs.device)
         with self._on_side():
-            self.cot = [zero(traj.x[-1]), zero(traj.v[-1]), zero(Cs[-1]), zero(traj.F[-1])]
+            self.cot = [zero(self.xs[-1]), zero(self.vs[-1]), zero(self.Cs[-1]), zero(self.Fs[-1])]
             self.grads: list = [None] * len(runner.params)
         self.done = False
 
@@ -246,7 +249,7 @@ class ReverseSweep:
         rollout returns before its frames are checked so that the host can queue work (the renders) meanwhile;
         :meth:`add` and :meth:`finish` judge first when the caller has not."""
         if not self.judged:
-            self.traj.clamped = self._checks()
+            self.clamped[:] = self._checks()
             self.judged = True
 
     def _on_side(self):
@@ -260,7 +263,7 @@ class ReverseSweep:
         self.judge()
         if not 0 <= frame < self.next:
             raise ValueError(f"{_WHERE}: cotangents for frame {frame} after those of frame {self.next} (or past the "
-                             f"last frame, {self.traj.x.shape[0] - 1}): frames must come last first, once each")
+                             f"last frame, {self.xs.shape[0] - 1}): frames must come last first, once each")
         self.next = frame
         if self.stream is not None:  # the side stream starts after what the caller queued so far (g_x, g_F)
             self.stream.wait_stream(torch.cuda.current_stream(self.stream.device))
@@ -276,9 +279,8 @@ class ReverseSweep:
 
     def _sweep_to(self, frame: int) -> None:
         """Adjoints of the frames ``top .. frame + 1`` (the current stream is the side stream)."""
-        traj, params = self.traj, self.runner.params
         for f in range(self.top, frame, -1):
-            state = (traj.x[f - 1], traj.v[f - 1], self.Cs[f - 1], traj.F[f - 1])
+            state = (self.xs[f - 1], self.vs[f - 1], self.Cs[f - 1], self.Fs[f - 1])
             out = self.runner.backward(state, (*self.cot, torch.zeros_like(self.cot[3])))
             self.cot = list(out[:4])
             self.grads = [g if a is None else a + g for a, g in zip(self.grads, out[4:])]
@@ -298,6 +300,7 @@ class ReverseSweep:
         if self.stream is not None:
             torch.cuda.current_stream(self.stream.device).wait_stream(self.stream)
         self.done = True
+        self.xs = self.vs = self.Cs = self.Fs = None  # the frames are the caller's again (freed with the Rollout)
         for p, g in zip(self.runner.params, self.grads):
             if g is not None:
                 p.grad = g if p.grad is None else p.grad + g
