@@ -47,7 +47,8 @@ def build(work: Path, scene: str, method_name: str, device: str):
 @contextlib.contextmanager
 def labelled(objective, loop):
     """Name the iteration's parts in the torch.profiler trace (``phase/...`` ranges): the rollout, the frames'
-    render, CPR, the frames' losses and the backward, by wrapping those functions while the block runs."""
+    render, CPR, the frames' losses (with the sweep: its adjoints are queued inside) and the backward (the sweep's
+    tail), by wrapping those functions while the block runs."""
     from torch.profiler import record_function
 
     def wrap(owner, name, label):
@@ -58,9 +59,11 @@ def labelled(objective, loop):
                 return original(*a, **k)
         setattr(owner, name, wrapped)
         return lambda: setattr(owner, name, original)
+    from gca.sim.rollout import ReverseSweep
     undo = [wrap(loop, "simulate", "simulate"), wrap(objective, "_render_frames", "render"),
             wrap(objective, "prior_gradient", "cpr"), wrap(objective, "_frame_losses", "frame_losses"),
-            wrap(torch.Tensor, "backward", "backward")]
+            wrap(objective, "_frame_losses_swept", "frame_losses"), wrap(torch.Tensor, "backward", "backward"),
+            wrap(ReverseSweep, "finish", "backward")]
     try:
         yield
     finally:

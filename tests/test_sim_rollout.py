@@ -261,3 +261,30 @@ def test_a_swept_rollout_is_freed_without_the_garbage_collector():
     finally:
         if enabled:
             gc.enable()
+
+
+def test_a_sweep_without_cotangents_or_abandoned_adds_no_gradient():
+    """finish() with no cotangent added (a method without image terms) sweeps nothing and leaves .grad None, as
+    autograd would not have run; abandon() (the caller's error mid-sweep) adds nothing and ends the sweep."""
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=3, dtype="float64", boundary="sticky", friction=0.0, max_refine=1)
+    x0, v0, vol, mass = _blob(20, seed=2)
+    material = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    log_E = material.elasticity.log_E
+    log_E.grad = None
+    out = rollout(MPMSolver(cfg), material, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    calls = []
+    backward = out.sweep.runner.backward
+    out.sweep.runner.backward = lambda *a: (calls.append(1), backward(*a))[1]
+    out.sweep.finish()
+    assert calls == [] and log_E.grad is None
+    out = rollout(MPMSolver(cfg), material, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    x = out.x[2].detach().requires_grad_()
+    out.sweep.add(2, *torch.autograd.grad(x.square().sum(), [x]), None)
+    out.sweep.abandon()
+    assert log_E.grad is None
+    with pytest.raises(ValueError, match="after finish"):
+        out.sweep.add(1, None, None)
+    out = rollout(MPMSolver(cfg), material, x0, v0, vol, mass, n_steps=12, steps_per_frame=4, sweep=True)
+    out.sweep.add(2, torch.ones_like(out.x[2]), None)
+    out.sweep.finish()
+    assert log_E.grad is not None and abs(float(log_E.grad)) > 0  # the positive control: an added cotangent sweeps

@@ -94,7 +94,8 @@ def test_every_method_runs_one_iteration(scene, name):
 def test_every_method_gradient_swept_equals_autograd(scene, name):
     """One training gradient (loop._gradient) with train.reverse_sweep (the rollout differentiated frame by frame,
     last first, beside the losses) equals the one autograd pass through the whole rollout: same loss, same
-    gradient to float32 rounding, for every training method (a learned launch included: PAC-NeRF rows)."""
+    gradient to float32 rounding, for every training method (a learned launch included: PAC-NeRF rows), with frame
+    weights (NeuMA's rollout weighting)."""
     from gca.train.loop import _gradient
 
     method = get_method(name)
@@ -106,6 +107,7 @@ def test_every_method_gradient_swept_equals_autograd(scene, name):
         data = _data(scene, method)
         objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
                               MatchConfig(), cpr_target=("corotated", "identity"))
+        objective.frame_weights = [0.5 ** (j % 3) for j in range(len(data.video_frames))]  # NeuMA's kind of weighting
         record = _gradient(tiny_solver(), law, data, objective, cfg, len(data.video_frames))
         results.append((record, [p.grad.detach().clone() for p in law.trainable()]))
     (ref, g_ref), (swept, g) = results
@@ -114,6 +116,34 @@ def test_every_method_gradient_swept_equals_autograd(scene, name):
     scale = max(float(b.abs().max()) for b in g_ref)  # float32 sums in another order: relative to the largest entry
     for a, b in zip(g, g_ref):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * scale)
+
+
+@pytest.mark.parametrize("sweep", [False, True])
+def test_a_broken_rollout_is_a_retried_divergence_in_either_gradient(scene, sweep, monkeypatch):
+    """A law turning NaN, or a rollout spreading past train.max_spread_growth, ends the gradient with one of the
+    loop's divergence errors (retried), named as such: a swept rollout renders before its checks are read, and must
+    still not surface as the renderer's RenderError (non-finite means) or go unchecked."""
+    from gca.sim.rollout import SimulationDiverged
+    from gca.train.loop import _gradient
+
+    method = get_method("gca")
+    data = _data(scene, method)
+
+    def gradient(**cfg_kw):
+        cfg = TrainConfig(iterations=1, curriculum_start=1.0, term_shares_every=0, reverse_sweep=sweep, **cfg_kw)
+        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2, seed=0)
+        objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
+                              MatchConfig())
+        return law, lambda: _gradient(tiny_solver(), law, data, objective, cfg, len(data.video_frames))
+
+    law, run = gradient(max_spread_growth=-1.0)  # any rollout "blew up"
+    with pytest.raises(FloatingPointError, match="rollout blew up"):
+        run()
+    law, run = gradient()
+    monkeypatch.setattr(law.material, "stress", lambda F: torch.full_like(F, float("nan")))
+    with pytest.raises(SimulationDiverged, match="non-finite x, v or F"):
+        run()
+    assert all(p.grad is None for p in law.trainable())  # nothing half-added
 
 
 def test_target_removed_drops_the_hypotheses(scene):

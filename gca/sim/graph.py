@@ -93,6 +93,7 @@ class FrameGraphs:
         self.frame = _Frame(solver, material, self.n_steps)
         dev, dt = solver.device, solver.dtype
         self.capture = (dev.type == "cuda") if capture is None else bool(capture)
+        self.capture_asked = self.capture  # as built (capture may later fall back to eager)
         if self.capture and dev.type != "cuda":
             raise ValueError(f"{_WHERE}: CUDA graph capture needs a CUDA solver, this one runs on {dev}")
         shapes = {"x": (n, 3), "v": (n, 3), "C": (n, 3, 3), "F": (n, 3, 3)}
@@ -105,8 +106,9 @@ class FrameGraphs:
         self._fwd_graph = self._bwd_graph = None
         self._captured = False
 
-    def matches(self, material, n_steps: int, n: int) -> bool:
+    def matches(self, material, n_steps: int, n: int, capture: bool | None = None) -> bool:
         return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
+                and (capture is None or self.capture_asked == capture)
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 
     def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:
@@ -222,13 +224,13 @@ class GraphCache:
     def __init__(self, size: int = 4):
         self.size, self.runners = size, []
 
-    def get(self, solver, material, n_steps: int, n: int) -> FrameGraphs:
+    def get(self, solver, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
         for r in self.runners:
-            if r.matches(material, n_steps, n):
+            if r.matches(material, n_steps, n, capture):
                 self.runners.remove(r)
                 self.runners.append(r)
                 return r
-        runner = FrameGraphs(solver, material, n_steps, n)
+        runner = FrameGraphs(solver, material, n_steps, n, capture)
         self.runners.append(runner)
         del self.runners[:-self.size]
         return runner

@@ -170,7 +170,9 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
     xs, vs, Fs, Ftrs, clamped = [x], [v], [F], [F], [] if sweep else [check_state(solver, x, v, F, 0, law)]
     if graph is None:
         graph = solver.cfg.cuda_graphs and solver.device.type == "cuda"
-    runner = solver.frame_graphs(material, steps_per_frame, x0.shape[0]) if graph or sweep else None
+    # a swept rollout always runs through a frame runner; without ``graph`` (sim.cuda_graphs off) its eager twin
+    runner = solver.frame_graphs(material, steps_per_frame, x0.shape[0], None if graph else False) \
+        if graph or sweep else None
     if runner is not None:
         runner.bind(vol, mass)
     Cs = [C]
@@ -289,23 +291,40 @@ class ReverseSweep:
     def finish(self) -> None:
         """Sweep the remaining frames, add the parameters' gradients into their ``.grad`` and backpropagate the
         initial velocity's cotangent into ``v0``'s graph (when it requires grad); the caller's stream then waits
-        for the side stream."""
+        for the side stream. With no cotangent ever added (a method without image terms) nothing is swept and no
+        ``.grad`` is touched, as autograd would not have run."""
         if self.done:
             raise ValueError(f"{_WHERE}: finish() called twice")
         self.judge()
+        if self.next == self.xs.shape[0]:  # no add(): nothing to differentiate
+            self._release()
+            return
         if self.stream is not None:
             self.stream.wait_stream(torch.cuda.current_stream(self.stream.device))
         with self._on_side():
             self._sweep_to(0)
-        if self.stream is not None:
-            torch.cuda.current_stream(self.stream.device).wait_stream(self.stream)
-        self.done = True
-        self.xs = self.vs = self.Cs = self.Fs = None  # the frames are the caller's again (freed with the Rollout)
+        self._release()
+        if self.stream is not None:  # made on the side stream, used from now on on the caller's
+            for t in (*self.grads, self.cot[1]):
+                if t is not None:
+                    t.record_stream(torch.cuda.current_stream(self.stream.device))
         for p, g in zip(self.runner.params, self.grads):
             if g is not None:
                 p.grad = g if p.grad is None else p.grad + g
         if self.v0.requires_grad:
             torch.autograd.backward(self.v0, self.cot[1])
+
+    def abandon(self) -> None:
+        """Stop here (the caller's error): its stream waits for what the side stream still has queued (which reads
+        the frames and the runner's buffers), and nothing is added to any ``.grad``."""
+        if not self.done:
+            self._release()
+
+    def _release(self) -> None:
+        if self.stream is not None:
+            torch.cuda.current_stream(self.stream.device).wait_stream(self.stream)
+        self.done = True
+        self.xs = self.vs = self.Cs = self.Fs = None  # the frames are the caller's again (freed with the Rollout)
 
 
 _SIDE_STREAMS: dict = {}

@@ -165,9 +165,9 @@ class MPMSolver:
         batched._graphs, batched._refined = GraphCache(), {}
         return batched
 
-    def frame_graphs(self, material, n_steps: int, n: int) -> FrameGraphs:
+    def frame_graphs(self, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
         """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""
-        return self._graphs.get(self, material, n_steps, n)
+        return self._graphs.get(self, material, n_steps, n, capture)
 
     def step(self, x, v, C, F, tau, vol, mass, run=None, n_runs: int = 1):
         """Advance the particles by one step of ``cfg.dt``.

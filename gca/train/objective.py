@@ -154,7 +154,8 @@ class Objective:
             ``(loss, stats)``: the loss value (detached scalar) and the per-term means over the frames.
 
         Raises:
-            FloatingPointError: a non-finite loss (before any backward).
+            FloatingPointError: a non-finite loss (before any backward; on a swept rollout after the frames' adjoints
+                were queued, which are then abandoned: no gradient is added).
         """
         if traj.sweep is not None:
             if shares:
@@ -220,16 +221,20 @@ class Objective:
         prior = self.cpr is not None
         self._terms = None
         view = _FrameLeaves(traj, self.data.video_frames[:n_video])
-        renders = self._render_frames(view, n_video, first=lambda: (traj.sweep.judge(), on_rendered()))
-        matching = self._start_matching(renders, last_first=True)
-        data_loss, mean_stats, differentiable = self._frame_losses_swept(view, renders, matching, traj.sweep)
-        prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior \
-            else (0.0, None, {})
-        stats = mean_stats.read()
-        stats.update(prior_stats)
-        loss = data_loss + prior_value
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
+        try:
+            renders = self._render_frames(view, n_video, first=lambda: (traj.sweep.judge(), on_rendered()))
+            matching = self._start_matching(renders, last_first=True)
+            data_loss, mean_stats, differentiable = self._frame_losses_swept(view, renders, matching, traj.sweep)
+            prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior \
+                else (0.0, None, {})
+            stats = mean_stats.read()
+            stats.update(prior_stats)
+            loss = data_loss + prior_value
+            if not torch.isfinite(loss):  # here after the frames' adjoints were queued (abandoned below)
+                raise FloatingPointError(f"non-finite training loss {float(loss)} (stats {stats})")
+        except BaseException:
+            traj.sweep.abandon()  # the side stream's queued adjoints read the frames: wait for them, add nothing
+            raise
         lap("render_losses")
         traj.sweep.finish()
         if prior:  # as in gradient(): no image term differentiable (no_rdga): the prior alone, unscaled
@@ -295,6 +300,9 @@ class Objective:
         try:
             renders = [self._render_frame(traj, j) for j in range(n_video)]
             checks, views = self._checks, len(self.data.views)
+        except Exception:  # a swept rollout renders before it is judged: a broken one is named as such (first)
+            first()
+            raise
         finally:
             self._checks = None
         first()
