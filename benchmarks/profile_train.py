@@ -62,8 +62,7 @@ def labelled(objective, loop):
     from gca.sim.rollout import ReverseSweep
     undo = [wrap(loop, "simulate", "simulate"), wrap(objective, "_render_frames", "render"),
             wrap(objective, "prior_gradient", "cpr"), wrap(objective, "_frame_losses", "frame_losses"),
-            wrap(objective, "_frame_losses_swept", "frame_losses"), wrap(torch.Tensor, "backward", "backward"),
-            wrap(ReverseSweep, "finish", "backward")]
+            wrap(torch.Tensor, "backward", "backward"), wrap(ReverseSweep, "finish", "backward")]
     try:
         yield
     finally:

@@ -236,8 +236,9 @@ class ReverseSweep:
         self.runner, self.v0, self.clamped, self._checks = runner, v0, clamped, checks
         self.xs, self.vs, self.Cs, self.Fs = frames
         self.judged = False
-        self.top = self.xs.shape[0] - 1  # frames above top have been swept; cot is that of frame top's outputs
-        self.next = self.top + 1  # add() takes frames below this one
+        self.last = self.xs.shape[0] - 1
+        self.top = self.last  # frames above top have been swept; cot is that of frame top's outputs
+        self.next = self.last + 1  # add() takes frames below this one
         zero = lambda t: torch.zeros_like(t)  # noqa: E731
         self.stream = _side_stream(self.xs.device)
         with self._on_side():
@@ -254,6 +255,11 @@ class ReverseSweep:
             self.clamped[:] = self._checks()
             self.judged = True
 
+    @property
+    def added(self) -> bool:
+        """Whether any cotangent was added (:meth:`add`)."""
+        return self.next <= self.last
+
     def _on_side(self):
         return torch.cuda.stream(self.stream) if self.stream is not None else contextlib.nullcontext()
 
@@ -265,7 +271,7 @@ class ReverseSweep:
         self.judge()
         if not 0 <= frame < self.next:
             raise ValueError(f"{_WHERE}: cotangents for frame {frame} after those of frame {self.next} (or past the "
-                             f"last frame, {self.xs.shape[0] - 1}): frames must come last first, once each")
+                             f"last frame, {self.last}): frames must come last first, once each")
         self.next = frame
         if self.stream is not None:  # the side stream starts after what the caller queued so far (g_x, g_F)
             self.stream.wait_stream(torch.cuda.current_stream(self.stream.device))
@@ -296,7 +302,7 @@ class ReverseSweep:
         if self.done:
             raise ValueError(f"{_WHERE}: finish() called twice")
         self.judge()
-        if self.next == self.xs.shape[0]:  # no add(): nothing to differentiate
+        if not self.added:  # nothing to differentiate
             self._release()
             return
         if self.stream is not None:

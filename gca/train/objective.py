@@ -224,7 +224,7 @@ class Objective:
         try:
             renders = self._render_frames(view, n_video, first=lambda: (traj.sweep.judge(), on_rendered()))
             matching = self._start_matching(renders, last_first=True)
-            data_loss, mean_stats, differentiable = self._frame_losses_swept(view, renders, matching, traj.sweep)
+            data_loss, mean_stats = self._frame_losses(view, renders, matching, traj.sweep)
             prior_value, g_prior, prior_stats = self.prior_gradient(traj, n_video, law, params) if prior \
                 else (0.0, None, {})
             stats = mean_stats.read()
@@ -238,34 +238,9 @@ class Objective:
         lap("render_losses")
         traj.sweep.finish()
         if prior:  # as in gradient(): no image term differentiable (no_rdga): the prior alone, unscaled
-            stats.update(add_prior_gradient(params, g_prior, self.cpr.cfg.max_grad_ratio if differentiable else 0.0))
+            stats.update(add_prior_gradient(params, g_prior, self.cpr.cfg.max_grad_ratio if traj.sweep.added else 0.0))
         lap("backward")
         return loss, stats
-
-    def _frame_losses_swept(self, view: "_FrameLeaves", renders: list[dict], matching: list[Future] | None,
-                            sweep) -> tuple[torch.Tensor, "_MeanStats", bool]:
-        """The frames' losses, last first, each differentiated into ``sweep`` at once (its render's graph freed):
-        (their weighted sum, detached; their stats; whether any was differentiable)."""
-        n_video = len(renders)
-        loss, stats, differentiable = self.data.body.x0.new_zeros(()), _MeanStats(n_video), False
-        for j in reversed(range(n_video)):
-            self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
-            l_j = self._frame_loss(view, j, renders[j], matching[j].result() if matching is not None else None, stats)
-            renders[j] = None
-            if self.frame_weights is not None:
-                l_j = self.frame_weights[j] * l_j
-            loss = loss + l_j.detach()
-            if l_j.requires_grad:
-                f = view.frames[j]
-                g_x, g_F = torch.autograd.grad(l_j, [view.x[f], view.F[f]], allow_unused=True)
-                if self.probe is not None:
-                    for name, g in (("x", g_x), ("F", g_F)):
-                        if g is not None:
-                            self.probe.record("particles", name, j, g)
-                sweep.add(f, g_x, g_F)
-                differentiable = True
-        self._term_weight = 1.0
-        return loss, stats, differentiable
 
     def loss(self, traj: Rollout, n_video: int, law: LearnedLaw) -> tuple[torch.Tensor, dict]:
         """Sum of the method's losses over video frames ``0 .. n_video - 1`` (CPR's in one call, with its
@@ -310,17 +285,34 @@ class Objective:
             judge_inputs(row, f"video frame {i // views}, view {list(self.data.views)[i % views]}: ")
         return renders
 
-    def _frame_losses(self, traj: Rollout, renders: list[dict], matching: list[Future] | None
+    def _frame_losses(self, traj, renders: list[dict], matching: list[Future] | None, sweep=None
                       ) -> tuple[torch.Tensor, "_MeanStats"]:
         """The per-frame losses of ``renders`` summed over the frames (``frame_weights`` applied), with the
-        train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats."""
+        train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats.
+
+        With ``sweep`` (a swept rollout's :class:`gca.sim.rollout.ReverseSweep`; ``traj`` its :class:`_FrameLeaves`)
+        the frames go last first, each loss differentiated at once to its frame's (x_f, F_f) and handed to the sweep
+        (its render's graph then freed), and the sum is returned detached."""
         n_video = len(renders)
-        matches = [f.result() for f in matching] if matching is not None else [None] * n_video
         loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
-        for j in range(n_video):
+        for j in (range(n_video) if sweep is None else reversed(range(n_video))):
             self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
-            l_j = self._frame_loss(traj, j, renders[j], matches[j], stats)
-            loss = loss + (l_j if self.frame_weights is None else self.frame_weights[j] * l_j)
+            l_j = self._frame_loss(traj, j, renders[j], matching[j].result() if matching is not None else None, stats)
+            if self.frame_weights is not None:
+                l_j = self.frame_weights[j] * l_j
+            if sweep is None:
+                loss = loss + l_j
+                continue
+            renders[j] = None
+            loss = loss + l_j.detach()
+            if l_j.requires_grad:
+                f = traj.frames[j]
+                g_x, g_F = torch.autograd.grad(l_j, [traj.x[f], traj.F[f]], allow_unused=True)
+                if self.probe is not None:
+                    for name, g in (("x", g_x), ("F", g_F)):
+                        if g is not None:
+                            self.probe.record("particles", name, j, g)
+                sweep.add(f, g_x, g_F)
         self._term_weight = 1.0
         return loss, stats
 
