@@ -129,4 +129,77 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         tau = analytic_stress(kind, F1, mu[p * per], lam[p * per], j_min)
         scatter(x1, v1, C1, tau, vol[p], mass[p], off, dt, inv_dx, n_grid, grid_mv, grid_m)
 
-    return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p, g2p_p2g=g2p_p2g)
+    scatter_block = k.scatter_block
+    block_module = f"gca_sim_fused_step_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
+
+    @wp.kernel(module=block_module)
+    def p2g_stress_block(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        kind: int,
+        mu: wp.array(dtype=T),
+        lam: wp.array(dtype=T),
+        per: int,
+        j_min: T,
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+        windows: wp.array(dtype=int),
+    ):
+        """``p2g_stress`` with the scatter summed per thread block first (``kernels.scatter_block``); launched by
+        ``kernels.launch_blocks``."""
+        blk, lane = wp.tid()
+        n = x.shape[0]
+        p = blk * wp.block_dim() + lane
+        q = wp.min(p, n - 1)
+        tau = analytic_stress(kind, F[q], mu[q * per], lam[q * per], j_min)
+        scatter_block(p < n, x[q], v[q], C[q], tau, vol[q], mass[q], run_offset(run, q, n_grid, grid_m.shape[0]),
+                      lane, dt, inv_dx, n_grid, grid_mv, grid_m, windows)
+
+    @wp.kernel(module=block_module)
+    def g2p_p2g_block(
+        x_src: wp.array(dtype=vec3),
+        F_src: wp.array(dtype=mat33),
+        run: wp.array(dtype=int),
+        grid_v: wp.array3d(dtype=vec3),
+        kind: int,
+        mu: wp.array(dtype=T),
+        lam: wp.array(dtype=T),
+        per: int,
+        j_min: T,
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        lo: T,
+        hi: T,
+        x_dst: wp.array(dtype=vec3),
+        F_dst: wp.array(dtype=mat33),
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+        windows: wp.array(dtype=int),
+    ):
+        """``g2p_p2g`` with the scatter summed per thread block first. A thread past the last particle reads the last
+        one (maybe as its own thread rewrites it) and stores and scatters nothing."""
+        blk, lane = wp.tid()
+        n = x_src.shape[0]
+        p = blk * wp.block_dim() + lane
+        q = wp.min(p, n - 1)
+        off = run_offset(run, q, n_grid, grid_v.shape[0])
+        x1, v1, C1, F1 = gather(x_src[q], F_src[q], off, grid_v, dt, inv_dx, n_grid, lo, hi)
+        if p < n:
+            x_dst[p] = x1
+            F_dst[p] = F1
+        tau = analytic_stress(kind, F1, mu[q * per], lam[q * per], j_min)
+        scatter_block(p < n, x1, v1, C1, tau, vol[q], mass[q], off, lane, dt, inv_dx, n_grid, grid_mv, grid_m, windows)
+
+    return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p, g2p_p2g=g2p_p2g,
+                                 p2g_stress_block=p2g_stress_block, g2p_p2g_block=g2p_p2g_block)

@@ -51,6 +51,24 @@ FRICTION = 2  # SLIP, then Coulomb friction with coefficient mu_b on the tangent
 BOUNDARY_KINDS = {"sticky": STICKY, "slip": SLIP, "friction": FRICTION}
 
 
+BLOCK = 128  # particles per thread block of the block-summed P2G on a GPU (scatter_block) [count]
+WINDOW = wp.constant(1024)  # nodes of a block's shared-memory window (scatter_block; 16 KiB in float32) [count]
+
+
+def block_dim(device) -> int:
+    """Threads per block of the block-cooperative kernels on a warp ``device``: ``BLOCK`` on CUDA; on a CPU 1 (warp
+    runs a CPU block as one thread) unless ``wp.config.enable_cpu_blocks`` (cooperative fibers, used by the tests)."""
+    return BLOCK if (wp.get_device(device).is_cuda or wp.config.enable_cpu_blocks) else 1
+
+
+def launch_blocks(kernel, n: int, inputs: list, device) -> None:
+    """Launch a block-cooperative kernel (``p2g_block`` and the fused step's ``*_block``) over ``n`` particles:
+    ``ceil(n / B)`` blocks of ``B = block_dim(device)`` threads, thread ``lane`` of block ``blk`` on particle
+    ``blk B + lane`` (none past ``n``)."""
+    B = block_dim(device)
+    wp.launch_tiled(kernel, dim=[(n + B - 1) // B], inputs=inputs, block_dim=B, device=device)
+
+
 def grid_size(n_grid: int) -> int:
     """Number of stored nodes per axis of the padded grid for ``n_grid`` cells."""
     return n_grid + 1 + 2 * PAD
@@ -70,6 +88,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     vec3 = wp.types.vector(3, T)
     mat33 = wp.types.matrix((3, 3), T)
     module = f"gca_sim_mpm_{T.__name__}"
+    block_module = f"gca_sim_mpm_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
 
     @wp.func
     def stencil(x: vec3, inv_dx: T, n_grid: int):
@@ -145,6 +164,98 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                     K = base[2] + k + PAD
                     wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
                     wp.atomic_add(grid_m, I, J, K, w * m_p)
+
+    vec4 = wp.types.vector(4, T)
+
+    @wp.func
+    def scatter_block(valid: bool, x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int,
+                      lane: int, dt: T, inv_dx: T, n_grid: int, grid_mv: wp.array3d(dtype=vec3),
+                      grid_m: wp.array3d(dtype=T), windows: wp.array(dtype=int)):
+        """:func:`scatter` of a thread block's particles, summed in shared memory first (block-cooperative: every
+        thread of the block calls it; ``valid`` False for a thread without a particle, whose inputs are ignored).
+
+        The block's stencils span a box of nodes (min and max base index per axis, over its particles). If the box
+        has at most ``WINDOW`` nodes, each particle adds its 27 shares (mv, m) into a shared-memory window of the box
+        and the window's non-zero nodes are then added to the grid: one global atomic per node and component instead
+        of one per particle, node and component (lattice-ordered particles, ~64 per cell at the paper profile, hit
+        the same nodes ~1700 times per step, and P2G was bound by those contended atomics: NOTES session 31). A
+        block whose box is larger (particles scattered, several runs' grids) scatters directly, as :func:`scatter`.
+        Same sums to float rounding (the order of the additions differs; tested against ``p2g`` in float64).
+        ``windows[0]`` counts the blocks that took the window."""
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        b0 = base[0] + off
+        big = 1 << 29
+        l0, l1, l2, h0, h1, h2 = big, big, big, -big, -big, -big
+        if valid:
+            l0, l1, l2, h0, h1, h2 = b0, base[1], base[2], b0, base[1], base[2]
+        lo0 = wp.tile_min(wp.tile(l0))[0]
+        lo1 = wp.tile_min(wp.tile(l1))[0]
+        lo2 = wp.tile_min(wp.tile(l2))[0]
+        e0 = wp.tile_max(wp.tile(h0))[0] - lo0 + 3
+        e1 = wp.tile_max(wp.tile(h1))[0] - lo1 + 3
+        e2 = wp.tile_max(wp.tile(h2))[0] - lo2 + 3
+        window = wp.tile_zeros(shape=WINDOW, dtype=vec4, storage="shared")
+        affine = (-dt * vol_p * T(4.0) * inv_dx * inv_dx) * tau_p + m_p * C_p
+        mv_p = m_p * v_p
+        size = e0 * e1 * e2
+        if size <= WINDOW:
+            if lane == 0:
+                wp.atomic_add(windows, 0, 1)
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        w = W[i, 0] * W[j, 1] * W[k, 2]
+                        dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                        share = w * (mv_p + affine @ dpos)
+                        at = ((b0 - lo0 + i) * e1 + (base[1] - lo1 + j)) * e2 + (base[2] - lo2 + k)
+                        wp.tile_scatter_add(window, at, vec4(share[0], share[1], share[2], w * m_p), valid)
+            at = lane
+            while at < size:
+                node = window[at]
+                if node[3] != T(0.0) or node[0] != T(0.0) or node[1] != T(0.0) or node[2] != T(0.0):
+                    K = at % e2
+                    J = (at // e2) % e1
+                    I = at // (e1 * e2)
+                    wp.atomic_add(grid_mv, lo0 + I + PAD, lo1 + J + PAD, lo2 + K + PAD, vec3(node[0], node[1], node[2]))
+                    wp.atomic_add(grid_m, lo0 + I + PAD, lo1 + J + PAD, lo2 + K + PAD, node[3])
+                at += wp.block_dim()
+        elif valid:
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        w = W[i, 0] * W[j, 1] * W[k, 2]
+                        dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                        I = b0 + i + PAD
+                        J = base[1] + j + PAD
+                        K = base[2] + k + PAD
+                        wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
+                        wp.atomic_add(grid_m, I, J, K, w * m_p)
+
+    @wp.kernel(module=block_module)
+    def p2g_block(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        tau: wp.array(dtype=mat33),
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+        windows: wp.array(dtype=int),
+    ):
+        """:func:`p2g` summed per thread block in shared memory first (:func:`scatter_block`), launched by
+        :func:`launch_blocks`; forward only, like ``p2g_nodes`` (the step's backward uses ``p2g``'s adjoint).
+        ``windows[0]`` counts the blocks whose sums went through the shared window."""
+        blk, lane = wp.tid()
+        n = x.shape[0]
+        p = blk * wp.block_dim() + lane
+        q = wp.min(p, n - 1)
+        scatter_block(p < n, x[q], v[q], C[q], tau[q], vol[q], mass[q], run_offset(run, q, n_grid, grid_m.shape[0]),
+                      lane, dt, inv_dx, n_grid, grid_mv, grid_m, windows)
 
     @wp.kernel(module=module)
     def p2g_nodes(
@@ -285,9 +396,9 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         F_out[p] = F_new
         x_out[p] = x_new
 
-    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, grid_update=grid_update, g2p=g2p, vec3=vec3,
-                                 mat33=mat33, T=T, scatter=scatter, gather=gather, run_offset=run_offset,
-                                 node_velocity=node_velocity)
+    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, grid_update=grid_update, g2p=g2p,
+                                 vec3=vec3, mat33=mat33, T=T, scatter=scatter, scatter_block=scatter_block, gather=gather,
+                                 run_offset=run_offset, node_velocity=node_velocity)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

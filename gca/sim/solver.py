@@ -32,7 +32,7 @@ from torch.autograd.function import once_differentiable
 
 from gca.sim.fused_step import make_fused_step_kernels
 from gca.sim.graph import FrameGraphs, GraphCache
-from gca.sim.kernels import BOUNDARY_KINDS, KERNELS, PAD, grid_size
+from gca.sim.kernels import BOUNDARY_KINDS, KERNELS, PAD, grid_size, launch_blocks
 from gca.warp_stream import on_torch_stream as _stream
 
 _WHERE = "gca/sim/solver.py"
@@ -125,6 +125,10 @@ class MPMSolver:
     # (measured, NOTES session 30: 0.055 vs 0.062 ms per step on the H100 at 30k; 12.3 vs 10.5 ms on a 2-core CPU, where
     # the one-pass kernel compiles worse than the two it replaces)
     fuse_frames: bool | None = None
+    # forward P2G summed per thread block in shared memory before the grid's atomics (kernels.scatter_block; the
+    # generic step's P2G and the fused step's), True / False, or None: on CUDA only (on a CPU warp runs a block as
+    # one thread, and the per-particle kernel is the faster there). Predicted on the H100 in NOTES session 32
+    block_p2g: bool | None = None
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -141,6 +145,7 @@ class MPMSolver:
         self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
         self._refined: dict[int, "MPMSolver"] = {}
+        self._windows = wp.zeros(1, dtype=int, device=self.wp_device)  # blocks of the block-summed P2G that took the window
 
     def refined(self, k: int) -> "MPMSolver":
         """This solver with ``dt / k`` (cached; ``k = 1`` is ``self``): k steps replace each step."""
@@ -151,7 +156,7 @@ class MPMSolver:
             self._refined[k] = fine if self._batch is None else fine.with_runs(*self._batch)
         fine = self._refined[k]  # the path switches follow this solver's (a captured CUDA graph keeps its own)
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
-        fine.fuse_frames = self.fuse_frames
+        fine.fuse_frames, fine.block_p2g = self.fuse_frames, self.block_p2g
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -214,6 +219,19 @@ class MPMSolver:
         """Whether a purely elastic frame takes :meth:`frame_fused` (``fuse_frames``, resolved for this device)."""
         return self.device.type == "cuda" if self.fuse_frames is None else bool(self.fuse_frames)
 
+    @property
+    def blocks_p2g(self) -> bool:
+        """Whether forward P2G takes the block-summed kernels (``block_p2g``, resolved for this device)."""
+        return self.device.type == "cuda" if self.block_p2g is None else bool(self.block_p2g)
+
+    def block_windows(self, reset: bool = False) -> int:
+        """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
+        ``reset``) summed their particles in the shared window rather than scattering directly (a host read)."""
+        count = int(self._windows.numpy()[0])
+        if reset:
+            self._windows.zero_()
+        return count
+
     def frame_fused(self, x, v, C, F, law, vol, mass, n_steps: int, run=None, n_runs: int = 1):
         """``n_steps`` steps of a purely elastic material (plasticity the identity, F_e = F_trial) whose law is
         ``law``, in 2 n + 1 kernels (``gca.sim.fused_step``: each step's G2P and the next step's P2G in one pass);
@@ -249,14 +267,21 @@ class MPMSolver:
             inv_dx, T = 1.0 / cfg.dx, self.k.T
             moduli = [law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T), law.per, law.j_min]
             update = self._update_args(mv, m, gv)
+            blocks = self.blocks_p2g
+            p2g_stress, g2p_p2g = (k.p2g_stress_block, k.g2p_p2g_block) if blocks else (k.p2g_stress, k.g2p_p2g)
+
+            def scatter(kernel, inputs):
+                if blocks:
+                    launch_blocks(kernel, n, [*inputs, self._windows], self.wp_device)
+                else:
+                    wp.launch(kernel, dim=n, inputs=inputs, device=self.wp_device)
+
             try:
-                wp.launch(k.p2g_stress, dim=n, device=self.wp_device,
-                          inputs=[wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
+                scatter(p2g_stress, [wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
                 wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
                 src = (wx, wF)
                 for _ in range(int(n_steps) - 1):
-                    wp.launch(k.g2p_p2g, dim=n, device=self.wp_device,
-                              inputs=[*src, wrun, gv, *moduli, wvol, wmass, cfg.dt, inv_dx, cfg.n_grid, lo, hi,
+                    scatter(g2p_p2g, [*src, wrun, gv, *moduli, wvol, wmass, cfg.dt, inv_dx, cfg.n_grid, lo, hi,
                                       wouts[0], wouts[3], mv, m])
                     wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
                     src = (wouts[0], wouts[3])
@@ -380,6 +405,9 @@ class MPMSolver:
         per-particle kernel, whose adjoint the tape replays."""
         grid = self._scratch(requires_grad, n_runs) if grid is None else grid
         for kernel, dim, kargs in self._kernel_args(args, run, grid, outs):
+            if kernel is self.k.p2g and not requires_grad and self.blocks_p2g:
+                launch_blocks(self.k.p2g_block, dim, [*kargs, self._windows], self.wp_device)  # summed per block first
+                continue
             if kernel is self.k.p2g and self.split_p2g and not requires_grad:
                 kernel, dim = self.k.p2g_nodes, 27 * dim  # same inputs, a thread per (particle, node)
             wp.launch(kernel, dim=dim, inputs=kargs, device=self.wp_device)
