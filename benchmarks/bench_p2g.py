@@ -3,11 +3,15 @@
 For each ``particles:n_grid`` size and each particle order of the same block of particles (``random``: uniform at
 random, as ``bench_sim.block``; ``lattice``: a regular lattice in meshgrid order, as ``gca.assets.particles``
 samples objects; ``cell``: the random particles sorted by grid cell; ``morton``: sorted by the Morton code of their
-cell), times on one device, side by side in one run:
+cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order, the paper profile's density),
+times on one device, side by side in one run:
 
 - ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
-- ``p2g_nodes``: one thread per (particle, node) pair (the solver's forward default since session 13),
-- ``g2p``: the per-particle gather,
+- ``p2g_nodes``: one thread per (particle, node) pair (an option, off since session 13),
+- ``p2g_block``: the block-summed scatter (``kernels.scatter_block``, the solver's CUDA default since session 32),
+  with the share of blocks that took the shared window,
+- ``g2p``: the per-particle gather, and its adjoint (``g2p_adj``: warp's, scattering the grid's velocity gradient
+  with atomics),
 
 as the best of ``--repeats`` averages over ``--iters`` launches (CUDA events around the loop).
 
@@ -25,9 +29,9 @@ import time
 import torch
 import warp as wp
 
-from gca.sim.kernels import KERNELS, PAD, grid_size
+from gca.sim.kernels import BLOCK, KERNELS, PAD, grid_size, launch_blocks
 
-ORDERS = ("random", "lattice", "cell", "morton")
+ORDERS = ("random", "lattice", "cell", "morton", "ball64")
 
 
 def _cells(x: torch.Tensor, n_grid: int) -> torch.Tensor:
@@ -47,6 +51,12 @@ def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.T
     """n positions [n, 3] in a centred cube of ~8 particles per cell, in the given order."""
     side = min((n / 8) ** (1 / 3), n_grid - 8) / n_grid
     lo = 0.5 - side / 2
+    if order == "ball64":  # spacing dx / 4, the radius giving ~n particles
+        s = 0.25 / n_grid
+        r = (3 * n / (4 * torch.pi)) ** (1 / 3) * s
+        axis = torch.arange(-r, r + 1e-9, s, dtype=torch.float64)
+        x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        return (x[(x ** 2).sum(1) <= r * r] + 0.5).to(device=device, dtype=torch.float32).contiguous()
     if order == "lattice":
         k = round(n ** (1 / 3))
         axis = lo + (torch.arange(k, dtype=torch.float64) + 0.5) * side / k
@@ -103,7 +113,14 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int) -
     row["p2g_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
     row["p2g_nodes_us"] = _time(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
                                 repeats)
+    windows = wp.zeros(1, dtype=int, device=wd)
+    row["p2g_block_us"] = _time(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters, repeats)
+    launches = (iters * (repeats + 1)) * -(-n // BLOCK)
+    row["window_share"] = float(windows.numpy()[0]) / launches if wd.is_cuda else float("nan")
     row["g2p_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd), device, iters, repeats)
+    adj = [wp.zeros_like(a) if isinstance(a, wp.array) else None for a in g2p_args]
+    row["g2p_adj_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
+                                                device=wd), device, iters, repeats)
     return row
 
 
@@ -122,14 +139,16 @@ def main(argv=None) -> list[dict]:
     if device.type == "cuda" and device.index is None:  # warp needs an explicit ordinal
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    print("| particles | grid | order | p2g us | p2g_nodes us | g2p us |\n| --- | --- | --- | --- | --- | --- |")
+    print("| particles | grid | order | p2g us | p2g_nodes us | p2g_block us (window share) | g2p us | g2p adjoint us |\n"
+          "| --- | --- | --- | --- | --- | --- | --- | --- |")
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:
             r = measure(n, n_grid, order, device, a.iters, a.repeats)
             rows.append(r)
             print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
-                  f"{r['g2p_us']:.1f} |", flush=True)
+                  f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} |",
+                  flush=True)
     if a.json:
         with open(a.json, "w") as f:
             json.dump({"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",

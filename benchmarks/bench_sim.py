@@ -109,7 +109,7 @@ class FixedStress(Elasticity):
 
 def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str, repeats: int = 3,
                law: str = "none", graph: bool = False, steps_per_frame: int = 10, order: str = "random",
-               fuse: bool = True) -> dict:
+               fuse: bool = True, block: bool | None = None) -> dict:
     """Forward and forward+backward particle-steps per second (best of ``repeats``).
 
     ``law="none"``: the bare step with a fixed stress; otherwise the law is evaluated every step
@@ -117,11 +117,13 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
     of ``steps_per_frame`` steps replayed through ``gca.sim.graph`` (CUDA graphs; forward and the
     recompute-backward), as a rollout does on a GPU; otherwise the steps are launched one by one. ``fuse``: graphed
     forward frames of an analytic law take the fused step (``MPMSolver.step_fused``, the default); False: the
-    generic step (the law's kernels, then the transfers).
+    generic step (the law's kernels, then the transfers). ``block``: forward P2G summed per thread block first
+    (``MPMSolver.block_p2g``; None: the solver's default, on CUDA).
     """
     cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
     solver.fuse_analytic = fuse
+    solver.block_p2g = block
     x, v, C, F, tau, vol, mass = _state(n, cfg, device, order)
     n = x.shape[0]
     if law == "none":
@@ -150,7 +152,7 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
         _sync(device)
 
     result = {"particles": n, "n_grid": n_grid, "steps": steps, "law": law, "graph": graph, "order": order, "fuse": fuse,
-              "captured": bool(runner is not None and runner.capture)}
+              "block": solver.blocks_p2g, "captured": bool(runner is not None and runner.capture)}
     for name, grad in (("fwd", False), ("fwd_bwd", True)):
         with torch.set_grad_enabled(grad):
             chain(grad)  # warm-up: kernel compile/load, allocator
@@ -220,17 +222,21 @@ def _parse(argv=None):
     p.add_argument("--json", default=None, help="output path (default benchmarks/results/sim_<device>.json)")
     p.add_argument("--fuse", nargs="+", default=["on"], choices=["on", "off"],
                    help="graphed forward frames of an analytic law: fused step (on) and/or generic step (off)")
+    p.add_argument("--block", nargs="+", default=["auto"], choices=["auto", "on", "off"],
+                   help="forward P2G summed per thread block first (on), per particle (off), the solver's default (auto)")
     p.add_argument("--order", nargs="+", default=["random"], choices=["random", "lattice"],
                    help="particle orders of the block (throughput rows; each one side by side)")
     return p.parse_args(argv)
 
 
 def _table(results: dict) -> str:
-    lines = ["| law | graph | fuse | order | particles | grid | fwd ms/step | fwd Mparticle-steps/s | fwd+bwd ms/step | "
-             "fwd+bwd Mparticle-steps/s |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| law | graph | fuse | block P2G | order | particles | grid | fwd ms/step | fwd Mparticle-steps/s | "
+             "fwd+bwd ms/step | fwd+bwd Mparticle-steps/s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results["throughput"]:
         lines.append(f"| {r['law']} | {'on' if r.get('captured') else 'twin' if r.get('graph') else 'off'} | "
-                     f"{'on' if r.get('fuse', True) else 'off'} | {r.get('order', 'random')} | "
+                     f"{'on' if r.get('fuse', True) else 'off'} | {'on' if r.get('block') else 'off'} | "
+                     f"{r.get('order', 'random')} | "
                      f"{r['particles']} | {r['n_grid']}^3 | {r['fwd_ms_per_step']:.2f} | "
                      f"{r['fwd_particle_steps_per_s'] / 1e6:.3f} | {r['fwd_bwd_ms_per_step']:.2f} | "
                      f"{r['fwd_bwd_particle_steps_per_s'] / 1e6:.3f} |")
@@ -255,10 +261,11 @@ def main(argv=None) -> dict:
                 n, n_grid = (int(s) for s in spec.split(":"))
                 for order in args.order:
                     for fuse in [f == "on" for f in args.fuse]:
-                        results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype,
-                                                                args.repeats, law, graph, args.steps_per_frame, order,
-                                                                fuse))
-                        print(results["throughput"][-1], flush=True)
+                        for block in [{"auto": None, "on": True, "off": False}[b] for b in args.block]:
+                            results["throughput"].append(throughput(n, n_grid, args.steps, device, args.dtype,
+                                                                    args.repeats, law, graph, args.steps_per_frame,
+                                                                    order, fuse, block))
+                            print(results["throughput"][-1], flush=True)
     if not args.skip_rollout:
         for checkpoint in (True, False) if args.no_checkpoint else (True,):
             for graph in graphs:

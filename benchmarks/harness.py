@@ -154,6 +154,22 @@ def keep_stopped(work: Path, out: Path, tag: str) -> list[Path]:
     return written
 
 
+SOLVER_SWITCHES = ("block_p2g", "fuse_frames", "fuse_analytic", "split_p2g", "keep_grid")
+
+
+def set_solver_switches(items: list[str]) -> None:
+    """Set ``MPMSolver`` class switches (``name=yaml_value``; the kernel paths are implementation choices, not
+    params: same results to float rounding) for every solver this process makes."""
+    from gca.sim.solver import MPMSolver
+
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in SOLVER_SWITCHES or not value:
+            raise SystemExit(f"harness.py: --solver {item!r}: expected one of {', '.join(SOLVER_SWITCHES)}=value")
+        setattr(MPMSolver, name, yaml.safe_load(value))
+        print(f"[harness] MPMSolver.{name} = {getattr(MPMSolver, name)!r}", flush=True)
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="duck")
@@ -168,7 +184,11 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--tag", default="", help="suffix of the JSON names (side-by-side runs in one --out)")
     ap.add_argument("--stages", nargs="+", choices=STAGES, default=list(STAGES),
                     help="run only these stages (in pipeline order); the table needs train and evaluate")
+    ap.add_argument("--solver", action="append", default=[], metavar="SWITCH=yaml_value",
+                    help="an MPMSolver implementation switch for this run's solvers (A/B of a kernel path: "
+                         f"{', '.join(SOLVER_SWITCHES)}; e.g. block_p2g=false)")
     args = ap.parse_args(argv)
+    set_solver_switches(args.solver)
     args.work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("MLFLOW_TRACKING_URI", f"sqlite:///{args.work / 'mlflow.db'}")

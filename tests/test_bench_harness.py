@@ -51,3 +51,16 @@ def test_summary_lists_finished_and_stopped_runs(tmp_path):
     assert "it    0" in text and "it    5" in text and "it    6" in text and "it    3" not in text  # every 5th + last
     assert "stopped_gca_t: stopped after 3 iterations" in text
     assert "no harness results" in summary.summarize(tmp_path / "empty")
+
+
+def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one(monkeypatch):
+    import pytest
+
+    from gca.sim.solver import MPMSolver, SimConfig
+
+    harness = _load("harness")
+    monkeypatch.setattr(MPMSolver, "block_p2g", MPMSolver.block_p2g)  # restored after the test
+    harness.set_solver_switches(["block_p2g=true"])
+    assert MPMSolver(SimConfig(n_grid=8)).blocks_p2g  # on even on a CPU, where its default is off
+    with pytest.raises(SystemExit, match="--solver 'n_grid=4'"):
+        harness.set_solver_switches(["n_grid=4"])

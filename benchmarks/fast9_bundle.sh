@@ -1,0 +1,86 @@
+#!/bin/sh
+# Issue 20, session 32: the block-summed forward P2G (kernels.scatter_block, MPMSolver.block_p2g: a thread block's
+# particles summed in shared memory before the grid's atomics) beside the per-particle kernel, on one H100.
+#
+#   call 1 carry [".wpa"]:                                  sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render", ".physgaussian"]: . .wpb/activate.sh && PART=a OUT=$OUT sh benchmarks/fast9_bundle.sh
+#       bench_p2g.py (the kernels alone: random, lattice, ball64 orders; 30k / 32^3, 100k / 64^3)   -> p2g.json
+#       bench_physgaussian.py (PhysGaussian's block, lattice and random; ours with and without the block P2G)
+#       bench_sim.py (corotated and neural laws, graphs, lattice, block P2G on / off)               -> sim.json
+#   call 3 (no carry, within 30 s): PART=b OUT=$OUT sh benchmarks/fast9_bundle.sh
+#       gsplat's build; the ball's data; 10 GCA iterations with the block P2G, without, with again  -> {block,noblock,block2}/
+#   call 4..: PART=c SCENES="ball duck" OUT=$OUT sh benchmarks/fast9_bundle.sh: solo 200-iteration GCA per scene
+set -u
+OUT=${OUT:-/tmp/fast9_out}; PART=${PART:-a}
+mkdir -p "$OUT"
+export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
+T0=$(date +%s)
+stamp() { python3 -c "import time; print(f'[fast9 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+. benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
+
+if [ "$PART" = a ]; then
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "bench_p2g"
+  timeout 120 python3 benchmarks/bench_p2g.py --device cuda --sizes 30000:32 100000:64 --orders random lattice ball64 \
+      --json "$OUT/p2g.json" > "$OUT/p2g.txt" 2>&1; echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g.txt"
+  for order in lattice random; do
+    stamp "PhysGaussian beside ours, $order block"
+    timeout 150 python3 benchmarks/bench_physgaussian.py --device cuda --sizes 30000:32 100000:64 --steps 200 \
+        --repeats 3 --order "$order" --json "$OUT/physgaussian_$order.json" > "$OUT/physgaussian_$order.log" 2>&1
+    echo "physgaussian $order rc=$?"; grep -E "^\| [0-9]" "$OUT/physgaussian_$order.log"
+  done
+  stamp "bench_sim"
+  timeout 200 python3 benchmarks/bench_sim.py --device cuda --law corotated neural --graph on --block on off \
+      --order lattice --sizes 30000:32 100000:64 --steps 200 --repeats 3 --skip-rollout \
+      --json "$OUT/sim.json" > "$OUT/sim.txt" 2>&1
+  echo "sim rc=$?"; grep -E "^\| (neural|corotated)" "$OUT/sim.txt"
+fi
+
+prior_of() { python3 -c "import yaml; print(yaml.safe_load(open('params.yaml'))['scenes']['$1']['prior'])"; }
+run() {  # tag scene work iterations timeout [extra harness args...]
+  tag=$1 scene=$2 w=$3 its=$4 limit=$5; shift 5
+  mkdir -p "$OUT/$tag" "$w/prior"
+  cp "benchmarks/results/priors_paper/$(prior_of "$scene").pt" "$w/prior/"
+  # shellcheck disable=SC2068
+  timeout "$limit" python3 benchmarks/harness.py --scene "$scene" --methods gca --profile paper --work "$w" --reuse-prior \
+      --set velocity.iterations=20 --set render.backend=gsplat --set train.iterations="$its" --out "$OUT/$tag" \
+      --tag "$tag" $@ > "$OUT/$tag.log" 2>&1
+  echo "$tag rc=$?"; tail -n 2 "$OUT/$tag.log"
+}
+summary() {
+  python3 - "$OUT" "$@" <<'PY'
+import glob, json, statistics, sys
+out = sys.argv[1]
+print(f"{'run':>12} {'its':>4} {'s/it':>6} {'full-horizon s/it':>17} {'peak GiB':>8} {'train s':>7} {'CD':>9} status")
+for tag in sys.argv[2:]:
+    for f in glob.glob(f"{out}/{tag}/harness_*.json"):
+        r = json.load(open(f))
+        hist = r.get("history", [])
+        full = [h for h in hist[1:] if h.get("horizon") == max(x.get("horizon", 0) for x in hist)
+                and "share/total/norm" not in h]
+        med = lambda k: statistics.median(h.get(f"time/{k}", 0.0) for h in full) if full else float("nan")  # noqa
+        per_it = med("simulate") + med("render_losses") + med("backward") + med("optimizer")
+        cd = r.get("chamfer_mean")
+        print(f"{tag:>12} {r['iterations']:>4} {r['seconds_per_iteration']:6.2f} {per_it:17.3f} {r['peak_memory_gib']:8.2f} "
+              f"{r['train_seconds']:7.1f} {cd if cd is None else round(cd, 6)!s:>9} {r['status']}")
+        print(f"{'':>12} losses: " + " ".join(f"{h['loss']:.6g}" for h in hist[:6]))
+PY
+}
+
+if [ "$PART" = b ]; then
+  stamp "gsplat: build its extension once"
+  timeout 240 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "build rc=$?"
+  W=/tmp/fast9_ball
+  stamp "block: data + 10 iterations"; run block ball $W 10 200
+  stamp "noblock: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval; run noblock ball $W 10 120 --reuse-data --stages train evaluate --solver block_p2g=false
+  stamp "block again"; rm -rf $W/runs/ball $W/eval; run block2 ball $W 10 120 --reuse-data --stages train evaluate
+  summary block noblock block2
+fi
+
+if [ "$PART" = c ]; then
+  for scene in ${SCENES:-ball}; do
+    stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast9_$scene" 200 "${LIMIT:-560}"
+  done
+  summary $(for s in ${SCENES:-ball}; do printf 'solo_%s ' "$s"; done)
+fi
+stamp done
