@@ -8,7 +8,7 @@ times on one device, side by side in one run:
 
 - ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
 - ``p2g_nodes``: one thread per (particle, node) pair (an option, off since session 13),
-- ``p2g_block``: the block-summed scatter (``kernels.scatter_block``, the solver's CUDA default since session 32),
+- ``p2g_block``: the block-summed scatter (``kernels.scatter_block``; an option, off: slower, session 32),
   with the share of blocks that took the shared window,
 - ``g2p``: the per-particle gather, and its adjoint (``g2p_adj``: warp's, scattering the grid's velocity gradient
   with atomics),

@@ -71,9 +71,9 @@ if [ "$PART" = b ]; then
   stamp "gsplat: build its extension once"
   timeout 240 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "build rc=$?"
   W=/tmp/fast9_ball
-  stamp "block: data + 10 iterations"; run block ball $W 10 200
-  stamp "noblock: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval; run noblock ball $W 10 120 --reuse-data --stages train evaluate --solver block_p2g=false
-  stamp "block again"; rm -rf $W/runs/ball $W/eval; run block2 ball $W 10 120 --reuse-data --stages train evaluate
+  stamp "block: data + 10 iterations"; run block ball $W 10 200 --solver block_p2g=true
+  stamp "noblock: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval; run noblock ball $W 10 120 --reuse-data --stages train evaluate
+  stamp "block again"; rm -rf $W/runs/ball $W/eval; run block2 ball $W 10 120 --reuse-data --stages train evaluate --solver block_p2g=true
   summary block noblock block2
 fi
 

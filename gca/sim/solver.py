@@ -126,9 +126,10 @@ class MPMSolver:
     # the one-pass kernel compiles worse than the two it replaces)
     fuse_frames: bool | None = None
     # forward P2G summed per thread block in shared memory before the grid's atomics (kernels.scatter_block; the
-    # generic step's P2G and the fused step's), True / False, or None: on CUDA only (on a CPU warp runs a block as
-    # one thread, and the per-particle kernel is the faster there). Predicted on the H100 in NOTES session 32
-    block_p2g: bool | None = None
+    # generic step's P2G and the fused step's), True / False, or None: on CUDA only. Off: measured on the H100 (NOTES
+    # session 32, bench_p2g) it is slower than the per-particle kernel on the pipeline's lattice-ordered particles
+    # (ball at ~64 per cell: 99 vs 59 us; 8 per cell: 51 vs 35 us) although every block's sums went through its window
+    block_p2g: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg

@@ -1,0 +1,36 @@
+#!/bin/sh
+# Issue 20 item 5, session 32: Table 1 (gca, neuma, nclaw; the six Table 1 scenes; one seed) from nothing to the
+# table as ONE grid command on one GPU under CUDA MPS, every stage (assets .. report) but the priors (the committed
+# paper priors, benchmarks/results/priors_paper: a prior is trained once per material family, not per table).
+#
+#   call 1 carry [".wpa"]:                          sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:   . .wpb/activate.sh && PART=build OUT=$OUT sh benchmarks/table1_one.sh
+#       the wheels beside warp and gsplat's JIT build (the install `make pipeline` does once; not timed)
+#   call 3 (no carry, within 30 s):  . .wpb/activate.sh && PART=grid DEADLINE=560 OUT=$OUT sh benchmarks/table1_one.sh
+#       the grid, stopped at DEADLINE s (its jobs checkpoint); the same command again resumes it until "nothing left".
+#       $OUT/timing.txt: each call's grid seconds; $OUT/grid_results.tar.gz: the small results; $OUT/grid.log
+set -u
+OUT=${OUT:-/tmp/table1_one_out}; PART=${PART:-grid}; W=${W:-/tmp/t1one}
+mkdir -p "$OUT" "$W"
+export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
+. benchmarks/gpu_wheels.sh && install_wheels
+if [ "$PART" = build ]; then
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  t0=$(date +%s); timeout 300 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1
+  echo "gsplat build rc=$? in $(( $(date +%s) - t0 )) s"
+fi
+if [ "$PART" = grid ]; then
+  t0=$(date +%s)
+  # shellcheck disable=SC2086
+  python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
+      --profile paper --gpus 1 --slots "${SLOTS:-12}" --mps --priors benchmarks/results/priors_paper \
+      --stages assets particles ground_truth preprocess nuisance train evaluate report --deadline "${DEADLINE:-560}" \
+      ${GRID_ARGS:-} >> "$W/grid.log" 2>&1
+  rc=$?
+  echo "call: grid rc=$rc, $(( $(date +%s) - t0 )) s (SLOTS=${SLOTS:-12}, DEADLINE=${DEADLINE:-560})" | tee -a "$OUT/timing.txt"
+  cp "$W/grid.log" "$OUT/grid.log"
+  grep -E "done|stop|FAIL|after|left|took|mps" "$W/grid.log" | tail -n 30
+  python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --collect "$OUT" --collect-only \
+      > /dev/null 2>&1 || echo "collect failed"
+  ls "$W/reports" 2>/dev/null | head
+fi
