@@ -36,36 +36,7 @@ if [ "$PART" = a ]; then
   echo "sim rc=$?"; grep -E "^\| (neural|corotated)" "$OUT/sim.txt"
 fi
 
-prior_of() { python3 -c "import yaml; print(yaml.safe_load(open('params.yaml'))['scenes']['$1']['prior'])"; }
-run() {  # tag scene work iterations timeout [extra harness args...]
-  tag=$1 scene=$2 w=$3 its=$4 limit=$5; shift 5
-  mkdir -p "$OUT/$tag" "$w/prior"
-  cp "benchmarks/results/priors_paper/$(prior_of "$scene").pt" "$w/prior/"
-  # shellcheck disable=SC2068
-  timeout "$limit" python3 benchmarks/harness.py --scene "$scene" --methods gca --profile paper --work "$w" --reuse-prior \
-      --set velocity.iterations=20 --set render.backend=gsplat --set train.iterations="$its" --out "$OUT/$tag" \
-      --tag "$tag" $@ > "$OUT/$tag.log" 2>&1
-  echo "$tag rc=$?"; tail -n 2 "$OUT/$tag.log"
-}
-summary() {
-  python3 - "$OUT" "$@" <<'PY'
-import glob, json, statistics, sys
-out = sys.argv[1]
-print(f"{'run':>12} {'its':>4} {'s/it':>6} {'full-horizon s/it':>17} {'peak GiB':>8} {'train s':>7} {'CD':>9} status")
-for tag in sys.argv[2:]:
-    for f in glob.glob(f"{out}/{tag}/harness_*.json"):
-        r = json.load(open(f))
-        hist = r.get("history", [])
-        full = [h for h in hist[1:] if h.get("horizon") == max(x.get("horizon", 0) for x in hist)
-                and "share/total/norm" not in h]
-        med = lambda k: statistics.median(h.get(f"time/{k}", 0.0) for h in full) if full else float("nan")  # noqa
-        per_it = med("simulate") + med("render_losses") + med("backward") + med("optimizer")
-        cd = r.get("chamfer_mean")
-        print(f"{tag:>12} {r['iterations']:>4} {r['seconds_per_iteration']:6.2f} {per_it:17.3f} {r['peak_memory_gib']:8.2f} "
-              f"{r['train_seconds']:7.1f} {cd if cd is None else round(cd, 6)!s:>9} {r['status']}")
-        print(f"{'':>12} losses: " + " ".join(f"{h['loss']:.6g}" for h in hist[:6]))
-PY
-}
+. benchmarks/harness_runs.sh  # run, summary
 
 if [ "$PART" = b ]; then
   stamp "gsplat: build its extension once"

@@ -219,17 +219,8 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                     wp.atomic_add(grid_mv, lo0 + I + PAD, lo1 + J + PAD, lo2 + K + PAD, vec3(node[0], node[1], node[2]))
                     wp.atomic_add(grid_m, lo0 + I + PAD, lo1 + J + PAD, lo2 + K + PAD, node[3])
                 at += wp.block_dim()
-        elif valid:
-            for i in range(3):
-                for j in range(3):
-                    for k in range(3):
-                        w = W[i, 0] * W[j, 1] * W[k, 2]
-                        dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-                        I = b0 + i + PAD
-                        J = base[1] + j + PAD
-                        K = base[2] + k + PAD
-                        wp.atomic_add(grid_mv, I, J, K, w * (mv_p + affine @ dpos))
-                        wp.atomic_add(grid_m, I, J, K, w * m_p)
+        elif valid:  # forward only, so the func's atomics are safe here (see p2g)
+            scatter(x_p, v_p, C_p, tau_p, vol_p, m_p, off, dt, inv_dx, n_grid, grid_mv, grid_m)
 
     @wp.kernel(module=block_module)
     def p2g_block(
