@@ -34,9 +34,10 @@ def test_block_orders_fill_the_same_cube():
 
 def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
     rows = _load("bench_p2g").main(["--device", "cpu", "--sizes", "500:16", "--iters", "1", "--repeats", "1"])
-    assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton"]
+    assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton", "ball64"]
     assert rows[1]["particles"] == 512  # 8^3
-    assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_nodes_us", "g2p_us"))
+    assert abs(rows[4]["particles"] - 500) < 60  # a lattice ball of ~500 at ~64 per cell
+    assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_nodes_us", "p2g_block_us", "g2p_us", "g2p_adj_us"))
 
 
 def test_bench_runs_times_sequential_and_batched_rollouts_on_the_cpu():
