@@ -6,9 +6,11 @@
 #   call 1 carry [".wpa"]:                          sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:   . .wpb/activate.sh && PART=build OUT=$OUT sh benchmarks/table1_one.sh
 #       the wheels beside warp and gsplat's JIT build (the install `make pipeline` does once; not timed)
-#   call 3 (no carry, within 30 s):  . .wpb/activate.sh && PART=grid DEADLINE=560 OUT=$OUT sh benchmarks/table1_one.sh
+#   call 3 (no carry, within 30 s):  . .wpb/activate.sh && GCA_COMMIT=<sha> PART=grid DEADLINE=560 OUT=$OUT sh benchmarks/table1_one.sh
 #       the grid, stopped at DEADLINE s (its jobs checkpoint); the same command again resumes it until "nothing left".
 #       $OUT/timing.txt: each call's grid seconds; $OUT/grid_results.tar.gz: the small results; $OUT/grid.log
+#   GCA_COMMIT  required for the grid: the commit sent (`git rev-parse --short HEAD` here; the copy there carries a stale
+#       .git, and session 32's runs recorded 4d7bdae+dirty without it)
 set -u
 OUT=${OUT:-/tmp/table1_one_out}; PART=${PART:-grid}; W=${W:-/tmp/t1one}
 mkdir -p "$OUT" "$W"
@@ -20,6 +22,7 @@ if [ "$PART" = build ]; then
   echo "gsplat build rc=$? in $(( $(date +%s) - t0 )) s"
 fi
 if [ "$PART" = grid ]; then
+  need_commit table1_one.sh
   t0=$(date +%s)
   # shellcheck disable=SC2086
   python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
