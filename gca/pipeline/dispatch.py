@@ -403,7 +403,8 @@ def unit_keys(priority: dict[str, float], todo, expected_s: Callable[[str], floa
 
 def launch_order(ready, priority: dict[str, float], todo,
                  expected_s: Callable[[str], float] | None = None,
-                 first: Callable[[str], bool] | None = None) -> list[str]:
+                 first: Callable[[str], bool] | None = None,
+                 units: dict[str, tuple[int, float, float, str]] | None = None) -> list[str]:
     """``ready`` job names in the order to launch them: per-run jobs grouped by their (scene, seed) unit
     (:func:`unit_of`), the units by :func:`unit_keys` (the longest path first, units of equal path by the least
     training left in their ``todo`` jobs), and within a unit each job by its own path; any other job by
@@ -411,9 +412,10 @@ def launch_order(ready, priority: dict[str, float], todo,
     end leaves whole units, each usable for paired per-unit claims (issue 22 item 4; session 22 gave every slot to
     GCA, costed above NeuMA, and left no NeuMA run), and the quicker units finish first (Table 3 after Table 1: the
     pawn's ~430-s runs before the ball's ~850-s ones, not by the scenes' names). ``first(name)``: the units with
-    such a training job left go before all others (:func:`unit_keys`).
+    such a training job left go before all others (:func:`unit_keys`). ``units``: those keys when the caller has
+    them for the same arguments already (they are not computed again).
     """
-    units = unit_keys(priority, todo, expected_s, first)
+    units = unit_keys(priority, todo, expected_s, first) if units is None else units
 
     def key(n: str):
         u = unit_of(n)
@@ -606,16 +608,20 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 log(f"FAIL  {n} ({engine.error(h)}) after {took:.0f} s; log: {path}\n{tail}")
                 skip_after(n)
 
-    def ready_jobs():
+    def todo_units():
+        """:func:`unit_keys` of the jobs still to do (this poll's ranks)."""
+        return unit_keys(priority, [n for n, s in state.items() if s == "todo"], expected, first)
+
+    def ready_jobs(keys):
         """Jobs whose inputs are done (an engine with dependencies: done or submitted), in :func:`launch_order`
-        (whole (scene, seed) units first, longest path first); with dependencies, what becomes ready by submitting
-        one comes next in the same pass."""
+        (whole (scene, seed) units first, longest path first; ``keys``: this poll's :func:`todo_units`, for the
+        first pass); with dependencies, what becomes ready by submitting one comes next in the same pass."""
         ok = (DONE, RUNNING) if engine.dependencies else (DONE,)
         seen: set[str] = set()
         while True:
             ready = launch_order([n for n, s in state.items() if s == "todo" and n not in seen
                                   and all(state.get(a, DONE) in ok for a in jobs[n].after)], priority,
-                                 [n for n, s in state.items() if s == "todo"], expected, first)
+                                 [], expected, first, keys if not seen else todo_units())
             if not ready:
                 return
             for n in ready:
@@ -638,13 +644,13 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 memo[name] = estimated_s(jobs[name]) + max((ready_in(a, memo) for a in jobs[name].after), default=0.0)
         return memo[name]
 
-    def waiting_above():
+    def waiting_above(keys):
         """With slots (one machine): ``n -> how many training runs of units ranked above n's are waiting for their
         inputs``: todo, not ready, no input failed or skipped, and expected to start and finish in time, counting
         the inputs still to be made (:func:`ready_in`) before the run itself (``expected``, the machine's lease;
         :data:`RESUMABLE_MIN_S` before the deadline). The free slots are kept for them: session 23's Table 3
         started one to three runs of four units as the scenes' inputs finished one by one, instead of the
-        best-ranked unit whole. None where nothing waits."""
+        best-ranked unit whole. ``keys``: this poll's :func:`todo_units`. None where nothing waits."""
         if free is None:
             return None
         now, memo = time.monotonic(), {}
@@ -661,9 +667,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         blocked = [m for m, s_ in state.items() if s_ == "todo" and m.startswith("train@") and unit_of(m) and coming(m)]
         if not blocked:
             return None
-        keys = unit_keys(priority, [m for m, s_ in state.items() if s_ == "todo"], expected, first)  # the launch
-        # order's ranks (session 27: without ``first`` the dragon's NCLaw units ranked above duck's Table 3 units by
-        # their long inputs, and kept three of eight slots free for them for 7 min)
+        # the launch order's ranks (session 27: without ``first`` the dragon's NCLaw units ranked above duck's Table 3
+        # units by their long inputs, and kept three of eight slots free for them for 7 min)
         return lambda n: sum(1 for m in blocked if keys[unit_of(m)] < keys.get(unit_of(n) or "", (float("inf"),)))
 
     def tally() -> None:
@@ -685,8 +690,9 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         tally()
         reap()
         expected_now.clear()
-        waiting = waiting_above()
-        for n in ready_jobs():
+        keys = todo_units()  # once per poll: the waiting rule's and the launch order's ranks
+        waiting = waiting_above(keys)
+        for n in ready_jobs(keys):
             if free is not None and not free:
                 break
             if not fits(n):
