@@ -84,12 +84,13 @@ fi
 R=$(restore_once "$STATE" "$W")
 M="--methods $METHODS"; [ "$METHODS" != params ] || M=""  # params: each scene's own methods
 [ -z "$FIRST" ] || M="$M --first-methods $FIRST"
+# The grid's options (one string: written into grid.sh, and kept beside a detached grid to tell a later call's apart)
+OPTIONS="--scenes $SCENES $M --profile '$PROFILE' --set 'train.seeds=$SEEDS' $EXTRA $P --gpus 1 --slots $SLOTS $MPS --stages $STAGES"
 # The grid's command; its deadline, machine-left option, state, results folder and log come as $1-$5 (written anew
 # only where no grid reads it: sh reads a script as it goes)
 write_grid_sh() {
   cat > "$W/grid.sh.tmp" << GRID
-python3 -m gca.pipeline.grid --work "$W/grid" --scenes $SCENES $M --profile "$PROFILE" --set "train.seeds=$SEEDS" \
-    $EXTRA $P --gpus 1 --slots "$SLOTS" $MPS $R --stages $STAGES --deadline "\$1" \$2 --save-state "\$3" --collect "\$4" > "\$5" 2>&1
+python3 -m gca.pipeline.grid --work "$W/grid" $OPTIONS $R --deadline "\$1" \$2 --save-state "\$3" --collect "\$4" > "\$5" 2>&1
 GRID
   mv "$W/grid.sh.tmp" "$W/grid.sh"
 }
@@ -106,7 +107,6 @@ else  # session 26: one grid per machine, from its first call to the machine's e
     PID=$(cat "$W/grid.pid" 2> /dev/null)
     [ -n "$PID" ] && [ ! -f "$W/grid.rc" ] && kill -0 "$PID" 2> /dev/null
   }
-  OPTIONS="$SCENES|$M|$PROFILE|$SEEDS|$EXTRA|$P|$SLOTS|$MPS|$STAGES"
   D=$((LEFT - 150 - ($(date +%s) - T0)))  # a new grid's deadline and machine-left [s]: its stop (<= 40 s), state and
   # results ~100 s before the machine's end, inside the third bundle call's wait (calls every ~580 s)
   if running; then
