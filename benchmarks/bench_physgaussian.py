@@ -171,13 +171,14 @@ def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solve
              block: bool | None = None):
     """Final positions after ``steps`` steps, and a closure that re-runs them (for timing). ``fuse``: graphed frames
     take the fused analytic step (``MPMSolver.step_fused``, the default); False: the generic step (law, then
-    transfers; the default before session 30). ``block``: ``MPMSolver.block_p2g`` (None: its default, on CUDA)."""
+    transfers; the default before session 30). ``block``: ``MPMSolver.block_p2g`` (None: its default, off)."""
     cfg, x0, v0, C0, F0, vol, mass, _ = state
     key = f"solver_{fuse}_{block}"
     if key not in solver_cache:
         solver_cache[key] = MPMSolver(cfg, device)
         solver_cache[key].fuse_analytic = fuse
-        solver_cache[key].block_p2g = block
+        if block is not None:  # None: the solver's own default (None there would mean "on CUDA")
+            solver_cache[key].block_p2g = block
         solver_cache[key + "_material"] = Material(CorotatedElasticity(E, NU), IdentityPlasticity(), RHO).to(
             device=device, dtype=cfg.torch_dtype)
     solver, material = solver_cache[key], solver_cache[key + "_material"]

@@ -118,12 +118,13 @@ def throughput(n: int, n_grid: int, steps: int, device: torch.device, dtype: str
     recompute-backward), as a rollout does on a GPU; otherwise the steps are launched one by one. ``fuse``: graphed
     forward frames of an analytic law take the fused step (``MPMSolver.step_fused``, the default); False: the
     generic step (the law's kernels, then the transfers). ``block``: forward P2G summed per thread block first
-    (``MPMSolver.block_p2g``; None: the solver's default, on CUDA).
+    (``MPMSolver.block_p2g``; None: the solver's default, off).
     """
     cfg = SimConfig(n_grid=n_grid, dt=1e-4, dtype=dtype)
     solver = MPMSolver(cfg, device)
     solver.fuse_analytic = fuse
-    solver.block_p2g = block
+    if block is not None:  # None: the solver's own default (None there would mean "on CUDA")
+        solver.block_p2g = block
     x, v, C, F, tau, vol, mass = _state(n, cfg, device, order)
     n = x.shape[0]
     if law == "none":

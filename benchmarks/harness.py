@@ -164,9 +164,11 @@ def set_solver_switches(items: list[str]) -> None:
 
     for item in items:
         name, _, value = item.partition("=")
-        if name not in SOLVER_SWITCHES or not value:
-            raise SystemExit(f"harness.py: --solver {item!r}: expected one of {', '.join(SOLVER_SWITCHES)}=value")
-        setattr(MPMSolver, name, yaml.safe_load(value))
+        parsed = yaml.safe_load(value) if value else "missing"
+        if name not in SOLVER_SWITCHES or not (parsed is None or isinstance(parsed, bool)):
+            raise SystemExit(f"harness.py: --solver {item!r}: expected one of {', '.join(SOLVER_SWITCHES)}"
+                             "=true|false|null")
+        setattr(MPMSolver, name, parsed)
         print(f"[harness] MPMSolver.{name} = {getattr(MPMSolver, name)!r}", flush=True)
 
 

@@ -64,3 +64,5 @@ def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one
     assert MPMSolver(SimConfig(n_grid=8)).blocks_p2g  # on even on a CPU, where its default is off
     with pytest.raises(SystemExit, match="--solver 'n_grid=4'"):
         harness.set_solver_switches(["n_grid=4"])
+    with pytest.raises(SystemExit, match="=true|false|null"):  # Python's spelling is a string here, and a true one
+        harness.set_solver_switches(["block_p2g=None"])

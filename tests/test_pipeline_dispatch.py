@@ -576,10 +576,11 @@ def test_first_methods_put_their_units_before_the_others():
 
 
 def _slow_and_quick(slow=("a", "b"), quick=("a", "b")) -> dict:
-    """Two scenes' training runs after their input jobs: ``prep@slow`` is done at once, ``prep@quick`` after 1.5 s;
-    each run writes when it ran."""
+    """Two scenes' training runs after their input jobs: ``prep@slow`` is done at once, ``prep@quick`` after 4 s
+    (1.5 s let a loaded 2-core machine start and finish a run in between: CI, session 32); each run writes when it
+    ran."""
     stamp_code = "import time; open({!r}, 'w').write(repr(time.time()))"
-    out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(1.5)")}
+    out = {"prep@slow": _fake("prep@slow", "pass"), "prep@quick": _fake("prep@quick", "import time; time.sleep(4.0)")}
     for scene, methods in (("slow", slow), ("quick", quick)):
         for m in methods:
             name = f"train@{scene}:{m}"
@@ -600,7 +601,7 @@ def test_free_slots_wait_for_the_best_ranked_units_inputs(tmp_path):
     state = dispatch.run(jobs(), _local(tmp_path, slots=2), tmp_path, lines.append, poll_s=0.05, expected_s=expected)
     assert set(state.values()) == {"done"}
     started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
-    assert started[:2] == ["train@quick:a", "train@quick:b"], started  # the slow scene was ready 1.5 s earlier
+    assert started[:2] == ["train@quick:a", "train@quick:b"], started  # the slow scene was ready 4 s earlier
     # negative control: the quick unit's runs cannot fit the machine: the slow scene's go at once
     lines.clear()
     times["quick"] = 5000.0

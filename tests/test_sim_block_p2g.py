@@ -191,3 +191,18 @@ def test_a_fused_frame_with_the_block_summed_scatter_equals_the_generic_frame(ca
     if not cpu_blocks:  # a one-thread block adds one particle's shares to the grid: the fused path's sums, bitwise
         for a, b in zip(results["block"], results["fused"]):
             assert torch.equal(a, b)
+
+
+def test_a_batched_solver_counts_its_own_windows():
+    # with_runs shares the parent's switches but not its window count (block_windows reads one solver's launches)
+    cfg = SimConfig(n_grid=N_GRID, dt=1e-3, dtype="float64", max_refine=1)
+    solver = MPMSolver(cfg)
+    solver.block_p2g = True
+    x = np.concatenate([_lattice_ball(), _lattice_ball(0.07)])
+    state = _state(x, torch.float64)
+    run = torch.tensor((np.arange(len(x)) >= len(_lattice_ball())).astype(np.int32))
+    batched = solver.with_runs(run, 2)
+    assert batched.blocks_p2g
+    with torch.no_grad():
+        batched.step(*state)
+    assert batched.block_windows() > 0 and solver.block_windows() == 0

@@ -169,6 +169,7 @@ class MPMSolver:
         batched = copy.copy(self)
         batched._batch = (self._runs(run, run.shape[0], n_runs), int(n_runs))
         batched._graphs, batched._refined = GraphCache(), {}
+        batched._windows = wp.zeros(1, dtype=int, device=self.wp_device)  # its own count (block_windows)
         return batched
 
     def frame_graphs(self, material, n_steps: int, n: int, capture: bool | None = None) -> FrameGraphs:
