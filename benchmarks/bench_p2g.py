@@ -86,7 +86,7 @@ def _time(fn, device, iters: int, repeats: int) -> float:
     return best * 1e6  # us per launch
 
 
-def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int) -> dict:
+def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, block_dims=()) -> dict:
     k = KERNELS["float32"]
     wd = wp.device_from_torch(device)
     x = particles(n, n_grid, order, device)
@@ -111,6 +111,9 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int) -
     g2p_args = [wx, wp.from_torch(F, dtype=k.mat33), run, mv, 1e-4, float(n_grid), n_grid, 0.0, 1.0, *outs]
     row = {"particles": n, "n_grid": n_grid, "order": order}
     row["p2g_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
+    for bd in block_dims:  # the same kernels launched with other thread-block sizes (warp's default: 256)
+        row[f"p2g_bd{bd}_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd, block_dim=bd), device,
+                                      iters, repeats)
     row["p2g_nodes_us"] = _time(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
                                 repeats)
     windows = wp.zeros(1, dtype=int, device=wd)
@@ -121,6 +124,11 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int) -
     adj = [wp.zeros_like(a) if isinstance(a, wp.array) else None for a in g2p_args]
     row["g2p_adj_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
                                                 device=wd), device, iters, repeats)
+    for bd in block_dims:
+        row[f"g2p_bd{bd}_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd, block_dim=bd),
+                                      device, iters, repeats)
+        row[f"g2p_adj_bd{bd}_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
+                                                            device=wd, block_dim=bd), device, iters, repeats)
     return row
 
 
@@ -132,6 +140,8 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--iters", type=int, default=200)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", default=None)
+    p.add_argument("--block-dims", nargs="*", type=int, default=[],
+                   help="also time p2g, g2p and G2P's adjoint launched with these thread-block sizes")
     a = p.parse_args(argv)
     wp.config.quiet = True
     wp.init()
@@ -144,11 +154,15 @@ def main(argv=None) -> list[dict]:
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:
-            r = measure(n, n_grid, order, device, a.iters, a.repeats)
+            r = measure(n, n_grid, order, device, a.iters, a.repeats, a.block_dims)
             rows.append(r)
             print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
                   f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} |",
                   flush=True)
+            if a.block_dims:
+                print("|   block dims " + ", ".join(f"{bd}: p2g {r[f'p2g_bd{bd}_us']:.1f} g2p {r[f'g2p_bd{bd}_us']:.1f} "
+                                                  f"adj {r[f'g2p_adj_bd{bd}_us']:.1f}" for bd in a.block_dims) + " |",
+                      flush=True)
     if a.json:
         with open(a.json, "w") as f:
             json.dump({"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
