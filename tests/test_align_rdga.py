@@ -1,14 +1,16 @@
 """RDGA terms and switches (gca/align/rdga.py) on small synthetic frames."""
 
 import dataclasses
+import sys
 import functools
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from gca.align import rdga as _rdga
-from gca.align.rdga import mask_loss, rdga_loss, render_points, stable_region
+from gca.align.rdga import global_term, mask_loss, rdga_loss, render_points, stable_region
 
 # these tests were written for the mean silhouette (the default is params.yaml's sum since issue 24)
 RDGAConfig = functools.partial(_rdga.RDGAConfig, mask_reduction="mean")
@@ -271,3 +273,100 @@ def test_material_position_image_keeps_the_value():
     torch.testing.assert_close(gw, torch.zeros_like(gw), rtol=0, atol=1e-12)  # none through the weights (to rounding)
     with pytest.raises(ValueError, match="global_gradient"):
         position_colors(x, "weights")
+
+
+def _selected_reference(out, gt, est, p, q, cfg, pos):
+    """Session 31's RDGA (boolean-mask selections, checks read per frame), from its definitions: the global term on
+    the selected matches and the anchor term on the selected patches, summed as rdga_loss weighs them."""
+    from gca.align.rdga import _lookup, gather_patches, global_term, render_points, stable_matches
+    from gca.align.softrank import spearman_exact, spearman_soft
+
+    alpha, depth = out["alpha"], out["depth"]
+    on = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt, q)
+    P_r, P_g = render_points(pos, alpha.detach(), p[on]), q[on]
+    inl = (P_r.detach() - P_g).norm(dim=-1) <= cfg.global_max_px if cfg.global_max_px > 0 else torch.ones_like(on[on])
+    l_global = global_term(P_r[inl], P_g[inl], cfg.global_reduction)
+    stable = stable_matches(alpha, gt, p, q, cfg)
+    N_p, N_q = gather_patches(depth, p[stable], cfg.k)[0], gather_patches(est, q[stable], cfg.k)[0]
+    varied = (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)
+    N_p, N_q = N_p[varied], N_q[varied]
+    anchors = spearman_exact(N_p, N_q) > cfg.tau
+    per = -spearman_soft(N_p[anchors], N_q[anchors], cfg.temperature)
+    l_anchor = per.sum() if cfg.anchor_reduction == "sum" else per.mean()
+    loss = cfg.lambda_mask * mask_loss(alpha, gt) + cfg.lambda_geo * (cfg.lambda1 * l_global + cfg.lambda2 * l_anchor)
+    return loss, int(on[on][inl].sum()) if cfg.global_max_px > 0 else int(on.sum()), int(anchors.sum())
+
+
+@pytest.mark.parametrize("reduction", ["norm", "mean", "mean_sq"])
+def test_rdga_with_deferred_checks_equals_the_selected_terms_and_reads_nothing(reduction):
+    """Session 32: a training frame's RDGA keeps its selections as 0/1 weights and its checks and stats as tensors
+    (``checks=`` a list, judged once per iteration), so the host never waits for the device mid-frame. Same loss,
+    gradient and stats as the boolean-mask selection (float64); under the CPU sync detector it reads nothing,
+    where the immediate form (``checks=None``) must read (the control)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from host_sync import HostSync, no_host_sync
+
+    alpha, depth, p, uv = _scene()
+    gt = _disk(17) > 0.5  # the GT silhouette a little smaller: some matches leave it
+    q = p + torch.tensor([0.6, -0.4], dtype=torch.float64) * (p[:, :1] > 24)  # half of them off by < 1 px
+    est = 1.5 * depth + 0.05 * torch.sin(torch.arange(H * W, dtype=torch.float64).reshape(H, W))
+    cfg = RDGAConfig(r=7, k=5, lambda_mask=2.0, lambda1=0.7, lambda2=0.3, global_reduction=reduction,
+                     global_max_px=0.5, tau=0.5)
+    results = {}
+    for mode in ("reference", "immediate", "deferred"):
+        d = depth.clone().requires_grad_(True)
+        shift = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+        out, pos = {"alpha": alpha, "depth": d}, (uv + shift) * alpha[..., None]
+        if mode == "reference":
+            loss, n_global, n_anchors = _selected_reference(out, gt, est, p, q, cfg, pos)
+            stats = {"n_global": n_global, "n_anchors": n_anchors}
+        elif mode == "immediate":
+            loss, stats = rdga_loss(out, gt, est, p, q, cfg, pos)
+        else:
+            checks = []
+            with no_host_sync():
+                loss, stats = rdga_loss(out, gt, est, p, q, cfg, pos, checks=checks)
+            assert all(isinstance(v, torch.Tensor) for k, v in stats.items() if k != "n_matches")
+            _rdga.judge(checks)  # passes: nothing non-finite
+        loss.backward()
+        results[mode] = (float(loss.detach()), d.grad.clone(), shift.grad.clone(), int(stats["n_global"]), int(stats["n_anchors"]))
+    ref = results["reference"]
+    assert 0 < ref[3] < len(p) and 0 < ref[4] < len(p)  # both selections select some, not all: not vacuous
+    assert float(ref[1].abs().sum()) > 0 and float(ref[2].abs().sum()) > 0
+    for mode in ("immediate", "deferred"):
+        got = results[mode]
+        assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[3:] == ref[3:]
+        torch.testing.assert_close(got[1], ref[1], rtol=1e-10, atol=1e-14)
+        torch.testing.assert_close(got[2], ref[2], rtol=1e-10, atol=1e-14)
+    with pytest.raises(HostSync):  # control: the immediate form reads the device
+        with no_host_sync():
+            rdga_loss({"alpha": alpha, "depth": depth}, gt, est, p, q, cfg, uv * alpha[..., None])
+
+
+def test_deferred_checks_raise_when_judged_and_name_the_count():
+    alpha, depth, p, uv = _scene()
+    cfg = RDGAConfig(use_global=False, r=7, k=5)
+    bad = depth.clone()
+    bad[24, 24] = float("nan")  # inside a stable anchor patch
+    checks = []
+    loss, _ = rdga_loss({"alpha": alpha, "depth": bad}, alpha > 0.5, depth, p, p, cfg, checks=checks)
+    with pytest.raises(FloatingPointError, match=r"rendered depth is non-finite in [1-9]\d* of \d+ anchor patches"):
+        _rdga.judge(checks)
+    checks = []
+    rdga_loss({"alpha": alpha, "depth": depth}, alpha > 0.5, depth, p, p, cfg, checks=checks)
+    _rdga.judge(checks)  # control: the same frame with a finite depth passes
+
+
+def test_global_term_over_a_selection_equals_the_selected_sets():
+    g = torch.Generator().manual_seed(3)
+    P = torch.randn(9, 2, dtype=torch.float64, generator=g)
+    Q = torch.randn(9, 2, dtype=torch.float64, generator=g)
+    for use in (torch.tensor([1, 0, 1, 1, 0, 0, 1, 0, 1], dtype=torch.bool), torch.zeros(9, dtype=torch.bool)):
+        for reduction in ("norm", "mean", "mean_sq"):
+            a, b = P.clone().requires_grad_(True), P.clone().requires_grad_(True)
+            masked = global_term(a, Q, reduction, use=use)
+            selected = global_term(b[use], Q[use], reduction)
+            (masked + 0.0).backward()
+            (selected + 0.0).backward() if selected.requires_grad else None
+            assert float(masked.detach()) == pytest.approx(float(selected.detach()), rel=1e-12, abs=0.0)
+            torch.testing.assert_close(a.grad, b.grad if b.grad is not None else torch.zeros_like(P))

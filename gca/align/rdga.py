@@ -282,20 +282,31 @@ def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
     return X - 0.5  # renderer convention (centre i + 0.5) -> array-index convention (centre i)
 
 
-def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "norm") -> torch.Tensor:
+def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "norm",
+                use: torch.Tensor | None = None) -> torch.Tensor:
     """Global alignment ``||P_render - P_gt||_2`` [px] of matched point sets [M, 2].
 
     ``reduction="norm"`` is the paper's norm of the whole [M, 2] difference; ``"mean"`` the mean
     per-match Euclidean distance; ``"mean_sq"`` the mean squared one [px^2]. Zero (with grad) when M = 0.
+    ``use`` [M] bool: only those matches count (the others' residuals are held at zero, no gradient), as if the
+    sets were ``P_render[use], P_gt[use]``, without reading the device (equal to rounding; tested).
     """
-    diff = P_render - P_gt.to(P_render)
-    if len(diff) == 0:
-        return P_render.sum() * 0.0
+    P_gt = P_gt if (P_gt.dtype, P_gt.device) == (P_render.dtype, P_render.device) else P_gt.to(P_render)
+    if use is None:
+        diff = P_render - P_gt
+        if len(diff) == 0:
+            return P_render.sum() * 0.0
+    else:
+        diff = torch.where(use[:, None], P_render, P_gt) - P_gt
+    n = len(diff) if use is None else use.sum()
     if reduction == "norm":
-        return torch.sqrt((diff ** 2).sum() + 1e-12)
-    if reduction == "mean_sq":
-        return (diff ** 2).sum(-1).mean()
-    return torch.sqrt((diff ** 2).sum(-1) + 1e-12).mean()
+        value = torch.sqrt((diff ** 2).sum() + 1e-12)
+    elif reduction == "mean_sq":
+        value = (diff ** 2).sum(-1).sum() / (n if use is None else n.clamp_min(1))
+    else:
+        dist = torch.sqrt((diff ** 2).sum(-1) + 1e-12)
+        value = (dist if use is None else torch.where(use, dist, 0.0)).sum() / (n if use is None else n.clamp_min(1))
+    return value if use is None else torch.where(n > 0, value, P_render.sum() * 0.0)
 
 
 def _check_inputs(depth, alpha, gt_mask, est_depth, p, q) -> None:
@@ -327,7 +338,7 @@ def stable_matches(alpha: torch.Tensor, gt_mask: torch.Tensor, p: torch.Tensor, 
 
 
 def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q: torch.Tensor,
-                stable: torch.Tensor, cfg: RDGAConfig) -> tuple[torch.Tensor, dict[str, float]]:
+                stable: torch.Tensor, cfg: RDGAConfig, checks: list | None = None) -> tuple[torch.Tensor, dict]:
     """Anchor-level supervision ``sum_{i in A} (-gamma_i)`` (or its L1 ablation).
 
     Args:
@@ -336,33 +347,64 @@ def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q
         p: [M, 2] points in the render; q: [M, 2] points in the GT frame.
         stable: [M] bool, from :func:`stable_matches`.
         cfg: the RDGA config.
+        checks: None: the patches' finiteness is checked here (one read of the device) and the stats are floats;
+            a list: the checks are appended to it for the caller to :func:`judge` once (a training iteration, all
+            its frames) and the stats stay tensors, so nothing here waits for the device.
 
     Returns:
         (term, stats) with stats n_stable, n_anchors, mean_gamma (exact, over stable matches with
         non-constant patches) and mean_gamma_anchor.
+
+    Every match is carried with 0/1 weights (its patches gathered, its gamma computed, the sums over the selected
+    ones), not selected by boolean indexing, whose sizes the host would have to read; equal to the selected
+    computation to rounding (tested).
     """
-    N_p, _ = gather_patches(depth, p[stable], cfg.k)
-    N_q, _ = gather_patches(est_depth, q[stable], cfg.k)
-    if not torch.isfinite(N_p).all():
-        bad = int((~torch.isfinite(N_p)).any(-1).sum())
-        raise FloatingPointError(f"{_WHERE}: rendered depth is non-finite in {bad} of {len(N_p)} anchor patches")
-    if not torch.isfinite(N_q).all():
-        raise ValueError(f"{_WHERE}: est_depth is non-finite in {int((~torch.isfinite(N_q)).any(-1).sum())} patches")
-    varied = ((N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)) if len(N_p) else stable[stable]  # gamma undefined on constant patches
-    N_p, N_q = N_p[varied], N_q[varied]
-    gamma = spearman_exact(N_p, N_q) if len(N_p) else N_p.new_zeros(0)
-    anchors = gamma > cfg.tau
-    stats = {"n_stable": int(stable.sum()), "n_anchors": int(anchors.sum()),
-             "mean_gamma": float(gamma.mean()) if len(gamma) else 0.0,
-             "mean_gamma_anchor": float(gamma[anchors].mean()) if anchors.any() else 0.0}
-    if not anchors.any():
-        return depth.sum() * 0.0, stats
+    deferred = [] if checks is None else checks
+    N_p, _ = gather_patches(depth, p, cfg.k)
+    N_q, _ = gather_patches(est_depth, q, cfg.k)
+    rows = stable[:, None]
+    n_stable = stable.sum()
+    deferred.append((FloatingPointError, "rendered depth is non-finite in {} of {} anchor patches",
+                     ((~torch.isfinite(N_p)) & rows).any(-1).sum(), n_stable))
+    deferred.append((ValueError, "est_depth is non-finite in {} of {} patches",
+                     ((~torch.isfinite(N_q)) & rows).any(-1).sum(), n_stable))
+    varied = stable & (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)  # gamma undefined on constant patches
+    gamma = torch.where(varied, spearman_exact(N_p, N_q), 0.0) if len(N_p) else N_p.new_zeros(0)
+    anchors = varied & (gamma > cfg.tau)
+    n_anchors = anchors.sum()
+    stats = {"n_stable": n_stable, "n_anchors": n_anchors,
+             "mean_gamma": gamma.sum() / varied.sum().clamp_min(1),
+             "mean_gamma_anchor": torch.where(anchors, gamma, 0.0).sum() / n_anchors.clamp_min(1)}
+    sel = anchors[:, None]  # the other rows: constant zeros (no gradient, finite whatever the render holds there)
+    X_p, X_q = torch.where(sel, N_p, 0.0), torch.where(sel, N_q, 0.0)
     if cfg.depth_term == "rank":
-        per_anchor = -spearman_soft(N_p[anchors], N_q[anchors], cfg.temperature)
+        per_anchor = -spearman_soft(X_p, X_q, cfg.temperature) if len(N_p) else N_p.new_zeros(0)
     else:
-        per_anchor = (N_p[anchors] - N_q[anchors]).abs().mean(-1)
-    term = per_anchor.sum() if cfg.anchor_reduction == "sum" else per_anchor.mean()
+        per_anchor = (X_p - X_q).abs().mean(-1)
+    total = torch.where(anchors, per_anchor, 0.0).sum()
+    term = total if cfg.anchor_reduction == "sum" else total / n_anchors.clamp_min(1)
+    if checks is None:
+        judge(deferred)
+        stats = _floats(stats)
     return term, stats
+
+
+def judge(checks: list) -> None:
+    """Raise the first failed check of ``checks`` (entries ``(error type, message with two {}, bad count [],
+    total []`` as tensors, from :func:`rdga_loss` / :func:`anchor_term`), reading all their counts in one transfer."""
+    if not checks:
+        return
+    counts = torch.stack([torch.stack([bad.double(), total.double()]) for _, _, bad, total in checks]).tolist()
+    for (kind, what, _, _), (bad, total) in zip(checks, counts):
+        if bad:
+            raise kind(f"{_WHERE}: {what.format(int(bad), int(total))}")
+
+
+def _floats(stats: dict) -> dict:
+    """The stats' tensors as floats, read in one transfer."""
+    keys = [k for k, v in stats.items() if isinstance(v, torch.Tensor)]
+    read = dict(zip(keys, torch.stack([stats[k].detach().double().reshape(()) for k in keys]).tolist())) if keys else {}
+    return {k: read.get(k, v) for k, v in stats.items()}
 
 
 def position_colors(xyz: torch.Tensor, gradient: str = "material") -> torch.Tensor:
@@ -385,28 +427,31 @@ def position_image(channels: torch.Tensor, gradient: str = "material") -> torch.
     return pos - pos_weights + pos_weights.detach()
 
 
-def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Tensor, int]:
-    """Global term over matches on the object in both frames: (term, number of matches used)."""
+def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Tensor, torch.Tensor]:
+    """Global term over matches on the object in both frames (and within ``global_max_px`` of their render point):
+    (term, number of matches used []), every match carried with a 0/1 weight (no read of the device)."""
     if pos_image is None:
         raise ValueError(f"{_WHERE}: use_global=True needs pos_image (rendered positions, see render_points)")
-    on_object = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)
+    use = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)  # on the object in both frames
     held = alpha.detach() if cfg.global_gradient == "material" else alpha  # the un-premultiplying weights
-    P_render, P_gt = render_points(pos_image, held, p[on_object], K), q[on_object]
+    P_render = render_points(pos_image, held, p, K)
+    P_gt = q if q.dtype == P_render.dtype else q.to(dtype=P_render.dtype)  # q is on the render's device already
     if cfg.global_max_px > 0:  # truncated: a wrong match's residual would set the norm's direction
-        inlier = (P_render.detach() - P_gt.to(P_render)).norm(dim=-1) <= cfg.global_max_px
-        P_render, P_gt = P_render[inlier], P_gt[inlier]
-    return global_term(P_render, P_gt, cfg.global_reduction), len(P_gt)
+        use = use & ((P_render.detach() - P_gt).norm(dim=-1) <= cfg.global_max_px)
+    return global_term(P_render, P_gt, cfg.global_reduction, use=use), use.sum()
 
 
 def _as_tensor(x: Any, like: torch.Tensor) -> torch.Tensor:
     if isinstance(x, np.ndarray):
         x = torch.from_numpy(np.ascontiguousarray(x))
-    return x.to(device=like.device, dtype=like.dtype if x.dtype.is_floating_point else x.dtype)
+    dtype = like.dtype if x.dtype.is_floating_point else x.dtype
+    return x if (x.device, x.dtype) == (like.device, dtype) else x.to(device=like.device, dtype=dtype)
 
 
 def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est_depth: torch.Tensor,
               p: torch.Tensor, q: torch.Tensor, cfg: RDGAConfig, pos_image: torch.Tensor | None = None,
-              K: torch.Tensor | None = None, terms: dict | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+              K: torch.Tensor | None = None, terms: dict | None = None, checks: list | None = None
+              ) -> tuple[torch.Tensor, dict]:
     """RDGA loss of one frame: ``lambda_mask * L_mask + lambda_geo * L_geo`` (module docstring).
 
     Args:
@@ -422,27 +467,32 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
         terms: when given, filled with each weighted term's tensor (with its graph), keyed as
             ``gca.train.methods.TERMS``: ``silhouette`` (lambda_m L_mask), ``global`` (lambda_g lambda_1 L_global),
             ``anchor`` or ``anchor_l1`` (lambda_g lambda_2 L_anchor); they sum to the loss.
+        checks: None: the frame's finiteness checks (the anchor patches, the loss) are read here and raise at once,
+            and the stats are floats (one read of the device); a list: the checks are appended for the caller to
+            :func:`judge` once per iteration and the stats stay tensors (a training frame, whose host work then
+            never waits for the device: NOTES session 32).
 
     Returns:
         (loss scalar, stats) with stats n_matches, n_global, n_stable, n_anchors, mean_gamma,
-        mean_gamma_anchor, l_mask, l_global, l_anchor (floats, for logging).
+        mean_gamma_anchor, l_mask, l_global, l_anchor (for logging: floats, or tensors [] with ``checks``).
     """
     alpha, depth = render_out["alpha"], render_out["depth"]
     gt_mask, est_depth = _as_tensor(gt_mask, alpha) > 0.5, _as_tensor(est_depth, depth)
     p, q = _as_tensor(p, depth).reshape(-1, 2), _as_tensor(q, depth).reshape(-1, 2)
     _check_inputs(depth, alpha, gt_mask, est_depth, p, q)
+    deferred = [] if checks is None else checks
     l_mask = mask_loss(alpha, gt_mask, cfg.mask_reduction)
     stats: dict[str, Any] = {"n_matches": len(p), "n_global": 0, "n_stable": 0, "n_anchors": 0,
                              "mean_gamma": 0.0, "mean_gamma_anchor": 0.0, "l_global": 0.0, "l_anchor": 0.0}
     l_geo = depth.sum() * 0.0
     if cfg.enabled and cfg.use_global:
         l_global, n_global = _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K)
-        stats.update(n_global=n_global, l_global=float(l_global.detach()))
+        stats.update(n_global=n_global, l_global=l_global.detach())
         l_geo = l_geo + cfg.lambda1 * l_global
     if cfg.enabled and cfg.use_anchor:
         stable = stable_matches(alpha, gt_mask, p, q, cfg)
-        l_anchor, anchor_stats = anchor_term(depth, est_depth, p, q, stable, cfg)
-        stats.update(anchor_stats, l_anchor=float(l_anchor.detach()))
+        l_anchor, anchor_stats = anchor_term(depth, est_depth, p, q, stable, cfg, checks=deferred)
+        stats.update(anchor_stats, l_anchor=l_anchor.detach())
         l_geo = l_geo + cfg.lambda2 * l_anchor
     loss = cfg.lambda_mask * l_mask + cfg.lambda_geo * l_geo
     if terms is not None:
@@ -451,11 +501,14 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
             terms["global"] = cfg.lambda_geo * cfg.lambda1 * l_global
         if cfg.enabled and cfg.use_anchor:
             terms["anchor_l1" if cfg.depth_term == "l1" else "anchor"] = cfg.lambda_geo * cfg.lambda2 * l_anchor
-    if not torch.isfinite(loss):
-        raise FloatingPointError(f"{_WHERE}: non-finite RDGA loss (L_mask={float(l_mask)}, stats={stats})")
-    stats["l_mask"] = float(l_mask.detach())
+    deferred.append((FloatingPointError, "non-finite RDGA loss in {} of {} frames", (~torch.isfinite(loss)).sum(),
+                     loss.new_ones((), dtype=torch.long)))
+    stats["l_mask"] = l_mask.detach()
+    if checks is None:
+        judge(deferred)
+        stats = _floats(stats)
     return loss, stats
 
 
-__all__ = ["RDGAConfig", "mask_loss", "stable_region", "gather_patches", "bilinear_sample", "render_points",
+__all__ = ["RDGAConfig", "mask_loss", "stable_region", "gather_patches", "bilinear_sample", "render_points", "judge",
            "global_term", "stable_matches", "anchor_term", "rdga_loss"]

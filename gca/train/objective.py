@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from gca.align.cpr import CPR, CPRConfig
-from gca.align.rdga import RDGAConfig, position_colors, position_image, rdga_loss
+from gca.align.rdga import RDGAConfig, judge as judge_rdga, position_colors, position_image, rdga_loss
 from gca.render.camera import Camera
 from gca.render.rasterize import judge_inputs
 from gca.scenes.store import ViewData
@@ -295,9 +295,11 @@ class Objective:
         (its render's graph then freed), and the sum is returned detached."""
         n_video = len(renders)
         loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
+        checks: list = []  # RDGA's finiteness checks of every frame, read once after the loop (rdga.judge)
         for j in (range(n_video) if sweep is None else reversed(range(n_video))):
             self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
-            l_j = self._frame_loss(traj, j, renders[j], matching[j].result() if matching is not None else None, stats)
+            l_j = self._frame_loss(traj, j, renders[j], matching[j].result() if matching is not None else None, stats,
+                                   checks)
             if self.frame_weights is not None:
                 l_j = self.frame_weights[j] * l_j
             if sweep is None:
@@ -314,6 +316,7 @@ class Objective:
                             self.probe.record("particles", name, j, g)
                 sweep.add(f, g_x, g_F)
         self._term_weight = 1.0
+        judge_rdga(checks)  # a non-finite frame raises here, before any gradient is applied (a swept one: abandoned)
         return loss, stats
 
     def _cpr_frames(self, n_video: int) -> list[int]:
@@ -374,8 +377,10 @@ class Objective:
                     self.probe.watch("render outputs", f"{name}/{key}", j, image)
         return outs
 
-    def _frame_loss(self, traj: Rollout, j: int, outs: dict[str, dict], pq, stats: "_MeanStats") -> torch.Tensor:
-        """Loss at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None)."""
+    def _frame_loss(self, traj: Rollout, j: int, outs: dict[str, dict], pq, stats: "_MeanStats",
+                    checks: list | None = None) -> torch.Tensor:
+        """Loss at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None); RDGA's checks
+        appended to ``checks`` (None: read at once)."""
         loss = self.data.body.x0.new_zeros(())
         for name, out in outs.items():
             if self.method.uses("color"):
@@ -384,7 +389,7 @@ class Objective:
                 self._collect("color", self.cfg.lambda_color * l_color)
                 stats.add(f"color/{name}", l_color)
             if name == "train0":
-                loss = loss + self._mono_terms(out, pq, j, stats)
+                loss = loss + self._mono_terms(out, pq, j, stats, checks)
         return loss
 
     def _needs_positions(self) -> bool:
@@ -444,7 +449,7 @@ class Objective:
         return {**out, "rgb": out["rgb"][..., :3],
                 "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
 
-    def _mono_terms(self, out: dict, pq, j: int, stats: "_MeanStats") -> torch.Tensor:
+    def _mono_terms(self, out: dict, pq, j: int, stats: "_MeanStats", checks: list | None = None) -> torch.Tensor:
         """Monocular terms of train0 at frame ``j``: L1 depth, raw or aligned (PAC-NeRF + depth), and
         silhouette/RDGA."""
         loss = out["alpha"].new_zeros(())
@@ -460,7 +465,7 @@ class Objective:
             # "positions" is rendered exactly when the global term needs it (_needs_positions)
             terms = {} if self._terms is not None else None
             l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=out.get("positions"),
-                                  K=self.K["train0"], terms=terms)
+                                  K=self.K["train0"], terms=terms, checks=checks)
             for key, value in (terms or {}).items():
                 self._collect(key, value)
             loss = loss + l_rdga
