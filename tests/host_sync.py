@@ -72,7 +72,8 @@ class no_host_sync(TorchFunctionMode):
             raise HostSync("host sync: torch.where(cond) (nonzero)")
         if func in (_T.__getitem__, _T.__setitem__) and len(args) > 1 and _has_bool_index(args[1]):
             raise HostSync("host sync: boolean-mask indexing")
-        if func is _T.to and any(str(a) == "cpu" for a in (*args[1:], *kwargs.values())):
+        if func is _T.to and any(isinstance(a, (str, torch.device)) and str(a) == "cpu"
+                                 for a in (*args[1:], *kwargs.values())):  # not str() of a tensor argument: a read
             raise HostSync("host sync: copy to the host")
         if func is torch.repeat_interleave and "output_size" not in kwargs and len(args) > 1 \
                 and isinstance(args[1], torch.Tensor):

@@ -275,7 +275,7 @@ def test_material_position_image_keeps_the_value():
         position_colors(x, "weights")
 
 
-def _selected_reference(out, gt, est, p, q, cfg, pos):
+def _selected_reference(out, gt, est, p, q, cfg, pos, K=None):
     """Session 31's RDGA (boolean-mask selections, checks read per frame), from its definitions: the global term on
     the selected matches and the anchor term on the selected patches, summed as rdga_loss weighs them."""
     from gca.align.rdga import _lookup, gather_patches, global_term, render_points, stable_matches
@@ -283,7 +283,7 @@ def _selected_reference(out, gt, est, p, q, cfg, pos):
 
     alpha, depth = out["alpha"], out["depth"]
     on = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt, q)
-    P_r, P_g = render_points(pos, alpha.detach(), p[on]), q[on]
+    P_r, P_g = render_points(pos, alpha.detach(), p[on], K), q[on]
     inl = (P_r.detach() - P_g).norm(dim=-1) <= cfg.global_max_px if cfg.global_max_px > 0 else torch.ones_like(on[on])
     l_global = global_term(P_r[inl], P_g[inl], cfg.global_reduction)
     stable = stable_matches(alpha, gt, p, q, cfg)
@@ -297,8 +297,9 @@ def _selected_reference(out, gt, est, p, q, cfg, pos):
     return loss, int(on[on][inl].sum()) if cfg.global_max_px > 0 else int(on.sum()), int(anchors.sum())
 
 
+@pytest.mark.parametrize("channels", [2, 3])
 @pytest.mark.parametrize("reduction", ["norm", "mean", "mean_sq"])
-def test_rdga_with_deferred_checks_equals_the_selected_terms_and_reads_nothing(reduction):
+def test_rdga_with_deferred_checks_equals_the_selected_terms_and_reads_nothing(reduction, channels):
     """Session 32: a training frame's RDGA keeps its selections as 0/1 weights and its checks and stats as tensors
     (``checks=`` a list, judged once per iteration), so the host never waits for the device mid-frame. Same loss,
     gradient and stats as the boolean-mask selection (float64); under the CPU sync detector it reads nothing,
@@ -312,20 +313,22 @@ def test_rdga_with_deferred_checks_equals_the_selected_terms_and_reads_nothing(r
     est = 1.5 * depth + 0.05 * torch.sin(torch.arange(H * W, dtype=torch.float64).reshape(H, W))
     cfg = RDGAConfig(r=7, k=5, lambda_mask=2.0, lambda1=0.7, lambda2=0.3, global_reduction=reduction,
                      global_max_px=0.5, tau=0.5)
+    K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]], dtype=torch.float64)
     results = {}
     for mode in ("reference", "immediate", "deferred"):
         d = depth.clone().requires_grad_(True)
         shift = torch.zeros(2, dtype=torch.float64, requires_grad=True)
-        out, pos = {"alpha": alpha, "depth": d}, (uv + shift) * alpha[..., None]
+        out, pos = {"alpha": alpha, "depth": d}, _positions(uv + shift, alpha, K if channels == 3 else None)
+        Kc = K if channels == 3 else None  # training's form: camera-frame xyz projected with the intrinsics
         if mode == "reference":
-            loss, n_global, n_anchors = _selected_reference(out, gt, est, p, q, cfg, pos)
+            loss, n_global, n_anchors = _selected_reference(out, gt, est, p, q, cfg, pos, Kc)
             stats = {"n_global": n_global, "n_anchors": n_anchors}
         elif mode == "immediate":
-            loss, stats = rdga_loss(out, gt, est, p, q, cfg, pos)
+            loss, stats = rdga_loss(out, gt, est, p, q, cfg, pos, Kc)
         else:
             checks = []
             with no_host_sync():
-                loss, stats = rdga_loss(out, gt, est, p, q, cfg, pos, checks=checks)
+                loss, stats = rdga_loss(out, gt, est, p, q, cfg, pos, Kc, checks=checks)
             assert all(isinstance(v, torch.Tensor) for k, v in stats.items() if k != "n_matches")
             _rdga.judge(checks)  # passes: nothing non-finite
         loss.backward()
@@ -341,6 +344,16 @@ def test_rdga_with_deferred_checks_equals_the_selected_terms_and_reads_nothing(r
     with pytest.raises(HostSync):  # control: the immediate form reads the device
         with no_host_sync():
             rdga_loss({"alpha": alpha, "depth": depth}, gt, est, p, q, cfg, uv * alpha[..., None])
+
+
+def _positions(uv, alpha, K=None):
+    """The premultiplied position image of pixel-centre points ``uv`` [H, W, 2]: the points themselves (2 channels)
+    or their camera-frame xyz at depth 2 (3 channels, projected back with ``K``)."""
+    if K is None:
+        return uv * alpha[..., None]
+    z = torch.full_like(alpha, 2.0)[..., None]
+    xy = (uv - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]]) * z
+    return torch.cat([xy, z], -1) * alpha[..., None]
 
 
 def test_deferred_checks_raise_when_judged_and_name_the_count():

@@ -306,7 +306,7 @@ def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "no
     else:
         dist = torch.sqrt((diff ** 2).sum(-1) + 1e-12)
         value = (dist if use is None else torch.where(use, dist, 0.0)).sum() / (n if use is None else n.clamp_min(1))
-    return value if use is None else torch.where(n > 0, value, P_render.sum() * 0.0)
+    return value if use is None else torch.where(n > 0, value, diff.sum() * 0.0)  # diff: zero where unused
 
 
 def _check_inputs(depth, alpha, gt_mask, est_depth, p, q) -> None:

@@ -461,7 +461,7 @@ class Objective:
                 stats.add(term, l_depth)
         rdga = self.train0_rdga
         if rdga is not None:
-            p, q = pq if pq is not None else (np.zeros((0, 2), np.float32),) * 2
+            p, q = (_matches_to(a, self.est_depth) for a in pq) if pq is not None else (np.zeros((0, 2), np.float32),) * 2
             # "positions" is rendered exactly when the global term needs it (_needs_positions)
             terms = {} if self._terms is not None else None
             l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=out.get("positions"),
@@ -547,6 +547,14 @@ class _FrameLeaves:
         self.frames = list(frames)
         self.x = {f: traj.x[f].detach().requires_grad_(True) for f in self.frames}
         self.F = {f: traj.F[f].detach().requires_grad_(True) for f in self.frames}
+
+
+def _matches_to(points: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """A frame's matched points [M, 2] (the matcher's numpy array) on ``like``'s device: on CUDA through pinned
+    memory without blocking (a plain copy from pageable memory synchronises the stream, i.e. the host would wait for
+    the GPU at every frame: NOTES session 32's review), elsewhere as a view."""
+    t = torch.from_numpy(np.ascontiguousarray(points))
+    return t.pin_memory().to(like.device, non_blocking=True) if like.is_cuda else t
 
 
 class _MeanStats:
