@@ -368,7 +368,8 @@ def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q
                      ((~torch.isfinite(N_p)) & rows).any(-1).sum(), n_stable))
     deferred.append((ValueError, "est_depth is non-finite in {} of {} patches",
                      ((~torch.isfinite(N_q)) & rows).any(-1).sum(), n_stable))
-    varied = stable & (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0)  # gamma undefined on constant patches
+    varied = stable & (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0) if len(N_p) else stable  # gamma undefined
+    # on constant patches (no match: no std to take, and torch warns on an empty one)
     gamma = torch.where(varied, spearman_exact(N_p, N_q), 0.0) if len(N_p) else N_p.new_zeros(0)
     anchors = varied & (gamma > cfg.tau)
     n_anchors = anchors.sum()
@@ -404,7 +405,7 @@ def _floats(stats: dict) -> dict:
     """The stats' tensors as floats, read in one transfer."""
     keys = [k for k, v in stats.items() if isinstance(v, torch.Tensor)]
     read = dict(zip(keys, torch.stack([stats[k].detach().double().reshape(()) for k in keys]).tolist())) if keys else {}
-    return {k: read.get(k, v) for k, v in stats.items()}
+    return {k: (v if k not in read else read[k] if v.is_floating_point() else int(read[k])) for k, v in stats.items()}
 
 
 def position_colors(xyz: torch.Tensor, gradient: str = "material") -> torch.Tensor:
