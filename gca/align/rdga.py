@@ -293,20 +293,16 @@ def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "no
     """
     P_gt = P_gt if (P_gt.dtype, P_gt.device) == (P_render.dtype, P_render.device) else P_gt.to(P_render)
     if use is None:
-        diff = P_render - P_gt
-        if len(diff) == 0:
-            return P_render.sum() * 0.0
-    else:
-        diff = torch.where(use[:, None], P_render, P_gt) - P_gt
-    n = len(diff) if use is None else use.sum()
+        use = torch.ones(len(P_render), dtype=torch.bool, device=P_render.device)
+    diff = torch.where(use[:, None], P_render, P_gt) - P_gt  # zero where unused
+    n = use.sum()
     if reduction == "norm":
         value = torch.sqrt((diff ** 2).sum() + 1e-12)
     elif reduction == "mean_sq":
-        value = (diff ** 2).sum(-1).sum() / (n if use is None else n.clamp_min(1))
+        value = (diff ** 2).sum(-1).sum() / n.clamp_min(1)
     else:
-        dist = torch.sqrt((diff ** 2).sum(-1) + 1e-12)
-        value = (dist if use is None else torch.where(use, dist, 0.0)).sum() / (n if use is None else n.clamp_min(1))
-    return value if use is None else torch.where(n > 0, value, diff.sum() * 0.0)  # diff: zero where unused
+        value = torch.where(use, torch.sqrt((diff ** 2).sum(-1) + 1e-12), 0.0).sum() / n.clamp_min(1)
+    return torch.where(n > 0, value, diff.sum() * 0.0)
 
 
 def _check_inputs(depth, alpha, gt_mask, est_depth, p, q) -> None:
