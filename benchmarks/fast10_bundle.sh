@@ -1,0 +1,46 @@
+#!/bin/sh
+# Issue 20, session 33: RDGA without host reads mid-frame (ce94340: 0/1 selection weights, tensor stats, checks judged
+# once per iteration) against the code just before it (1593090), then where a swept iteration goes now; then solo runs.
+#
+#   before: mkdir -p ab_old && git archive 1593090 gca | tar -x -C ab_old   (untracked: it travels with the tree)
+#   call 1 carry [".wpa"]:                                  sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:           . .wpb/activate.sh && PART=a OUT=$OUT sh benchmarks/fast10_bundle.sh
+#       gsplat's build; the ball's data; 10 GCA iterations at HEAD, at 1593090 (ab_old/gca first on PYTHONPATH), at
+#       HEAD again (same data); profile_train.py of one full-horizon swept iteration  -> {rdga,rdga_old,rdga2}/, profile*
+#   or PART=ab: only gsplat's build, the ball's data, HEAD then 1593090 (before table1_one.sh's grid on the same machine)
+#   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
+#       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
+set -u
+OUT=${OUT:-/tmp/fast10_out}; PART=${PART:-a}
+mkdir -p "$OUT"
+export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
+T0=$(date +%s)
+stamp() { python3 -c "import time; print(f'[fast10 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+. benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
+. benchmarks/harness_runs.sh  # run, summary
+
+if [ "$PART" = a ] || [ "$PART" = ab ]; then
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  [ -f ab_old/gca/align/rdga.py ] || { echo "ab_old/gca missing: git archive 1593090 gca | tar -x -C ab_old"; exit 2; }
+  stamp "gsplat: build its extension once"
+  timeout 240 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "build rc=$?"
+  W=/tmp/fast10_ball
+  stamp "rdga (HEAD): data + 10 iterations"; run rdga ball $W 10 240
+  stamp "rdga_old (1593090's gca): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+  (cd /tmp && PYTHONPATH=$OLDPWD/ab_old:$PYTHONPATH python3 -c "import gca.align.rdga as r; print('rdga_old reads', r.__file__)")
+  PYTHONPATH=$PWD/ab_old:$PYTHONPATH run rdga_old ball $W 10 150 --reuse-data --stages train evaluate
+  [ "$PART" = ab ] && { summary rdga rdga_old; stamp done; exit 0; }
+  stamp "rdga again"; rm -rf $W/runs/ball $W/eval; run rdga2 ball $W 10 150 --reuse-data --stages train evaluate
+  stamp "profile one full-horizon swept iteration"
+  timeout 150 python3 benchmarks/profile_train.py --work $W --scene ball --method gca --iterations 2 --top 60 --out "$OUT" \
+      > "$OUT/profile.log" 2>&1; echo "profile rc=$?"; grep "per iteration" "$OUT/profile.log"
+  summary rdga rdga_old rdga2
+fi
+
+if [ "$PART" = b ]; then
+  for scene in ${SCENES:-ball}; do
+    stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}"
+  done
+  summary $(for s in ${SCENES:-ball}; do printf 'solo_%s ' "$s"; done)
+fi
+stamp done
