@@ -3,7 +3,10 @@
 For each ``particles:n_grid`` size and each particle order of the same block of particles (``random``: uniform at
 random, as ``bench_sim.block``; ``lattice``: a regular lattice in meshgrid order, as ``gca.assets.particles``
 samples objects; ``cell``: the random particles sorted by grid cell; ``morton``: sorted by the Morton code of their
-cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order, the paper profile's density),
+cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order, the paper profile's density, as the
+training's particles come; ``ball64_sub``: the same particles by sub-lattice, i.e. sorted by their lattice indices
+mod 4 (each of the 64 sub-lattices holds one particle per cell) and in meshgrid order within one, so a warp's threads
+fall in 32 different cells instead of 8; ``ball64_shuffle``: the same particles in a random order),
 times on one device, side by side in one run:
 
 - ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
@@ -31,7 +34,7 @@ import warp as wp
 
 from gca.sim.kernels import BLOCK, KERNELS, PAD, grid_size, launch_blocks
 
-ORDERS = ("random", "lattice", "cell", "morton", "ball64")
+ORDERS = ("random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle")
 
 
 def _cells(x: torch.Tensor, n_grid: int) -> torch.Tensor:
@@ -51,12 +54,20 @@ def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.T
     """n positions [n, 3] in a centred cube of ~8 particles per cell, in the given order."""
     side = min((n / 8) ** (1 / 3), n_grid - 8) / n_grid
     lo = 0.5 - side / 2
-    if order == "ball64":  # spacing dx / 4, the radius giving ~n particles
+    if order.startswith("ball64"):  # spacing dx / 4, the radius giving ~n particles
         s = 0.25 / n_grid
         r = (3 * n / (4 * torch.pi)) ** (1 / 3) * s
         axis = torch.arange(-r, r + 1e-9, s, dtype=torch.float64)
         x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-        return (x[(x ** 2).sum(1) <= r * r] + 0.5).to(device=device, dtype=torch.float32).contiguous()
+        idx = torch.stack(torch.meshgrid(*[torch.arange(len(axis))] * 3, indexing="ij"), -1).reshape(-1, 3)
+        inside = (x ** 2).sum(1) <= r * r
+        x, idx = x[inside], idx[inside]
+        if order == "ball64_sub":  # stable: meshgrid order within each sub-lattice
+            sub = ((idx[:, 0] % 4) * 4 + idx[:, 1] % 4) * 4 + idx[:, 2] % 4
+            x = x[torch.sort(sub, stable=True).indices]
+        elif order == "ball64_shuffle":
+            x = x[torch.randperm(len(x), generator=torch.Generator().manual_seed(seed))]
+        return (x + 0.5).to(device=device, dtype=torch.float32).contiguous()
     if order == "lattice":
         k = round(n ** (1 / 3))
         axis = lo + (torch.arange(k, dtype=torch.float64) + 0.5) * side / k

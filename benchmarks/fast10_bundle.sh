@@ -8,6 +8,9 @@
 #       gsplat's build; the ball's data; 10 GCA iterations at HEAD, at 1593090 (ab_old/gca first on PYTHONPATH), at
 #       HEAD again (same data); profile_train.py of one full-horizon swept iteration  -> {rdga,rdga_old,rdga2}/, profile*
 #   or PART=ab: only gsplat's build, the ball's data, HEAD then 1593090 (before table1_one.sh's grid on the same machine)
+#   PART=levers (no gsplat needed; ~2 min): the next levers measured before anything is built on them
+#       bench_p2g.py: the ball's particles in meshgrid order, by sub-lattice, shuffled (and the 8-per-cell lattice)
+#       bench_law_precision.py: the neural law's products in TF32 beside FP32: time, rollout and gradient deviation
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 set -u
@@ -26,7 +29,7 @@ if [ "$PART" = a ] || [ "$PART" = ab ]; then
   timeout 240 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "build rc=$?"
   W=/tmp/fast10_ball
   stamp "rdga (HEAD): data + 10 iterations"; run rdga ball $W 10 240
-  stamp "rdga_old (1593090's gca): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+  stamp "rdga_old (the gca of 1593090): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
   (cd /tmp && PYTHONPATH=$OLDPWD/ab_old:$PYTHONPATH python3 -c "import gca.align.rdga as r; print('rdga_old reads', r.__file__)")
   PYTHONPATH=$PWD/ab_old:$PYTHONPATH run rdga_old ball $W 10 150 --reuse-data --stages train evaluate
   [ "$PART" = ab ] && { summary rdga rdga_old; stamp done; exit 0; }
@@ -35,6 +38,18 @@ if [ "$PART" = a ] || [ "$PART" = ab ]; then
   timeout 150 python3 benchmarks/profile_train.py --work $W --scene ball --method gca --iterations 2 --top 60 --out "$OUT" \
       > "$OUT/profile.log" 2>&1; echo "profile rc=$?"; grep "per iteration" "$OUT/profile.log"
   summary rdga rdga_old rdga2
+fi
+
+if [ "$PART" = levers ]; then
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "bench_p2g: particle orders"
+  timeout 150 python3 benchmarks/bench_p2g.py --device cuda --sizes 30000:32 100000:64 \
+      --orders ball64 ball64_sub ball64_shuffle lattice --json "$OUT/p2g_orders.json" > "$OUT/p2g_orders.txt" 2>&1
+  echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g_orders.txt"
+  stamp "bench_law_precision: FP32 vs TF32"
+  timeout 300 python3 benchmarks/bench_law_precision.py --device cuda --json "$OUT/law_precision.json" \
+      > "$OUT/law_precision.txt" 2>&1
+  echo "precision rc=$?"; grep -E "^\|" "$OUT/law_precision.txt"
 fi
 
 if [ "$PART" = b ]; then

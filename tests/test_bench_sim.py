@@ -1,5 +1,6 @@
-"""benchmarks/bench_sim.py and bench_p2g.py on the CPU: the particle orders of the benchmark block, and every P2G
-kernel layout timed on each order (a smoke run of what the H100 bundles run)."""
+"""benchmarks/bench_sim.py, bench_p2g.py and bench_law_precision.py on the CPU: the particle orders of the benchmark
+block, every P2G kernel layout timed on each order, the law's FP32 / TF32 bench (smoke runs of what the H100 bundles
+run)."""
 
 import importlib.util
 from pathlib import Path
@@ -34,10 +35,33 @@ def test_block_orders_fill_the_same_cube():
 
 def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
     rows = _load("bench_p2g").main(["--device", "cpu", "--sizes", "500:16", "--iters", "1", "--repeats", "1"])
-    assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton", "ball64"]
+    assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle"]
     assert rows[1]["particles"] == 512  # 8^3
     assert abs(rows[4]["particles"] - 500) < 60  # a lattice ball of ~500 at ~64 per cell
+    assert rows[4]["particles"] == rows[5]["particles"] == rows[6]["particles"]  # the same ball reordered
     assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_nodes_us", "p2g_block_us", "g2p_us", "g2p_adj_us"))
+
+
+def test_ball64_orders_are_one_ball_and_the_sub_lattice_order_spreads_a_warp_over_cells():
+    bench = _load("bench_p2g")
+    n, n_grid = 30000, 32
+    mesh, sub, shuffled = (bench.particles(n, n_grid, o, torch.device("cpu")) for o in ("ball64", "ball64_sub",
+                                                                                       "ball64_shuffle"))
+
+    def rows(x):
+        return {tuple(p) for p in x.tolist()}
+    assert rows(mesh) == rows(sub) == rows(shuffled) and len(rows(mesh)) == len(mesh)  # one set of particles
+    assert not torch.equal(mesh, sub) and not torch.equal(mesh, shuffled)
+
+    def cells_per_warp(x):  # distinct grid cells among each 32 consecutive particles, mean
+        c = bench._cells(x.double(), n_grid)
+        key = (c[:, 0] * n_grid + c[:, 1]) * n_grid + c[:, 2]
+        return sum(len(torch.unique(key[i:i + 32])) for i in range(0, len(key) - 31, 32)) / (len(key) // 32)
+    assert cells_per_warp(mesh) < 10  # meshgrid order: 4 consecutive particles per cell along z
+    assert cells_per_warp(sub) > 25  # one particle per cell within a sub-lattice
+    spacing = 0.25 / n_grid  # within a sub-lattice, consecutive particles are one cell apart along z (mostly)
+    step = (sub[1:] - sub[:-1]).norm(dim=1)
+    assert (torch.isclose(step, torch.tensor(4 * spacing), rtol=1e-3)).float().mean() > 0.8
 
 
 def test_bench_runs_times_sequential_and_batched_rollouts_on_the_cpu():
@@ -64,3 +88,17 @@ def test_bench_fused_frame_times_the_three_forward_paths_on_the_cpu():
                                             "--n-grid", "16", "--steps", "3", "--repeats", "1"])
     assert [r["law"] for r in rows] == ["corotated"]
     assert all(rows[0][k] > 0 for k in ("frame_fused", "step_fused", "generic"))
+
+
+def test_bench_law_precision_runs_on_the_cpu_and_measures_float32_against_float64():
+    before = torch.backends.cuda.matmul.allow_tf32
+    out = _load("bench_law_precision").main(["--device", "cpu", "--particles", "600", "--n-grid", "16", "--steps",
+                                             "20", "--steps-per-frame", "10", "--iters", "1", "--repeats", "1"])
+    assert torch.backends.cuda.matmul.allow_tf32 == before  # the TF32 switch is restored
+    assert set(out["law"]) == set(out["rollout"]) == {"fp32", "tf32"}
+    assert all(v > 0 for r in out["law"].values() for v in r.values())
+    fp32, tf32 = out["rollout"]["fp32"], out["rollout"]["tf32"]
+    assert 0 < fp32["max_dx_cells"] < 1e-3  # float32 really ran (a float64 run would deviate by 0), and stayed close
+    assert 0 < fp32["max_dF"] < 1e-4
+    assert 0.999 < fp32["grad_cos"] <= 1 + 1e-12 and 0 < fp32["grad_rel_err"] < 1e-2
+    assert tf32 == fp32  # TF32 is a CUDA mode: on the CPU the same products run
