@@ -11,6 +11,8 @@
 #   PART=levers (no gsplat needed; ~2 min): the next levers measured before anything is built on them
 #       bench_p2g.py: the ball's particles in meshgrid order, by sub-lattice, shuffled (and the 8-per-cell lattice)
 #       bench_law_precision.py: the neural law's products in TF32 beside FP32: time, rollout and gradient deviation
+#   PART=tf32 (~4.5 min): gsplat's build, the ball's data, 10 GCA iterations at train.matmul_precision highest (FP32),
+#       high (TF32), highest again (same data)                                      -> {fp32,tf32,fp32b}/
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 set -u
@@ -50,6 +52,17 @@ if [ "$PART" = levers ]; then
   timeout 300 python3 benchmarks/bench_law_precision.py --device cuda --json "$OUT/law_precision.json" \
       > "$OUT/law_precision.txt" 2>&1
   echo "precision rc=$?"; grep -E "^\|" "$OUT/law_precision.txt"
+fi
+
+if [ "$PART" = tf32 ]; then
+  stamp "gsplat: build its extension once"
+  timeout 240 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1; echo "build rc=$?"
+  W=/tmp/fast10_ball
+  stamp "fp32: data + 10 iterations"; run fp32 ball $W 10 240
+  stamp "tf32: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+  run tf32 ball $W 10 150 --reuse-data --stages train evaluate --set train.matmul_precision=high
+  stamp "fp32 again"; rm -rf $W/runs/ball $W/eval; run fp32b ball $W 10 150 --reuse-data --stages train evaluate
+  summary fp32 tf32 fp32b
 fi
 
 if [ "$PART" = b ]; then

@@ -107,6 +107,26 @@ def test_runner_is_cached_and_sees_in_place_updates():
     assert solver.frame_graphs(other, 2, scene[0].shape[0]) is not runner
 
 
+def test_a_runner_is_reused_only_under_the_float32_product_precision_it_was_made_under():
+    """train.matmul_precision: a captured graph bakes its products' kernels in, so a runner made while torch's
+    float32 products ran at one precision (e.g. TF32, "high") must not serve a rollout at another."""
+    material = _law()
+    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, dtype="float64", boundary="sticky", friction=0.0,
+                                 max_refine=1))
+    n = _scene()[0].shape[0]
+    before = torch.get_float32_matmul_precision()
+    try:
+        torch.set_float32_matmul_precision("high")
+        high = solver.frame_graphs(material, 2, n)
+        assert solver.frame_graphs(material, 2, n) is high  # the same precision: reused (the control)
+        torch.set_float32_matmul_precision("highest")
+        highest = solver.frame_graphs(material, 2, n)
+        assert highest is not high and (high.precision, highest.precision) == ("high", "highest")
+        assert solver.frame_graphs(material, 2, n) is highest
+    finally:
+        torch.set_float32_matmul_precision(before)
+
+
 def test_capture_refused_on_cpu():
     solver = MPMSolver(SimConfig(n_grid=8, dtype="float64", dt=1e-3, bound=3, boundary="sticky", friction=0.0,
                                  max_refine=1))

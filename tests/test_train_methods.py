@@ -326,6 +326,33 @@ def _neuma_run(scene, checkpoint_path=None, **cfg_kw):
                                checkpoint_path=checkpoint_path))
 
 
+@pytest.mark.parametrize("level", ["high", "highest"])
+def test_training_runs_at_its_matmul_precision_and_restores_the_process_one(scene, monkeypatch, level):
+    """train.matmul_precision holds while the run differentiates (every iteration and the final selection) and the
+    process's own precision is back after the run."""
+    import gca.train.loop as loop
+    seen, original = [], loop._gradient
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_float32_matmul_precision())
+        return original(*args, **kwargs)
+    monkeypatch.setattr(loop, "_gradient", spy)
+    other = "highest" if level == "high" else "high"
+    torch.set_float32_matmul_precision(other)
+    try:
+        _, run = _neuma_run(scene, iterations=2, keep="best", matmul_precision=level)
+        assert run().status == "ok"
+        assert seen == [level] * 3  # two iterations and the final law's evaluation
+        assert torch.get_float32_matmul_precision() == other
+    finally:
+        torch.set_float32_matmul_precision("highest")
+
+
+def test_matmul_precision_is_validated():
+    with pytest.raises(ValueError, match="train.matmul_precision must be one of"):
+        TrainConfig(matmul_precision="medium")
+
+
 def test_keep_best_returns_the_law_of_lowest_training_loss(scene):
     """keep="best": the run returns the law whose full-video training loss was lowest among the
     iterates and the final law (evaluated once more); its loss evaluated again is the one recorded."""

@@ -94,6 +94,9 @@ class FrameGraphs:
         dev, dt = solver.device, solver.dtype
         self.capture = (dev.type == "cuda") if capture is None else bool(capture)
         self.capture_asked = self.capture  # as built (capture may later fall back to eager)
+        # torch's float32 product precision (train.matmul_precision) is baked into a captured graph's kernels: a
+        # runner made under one is never reused under another
+        self.precision = torch.get_float32_matmul_precision()
         if self.capture and dev.type != "cuda":
             raise ValueError(f"{_WHERE}: CUDA graph capture needs a CUDA solver, this one runs on {dev}")
         shapes = {"x": (n, 3), "v": (n, 3), "C": (n, 3, 3), "F": (n, 3, 3)}
@@ -109,6 +112,7 @@ class FrameGraphs:
     def matches(self, material, n_steps: int, n: int, capture: bool | None = None) -> bool:
         return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
                 and (capture is None or self.capture_asked == capture)
+                and self.precision == torch.get_float32_matmul_precision()
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 
     def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:

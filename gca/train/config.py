@@ -8,6 +8,10 @@ import math
 from gca.config import NOT_A_PARAM
 
 
+#: train.matmul_precision's values: torch.set_float32_matmul_precision levels (``medium``, bfloat16, is not offered)
+MATMUL_PRECISIONS = ("highest", "high")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Optimisation of the constitutive law from video (NeuMA recipe + GCA losses).
@@ -51,6 +55,13 @@ class TrainConfig:
             (``gca.sim.rollout.ReverseSweep``; on CUDA the simulator's backward then overlaps the losses' host work)
             instead of one autograd pass after all of them; the same gradient up to float rounding. Term-share
             iterations take the autograd pass (each term is differentiated through the whole rollout there).
+        matmul_precision: torch's float32 matrix-product precision while training
+            (``torch.set_float32_matmul_precision``, restored after): ``highest`` (default: FP32 products) or
+            ``high`` (TF32 tensor cores on CUDA: 10 mantissa bits in the neural law's products; on a CPU torch may
+            use its own reduced-precision kernels). A speed option, off by default, measured side by side in
+            ``benchmarks/bench_law_precision.py``; whether its deviation is acceptable is decided on calibration
+            scenes only. Evaluation always runs at ``highest`` (a separate stage; a frame graph captured under one
+            precision is never replayed under another, ``gca.sim.graph.FrameGraphs.matches``).
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
@@ -80,6 +91,7 @@ class TrainConfig:
     neuma_lr_scale: float = 1.7511264560616377
     optimizer: str = "radam"
     reverse_sweep: bool = True
+    matmul_precision: str = "highest"
     frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_until: float = dataclasses.field(default=0.33, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_every: float = dataclasses.field(default=0.2, metadata=NOT_A_PARAM)  # set by the method's recipe
@@ -101,6 +113,9 @@ class TrainConfig:
             raise ValueError("train.frame_decay_start and frame_decay_every must be in (0, 1]")
         if not (math.isfinite(self.neuma_lr_scale) and self.neuma_lr_scale > 0):
             raise ValueError(f"train.neuma_lr_scale must be > 0, got {self.neuma_lr_scale}")
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"train.matmul_precision must be one of {list(MATMUL_PRECISIONS)}, got "
+                             f"{self.matmul_precision!r}")
         if self.keep not in ("best", "last"):
             raise ValueError(f"train.keep must be 'best' or 'last', got {self.keep!r}")
         if self.max_rejections < 0:

@@ -22,6 +22,7 @@ written every ``checkpoint_every`` iterations and resumed from.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -77,9 +78,28 @@ def simulate(solver: MPMSolver, law: LearnedLaw, data: TrainData, n_video: int, 
                    n_steps=n_frames * data.substeps, steps_per_frame=data.substeps, checkpoint=True, sweep=sweep)
 
 
+@contextlib.contextmanager
+def matmul_precision(level: str):
+    """torch's float32 matrix-product precision inside the block (``train.matmul_precision``:
+    ``torch.set_float32_matmul_precision``), the process's own restored after it."""
+    before = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(level)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(before)
+
+
 def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
           checkpoint_path: Path | None = None, on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
-    """Run the optimisation; returns the status, the per-iteration history and the rejected updates."""
+    """Run the optimisation at ``cfg.matmul_precision``; returns the status, the per-iteration history and the
+    rejected updates."""
+    with matmul_precision(cfg.matmul_precision):
+        return _train(solver, law, data, objective, cfg, checkpoint_path, on_iteration)
+
+
+def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
+           checkpoint_path: Path | None, on_iteration: Callable[[int, dict], None] | None) -> TrainResult:
     start = time.perf_counter()
     if not law.trainable():
         return TrainResult("ok", 0, [], "nothing to train", 0.0)
