@@ -15,8 +15,9 @@ on one device:
 - ``gradient``: the gradient of a fixed random projection of the last frame's positions with respect to the LoRA
   factors (checkpointed rollout, autograd), each precision's cosine with float64's and relative error.
 
-TF32 is a CUDA-only mode: on the CPU its rows equal FP32's (the CPU test checks the script runs and the float32
-deviations are those of rounding, not TF32).
+TF32 is a CUDA mode (``train.matmul_precision: high``, set here the same way, ``gca.train.loop.matmul_precision``); on
+a CPU torch may pick reduced-precision kernels of its own under it, or none (the CPU test checks the script runs and
+the float32 deviations are small, not what TF32 does).
 
 Usage::
 
@@ -37,22 +38,18 @@ import torch
 
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_prior
-from gca.laws.lora import apply_lora, lora_parameters
+from gca.laws.lora import apply_lora, lora_layers, lora_parameters
 from gca.sim import MPMSolver, SimConfig, rollout
+from gca.train.loop import matmul_precision
 
 ROOT = Path(__file__).resolve().parents[1]
 RHO = 1000.0  # density [kg/m^3]
 
 
-@contextlib.contextmanager
 def tf32(on: bool):
-    """cuBLAS matrix products in TF32 inside the block (and cuDNN's, unused here); restored after."""
-    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
-    try:
-        yield
-    finally:
-        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+    """The block's float32 products as training runs them at ``train.matmul_precision`` high (TF32 on CUDA) or
+    highest (FP32): :func:`gca.train.loop.matmul_precision`, restored after."""
+    return matmul_precision("high" if on else "highest")
 
 
 def material(prior: Path, device, dtype: torch.dtype, seed: int = 0) -> Material:
@@ -67,6 +64,21 @@ def material(prior: Path, device, dtype: torch.dtype, seed: int = 0) -> Material
                 if name.endswith("lora_B"):
                     q.copy_(1e-2 * torch.randn(q.shape, generator=g))
     return Material(p.elasticity, p.plasticity, RHO).to(device=device, dtype=dtype)
+
+
+@contextlib.contextmanager
+def frame_merge(mat: Material):
+    """Every LoRA layer applies W + (alpha / r) B A formed once, as a simulated frame forms it
+    (``gca.laws.lora.merged_weights``), here as leaves that take gradients: the timed backward computes the weight
+    gradients' products as training's does, without repeating the once-per-frame merge."""
+    layers = [layer for net in (mat.elasticity, mat.plasticity) for layer in lora_layers(net)]
+    for layer in layers:
+        layer._merged = (layer.weight + layer.delta_weight()).detach().requires_grad_(True)
+    try:
+        yield
+    finally:
+        for layer in layers:
+            layer._merged = None
 
 
 def ball(n: int, n_grid: int, device, dtype) -> tuple[torch.Tensor, ...]:
@@ -108,7 +120,7 @@ def law_times(mat: Material, n: int, device, iters: int, repeats: int, on: bool)
                                                                                           dtype=torch.float32)
     w = torch.randn(n, 3, 3, generator=g).to(F)
 
-    def forward():
+    def forward():  # the LoRA merge formed once per frame in a rollout (gca.sim.frame), so outside the timing here
         with torch.no_grad():
             mat.stress(mat.project(F))
 
@@ -117,7 +129,7 @@ def law_times(mat: Material, n: int, device, iters: int, repeats: int, on: bool)
         Fe = mat.project(Fg)
         ((mat.stress(Fe) * w).sum() + (Fe * w).sum()).backward()
 
-    with tf32(on):
+    with tf32(on), frame_merge(mat):
         return {"forward_us": _time(forward, device, iters, repeats),
                 "forward_backward_us": _time(backward, device, iters, repeats)}
 

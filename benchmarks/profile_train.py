@@ -88,7 +88,8 @@ def main(argv=None) -> None:
     n_video = args.horizon or len(data.video_frames)
 
     def step():
-        record = loop._gradient(solver, law, data, objective, cfg, n_video)
+        with loop.matmul_precision(cfg.matmul_precision):  # as train() runs it
+            record = loop._gradient(solver, law, data, objective, cfg, n_video)
         opt.step()
         return record
 

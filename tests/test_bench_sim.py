@@ -91,14 +91,15 @@ def test_bench_fused_frame_times_the_three_forward_paths_on_the_cpu():
 
 
 def test_bench_law_precision_runs_on_the_cpu_and_measures_float32_against_float64():
-    before = torch.backends.cuda.matmul.allow_tf32
+    before = torch.get_float32_matmul_precision()
     out = _load("bench_law_precision").main(["--device", "cpu", "--particles", "600", "--n-grid", "16", "--steps",
                                              "20", "--steps-per-frame", "10", "--iters", "1", "--repeats", "1"])
-    assert torch.backends.cuda.matmul.allow_tf32 == before  # the TF32 switch is restored
+    assert torch.get_float32_matmul_precision() == before  # the precision is restored
     assert set(out["law"]) == set(out["rollout"]) == {"fp32", "tf32"}
     assert all(v > 0 for r in out["law"].values() for v in r.values())
     fp32, tf32 = out["rollout"]["fp32"], out["rollout"]["tf32"]
     assert 0 < fp32["max_dx_cells"] < 1e-3  # float32 really ran (a float64 run would deviate by 0), and stayed close
     assert 0 < fp32["max_dF"] < 1e-4
     assert 0.999 < fp32["grad_cos"] <= 1 + 1e-12 and 0 < fp32["grad_rel_err"] < 1e-2
-    assert tf32 == fp32  # TF32 is a CUDA mode: on the CPU the same products run
+    # TF32 is a CUDA mode; on a CPU torch may use reduced-precision kernels of its own under it, or none
+    assert tf32["max_dx_cells"] < 1e-3 and tf32["grad_cos"] > 0.999

@@ -337,7 +337,7 @@ def test_training_runs_at_its_matmul_precision_and_restores_the_process_one(scen
         seen.append(torch.get_float32_matmul_precision())
         return original(*args, **kwargs)
     monkeypatch.setattr(loop, "_gradient", spy)
-    other = "highest" if level == "high" else "high"
+    other, own = ("highest" if level == "high" else "high"), torch.get_float32_matmul_precision()
     torch.set_float32_matmul_precision(other)
     try:
         _, run = _neuma_run(scene, iterations=2, keep="best", matmul_precision=level)
@@ -345,7 +345,7 @@ def test_training_runs_at_its_matmul_precision_and_restores_the_process_one(scen
         assert seen == [level] * 3  # two iterations and the final law's evaluation
         assert torch.get_float32_matmul_precision() == other
     finally:
-        torch.set_float32_matmul_precision("highest")
+        torch.set_float32_matmul_precision(own)
 
 
 def test_matmul_precision_is_validated():
