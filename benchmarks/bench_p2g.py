@@ -13,6 +13,10 @@ times on one device, side by side in one run:
 - ``p2g_nodes``: one thread per (particle, node) pair (an option, off since session 13),
 - ``p2g_block``: the block-summed scatter (``kernels.scatter_block``; an option, off: slower, session 32),
   with the share of blocks that took the shared window,
+- ``p2g_indirect``: the per-particle scatter reading its particle through an index array (thread t scatters particle
+  order[t]) with the identity order (the indirection's own cost), and ``p2g_interleaved`` with the cell-interleaved
+  order (:func:`interleaved`: each cell's first particle, cells in grid order, then each cell's second, ...), which a
+  solver could compute from x0 instead of reordering the data,
 - ``g2p``: the per-particle gather, and its adjoint (``g2p_adj``: warp's, scattering the grid's velocity gradient
   with atomics),
 
@@ -26,6 +30,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 
@@ -83,6 +88,37 @@ def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.T
     return x.to(device=device, dtype=torch.float32).contiguous()
 
 
+def interleaved(x: torch.Tensor, n_grid: int) -> torch.Tensor:
+    """A permutation [N] (int64) of particles ``x`` [N, 3]: the first particle of every cell (cells in grid order),
+    then the second of every cell, and so on, each cell's particles in their given order; 32 consecutive threads then
+    fall in up to 32 cells however dense the cells are."""
+    c = _cells(x.double(), n_grid)
+    key = (c[:, 0] * n_grid + c[:, 1]) * n_grid + c[:, 2]
+    by_cell = torch.sort(key, stable=True).indices  # grouped by cell
+    k = key[by_cell]
+    rank = torch.arange(len(k), device=k.device) - torch.searchsorted(k, k)  # rank of each particle within its cell
+    return by_cell[torch.sort(rank * n_grid ** 3 + k, stable=True).indices]
+
+
+@functools.cache
+def _indirect_kernel(dtype: str = "float32"):
+    """P2G through an index array: thread t scatters particle order[t] (``kernels.scatter``, forward only)."""
+    k = KERNELS[dtype]
+    T, vec3, mat33 = k.T, k.vec3, k.mat33
+
+    def p2g_indirect(order, x, v, C, tau, vol, mass, run, dt, inv_dx, n_grid, grid_mv, grid_m):
+        p = order[wp.tid()]
+        k.scatter(x[p], v[p], C[p], tau[p], vol[p], mass[p], k.run_offset(run, p, n_grid, grid_m.shape[0]), dt,
+                  inv_dx, n_grid, grid_mv, grid_m)
+
+    # the types as objects: this module's annotations are strings (``from __future__ import annotations``)
+    p2g_indirect.__annotations__ = dict(
+        order=wp.array(dtype=int), x=wp.array(dtype=vec3), v=wp.array(dtype=vec3), C=wp.array(dtype=mat33),
+        tau=wp.array(dtype=mat33), vol=wp.array(dtype=T), mass=wp.array(dtype=T), run=wp.array(dtype=int), dt=T,
+        inv_dx=T, n_grid=int, grid_mv=wp.array3d(dtype=vec3), grid_m=wp.array3d(dtype=T))
+    return wp.kernel(p2g_indirect)
+
+
 def _time(fn, device, iters: int, repeats: int) -> float:
     best = float("inf")
     for _ in range(repeats + 1):  # the first round warms up
@@ -125,6 +161,12 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
     for bd in block_dims:  # the same kernels launched with other thread-block sizes (warp's default: 256)
         row[f"p2g_bd{bd}_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd, block_dim=bd), device,
                                       iters, repeats)
+    indirect = _indirect_kernel()
+    for name, order_t in (("p2g_indirect_us", torch.arange(n, device=device)), ("p2g_interleaved_us",
+                                                                              interleaved(x, n_grid))):
+        w_order = wp.from_torch(order_t.to(torch.int32).contiguous())
+        row[name] = _time(lambda: wp.launch(indirect, dim=n, inputs=[w_order, *args], device=wd), device, iters,
+                          repeats)
     row["p2g_nodes_us"] = _time(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
                                 repeats)
     windows = wp.zeros(1, dtype=int, device=wd)
@@ -160,14 +202,16 @@ def main(argv=None) -> list[dict]:
     if device.type == "cuda" and device.index is None:  # warp needs an explicit ordinal
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    print("| particles | grid | order | p2g us | p2g_nodes us | p2g_block us (window share) | g2p us | g2p adjoint us |\n"
-          "| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| particles | grid | order | p2g us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
+          "p2g_block us (window share) | g2p us | g2p adjoint us |\n| --- | --- | --- | --- | --- | --- | --- | --- | "
+          "--- | --- |")
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:
             r = measure(n, n_grid, order, device, a.iters, a.repeats, a.block_dims)
             rows.append(r)
-            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
+            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_indirect_us']:.1f} | "
+                  f"{r['p2g_interleaved_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
                   f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} |",
                   flush=True)
             if a.block_dims:

@@ -9,7 +9,8 @@
 #       HEAD again (same data); profile_train.py of one full-horizon swept iteration  -> {rdga,rdga_old,rdga2}/, profile*
 #   or PART=ab: only gsplat's build, the ball's data, HEAD then 1593090 (before table1_one.sh's grid on the same machine)
 #   PART=levers (no gsplat needed; ~2 min): the next levers measured before anything is built on them
-#       bench_p2g.py: the ball's particles in meshgrid order, by sub-lattice, shuffled (and the 8-per-cell lattice)
+#       bench_p2g.py: the ball's particles in meshgrid order, by sub-lattice, shuffled (and the 8-per-cell lattice);
+#           each also through an index array, identity and cell-interleaved (p2g_indirect, p2g_interleaved)
 #       bench_law_precision.py: the neural law's products in TF32 beside FP32: time, rollout and gradient deviation
 #   PART=tf32 (~4.5 min): gsplat's build, the ball's data, 10 GCA iterations at train.matmul_precision highest (FP32),
 #       high (TF32), highest again (same data)                                      -> {fp32,tf32,fp32b}/

@@ -39,7 +39,8 @@ def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
     assert rows[1]["particles"] == 512  # 8^3
     assert abs(rows[4]["particles"] - 500) < 60  # a lattice ball of ~500 at ~64 per cell
     assert rows[4]["particles"] == rows[5]["particles"] == rows[6]["particles"]  # the same ball reordered
-    assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_nodes_us", "p2g_block_us", "g2p_us", "g2p_adj_us"))
+    assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_indirect_us", "p2g_interleaved_us", "p2g_nodes_us",
+                                                "p2g_block_us", "g2p_us", "g2p_adj_us"))
 
 
 def test_ball64_orders_are_one_ball_and_the_sub_lattice_order_spreads_a_warp_over_cells():
@@ -62,6 +63,48 @@ def test_ball64_orders_are_one_ball_and_the_sub_lattice_order_spreads_a_warp_ove
     spacing = 0.25 / n_grid  # within a sub-lattice, consecutive particles are one cell apart along z (mostly)
     step = (sub[1:] - sub[:-1]).norm(dim=1)
     assert (torch.isclose(step, torch.tensor(4 * spacing), rtol=1e-3)).float().mean() > 0.8
+
+
+def test_the_interleaved_order_is_a_permutation_spreading_warps_and_its_p2g_equals_the_kernel():
+    import warp as wp
+    from gca.sim.kernels import KERNELS, grid_size
+    bench = _load("bench_p2g")
+    n_grid = 16
+    x = bench.particles(3000, n_grid, "ball64", torch.device("cpu"))
+    order = bench.interleaved(x, n_grid)
+    assert torch.equal(torch.sort(order).values, torch.arange(len(x)))
+
+    def cells_per_warp(y):
+        c = bench._cells(y.double(), n_grid)
+        key = (c[:, 0] * n_grid + c[:, 1]) * n_grid + c[:, 2]
+        return sum(len(torch.unique(key[i:i + 32])) for i in range(0, len(key) - 31, 32)) / (len(key) // 32)
+    assert cells_per_warp(x) < 10 and cells_per_warp(x[order]) > 25
+    # the indirect kernel scatters the same grid as the per-particle kernel, in either order (float32 sums)
+    k, wd, n = KERNELS["float32"], wp.get_device("cpu"), len(x)
+    g = torch.Generator().manual_seed(0)
+    v, C = torch.randn(n, 3, generator=g), torch.randn(n, 3, 3, generator=g)
+    tau, vol = 1e3 * torch.randn(n, 3, 3, generator=g), torch.full((n,), 1e-6)
+    G = grid_size(n_grid)
+
+    mass = vol * 1e3
+
+    def scatter(kernel, order_t=None):  # the grid (mv, m) scattered by `kernel`, through `order_t` if given
+        mv, m = wp.zeros((G, G, G), dtype=k.vec3, device=wd), wp.zeros((G, G, G), dtype=k.T, device=wd)
+        args = [wp.from_torch(x, dtype=k.vec3), wp.from_torch(v, dtype=k.vec3), wp.from_torch(C, dtype=k.mat33),
+                wp.from_torch(tau, dtype=k.mat33), wp.from_torch(vol), wp.from_torch(mass),
+                wp.zeros(n, dtype=wp.int32, device=wd), 1e-4, float(n_grid), n_grid, mv, m]
+        if order_t is None:
+            wp.launch(kernel, dim=n, inputs=args, device=wd)
+        else:
+            o = order_t.to(torch.int32).contiguous()
+            wp.launch(kernel, dim=len(o), inputs=[wp.from_torch(o), *args], device=wd)
+        return wp.to_torch(mv).clone(), wp.to_torch(m).clone()
+    ref = scatter(k.p2g)
+    for o in (torch.arange(n), order):
+        for a, b in zip(scatter(bench._indirect_kernel(), o), ref):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))
+    half = scatter(bench._indirect_kernel(), order[: n // 2])
+    assert not torch.allclose(half[1], ref[1])  # control: half the particles give another grid
 
 
 def test_bench_runs_times_sequential_and_batched_rollouts_on_the_cpu():
