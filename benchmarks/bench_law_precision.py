@@ -31,11 +31,11 @@ import argparse
 import contextlib
 import json
 import math
-import time
 from pathlib import Path
 
 import torch
 
+from gca.efficiency import best_time_us
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_prior
 from gca.laws.lora import apply_lora, lora_layers, lora_parameters
@@ -98,21 +98,6 @@ def ball(n: int, n_grid: int, device, dtype) -> tuple[torch.Tensor, ...]:
     return x.to(**to), v.to(**to), vol.to(**to), (vol * RHO).to(**to)
 
 
-def _time(fn, device, iters: int, repeats: int) -> float:
-    """Best of ``repeats`` averages over ``iters`` calls [us] (one warm-up round first)."""
-    best = math.inf
-    for _ in range(repeats + 1):
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        for _ in range(iters):
-            fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        best = min(best, (time.perf_counter() - t0) / iters)
-    return best * 1e6
-
-
 def law_times(mat: Material, n: int, device, iters: int, repeats: int, on: bool) -> dict:
     """One MPM step's law calls (project then stress) on n near-identity F [us per call], forward and fwd + bwd."""
     g = torch.Generator().manual_seed(1)
@@ -130,8 +115,8 @@ def law_times(mat: Material, n: int, device, iters: int, repeats: int, on: bool)
         ((mat.stress(Fe) * w).sum() + (Fe * w).sum()).backward()
 
     with tf32(on), frame_merge(mat):
-        return {"forward_us": _time(forward, device, iters, repeats),
-                "forward_backward_us": _time(backward, device, iters, repeats)}
+        return {"forward_us": best_time_us(forward, device, iters, repeats),
+                "forward_backward_us": best_time_us(backward, device, iters, repeats)}
 
 
 def simulate(prior: Path, n: int, n_grid: int, steps: int, steps_per_frame: int, device, dtype: torch.dtype,

@@ -32,11 +32,11 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import time
 
 import torch
 import warp as wp
 
+from gca.efficiency import best_time_us
 from gca.sim.kernels import BLOCK, KERNELS, PAD, grid_size, launch_blocks
 
 ORDERS = ("random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle")
@@ -119,20 +119,6 @@ def _indirect_kernel(dtype: str = "float32"):
     return wp.kernel(p2g_indirect)
 
 
-def _time(fn, device, iters: int, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats + 1):  # the first round warms up
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        for _ in range(iters):
-            fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        best = min(best, (time.perf_counter() - t0) / iters)
-    return best * 1e6  # us per launch
-
-
 def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, block_dims=()) -> dict:
     k = KERNELS["float32"]
     wd = wp.device_from_torch(device)
@@ -157,30 +143,30 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
     outs = [wp.zeros(n, dtype=t, device=wd) for t in (k.vec3, k.vec3, k.mat33, k.mat33)]
     g2p_args = [wx, wp.from_torch(F, dtype=k.mat33), run, mv, 1e-4, float(n_grid), n_grid, 0.0, 1.0, *outs]
     row = {"particles": n, "n_grid": n_grid, "order": order}
-    row["p2g_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
+    row["p2g_us"] = best_time_us(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
     for bd in block_dims:  # the same kernels launched with other thread-block sizes (warp's default: 256)
-        row[f"p2g_bd{bd}_us"] = _time(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd, block_dim=bd), device,
+        row[f"p2g_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd, block_dim=bd), device,
                                       iters, repeats)
     indirect = _indirect_kernel()
     for name, order_t in (("p2g_indirect_us", torch.arange(n, device=device)), ("p2g_interleaved_us",
                                                                               interleaved(x, n_grid))):
         w_order = wp.from_torch(order_t.to(torch.int32).contiguous())
-        row[name] = _time(lambda: wp.launch(indirect, dim=n, inputs=[w_order, *args], device=wd), device, iters,
+        row[name] = best_time_us(lambda: wp.launch(indirect, dim=n, inputs=[w_order, *args], device=wd), device, iters,
                           repeats)
-    row["p2g_nodes_us"] = _time(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
+    row["p2g_nodes_us"] = best_time_us(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
                                 repeats)
     windows = wp.zeros(1, dtype=int, device=wd)
-    row["p2g_block_us"] = _time(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters, repeats)
-    launches = (iters * (repeats + 1)) * -(-n // BLOCK)
+    row["p2g_block_us"] = best_time_us(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters, repeats)
+    launches = (iters * (max(1, repeats) + 1)) * -(-n // BLOCK)  # best_time_us's rounds
     row["window_share"] = float(windows.numpy()[0]) / launches if wd.is_cuda else float("nan")
-    row["g2p_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd), device, iters, repeats)
+    row["g2p_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd), device, iters, repeats)
     adj = [wp.zeros_like(a) if isinstance(a, wp.array) else None for a in g2p_args]
-    row["g2p_adj_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
+    row["g2p_adj_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
                                                 device=wd), device, iters, repeats)
     for bd in block_dims:
-        row[f"g2p_bd{bd}_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd, block_dim=bd),
+        row[f"g2p_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd, block_dim=bd),
                                       device, iters, repeats)
-        row[f"g2p_adj_bd{bd}_us"] = _time(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
+        row[f"g2p_adj_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
                                                             device=wd, block_dim=bd), device, iters, repeats)
     return row
 

@@ -82,6 +82,18 @@ def synced_clock(device: str | torch.device) -> float:
     return time.perf_counter()
 
 
+def best_time_us(fn, device: str | torch.device, iters: int, repeats: int) -> float:
+    """The best of ``repeats`` rounds' mean wall time per call of ``fn`` over ``iters`` calls [us], after one untimed
+    warm-up round; the device synchronised around each round (the benchmarks' kernel timings)."""
+    rounds = []
+    for _ in range(max(1, repeats) + 1):
+        t0 = synced_clock(device)
+        for _ in range(iters):
+            fn()
+        rounds.append((synced_clock(device) - t0) / iters)
+    return min(rounds[1:]) * 1e6  # the first round warms up (JIT, caches) and is not counted
+
+
 @contextlib.contextmanager
 def measure(device: str | torch.device = "cpu", interval_s: float = 0.005) -> Iterator[Usage]:
     """Measure wall time and peak memory of a ``with`` block.

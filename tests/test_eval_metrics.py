@@ -154,6 +154,20 @@ def test_measure_sees_allocation_and_counts_parameters():
     del big
 
 
+def test_best_time_us_leaves_the_warm_up_round_out():
+    import time
+    from gca.efficiency import best_time_us
+    calls = []
+
+    def fn():  # instant in the warm-up round (2 calls), then 2 ms a call: counting the warm-up would give ~0
+        calls.append(1)
+        if len(calls) > 2:
+            time.sleep(2e-3)
+    assert best_time_us(fn, "cpu", iters=2, repeats=2) >= 2000.0
+    assert len(calls) == 6  # 2 calls x (warm-up + 2 rounds)
+    assert best_time_us(lambda: None, "cpu", iters=1, repeats=0) < 2000.0  # repeats 0 still times one round
+
+
 def test_metrics_config_builds_and_validates():
     cfg = build(MetricsConfig, {"ssim_window": 7, "response_sweeps": ["shear"]}, "eval.metrics", partial=True)
     assert cfg.response_sweeps == ("shear",) and cfg.ssim_window == 7
