@@ -46,7 +46,7 @@ fi
 if [ "$PART" = levers ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   stamp "bench_p2g: particle orders"
-  timeout 150 python3 benchmarks/bench_p2g.py --device cuda --sizes 30000:32 100000:64 \
+  timeout 200 python3 benchmarks/bench_p2g.py --device cuda --sizes 30000:32 100000:64 \
       --orders ball64 ball64_sub ball64_shuffle lattice --json "$OUT/p2g_orders.json" > "$OUT/p2g_orders.txt" 2>&1
   echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g_orders.txt"
   stamp "bench_law_precision: FP32 vs TF32"
