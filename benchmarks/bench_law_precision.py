@@ -30,17 +30,20 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
+import sys
 from pathlib import Path
 
 import torch
 
-from gca.efficiency import best_time_us
-from gca.laws.base import Material
-from gca.laws.checkpoint import load_prior
-from gca.laws.lora import apply_lora, lora_layers, lora_parameters
-from gca.sim import MPMSolver, SimConfig, rollout
-from gca.train.loop import matmul_precision
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_p2g import lattice_ball  # noqa: E402
+
+from gca.efficiency import best_time_us  # noqa: E402
+from gca.laws.base import Material  # noqa: E402
+from gca.laws.checkpoint import load_prior  # noqa: E402
+from gca.laws.lora import apply_lora, lora_layers, lora_parameters  # noqa: E402
+from gca.sim import MPMSolver, SimConfig, rollout  # noqa: E402
+from gca.train.loop import matmul_precision  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RHO = 1000.0  # density [kg/m^3]
@@ -84,11 +87,8 @@ def frame_merge(mat: Material):
 def ball(n: int, n_grid: int, device, dtype) -> tuple[torch.Tensor, ...]:
     """A lattice ball of ~n particles at spacing dx / 4 (~64 per cell) centred at (0.5, 0.3, 0.5), in meshgrid order;
     (x0 [N, 3] m, v0 [N, 3] m/s: falling at 2 m/s and spinning at 5 rad/s about z, vol [N] m^3, mass [N] kg)."""
-    s = 0.25 / n_grid
-    r = (3 * n / (4 * math.pi)) ** (1 / 3) * s
-    axis = torch.arange(-r, r + 1e-9, s, dtype=torch.float64)
-    x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-    x = x[(x ** 2).sum(1) <= r * r]
+    x, _ = lattice_ball(n, n_grid)
+    s = 0.25 / n_grid  # its spacing
     v = torch.zeros_like(x)
     v[:, 1] = -2.0
     v[:, 0], v[:, 1] = v[:, 0] - 5.0 * x[:, 1], v[:, 1] + 5.0 * x[:, 0]  # omega x r, omega = (0, 0, 5)

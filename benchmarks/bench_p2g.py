@@ -55,18 +55,24 @@ def _morton(c: torch.Tensor) -> torch.Tensor:
     return code
 
 
+def lattice_ball(n: int, n_grid: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A ball of ~n particles on a lattice of spacing dx / 4 (~64 per cell, the paper profile's density), centred at
+    the origin, in meshgrid order: (x [N, 3] m, float64; lattice indices [N, 3])."""
+    s = 0.25 / n_grid
+    r = (3 * n / (4 * torch.pi)) ** (1 / 3) * s  # the radius giving ~n particles
+    axis = torch.arange(-r, r + 1e-9, s, dtype=torch.float64)
+    x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    idx = torch.stack(torch.meshgrid(*[torch.arange(len(axis))] * 3, indexing="ij"), -1).reshape(-1, 3)
+    inside = (x ** 2).sum(1) <= r * r
+    return x[inside], idx[inside]
+
+
 def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.Tensor:
     """n positions [n, 3] in a centred cube of ~8 particles per cell, in the given order."""
     side = min((n / 8) ** (1 / 3), n_grid - 8) / n_grid
     lo = 0.5 - side / 2
-    if order.startswith("ball64"):  # spacing dx / 4, the radius giving ~n particles
-        s = 0.25 / n_grid
-        r = (3 * n / (4 * torch.pi)) ** (1 / 3) * s
-        axis = torch.arange(-r, r + 1e-9, s, dtype=torch.float64)
-        x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-        idx = torch.stack(torch.meshgrid(*[torch.arange(len(axis))] * 3, indexing="ij"), -1).reshape(-1, 3)
-        inside = (x ** 2).sum(1) <= r * r
-        x, idx = x[inside], idx[inside]
+    if order.startswith("ball64"):
+        x, idx = lattice_ball(n, n_grid)
         if order == "ball64_sub":  # stable: meshgrid order within each sub-lattice
             sub = ((idx[:, 0] % 4) * 4 + idx[:, 1] % 4) * 4 + idx[:, 2] % 4
             x = x[torch.sort(sub, stable=True).indices]
@@ -145,29 +151,31 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
     row = {"particles": n, "n_grid": n_grid, "order": order}
     row["p2g_us"] = best_time_us(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd), device, iters, repeats)
     for bd in block_dims:  # the same kernels launched with other thread-block sizes (warp's default: 256)
-        row[f"p2g_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd, block_dim=bd), device,
-                                      iters, repeats)
+        row[f"p2g_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.p2g, dim=n, inputs=args, device=wd, block_dim=bd),
+                                             device, iters, repeats)
     indirect = _indirect_kernel()
     for name, order_t in (("p2g_indirect_us", torch.arange(n, device=device)), ("p2g_interleaved_us",
                                                                               interleaved(x, n_grid))):
         w_order = wp.from_torch(order_t.to(torch.int32).contiguous())
-        row[name] = best_time_us(lambda: wp.launch(indirect, dim=n, inputs=[w_order, *args], device=wd), device, iters,
-                          repeats)
-    row["p2g_nodes_us"] = best_time_us(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device, iters,
-                                repeats)
+        row[name] = best_time_us(lambda: wp.launch(indirect, dim=n, inputs=[w_order, *args], device=wd), device,
+                                 iters, repeats)
+    row["p2g_nodes_us"] = best_time_us(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device,
+                                       iters, repeats)
     windows = wp.zeros(1, dtype=int, device=wd)
-    row["p2g_block_us"] = best_time_us(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters, repeats)
+    row["p2g_block_us"] = best_time_us(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters,
+                                       repeats)
     launches = (iters * (max(1, repeats) + 1)) * -(-n // BLOCK)  # best_time_us's rounds
     row["window_share"] = float(windows.numpy()[0]) / launches if wd.is_cuda else float("nan")
     row["g2p_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd), device, iters, repeats)
     adj = [wp.zeros_like(a) if isinstance(a, wp.array) else None for a in g2p_args]
     row["g2p_adj_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
-                                                device=wd), device, iters, repeats)
+                                                       device=wd), device, iters, repeats)
     for bd in block_dims:
         row[f"g2p_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd, block_dim=bd),
-                                      device, iters, repeats)
-        row[f"g2p_adj_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
-                                                            device=wd, block_dim=bd), device, iters, repeats)
+                                             device, iters, repeats)
+        row[f"g2p_adj_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj,
+                                                                   adjoint=True, device=wd, block_dim=bd),
+                                                 device, iters, repeats)
     return row
 
 

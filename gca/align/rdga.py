@@ -291,7 +291,7 @@ def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "no
     ``use`` [M] bool: only those matches count (the others' residuals are held at zero, no gradient), as if the
     sets were ``P_render[use], P_gt[use]``, without reading the device (equal to rounding; tested).
     """
-    P_gt = P_gt if (P_gt.dtype, P_gt.device) == (P_render.dtype, P_render.device) else P_gt.to(P_render)
+    P_gt = P_gt.to(P_render)  # itself when dtype and device match already
     if use is None:
         use = torch.ones(len(P_render), dtype=torch.bool, device=P_render.device)
     diff = torch.where(use[:, None], P_render, P_gt) - P_gt  # zero where unused
@@ -432,7 +432,7 @@ def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Te
     use = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)  # on the object in both frames
     held = alpha.detach() if cfg.global_gradient == "material" else alpha  # the un-premultiplying weights
     P_render = render_points(pos_image, held, p, K)
-    P_gt = q if q.dtype == P_render.dtype else q.to(dtype=P_render.dtype)  # q is on the render's device already
+    P_gt = q.to(dtype=P_render.dtype)  # q is on the render's device already
     if cfg.global_max_px > 0:  # truncated: a wrong match's residual would set the norm's direction
         use = use & ((P_render.detach() - P_gt).norm(dim=-1) <= cfg.global_max_px)
     return global_term(P_render, P_gt, cfg.global_reduction, use=use), use.sum()
