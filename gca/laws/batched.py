@@ -22,17 +22,11 @@ from torch import nn
 
 from gca.laws import fused
 from gca.laws.base import CompositeMaterial, Elasticity, Material, Plasticity
-from gca.laws.lora import LoRALinear
+from gca.laws.lora import LoRALinear, effective_weight
 from gca.laws.neural import NeuralElasticity, NeuralPlasticity
 from gca.laws.svd import warp_runs
 
 _WHERE = "gca/laws/batched.py"
-
-
-def effective_weight(layer: nn.Module) -> torch.Tensor:
-    """The weight a linear layer applies now [out, in]: a plain ``nn.Linear``'s, or
-    :meth:`gca.laws.lora.LoRALinear.effective_weight`."""
-    return layer.effective_weight() if isinstance(layer, LoRALinear) else layer.weight
 
 
 class _BatchedLinear(torch.autograd.Function):

@@ -128,6 +128,12 @@ class LoRALinear(nn.Module):
                 f"alpha={self.alpha}, scale={self.scale}")
 
 
+def effective_weight(layer: nn.Module) -> torch.Tensor:
+    """The weight a linear layer applies now [out, in]: a plain ``nn.Linear``'s, or
+    :meth:`LoRALinear.effective_weight`."""
+    return layer.effective_weight() if isinstance(layer, LoRALinear) else layer.weight
+
+
 def _replace_children(module: nn.Module, make) -> int:
     """Recursively replace children for which ``make(child)`` is not None; returns the count."""
     count = 0

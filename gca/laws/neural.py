@@ -31,13 +31,15 @@ import math
 import torch
 from torch import nn
 
-from gca.laws import fused
+from gca.laws import fused, mlp_kernel
 from gca.laws.base import Elasticity, Plasticity
+from gca.laws.lora import effective_weight
 from gca.laws.svd import bmm3, check_F, det3, svd, warp_runs
 
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
 N_FEATURES = 13  # [sigma - 1 (3), vec(F^T F - I) (9), det F - 1 (1)]
+MLP_KERNELS = ("auto", "warp", "torch")  # _InvariantNetwork.mlp_kernel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,9 +105,15 @@ class _InvariantNetwork(nn.Module):
     hand-written adjoints (``gca.laws.fused``) where warp can run (CUDA, or a CPU with warp's
     compiler); False, or elsewhere, uses the torch reference below. Both give the same values and
     gradients to rounding; the flag is an implementation choice, not part of the checkpoint.
+
+    ``mlp_kernel`` (on the fast path): ``auto`` (default) runs the MLP as one warp tile kernel each way
+    (``gca.laws.mlp_kernel``) on CUDA and as torch's ``nn.Sequential`` on the CPU (where torch's products are
+    the faster); ``warp`` runs the tile kernel on any device (its CPU twin, in the tests); ``torch`` never.
+    Only the two-hidden-layer shape fuses; others stay on torch.
     """
 
     fast_path: bool = True
+    mlp_kernel: str = "auto"
 
     def __init__(self, cfg: NeuralLawConfig | None = None):
         super().__init__()
@@ -125,7 +133,21 @@ class _InvariantNetwork(nn.Module):
         """Fast path: F -> (R [N,3,3], X [N,9] raw MLP output), features in one warp kernel."""
         self._check_dtype(F)
         R, z = fused.features(F)
-        return R, self.mlp(z)
+        return R, self.run_mlp(z)
+
+    def run_mlp(self, z: torch.Tensor) -> torch.Tensor:
+        """X [N, 9] = MLP(z [N, 13]) with the layers' effective (LoRA-merged) weights, on the kernel ``mlp_kernel``
+        picks."""
+        if self.mlp_kernel not in MLP_KERNELS:
+            raise ValueError(f"gca/laws/neural.py: {type(self).__name__}.mlp_kernel={self.mlp_kernel!r} is not one "
+                             f"of {MLP_KERNELS}")
+        shape = mlp_kernel.shape_of(self.mlp)
+        if self.mlp_kernel == "torch" or (self.mlp_kernel == "auto" and not z.is_cuda) or shape is None:
+            if self.mlp_kernel == "warp" and shape is None:
+                raise ValueError(f"gca/laws/neural.py: mlp_kernel='warp' fuses two hidden layers with one of "
+                                 f"{mlp_kernel.ACTIVATIONS}, not {self.mlp}")
+            return self.mlp(z)
+        return mlp_kernel.mlp(z, [effective_weight(layer) for layer in self.mlp[0::2]], shape)
 
     def rotation_and_stretch(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """F [N,3,3] -> (R [N,3,3] polar rotation, S [N,3,3] symmetric network output) (torch reference)."""

@@ -1,0 +1,231 @@
+"""The neural laws' MLP in one warp tile kernel each way (forward; backward with the weights' gradients).
+
+:class:`gca.laws.neural.NeuralElasticity` (and the plasticity) map the 13 features z of F to 9 numbers X through a
+bias-free MLP with two hidden layers (NCLaw's ``InvariantFullMeta``: 13 -> 64 -> 64 -> 9, GELU):
+
+    a1 = z W1^T,  h1 = act(a1),  a2 = h1 W2^T,  h2 = act(a2),  X = h2 W3^T            (forward)
+
+    d3 = v_X,  v_W3 = d3^T h2,  d2 = (d3 W3) * act'(a2),  v_W2 = d2^T h1,
+    d1 = (d2 W2) * act'(a1),  v_W1 = d1^T z,  v_z = d1 W1                           (backward, a recomputed forward)
+
+In torch that is 3 products and 2 activation kernels forward and about 10 kernels backward per network and MPM step,
+each streaming [N, 64] activations through memory (the largest share of a swept GCA iteration's kernel time on an
+H100, ``benchmarks/NOTES.md`` session 33). Here one thread block takes ``tile`` particles through all layers with the
+activations in shared memory; the backward recomputes the forward (nothing [N, 64] is stored) and adds each block's
+weight gradients into [out, in] sums with one tile atomic per weight matrix. The weights are the layers' effective
+(LoRA-merged) weights, so gradients reach the adapters through torch's autograd of the merge, as on the torch path.
+
+Same values as ``nn.Sequential`` to rounding (the sums run in another order; float64 gradient checks in the tests).
+Only the two-hidden-layer shape is fused (:func:`fits`); other architectures stay on the torch MLP.
+"""
+
+# no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
+import dataclasses
+import functools
+import types
+
+import torch
+import warp as wp
+from torch.autograd.function import once_differentiable
+
+from gca.laws.svd_kernel import WARP_FLOATS
+from gca.warp_stream import on_torch_stream
+
+_WHERE = "gca/laws/mlp_kernel.py"
+ACTIVATIONS = ("gelu", "tanh", "silu", "elu", "relu")  # as gca.laws.neural.ACTIVATIONS (nn.GELU exact, nn.ELU alpha 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class MLPShape:
+    """A bias-free MLP n_in -> w1 -> w2 -> n_out with ``activation`` after both hidden layers."""
+
+    n_in: int
+    w1: int
+    w2: int
+    n_out: int
+    activation: str
+
+
+def shape_of(mlp: torch.nn.Sequential) -> MLPShape | None:
+    """The fusable shape of an ``nn.Sequential`` [linear, act, linear, act, linear] without biases, else None.
+
+    Linear layers are ``nn.Linear`` or anything with ``in_features``/``out_features`` and a ``bias`` of None (LoRA).
+    """
+    layers = list(mlp)
+    if len(layers) != 5:
+        return None
+    lin, acts = layers[0::2], layers[1::2]
+    if any(getattr(l, "bias", 0) is not None or not hasattr(l, "in_features") for l in lin):
+        return None
+    names = {type(a).__name__.lower() for a in acts}
+    name = names.pop() if len(names) == 1 else None
+    if name not in ACTIVATIONS:
+        return None
+    if isinstance(acts[0], torch.nn.GELU) and acts[0].approximate != "none":
+        return None
+    if isinstance(acts[0], torch.nn.ELU) and acts[0].alpha != 1.0:
+        return None
+    if not (lin[0].out_features == lin[1].in_features and lin[1].out_features == lin[2].in_features):
+        return None
+    return MLPShape(lin[0].in_features, lin[0].out_features, lin[1].out_features, lin[2].out_features, name)
+
+
+def tile_size(dtype: torch.dtype, device: torch.device) -> int:
+    """Particles per thread block: 32 in float32 on CUDA (the activations of a block, ~110 KiB with the backward's,
+    fit an H100's shared memory twice per SM), 16 otherwise (warp's CPU tile arena is 256 KiB, float64 twice as wide).
+    """
+    return 32 if (torch.device(device).type == "cuda" and dtype == torch.float32) else 16
+
+
+@functools.cache
+def make_mlp_kernels(dtype: torch.dtype, shape: MLPShape, tile: int, mathdx: bool = True) -> types.SimpleNamespace:
+    """The forward and backward tile kernels of ``shape`` for float32 or float64, ``tile`` particles per block.
+
+    Args:
+        mathdx: let warp use cuBLASDx for the tile products on CUDA (its default); False: warp's scalar tile product
+            (compiles faster; a benchmark variant).
+    """
+    wp.init()
+    T = WARP_FLOATS[dtype]
+    n_in, w1, w2, n_out, TP = shape.n_in, shape.w1, shape.w2, shape.n_out, int(tile)
+    module = f"gca_laws_mlp_{T.__name__}_{n_in}x{w1}x{w2}x{n_out}_{shape.activation}_t{TP}{'' if mathdx else '_scalar'}"
+    wp.set_module_options({"enable_mathdx_gemm": bool(mathdx)}, module=module)
+    act, act_vjp = _activation(shape.activation, T, module)
+
+    @wp.kernel(module=module, enable_backward=False)
+    def forward(z: wp.array2d(dtype=T), W1: wp.array2d(dtype=T), W2: wp.array2d(dtype=T), W3: wp.array2d(dtype=T),
+                X: wp.array2d(dtype=T)):
+        b = wp.tid()
+        zt = wp.tile_load(z, shape=(TP, n_in), offset=(b * TP, 0))  # rows past N read as 0 (and map to 0)
+        h1 = wp.tile_map(wp.static(act), wp.tile_matmul(zt, wp.tile_transpose(wp.tile_load(W1, shape=(w1, n_in)))))
+        h2 = wp.tile_map(wp.static(act), wp.tile_matmul(h1, wp.tile_transpose(wp.tile_load(W2, shape=(w2, w1)))))
+        x = wp.tile_matmul(h2, wp.tile_transpose(wp.tile_load(W3, shape=(n_out, w2))))
+        wp.tile_store(X, x, offset=(b * TP, 0))  # rows past N are not written
+
+    @wp.kernel(module=module, enable_backward=False)
+    def backward(z: wp.array2d(dtype=T), W1: wp.array2d(dtype=T), W2: wp.array2d(dtype=T), W3: wp.array2d(dtype=T),
+                 v_X: wp.array2d(dtype=T), v_z: wp.array2d(dtype=T), v_W1: wp.array2d(dtype=T),
+                 v_W2: wp.array2d(dtype=T), v_W3: wp.array2d(dtype=T)):
+        b = wp.tid()
+        zt = wp.tile_load(z, shape=(TP, n_in), offset=(b * TP, 0))
+        t1 = wp.tile_load(W1, shape=(w1, n_in))
+        t2 = wp.tile_load(W2, shape=(w2, w1))
+        t3 = wp.tile_load(W3, shape=(n_out, w2))
+        a1 = wp.tile_matmul(zt, wp.tile_transpose(t1))
+        h1 = wp.tile_map(wp.static(act), a1)
+        a2 = wp.tile_matmul(h1, wp.tile_transpose(t2))
+        d3 = wp.tile_load(v_X, shape=(TP, n_out), offset=(b * TP, 0))  # rows past N read as 0: they add nothing
+        wp.tile_atomic_add(v_W3, wp.tile_matmul(wp.tile_transpose(d3), wp.tile_map(wp.static(act), a2)))
+        d2 = wp.tile_map(wp.static(act_vjp), wp.tile_matmul(d3, t3), a2)
+        wp.tile_atomic_add(v_W2, wp.tile_matmul(wp.tile_transpose(d2), h1))
+        d1 = wp.tile_map(wp.static(act_vjp), wp.tile_matmul(d2, t2), a1)
+        wp.tile_atomic_add(v_W1, wp.tile_matmul(wp.tile_transpose(d1), zt))
+        wp.tile_store(v_z, wp.tile_matmul(d1, t1), offset=(b * TP, 0))
+
+    return types.SimpleNamespace(forward=forward, backward=backward, tile=TP, block_dim=TP * 4, T=T)
+
+
+def _activation(name: str, T, module: str):
+    """(act, (g, x) -> g act'(x)) as warp functions of scalar type T in the kernels' ``module``, matching torch's
+    modules. The kernels pass them to ``tile_map`` through ``wp.static``: warp 1.19 hashes the functions a kernel
+    calls, not those it passes as arguments, so without it an edited activation reused the cached binary (seen)."""
+    half, one = T(0.5), T(1.0)
+    if name == "gelu":  # exact (erf) GELU, nn.GELU(approximate="none"); 1/sqrt(2), 1/sqrt(2 pi) as literals (warp
+        # reads a literal at the kernel's precision; a Python expression of math calls came out in float32)
+        @wp.func(module=module)
+        def act(x: T):
+            return half * x * (one + wp.erf(x * T(0.7071067811865476)))
+
+        @wp.func(module=module)
+        def act_vjp(g: T, x: T):
+            cdf = half * (one + wp.erf(x * T(0.7071067811865476)))
+            return g * (cdf + x * wp.exp(-half * x * x) * T(0.3989422804014327))
+    elif name == "tanh":
+        @wp.func(module=module)
+        def act(x: T):
+            return wp.tanh(x)
+
+        @wp.func(module=module)
+        def act_vjp(g: T, x: T):
+            t = wp.tanh(x)
+            return g * (one - t * t)
+    elif name == "silu":
+        @wp.func(module=module)
+        def act(x: T):
+            return x / (one + wp.exp(-x))
+
+        @wp.func(module=module)
+        def act_vjp(g: T, x: T):
+            s = one / (one + wp.exp(-x))
+            return g * (s + x * s * (one - s))
+    elif name == "elu":  # alpha = 1
+        @wp.func(module=module)
+        def act(x: T):
+            return wp.where(x > T(0.0), x, wp.exp(x) - one)
+
+        @wp.func(module=module)
+        def act_vjp(g: T, x: T):
+            return wp.where(x > T(0.0), g, g * wp.exp(x))
+    elif name == "relu":  # act'(0) = 0, as torch
+        @wp.func(module=module)
+        def act(x: T):
+            return wp.max(x, T(0.0))
+
+        @wp.func(module=module)
+        def act_vjp(g: T, x: T):
+            return wp.where(x > T(0.0), g, T(0.0))
+    else:
+        raise ValueError(f"{_WHERE}: activation {name!r} is not one of {ACTIVATIONS}")
+    return act, act_vjp
+
+
+def _a(t: torch.Tensor) -> wp.array:
+    return wp.from_torch(t)
+
+
+def _launch(kernel, n: int, k: types.SimpleNamespace, device: torch.device, args: list) -> None:
+    with on_torch_stream(device):
+        wp.launch_tiled(kernel, dim=[(n + k.tile - 1) // k.tile], inputs=args, device=wp.device_from_torch(device),
+                        block_dim=k.block_dim)
+
+
+class _TileMLP(torch.autograd.Function):
+    """z [N, n_in], W1 [w1, n_in], W2 [w2, w1], W3 [n_out, w2] -> X [N, n_out]."""
+
+    @staticmethod
+    def forward(ctx, z, W1, W2, W3, shape, tile, mathdx):
+        z, Ws = z.detach().contiguous(), [W.detach().contiguous() for W in (W1, W2, W3)]
+        k = make_mlp_kernels(z.dtype, shape, tile, mathdx)
+        X = torch.empty(z.shape[0], shape.n_out, dtype=z.dtype, device=z.device)
+        if z.shape[0]:
+            _launch(k.forward, z.shape[0], k, z.device, [_a(z), *map(_a, Ws), _a(X)])
+        ctx.save_for_backward(z, *Ws)
+        ctx.k = k
+        return X
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_X):
+        z, W1, W2, W3 = ctx.saved_tensors
+        k = ctx.k
+        v_z = torch.empty_like(z)
+        v_W = [torch.zeros_like(W) for W in (W1, W2, W3)]
+        if z.shape[0]:
+            _launch(k.backward, z.shape[0], k, z.device,
+                    [_a(z), _a(W1), _a(W2), _a(W3), _a(v_X.contiguous()), _a(v_z), *map(_a, v_W)])
+        need = ctx.needs_input_grad
+        return (v_z if need[0] else None, *(g if n else None for g, n in zip(v_W, need[1:4])), None, None, None)
+
+
+def mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, tile: int | None = None,
+        mathdx: bool = True) -> torch.Tensor:
+    """X [N, n_out] = the MLP of ``shape`` with ``weights`` [W1, W2, W3] ([out, in] each) on z [N, n_in], in one warp
+    tile kernel (differentiable in z and the weights; ``tile`` particles per block, default :func:`tile_size`)."""
+    if z.dim() != 2 or z.shape[1] != shape.n_in:
+        raise ValueError(f"{_WHERE}: z must be [N, {shape.n_in}], got {tuple(z.shape)}")
+    expect = [(shape.w1, shape.n_in), (shape.w2, shape.w1), (shape.n_out, shape.w2)]
+    if [tuple(W.shape) for W in weights] != expect or any(W.dtype != z.dtype for W in weights):
+        raise ValueError(f"{_WHERE}: weights must be {expect} in {z.dtype}, got "
+                         f"{[(tuple(W.shape), W.dtype) for W in weights]}")
+    tile = tile_size(z.dtype, z.device) if tile is None else int(tile)
+    return _TileMLP.apply(z, *weights, shape, tile, bool(mathdx))

@@ -1,0 +1,181 @@
+"""gca.laws.mlp_kernel: the neural laws' MLP as one warp tile kernel each way, against torch's nn.Sequential (CPU twin
+of the CUDA path): values and gradients in float64 for every activation, float64 gradient checks with a negative
+control, the laws' ``mlp_kernel`` switch with LoRA inside a merged frame, and a short MPM rollout."""
+
+import pytest
+import torch
+from torch import nn
+from torch.autograd import gradcheck
+
+from gca.laws import mlp_kernel as mk
+from gca.laws.lora import apply_lora, lora_parameters, merged_weights
+from gca.laws.neural import ACTIVATIONS, NeuralElasticity, NeuralLawConfig, NeuralPlasticity, make_mlp
+
+from test_laws_neural import random_F, scramble
+from test_laws_neural_fused import hard_F
+
+f64 = torch.float64
+
+
+def _net(activation="gelu", widths=(64, 64), seed=0) -> nn.Sequential:
+    torch.manual_seed(seed)
+    return make_mlp(NeuralLawConfig(widths=widths, activation=activation)).double()
+
+
+def _weights(net: nn.Sequential) -> list[torch.Tensor]:
+    return [net[i].weight.detach().clone().requires_grad_(True) for i in (0, 2, 4)]
+
+
+def test_activations_cover_the_laws():
+    assert set(mk.ACTIVATIONS) == set(ACTIVATIONS)
+
+
+@pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
+@pytest.mark.parametrize("n", [37, 16])  # a partial last block, and whole blocks
+def test_tile_mlp_equals_torch_values_and_gradients(activation, n):
+    net = _net(activation)
+    shape = mk.shape_of(net)
+    assert shape == mk.MLPShape(13, 64, 64, 9, activation)
+    z = torch.randn(n, 13, dtype=f64, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+    Ws = _weights(net)
+    X, ref = mk.mlp(z, Ws, shape), net(z)
+    v = torch.randn(X.shape, dtype=f64, generator=torch.Generator().manual_seed(2))
+    got = torch.autograd.grad(X, [z, *Ws], v)
+    want = torch.autograd.grad(ref, [z, net[0].weight, net[2].weight, net[4].weight], v)
+    torch.testing.assert_close(X, ref, rtol=0, atol=1e-13 * float(ref.detach().abs().max()))
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-13 * float(b.abs().max()))
+
+
+@pytest.mark.grad
+def test_tile_mlp_gradcheck_float64():
+    net = _net("gelu", widths=(8, 6))
+    z = torch.randn(21, 13, dtype=f64, generator=torch.Generator().manual_seed(3)).requires_grad_(True)
+    shape = mk.shape_of(net)
+    assert gradcheck(lambda z, *Ws: mk.mlp(z, list(Ws), shape), (z, *_weights(net)))
+
+
+@pytest.mark.grad
+def test_gradcheck_catches_a_wrong_activation_derivative(monkeypatch):
+    # negative control: GELU forward with SiLU's derivative in the backward must fail the check above
+    real = mk._activation
+
+    def mixed(name, T, module):
+        act, _ = real("gelu", T, module)
+        return act, real("silu", T, module + "_neg")[1]
+
+    monkeypatch.setattr(mk, "_activation", mixed)
+    shape = mk.MLPShape(13, 5, 7, 9, "gelu")  # a shape of its own: its cached kernels are this test's alone
+    net = nn.Sequential(nn.Linear(13, 5, bias=False), nn.GELU(), nn.Linear(5, 7, bias=False), nn.GELU(),
+                        nn.Linear(7, 9, bias=False)).double()
+    z = torch.randn(9, 13, dtype=f64, generator=torch.Generator().manual_seed(4)).requires_grad_(True)
+    try:
+        assert not gradcheck(lambda z, *Ws: mk.mlp(z, list(Ws), shape), (z, *_weights(net)), raise_exception=False)
+    finally:
+        mk.make_mlp_kernels.cache_clear()
+
+
+def test_empty_batch_and_frozen_weights():
+    net = _net()
+    shape = mk.shape_of(net)
+    z = torch.zeros(0, 13, dtype=f64, requires_grad=True)
+    X = mk.mlp(z, _weights(net), shape)
+    X.sum().backward()
+    assert X.shape == (0, 9) and z.grad.shape == (0, 13)
+    z = torch.randn(5, 13, dtype=f64, requires_grad=True)
+    Ws = [W.detach() for W in _weights(net)]  # the prior's frozen weights: only z gets a gradient
+    (g,) = torch.autograd.grad(mk.mlp(z, Ws, shape).square().sum(), [z])
+    (want,) = torch.autograd.grad(net(z).square().sum(), [z])
+    torch.testing.assert_close(g, want, rtol=1e-12, atol=1e-14)
+
+
+def test_zero_features_map_to_zero():
+    net = _net()
+    assert torch.equal(mk.mlp(torch.zeros(3, 13, dtype=f64), _weights(net), mk.shape_of(net)),
+                       torch.zeros(3, 9, dtype=f64))  # zero at rest, exactly (bias-free, act(0) = 0)
+
+
+@pytest.mark.parametrize("net, why", [
+    (nn.Sequential(nn.Linear(13, 8, bias=False), nn.GELU(), nn.Linear(8, 9, bias=False)), "one hidden layer"),
+    (nn.Sequential(nn.Linear(13, 8), nn.GELU(), nn.Linear(8, 8, bias=False), nn.GELU(), nn.Linear(8, 9, bias=False)),
+     "a bias"),
+    (nn.Sequential(nn.Linear(13, 8, bias=False), nn.GELU("tanh"), nn.Linear(8, 8, bias=False), nn.GELU("tanh"),
+                   nn.Linear(8, 9, bias=False)), "tanh-approximate GELU"),
+    (nn.Sequential(nn.Linear(13, 8, bias=False), nn.GELU(), nn.Linear(8, 8, bias=False), nn.Tanh(),
+                   nn.Linear(8, 9, bias=False)), "two activations"),
+])
+def test_unfusable_shapes_are_recognised(net, why):
+    assert mk.shape_of(net) is None, why
+
+
+def test_bad_inputs_are_refused():
+    net = _net()
+    shape = mk.shape_of(net)
+    with pytest.raises(ValueError, match=r"z must be \[N, 13\]"):
+        mk.mlp(torch.zeros(4, 12, dtype=f64), _weights(net), shape)
+    with pytest.raises(ValueError, match="weights must be"):
+        mk.mlp(torch.zeros(4, 13, dtype=f64), _weights(net)[::-1], shape)
+
+
+@pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
+def test_law_with_the_tile_mlp_equals_the_torch_mlp(law_cls):
+    """Whole law with LoRA inside a merged frame: outputs and gradients to F and to the adapters."""
+    law = scramble(apply_lora(law_cls(NeuralLawConfig()).double(), rank=4, alpha=4.0), seed=1)
+    F = hard_F().requires_grad_(True)
+    params = [F, *lora_parameters(law)]
+    out = {}
+    for kind in ("warp", "torch"):
+        law.mlp_kernel = kind
+        with merged_weights(law):
+            y = law(F)
+            out[kind] = (y, torch.autograd.grad(y.square().sum(), params))
+    (y_w, g_w), (y_t, g_t) = out["warp"], out["torch"]
+    torch.testing.assert_close(y_w, y_t, rtol=0, atol=1e-12 * float(y_t.abs().max()))
+    for a, b in zip(g_w, g_t):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-10 * float(b.abs().max()))
+
+
+def test_mlp_kernel_switch(monkeypatch):
+    law = NeuralElasticity().double()
+    F = random_F(6, 2)
+    calls = []
+    real = mk.mlp
+    monkeypatch.setattr(mk, "mlp", lambda *a, **k: calls.append(1) or real(*a, **k))
+    law.mlp_kernel = "auto"
+    law(F)  # on the CPU, auto keeps torch's MLP
+    assert calls == []
+    law.mlp_kernel = "warp"
+    law(F)
+    assert calls == [1]
+    law.mlp_kernel = "fast"
+    with pytest.raises(ValueError, match="mlp_kernel='fast' is not one of"):
+        law(F)
+    shallow = NeuralElasticity(NeuralLawConfig(widths=(16,))).double()
+    shallow.mlp_kernel = "warp"
+    with pytest.raises(ValueError, match="fuses two hidden layers"):
+        shallow(F)
+    shallow.mlp_kernel = "auto"
+    assert shallow(F).shape == (6, 3, 3)  # auto falls back to torch
+
+
+def test_rollout_with_the_tile_mlp_equals_the_torch_mlp():
+    """A replayed-frame rollout (the CUDA-graph path's eager twin) of a LoRA neural law: trajectories and gradients
+    to the launch velocity and every adapter, with the MLP in the tile kernel and in torch."""
+    from gca.sim import MPMSolver, SimConfig
+
+    from test_sim_graph import _law, _loss_and_grads, _scene
+
+    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float64",
+                                 max_refine=1))
+    runs = {}
+    for kind in ("warp", "torch"):
+        material = _law()
+        for net in (material.elasticity, material.plasticity):
+            net.mlp_kernel = kind
+        runs[kind] = _loss_and_grads(material, solver, True, *_scene())
+    (out, g), (ref, g_ref) = runs["warp"], runs["torch"]
+    for a, b in ((out.x, ref.x), (out.v, ref.v), (out.F, ref.F), (out.C, ref.C)):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+    assert len(g) == 1 + 12 and all(float(t.abs().max()) > 0 for t in g)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-9)
