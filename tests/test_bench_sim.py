@@ -1,4 +1,4 @@
-"""benchmarks/bench_sim.py, bench_p2g.py and bench_law_precision.py on the CPU: the particle orders of the benchmark
+"""benchmarks/bench_sim.py, bench_p2g.py, bench_law_precision.py and bench_mlp.py on the CPU: the particle orders of the benchmark
 block, every P2G kernel layout timed on each order, the law's FP32 / TF32 bench (smoke runs of what the H100 bundles
 run)."""
 
@@ -146,3 +146,15 @@ def test_bench_law_precision_runs_on_the_cpu_and_measures_float32_against_float6
     assert 0.999 < fp32["grad_cos"] <= 1 + 1e-12 and 0 < fp32["grad_rel_err"] < 1e-2
     # TF32 is a CUDA mode; on a CPU torch may use reduced-precision kernels of its own under it, or none
     assert tf32["max_dx_cells"] < 1e-3 and tf32["grad_cos"] > 0.999
+
+
+def test_bench_mlp_times_torch_and_the_tile_kernel_and_checks_both_against_float64():
+    out = _load("bench_mlp").main(["--device", "cpu", "--sizes", "70", "--variants", "torch", "t16", "--iters", "1",
+                                   "--repeats", "1"])
+    assert [r["variant"] for r in out["mlp"]] == ["torch", "t16"] and [r["variant"] for r in out["law"]] == \
+        ["torch", "warp"]
+    for r in out["mlp"]:
+        assert r["mlp_fwd_us"] > 0 and r["mlp_fwd_bwd_us"] > 0
+        assert 0 < r["X_rel_dev"] < 1e-5 and 0 < r["grad_rel_dev"] < 1e-5  # float32 ran, and stayed close
+    assert out["mlp"][1]["f64_rel_dev"] < 1e-12  # the kernel's float64 build equals torch's float64
+    assert all(r["law_fwd_bwd_us"] > 0 for r in out["law"])
