@@ -141,9 +141,8 @@ def test_mlp_kernel_switch(monkeypatch):
     calls = []
     real = mk.mlp
     monkeypatch.setattr(mk, "mlp", lambda *a, **k: calls.append(1) or real(*a, **k))
-    law.mlp_kernel = "auto"
-    law(F)  # on the CPU, auto keeps torch's MLP
-    assert calls == []
+    law(F)  # the default: torch's MLP
+    assert law.mlp_kernel == "torch" and calls == []
     law.mlp_kernel = "warp"
     law(F)
     assert calls == [1]
@@ -154,8 +153,6 @@ def test_mlp_kernel_switch(monkeypatch):
     shallow.mlp_kernel = "warp"
     with pytest.raises(ValueError, match="fuses two hidden layers"):
         shallow(F)
-    shallow.mlp_kernel = "auto"
-    assert shallow(F).shape == (6, 3, 3)  # auto falls back to torch
 
 
 def test_rollout_with_the_tile_mlp_equals_the_torch_mlp():

@@ -16,7 +16,14 @@ weight gradients into [out, in] sums with one tile atomic per weight matrix. The
 (LoRA-merged) weights, so gradients reach the adapters through torch's autograd of the merge, as on the torch path.
 
 Same values as ``nn.Sequential`` to rounding (the sums run in another order; float64 gradient checks in the tests).
-Only the two-hidden-layer shape is fused (:func:`fits`); other architectures stay on the torch MLP.
+Only the two-hidden-layer shape is fused (:func:`shape_of`).
+
+Measured (H100, 30k particles, graph-replayed; ``benchmarks/bench_mlp.py``, NOTES session 34): **slower than torch**,
+so the laws use it only on request (``mlp_kernel="warp"``): forward 55 us (cuBLASDx products, 16 particles per block)
+or 76 us (warp's scalar product) against torch's 37; forward + backward 725 / 526 us against 124. The backward's
+weight-gradient atomics (every block adds 5.5k sums to the same addresses) and the shared memory a block needs (the
+backward asks 272 KiB at 32 particles, beyond an H100's 227; only 16 fit) are where it loses, and cuBLASDx compiled
+one module for 281 s. What a faster one would need is in NOTES.
 """
 
 # no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
@@ -71,10 +78,9 @@ def shape_of(mlp: torch.nn.Sequential) -> MLPShape | None:
 
 
 def tile_size(dtype: torch.dtype, device: torch.device) -> int:
-    """Particles per thread block: 32 in float32 on CUDA (the activations of a block, ~110 KiB with the backward's,
-    fit an H100's shared memory twice per SM), 16 otherwise (warp's CPU tile arena is 256 KiB, float64 twice as wide).
-    """
-    return 32 if (torch.device(device).type == "cuda" and dtype == torch.float32) else 16
+    """Particles per thread block: 16 (the backward's tiles at 32 float32 particles ask 272 KiB of shared memory, more
+    than an H100 block may have; warp's CPU tile arena is 256 KiB)."""
+    return 16
 
 
 @functools.cache

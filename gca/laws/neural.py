@@ -39,7 +39,7 @@ from gca.laws.svd import bmm3, check_F, det3, svd, warp_runs
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
 N_FEATURES = 13  # [sigma - 1 (3), vec(F^T F - I) (9), det F - 1 (1)]
-MLP_KERNELS = ("auto", "warp", "torch")  # _InvariantNetwork.mlp_kernel
+MLP_KERNELS = ("torch", "warp")  # _InvariantNetwork.mlp_kernel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,14 +106,14 @@ class _InvariantNetwork(nn.Module):
     compiler); False, or elsewhere, uses the torch reference below. Both give the same values and
     gradients to rounding; the flag is an implementation choice, not part of the checkpoint.
 
-    ``mlp_kernel`` (on the fast path): ``auto`` (default) runs the MLP as one warp tile kernel each way
-    (``gca.laws.mlp_kernel``) on CUDA and as torch's ``nn.Sequential`` on the CPU (where torch's products are
-    the faster); ``warp`` runs the tile kernel on any device (its CPU twin, in the tests); ``torch`` never.
-    Only the two-hidden-layer shape fuses; others stay on torch.
+    ``mlp_kernel`` (on the fast path): ``torch`` (default) runs the MLP as torch's ``nn.Sequential``; ``warp`` as one
+    warp tile kernel each way (``gca.laws.mlp_kernel``; two hidden layers only). Measured on an H100 at 30k particles
+    (``benchmarks/NOTES.md`` session 34) the tile kernel is slower (forward 55 vs 37 us, forward + backward 725 vs
+    124 us), so it is an option, not the default.
     """
 
     fast_path: bool = True
-    mlp_kernel: str = "auto"
+    mlp_kernel: str = "torch"
 
     def __init__(self, cfg: NeuralLawConfig | None = None):
         super().__init__()
@@ -141,12 +141,12 @@ class _InvariantNetwork(nn.Module):
         if self.mlp_kernel not in MLP_KERNELS:
             raise ValueError(f"gca/laws/neural.py: {type(self).__name__}.mlp_kernel={self.mlp_kernel!r} is not one "
                              f"of {MLP_KERNELS}")
-        shape = mlp_kernel.shape_of(self.mlp)
-        if self.mlp_kernel == "torch" or (self.mlp_kernel == "auto" and not z.is_cuda) or shape is None:
-            if self.mlp_kernel == "warp" and shape is None:
-                raise ValueError(f"gca/laws/neural.py: mlp_kernel='warp' fuses two hidden layers with one of "
-                                 f"{mlp_kernel.ACTIVATIONS}, not {self.mlp}")
+        if self.mlp_kernel == "torch":
             return self.mlp(z)
+        shape = mlp_kernel.shape_of(self.mlp)
+        if shape is None:
+            raise ValueError(f"gca/laws/neural.py: mlp_kernel='warp' fuses two hidden layers with one of "
+                             f"{mlp_kernel.ACTIVATIONS}, not {self.mlp}")
         return mlp_kernel.mlp(z, [effective_weight(layer) for layer in self.mlp[0::2]], shape)
 
     def rotation_and_stretch(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
