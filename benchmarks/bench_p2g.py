@@ -6,7 +6,9 @@ samples objects; ``cell``: the random particles sorted by grid cell; ``morton``:
 cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order, the paper profile's density, as the
 training's particles come; ``ball64_sub``: the same particles by sub-lattice, i.e. sorted by their lattice indices
 mod 4 (each of the 64 sub-lattices holds one particle per cell) and in meshgrid order within one, so a warp's threads
-fall in 32 different cells instead of 8; ``ball64_shuffle``: the same particles in a random order),
+fall in 32 different cells instead of 8; ``ball64_shuffle``: the same particles in a random order; ``ball12`` and
+``ball12_sub``: the paper profile's real density, ~2.4 particles per cell edge, as sampled (C order) and in the
+sampler's sub-lattice order, ``gca.assets.particles.sublattice_order``, since session 34),
 times on one device, side by side in one run:
 
 - ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
@@ -36,10 +38,11 @@ import json
 import torch
 import warp as wp
 
+from gca.assets.particles import sublattice_order
 from gca.efficiency import best_time_us
 from gca.sim.kernels import BLOCK, KERNELS, PAD, grid_size, launch_blocks
 
-ORDERS = ("random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle")
+ORDERS = ("random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle", "ball12", "ball12_sub")
 
 
 def _cells(x: torch.Tensor, n_grid: int) -> torch.Tensor:
@@ -55,10 +58,11 @@ def _morton(c: torch.Tensor) -> torch.Tensor:
     return code
 
 
-def lattice_ball(n: int, n_grid: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """A ball of ~n particles on a lattice of spacing dx / 4 (~64 per cell, the paper profile's density), centred at
-    the origin, in meshgrid order: (x [N, 3] m, float64; lattice indices [N, 3])."""
-    s = 0.25 / n_grid
+def lattice_ball(n: int, n_grid: int, per_edge: float = 4.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A ball of ~n particles on a lattice of spacing dx / per_edge (4: ~64 per cell; the paper profile's ball has
+    ~2.4, ~12 per cell: ``gca.assets.particles`` at target_count 30k, n_grid 32), centred at the origin, in meshgrid
+    order: (x [N, 3] m, float64; lattice indices [N, 3])."""
+    s = 1.0 / (per_edge * n_grid)
     r = (3 * n / (4 * torch.pi)) ** (1 / 3) * s  # the radius giving ~n particles
     axis = torch.arange(-r, r + 1e-9, s, dtype=torch.float64)
     x = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
@@ -71,6 +75,13 @@ def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.T
     """n positions [n, 3] in a centred cube of ~8 particles per cell, in the given order."""
     side = min((n / 8) ** (1 / 3), n_grid - 8) / n_grid
     lo = 0.5 - side / 2
+    if order.startswith("ball12"):  # the paper profile's ball: C order as sampled, or the sampler's sub-lattice order
+        h = 1.0 / (2.4 * n_grid)
+        x, _ = lattice_ball(n, n_grid, 2.4)
+        x = x + 0.5 + 0.5 * h  # cell centres (i + 1/2) h, as the sampler's lattice
+        if order == "ball12_sub":
+            x = x[torch.as_tensor(sublattice_order(x.numpy(), h, 4))]
+        return x.to(device=device, dtype=torch.float32).contiguous()
     if order.startswith("ball64"):
         x, idx = lattice_ball(n, n_grid)
         if order == "ball64_sub":  # stable: meshgrid order within each sub-lattice

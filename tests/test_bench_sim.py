@@ -35,8 +35,10 @@ def test_block_orders_fill_the_same_cube():
 
 def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
     rows = _load("bench_p2g").main(["--device", "cpu", "--sizes", "500:16", "--iters", "1", "--repeats", "1"])
-    assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle"]
+    assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle",
+                                          "ball12", "ball12_sub"]
     assert rows[1]["particles"] == 512  # 8^3
+    assert rows[7]["particles"] == rows[8]["particles"] and abs(rows[7]["particles"] - 500) < 60
     assert abs(rows[4]["particles"] - 500) < 60  # a lattice ball of ~500 at ~64 per cell
     assert rows[4]["particles"] == rows[5]["particles"] == rows[6]["particles"]  # the same ball reordered
     assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_indirect_us", "p2g_interleaved_us", "p2g_nodes_us",
@@ -63,6 +65,9 @@ def test_ball64_orders_are_one_ball_and_the_sub_lattice_order_spreads_a_warp_ove
     spacing = 0.25 / n_grid  # within a sub-lattice, consecutive particles are one cell apart along z (mostly)
     step = (sub[1:] - sub[:-1]).norm(dim=1)
     assert (torch.isclose(step, torch.tensor(4 * spacing), rtol=1e-3)).float().mean() > 0.8
+    sampled, ordered = (bench.particles(n, n_grid, o, torch.device("cpu")) for o in ("ball12", "ball12_sub"))
+    assert rows(sampled) == rows(ordered) and not torch.equal(sampled, ordered)  # the paper density's ball, reordered
+    assert cells_per_warp(sampled) < 16 < 28 < cells_per_warp(ordered)
 
 
 def test_the_interleaved_order_is_a_permutation_spreading_warps_and_its_p2g_equals_the_kernel():
