@@ -7,8 +7,8 @@ cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order, th
 training's particles come; ``ball64_sub``: the same particles by sub-lattice, i.e. sorted by their lattice indices
 mod 4 (each of the 64 sub-lattices holds one particle per cell) and in meshgrid order within one, so a warp's threads
 fall in 32 different cells instead of 8; ``ball64_shuffle``: the same particles in a random order; ``ball12`` and
-``ball12_sub``: the paper profile's real density, ~2.4 particles per cell edge, as sampled (C order) and in the
-sampler's sub-lattice order, ``gca.assets.particles.sublattice_order``, since session 34),
+``ball12_sub``: the paper profile's real density, ~2.4 particles per cell edge, as sampled (C order) and by
+sub-lattice (lattice index mod 4; session 34: slower than C order at this density, 56 vs 48 us on an H100),
 times on one device, side by side in one run:
 
 - ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
@@ -38,7 +38,6 @@ import json
 import torch
 import warp as wp
 
-from gca.assets.particles import sublattice_order
 from gca.efficiency import best_time_us
 from gca.sim.kernels import BLOCK, KERNELS, PAD, grid_size, launch_blocks
 
@@ -79,8 +78,10 @@ def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.T
         h = 1.0 / (2.4 * n_grid)
         x, _ = lattice_ball(n, n_grid, 2.4)
         x = x + 0.5 + 0.5 * h  # cell centres (i + 1/2) h, as the sampler's lattice
-        if order == "ball12_sub":
-            x = x[torch.as_tensor(sublattice_order(x.numpy(), h, 4))]
+        if order == "ball12_sub":  # stable: C order within each sub-lattice (lattice index mod 4)
+            idx = torch.floor(x / h).long()
+            sub = ((idx[:, 0] % 4) * 4 + idx[:, 1] % 4) * 4 + idx[:, 2] % 4
+            x = x[torch.sort(sub, stable=True).indices]
         return x.to(device=device, dtype=torch.float32).contiguous()
     if order.startswith("ball64"):
         x, idx = lattice_ball(n, n_grid)

@@ -18,9 +18,7 @@
 #   PART=mlpab (session 34; ~7 min; needs ab_old = git archive 6f6fb22 gca params.yaml dvc.yaml stages tuning): gsplat's
 #       build, the ball's data, 10 GCA iterations with the tile MLP (HEAD), with torch's MLP (6f6fb22), HEAD again
 #                                                                                   -> {tile,torchmlp,tile2}/
-#   PART=order (session 34; ~6 min): bench_p2g on the paper density's ball (C order, sub-lattice order); gsplat's build;
-#       the ball's data and 10 GCA iterations with particles.order_stride 1 (C order), then 4 (default), each its own
-#       data                                                                        -> p2g_order.*, {stride1,stride4}/
+#   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 set -u
@@ -73,7 +71,7 @@ fi
 
 if [ "$PART" = mlp ]; then  # session 34: no gsplat needed; limit 300 s (cuBLASDx compiles each tile product once)
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-  stamp "bench_mlp: the MLP in torch's products and in the tile kernel"
+  stamp "bench_mlp: the MLP in torch products and in the tile kernel"
   timeout 300 python3 benchmarks/bench_mlp.py --device cuda --json "$OUT/mlp.json" > "$OUT/mlp.txt" 2>&1
   echo "mlp rc=$?"; grep -E "^\|" "$OUT/mlp.txt"
 fi
@@ -90,17 +88,13 @@ if [ "$PART" = mlpab ]; then  # session 34: the tile-kernel MLP (HEAD) against t
   summary tile torchmlp tile2
 fi
 
-if [ "$PART" = order ]; then  # session 34: the particles' sub-lattice order (particles.order_stride 4) against C order (1)
+if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattice against C order (P2G only)
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-  stamp "bench_p2g: the paper density's ball as sampled and by sub-lattice"
+  stamp "bench_p2g: the paper density ball as sampled and by sub-lattice"
   timeout 100 python3 benchmarks/bench_p2g.py --device cuda --sizes 30000:32 --orders ball12 ball12_sub ball64 ball64_sub \
       --json "$OUT/p2g_order.json" > "$OUT/p2g_order.txt" 2>&1
   echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g_order.txt"
-  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
-  stamp "stride1: data in C order + 10 iterations"; run stride1 ball /tmp/fast10_s1 10 180 --set particles.order_stride=1
-  stamp "stride4: data in sub-lattice order + 10 iterations"; run stride4 ball /tmp/fast10_s4 10 120
-  grep -h "harness\] \(ground_truth\|train\|evaluate\)" "$OUT/stride1.log" "$OUT/stride4.log"
-  summary stride1 stride4
+  # (at 19135e8 this part went on to a ball A/B with particles.order_stride 1 / 4: the sampler's order, reverted)
 fi
 
 if [ "$PART" = b ]; then

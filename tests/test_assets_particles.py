@@ -206,36 +206,3 @@ def test_gaussians_only_thin_object_on_a_coarse_lattice(monkeypatch):
     monkeypatch.setattr(pa, "REFINE", ())
     with pytest.raises(ValueError, match="did not enclose a volume"):
         pa.convert(cloud, cfg, density=1000.0)
-
-
-def test_sublattice_order_is_a_permutation_that_spreads_a_warp_over_cells():
-    h = 1.0 / 32 / 2.4  # the paper profile's ball: ~2.4 particles per grid-cell edge at n_grid 32
-    lat, _ = pa.lattice(np.full(3, 0.35), np.full(3, 0.65), h)
-    x = lat[np.linalg.norm(lat - 0.5, axis=1) < 0.15]  # a lattice ball, C order as sampled
-    perm = pa.sublattice_order(x, h, 4)
-    assert np.array_equal(np.sort(perm), np.arange(len(x)))  # the same particles
-    assert np.array_equal(pa.sublattice_order(x, h, 1), np.arange(len(x)))  # stride 1: as sampled
-
-    def cells_per_warp(y):  # mean distinct grid cells (n_grid 32) among 32 consecutive particles
-        c = np.floor(y * 32).astype(int)
-        return np.mean([len({tuple(r) for r in c[i:i + 32]}) for i in range(0, len(y) - 31, 32)])
-
-    assert cells_per_warp(x) < 16 < 28 < cells_per_warp(x[perm])  # C order: ~13 cells; sub-lattices: ~all 32
-    idx = np.floor(x[perm] / h).astype(int) % 4
-    sub = (idx[:, 0] * 4 + idx[:, 1]) * 4 + idx[:, 2]
-    assert np.all(np.diff(sub) >= 0)  # grouped by sub-lattice, in key order
-
-
-def test_convert_orders_particles_by_sublattice_and_binds_them_as_ordered(sphere):
-    mesh, cloud = sphere
-    cfg = pa.ParticleConfig(spacing=0.025, floor_gap=0.05)
-    p4 = pa.convert(cloud, cfg, density=1000.0, mesh=mesh)
-    p1 = pa.convert(cloud, pa.ParticleConfig(spacing=0.025, floor_gap=0.05, order_stride=1), density=1000.0, mesh=mesh)
-    assert cfg.order_stride == 4 and p4.n == p1.n
-    perm = pa.sublattice_order(p1.x, p1.spacing, 4)
-    np.testing.assert_array_equal(p4.x, p1.x[perm])  # the same set, reordered
-    # each Gaussian binds to the same positions whatever the order (the binding follows the particles)
-    B4, B1 = p4.binding_matrix(), p1.binding_matrix()
-    np.testing.assert_allclose((B4 @ p4.x.astype(np.float64)), (B1 @ p1.x.astype(np.float64)), rtol=0, atol=1e-7)
-    with pytest.raises(ValueError, match="order_stride"):
-        pa.ParticleConfig(order_stride=0)

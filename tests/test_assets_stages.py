@@ -24,7 +24,7 @@ PARAMS = {
                          "interior_fraction": 0.1, "sh_degree": 1, "opacity": 0.95, "density": 800.0}},
     "particles": {"opacity_threshold": 0.02, "spacing": {"paper": 0.008, "ci": 0.05}, "margin": 0.25,
                   "placement": "floor", "floor_gap": 0.05, "target_count": 0, "density_threshold": 0.1, "mahalanobis_chi2": 7.815,
-                  "max_bound": 10, "unbound": "nearest", "n_candidates": 32, "order_stride": 4},
+                  "max_bound": 10, "unbound": "nearest", "n_candidates": 32},
 }
 
 

@@ -30,7 +30,7 @@ def _params(tmp_path, scan_entry):
     return {"profile": "ci", "objects": {"donut": scan_entry},
             "particles": {"opacity_threshold": 0.02, "spacing": {"paper": 0.008, "ci": 0.012}, "target_count": 4000,
                           "margin": 0.25, "placement": "floor", "floor_gap": 0.05, "density_threshold": 0.1,
-                          "mahalanobis_chi2": 7.815, "max_bound": 10, "unbound": "nearest", "n_candidates": 32, "order_stride": 4}}
+                          "mahalanobis_chi2": 7.815, "max_bound": 10, "unbound": "nearest", "n_candidates": 32}}
 
 
 def _run(tmp_path, entry, stage="assets"):

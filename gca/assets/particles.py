@@ -69,14 +69,11 @@ class ParticleConfig:
     max_bound: int = 10  # particles bound per Gaussian at most (NeuMA: 10)
     unbound: str = "nearest"  # unbound Gaussians: "nearest" particle or "extra" particle (NeuMA)
     n_candidates: int = 32  # Euclidean nearest neighbours examined per query [count]
-    order_stride: int = 4  # particle order: by sub-lattice (lattice index mod this), C order within one; 1: C order
-    # (the set is the same; the order decides how many grid cells a GPU warp's 32 P2G atomics hit, :func:`sublattice_order`)
 
     def __post_init__(self) -> None:
         checks = {"placement": self.placement in ("floor", "centre"), "unbound": self.unbound in ("nearest", "extra"),
                   "spacing": self.spacing > 0, "target_count": self.target_count >= 0, "margin": 0 <= self.margin < 0.5,
-                  "max_bound": 1 <= self.max_bound <= self.n_candidates, "mahalanobis_chi2": self.mahalanobis_chi2 > 0,
-                  "order_stride": self.order_stride >= 1}
+                  "max_bound": 1 <= self.max_bound <= self.n_candidates, "mahalanobis_chi2": self.mahalanobis_chi2 > 0}
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"gca/assets/particles.py: invalid ParticleConfig field(s) {bad}: {self}")
@@ -450,7 +447,6 @@ def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None
     if len(x) == 0:
         raise ValueError(f"gca/assets/particles.py: no lattice point inside the object: spacing {h:.4g} "
                          f"is too coarse for its size {(hi - lo).max() * s:.3g} (sim m)")
-    x = x[sublattice_order(x, h, cfg.order_stride)]
     rows, cols, weights, unbound = bind_gaussians(means, R, sigmas, x, cfg)
     if cfg.unbound == "extra" and unbound.any():
         x = np.concatenate([x, means[unbound]])
@@ -460,24 +456,6 @@ def convert(cloud: GaussianCloud, cfg: ParticleConfig, density: float, mesh=None
                      binding_rows=rows.astype(np.int64), binding_cols=cols.astype(np.int64),
                      binding_weights=weights.astype(np.float32), sim_from_world=T, gaussian_index=keep.astype(np.int64),
                      n_gaussians=cloud.n, spacing=float(h))
-
-
-def sublattice_order(x: np.ndarray, spacing: float, stride: int) -> np.ndarray:
-    """The permutation [P] that orders lattice points x [P, 3] (cell centres (i + 1/2) * spacing) by sub-lattice: the
-    key (i mod stride, j mod stride, k mod stride) first, then C order (i, j, k) within each sub-lattice.
-
-    Why: the GPU runs P2G one particle per thread and 32 threads at once, each adding to the 27 grid nodes around its
-    particle with float atomics. In C order 32 consecutive particles lie ~spacing apart, a few grid cells, so a warp's
-    atomics pile onto the same nodes and serialise; within one sub-lattice they lie stride * spacing apart (one cell
-    or more at the paper profile's ~2.4 particles per cell edge). The set of particles, and so the physics, is the
-    same; on an H100 P2G ran 35 % faster on a lattice ball in sub-lattice order (``benchmarks/bench_p2g.py``,
-    NOTES session 34). ``stride`` 1 keeps the order as sampled (C order).
-    """
-    if stride <= 1:
-        return np.arange(len(x))
-    idx = np.floor(np.asarray(x, dtype=np.float64) / spacing).astype(np.int64)
-    sub = ((idx[:, 0] % stride) * stride + idx[:, 1] % stride) * stride + idx[:, 2] % stride
-    return np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0], sub))
 
 
 def lattice_spacing(cfg: ParticleConfig, volume: float) -> float:

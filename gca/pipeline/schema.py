@@ -62,7 +62,6 @@ RECORD_TABLES: dict[str, str] = {
 RANGES: dict[str, tuple[float, bool]] = {
     "sim.dt": (0.0, True), "sim.n_grid": (4, False), "sim.max_refine": (1, False),
     "particles.spacing": (0.0, True), "particles.floor_gap": (0.0, True), "particles.n_candidates": (1, False),
-    "particles.order_stride": (1, False),
     "video.n_frames": (1, False), "video.substeps": (1, False), "video.frame_every": (1, False),
     "video.resolution": (8, False),
     "render.raster.tile_size": (1, False), "render.raster.slab": (1, False), "render.raster.max_elems": (1, False),
