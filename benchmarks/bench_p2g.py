@@ -3,8 +3,8 @@
 For each ``particles:n_grid`` size and each particle order of the same block of particles (``random``: uniform at
 random, as ``bench_sim.block``; ``lattice``: a regular lattice in meshgrid order, as ``gca.assets.particles``
 samples objects; ``cell``: the random particles sorted by grid cell; ``morton``: sorted by the Morton code of their
-cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order, the paper profile's density, as the
-training's particles come; ``ball64_sub``: the same particles by sub-lattice, i.e. sorted by their lattice indices
+cell; ``ball64``: a lattice ball of ~64 particles per cell in meshgrid order (denser than the paper profile's ~12 per cell:
+session 34); ``ball64_sub``: the same particles by sub-lattice, i.e. sorted by their lattice indices
 mod 4 (each of the 64 sub-lattices holds one particle per cell) and in meshgrid order within one, so a warp's threads
 fall in 32 different cells instead of 8; ``ball64_shuffle``: the same particles in a random order; ``ball12`` and
 ``ball12_sub``: the paper profile's real density, ~2.4 particles per cell edge, as sampled (C order) and by
