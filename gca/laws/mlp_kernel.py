@@ -84,18 +84,20 @@ def tile_size(dtype: torch.dtype, device: torch.device) -> int:
 
 
 @functools.cache
-def make_mlp_kernels(dtype: torch.dtype, shape: MLPShape, tile: int, mathdx: bool = True) -> types.SimpleNamespace:
+def make_mlp_kernels(dtype: torch.dtype, shape: MLPShape, tile: int, mathdx: bool = False) -> types.SimpleNamespace:
     """The forward and backward tile kernels of ``shape`` for float32 or float64, ``tile`` particles per block.
 
     Args:
-        mathdx: let warp use cuBLASDx for the tile products on CUDA (its default); False: warp's scalar tile product
-            (compiles faster; a benchmark variant).
+        mathdx: let warp use cuBLASDx for the tile products on CUDA (a benchmark variant: it compiled one module for
+            281 s on the H100 machine, session 34); False (default): warp's scalar tile product (~5 s).
     """
     wp.init()
     T = WARP_FLOATS[dtype]
     n_in, w1, w2, n_out, TP = shape.n_in, shape.w1, shape.w2, shape.n_out, int(tile)
     module = f"gca_laws_mlp_{T.__name__}_{n_in}x{w1}x{w2}x{n_out}_{shape.activation}_t{TP}{'' if mathdx else '_scalar'}"
-    wp.set_module_options({"enable_mathdx_gemm": bool(mathdx)}, module=module)
+    # enable_backward off for the module too: with it on, warp sized every tile twice (a gradient buffer beside it) and
+    # the backward asked 272 KiB at 32 particles per block on the H100 where its tiles take 136 (session 34)
+    wp.set_module_options({"enable_mathdx_gemm": bool(mathdx), "enable_backward": False}, module=module)
     act, act_vjp = _activation(shape.activation, T, module)
 
     @wp.kernel(module=module, enable_backward=False)
@@ -110,25 +112,32 @@ def make_mlp_kernels(dtype: torch.dtype, shape: MLPShape, tile: int, mathdx: boo
 
     @wp.kernel(module=module, enable_backward=False)
     def backward(z: wp.array2d(dtype=T), W1: wp.array2d(dtype=T), W2: wp.array2d(dtype=T), W3: wp.array2d(dtype=T),
-                 v_X: wp.array2d(dtype=T), v_z: wp.array2d(dtype=T), v_W1: wp.array2d(dtype=T),
-                 v_W2: wp.array2d(dtype=T), v_W3: wp.array2d(dtype=T)):
-        b = wp.tid()
-        zt = wp.tile_load(z, shape=(TP, n_in), offset=(b * TP, 0))
+                 v_X: wp.array2d(dtype=T), n_tiles: int, n_blocks: int, v_z: wp.array2d(dtype=T),
+                 P1: wp.array2d(dtype=T), P2: wp.array2d(dtype=T), P3: wp.array2d(dtype=T)):
+        blk = wp.tid()  # a persistent block: tiles blk, blk + n_blocks, ...; its weight gradients summed on chip
         t1 = wp.tile_load(W1, shape=(w1, n_in))
         t2 = wp.tile_load(W2, shape=(w2, w1))
         t3 = wp.tile_load(W3, shape=(n_out, w2))
-        a1 = wp.tile_matmul(zt, wp.tile_transpose(t1))
-        h1 = wp.tile_map(wp.static(act), a1)
-        a2 = wp.tile_matmul(h1, wp.tile_transpose(t2))
-        d3 = wp.tile_load(v_X, shape=(TP, n_out), offset=(b * TP, 0))  # rows past N read as 0: they add nothing
-        wp.tile_atomic_add(v_W3, wp.tile_matmul(wp.tile_transpose(d3), wp.tile_map(wp.static(act), a2)))
-        d2 = wp.tile_map(wp.static(act_vjp), wp.tile_matmul(d3, t3), a2)
-        wp.tile_atomic_add(v_W2, wp.tile_matmul(wp.tile_transpose(d2), h1))
-        d1 = wp.tile_map(wp.static(act_vjp), wp.tile_matmul(d2, t2), a1)
-        wp.tile_atomic_add(v_W1, wp.tile_matmul(wp.tile_transpose(d1), zt))
-        wp.tile_store(v_z, wp.tile_matmul(d1, t1), offset=(b * TP, 0))
+        g1 = wp.tile_zeros(shape=(w1, n_in), dtype=T)
+        g2 = wp.tile_zeros(shape=(w2, w1), dtype=T)
+        g3 = wp.tile_zeros(shape=(n_out, w2), dtype=T)
+        for b in range(blk, n_tiles, n_blocks):
+            zt = wp.tile_load(z, shape=(TP, n_in), offset=(b * TP, 0))
+            a1 = wp.tile_matmul(zt, wp.tile_transpose(t1))
+            h1 = wp.tile_map(wp.static(act), a1)
+            a2 = wp.tile_matmul(h1, wp.tile_transpose(t2))
+            d3 = wp.tile_load(v_X, shape=(TP, n_out), offset=(b * TP, 0))  # rows past N read as 0: they add nothing
+            wp.tile_matmul(wp.tile_transpose(d3), wp.tile_map(wp.static(act), a2), g3)
+            d2 = wp.tile_map(wp.static(act_vjp), wp.tile_matmul(d3, t3), a2)
+            wp.tile_matmul(wp.tile_transpose(d2), h1, g2)
+            d1 = wp.tile_map(wp.static(act_vjp), wp.tile_matmul(d2, t2), a1)
+            wp.tile_matmul(wp.tile_transpose(d1), zt, g1)
+            wp.tile_store(v_z, wp.tile_matmul(d1, t1), offset=(b * TP, 0))
+        wp.tile_store(P1, g1, offset=(blk * w1, 0))  # one partial per block, summed in a fixed order afterwards
+        wp.tile_store(P2, g2, offset=(blk * w2, 0))
+        wp.tile_store(P3, g3, offset=(blk * n_out, 0))
 
-    return types.SimpleNamespace(forward=forward, backward=backward, tile=TP, block_dim=TP * 4, T=T)
+    return types.SimpleNamespace(forward=forward, backward=backward, tile=TP, T=T)
 
 
 def _activation(name: str, T, module: str):
@@ -189,10 +198,21 @@ def _a(t: torch.Tensor) -> wp.array:
     return wp.from_torch(t)
 
 
-def _launch(kernel, n: int, k: types.SimpleNamespace, device: torch.device, args: list) -> None:
+BLOCK_DIM = {"cuda": 128, "cpu": 32}  # threads per block (CPU: lanes run as fibers, fewer is faster)
+BLOCKS_PER_SM = 4  # the backward's persistent blocks per multiprocessor (CPU: 4 blocks)
+
+
+def _launch(kernel, blocks: int, device: torch.device, args: list) -> None:
     with on_torch_stream(device):
-        wp.launch_tiled(kernel, dim=[(n + k.tile - 1) // k.tile], inputs=args, device=wp.device_from_torch(device),
-                        block_dim=k.block_dim)
+        wp.launch_tiled(kernel, dim=[blocks], inputs=args, device=wp.device_from_torch(device),
+                        block_dim=BLOCK_DIM[device.type])
+
+
+def backward_blocks(n_tiles: int, device: torch.device) -> int:
+    """The backward's persistent block count: ``BLOCKS_PER_SM`` per multiprocessor (4 on the CPU), at most one per
+    tile. Fixed per device and size, so the weight gradients sum in one order run after run."""
+    sms = wp.get_device(wp.device_from_torch(device)).sm_count if device.type == "cuda" else 1
+    return max(1, min(n_tiles, BLOCKS_PER_SM * sms))
 
 
 class _TileMLP(torch.autograd.Function):
@@ -204,7 +224,7 @@ class _TileMLP(torch.autograd.Function):
         k = make_mlp_kernels(z.dtype, shape, tile, mathdx)
         X = torch.empty(z.shape[0], shape.n_out, dtype=z.dtype, device=z.device)
         if z.shape[0]:
-            _launch(k.forward, z.shape[0], k, z.device, [_a(z), *map(_a, Ws), _a(X)])
+            _launch(k.forward, -(-z.shape[0] // k.tile), z.device, [_a(z), *map(_a, Ws), _a(X)])
         ctx.save_for_backward(z, *Ws)
         ctx.k = k
         return X
@@ -215,16 +235,20 @@ class _TileMLP(torch.autograd.Function):
         z, W1, W2, W3 = ctx.saved_tensors
         k = ctx.k
         v_z = torch.empty_like(z)
-        v_W = [torch.zeros_like(W) for W in (W1, W2, W3)]
+        n_tiles = -(-z.shape[0] // k.tile)
+        blocks = backward_blocks(n_tiles, z.device)
+        partials = [torch.empty(blocks * W.shape[0], W.shape[1], dtype=W.dtype, device=W.device) for W in (W1, W2, W3)]
         if z.shape[0]:
-            _launch(k.backward, z.shape[0], k, z.device,
-                    [_a(z), _a(W1), _a(W2), _a(W3), _a(v_X.contiguous()), _a(v_z), *map(_a, v_W)])
+            _launch(k.backward, blocks, z.device, [_a(z), _a(W1), _a(W2), _a(W3), _a(v_X.contiguous()), n_tiles, blocks,
+                                                   _a(v_z), *map(_a, partials)])
+        v_W = [P.view(blocks, *W.shape).sum(0) if z.shape[0] else torch.zeros_like(W)
+               for P, W in zip(partials, (W1, W2, W3))]
         need = ctx.needs_input_grad
         return (v_z if need[0] else None, *(g if n else None for g, n in zip(v_W, need[1:4])), None, None, None)
 
 
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, tile: int | None = None,
-        mathdx: bool = True) -> torch.Tensor:
+        mathdx: bool = False) -> torch.Tensor:
     """X [N, n_out] = the MLP of ``shape`` with ``weights`` [W1, W2, W3] ([out, in] each) on z [N, n_in], in one warp
     tile kernel (differentiable in z and the weights; ``tile`` particles per block, default :func:`tile_size`)."""
     if z.dim() != 2 or z.shape[1] != shape.n_in:
