@@ -7,10 +7,12 @@ and memory-bound). The tile kernel keeps a block's activations on chip. Per size
 
 - ``mlp fwd`` / ``mlp fwd+bwd``: the MLP alone (the backward: the input gradient and the three weight gradients);
 - ``law fwd+bwd``: one MPM step's law calls (plasticity, then elasticity on its output), NCLaw-shaped networks with
-  LoRA r = 16 merged once as a frame merges them, features + MLP + head, gradient to F and the merged weights;
+  LoRA r = 16 merged once as a frame merges them, features + MLP + head, gradient to F and the merged weights, with
+  the MLP in torch, ``simt`` and the tile kernel (``warp``);
 
 each captured in one CUDA graph and replayed (what training does: ``gca.sim.graph``), so launch overheads count as
-they do there; on the CPU, eager calls. Variants: ``torch`` (nn.Sequential, FP32 products), ``t<k>`` (the tile kernel,
+they do there; on the CPU, eager calls. Variants: ``torch`` (nn.Sequential, FP32 products), ``simt`` (the forward one
+thread per particle, torch's backward from the stored pre-activations: ``gca.laws.mlp_kernel.simt_mlp``), ``t<k>`` (the tile kernel,
 k particles per block, cuBLASDx products: minutes to compile), ``t<k>s`` (warp's scalar tile product, the
 kernel's default). Each row also gives the largest
 deviation of X and of the gradients from a float64 evaluation, relative to the largest value, and the tile
@@ -38,7 +40,7 @@ from gca.laws import mlp_kernel as mk  # noqa: E402
 from gca.laws.lora import apply_lora, lora_layers  # noqa: E402
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity, make_mlp  # noqa: E402
 
-VARIANT = re.compile(r"^(torch|t(\d+)(s?))$")
+VARIANT = re.compile(r"^(torch|simt|t(\d+)(s?))$")
 
 
 def timed_us(fn, device: torch.device, iters: int, repeats: int) -> float:
@@ -68,6 +70,8 @@ def run_mlp(variant: str, z: torch.Tensor, Ws: list[torch.Tensor], net: torch.nn
     m = VARIANT.match(variant)
     if m.group(1) == "torch":
         return net(z)
+    if m.group(1) == "simt":
+        return mk.simt_mlp(z, Ws, mk.shape_of(net), net[1])
     return mk.mlp(z, Ws, mk.shape_of(net), tile=int(m.group(2)), mathdx=not m.group(3))
 
 
@@ -94,7 +98,7 @@ def mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
     rel = lambda a, b: float((a.double() - b).abs().max() / b.abs().max())  # noqa: E731
     row["X_rel_dev"] = rel(X.detach(), X64.detach())
     row["grad_rel_dev"] = max(rel(a, b) for a, b in zip(g, g64))
-    if variant != "torch" and (variant.endswith("s") or device.type == "cpu"):  # the kernel's own float64 build
+    if variant != "torch" and (variant.endswith("s") or variant == "simt" or device.type == "cpu"):  # its float64 build
         # (scalar products only on CUDA: cuBLASDx compiled one float32 module for 281 s on the H100, session 34)
         W64l = [W.detach().requires_grad_(True) for W in W64]
         X = run_mlp(variant, z64, W64l, net64)
@@ -127,14 +131,14 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--sizes", type=int, nargs="+", default=[30000, 100000], help="particle counts")
-    ap.add_argument("--variants", nargs="+", default=["torch", "t16s", "t32s"])  # t<k>: cuBLASDx compiles for minutes
+    ap.add_argument("--variants", nargs="+", default=["torch", "simt", "t16s"])  # t<k>: cuBLASDx compiles for minutes
     ap.add_argument("--iters", type=int, default=50)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     bad = [v for v in args.variants if not VARIANT.match(v)]
     if bad:
-        ap.error(f"variants must be torch, t<k> or t<k>s, got {bad}")
+        ap.error(f"variants must be torch, simt, t<k> or t<k>s, got {bad}")
     device = torch.device(args.device)
     out = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "mlp": [], "law": []}
     print("| particles | variant | mlp fwd us | mlp fwd+bwd us | X rel dev | grad rel dev | float64 rel dev |")
@@ -153,7 +157,7 @@ def main(argv=None) -> dict:
             out["mlp"].append(row)
     print("| particles | law step (plasticity + elasticity) | fwd+bwd us |\n| --- | --- | --- |")
     for n in args.sizes:
-        for kind in ("torch", "warp"):
+        for kind in ("torch", "simt", "warp"):
             row = law_row(kind, n, device, args.iters, args.repeats)
             out["law"].append(row)
             print(f"| {n} | MLP in {kind} | {row['law_fwd_bwd_us']:.1f} |", flush=True)

@@ -154,12 +154,12 @@ def test_bench_law_precision_runs_on_the_cpu_and_measures_float32_against_float6
 
 
 def test_bench_mlp_times_torch_and_the_tile_kernel_and_checks_both_against_float64():
-    out = _load("bench_mlp").main(["--device", "cpu", "--sizes", "70", "--variants", "torch", "t16", "--iters", "1",
-                                   "--repeats", "1"])
-    assert [r["variant"] for r in out["mlp"]] == ["torch", "t16"] and [r["variant"] for r in out["law"]] == \
-        ["torch", "warp"]
+    out = _load("bench_mlp").main(["--device", "cpu", "--sizes", "70", "--variants", "torch", "simt", "t16", "--iters",
+                                   "1", "--repeats", "1"])
+    assert [r["variant"] for r in out["mlp"]] == ["torch", "simt", "t16"] and [r["variant"] for r in out["law"]] == \
+        ["torch", "simt", "warp"]
     for r in out["mlp"]:
         assert r["mlp_fwd_us"] > 0 and r["mlp_fwd_bwd_us"] > 0
         assert 0 < r["X_rel_dev"] < 1e-5 and 0 < r["grad_rel_dev"] < 1e-5  # float32 ran, and stayed close
-    assert out["mlp"][1]["f64_rel_dev"] < 1e-12  # the kernel's float64 build equals torch's float64
+    assert out["mlp"][1]["f64_rel_dev"] < 1e-12 and out["mlp"][2]["f64_rel_dev"] < 1e-12  # float64 builds = torch's
     assert all(r["law_fwd_bwd_us"] > 0 for r in out["law"])

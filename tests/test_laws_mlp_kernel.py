@@ -1,6 +1,7 @@
-"""gca.laws.mlp_kernel: the neural laws' MLP as one warp tile kernel each way, against torch's nn.Sequential (CPU twin
-of the CUDA path): values and gradients in float64 for every activation, float64 gradient checks with a negative
-control, the laws' ``mlp_kernel`` switch with LoRA inside a merged frame, and a short MPM rollout."""
+"""gca.laws.mlp_kernel: the neural laws' MLP as one warp tile kernel each way (``warp``) and as a one-thread-per-particle
+forward with torch's backward (``simt``), against torch's nn.Sequential (CPU twins of the CUDA paths): values and
+gradients in float64 for every activation, float64 gradient checks with negative controls, the laws' ``mlp_kernel``
+switch with LoRA inside a merged frame, and a short MPM rollout."""
 
 import pytest
 import torch
@@ -45,6 +46,33 @@ def test_tile_mlp_equals_torch_values_and_gradients(activation, n):
     torch.testing.assert_close(X, ref, rtol=0, atol=1e-13 * float(ref.detach().abs().max()))
     for a, b in zip(got, want):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-13 * float(b.abs().max()))
+
+
+@pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
+def test_simt_mlp_equals_torch_values_and_gradients(activation):
+    net = _net(activation)
+    z = torch.randn(37, 13, dtype=f64, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+    Ws = _weights(net)
+    X, ref = mk.simt_mlp(z, Ws, mk.shape_of(net), net[1]), net(z)
+    v = torch.randn(X.shape, dtype=f64, generator=torch.Generator().manual_seed(2))
+    got = torch.autograd.grad(X, [z, *Ws], v)
+    want = torch.autograd.grad(ref, [z, net[0].weight, net[2].weight, net[4].weight], v)
+    torch.testing.assert_close(X, ref, rtol=0, atol=1e-13 * float(ref.detach().abs().max()))
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-13 * float(b.abs().max()))
+    with torch.no_grad():  # no gradient wanted: the pre-activations are not stored, the values are the same
+        torch.testing.assert_close(mk.simt_mlp(z, Ws, mk.shape_of(net), net[1]), X.detach(), rtol=0, atol=0)
+
+
+@pytest.mark.grad
+def test_simt_mlp_gradcheck_float64_and_its_negative_control():
+    net = _net("gelu", widths=(8, 6))
+    z = torch.randn(21, 13, dtype=f64, generator=torch.Generator().manual_seed(3)).requires_grad_(True)
+    shape = mk.shape_of(net)
+    assert gradcheck(lambda z, *Ws: mk.simt_mlp(z, list(Ws), shape, net[1]), (z, *_weights(net)))
+    # the backward takes the derivative from the activation module it is given: SiLU's for a GELU forward must fail
+    assert not gradcheck(lambda z, *Ws: mk.simt_mlp(z, list(Ws), shape, nn.SiLU()), (z, *_weights(net)),
+                         raise_exception=False)
 
 
 @pytest.mark.grad
@@ -136,15 +164,17 @@ def test_law_with_the_tile_mlp_equals_the_torch_mlp(law_cls):
     F = hard_F().requires_grad_(True)
     params = [F, *lora_parameters(law)]
     out = {}
-    for kind in ("warp", "torch"):
+    for kind in ("warp", "simt", "torch"):
         law.mlp_kernel = kind
         with merged_weights(law):
             y = law(F)
             out[kind] = (y, torch.autograd.grad(y.square().sum(), params))
-    (y_w, g_w), (y_t, g_t) = out["warp"], out["torch"]
-    torch.testing.assert_close(y_w, y_t, rtol=0, atol=1e-12 * float(y_t.detach().abs().max()))
-    for a, b in zip(g_w, g_t):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-10 * float(b.abs().max()))
+    y_t, g_t = out["torch"]
+    for kind in ("warp", "simt"):
+        y_w, g_w = out[kind]
+        torch.testing.assert_close(y_w, y_t, rtol=0, atol=1e-12 * float(y_t.detach().abs().max()))
+        for a, b in zip(g_w, g_t):
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-10 * float(b.abs().max()))
 
 
 def test_mlp_kernel_switch(monkeypatch):
@@ -158,6 +188,12 @@ def test_mlp_kernel_switch(monkeypatch):
     law.mlp_kernel = "warp"
     law(F)
     assert calls == [1]
+    simt = []
+    real_simt = mk.simt_mlp
+    monkeypatch.setattr(mk, "simt_mlp", lambda *a, **k: simt.append(1) or real_simt(*a, **k))
+    law.mlp_kernel = "simt"
+    law(F)
+    assert calls == [1] and simt == [1]
     law.mlp_kernel = "fast"
     with pytest.raises(ValueError, match="mlp_kernel='fast' is not one of"):
         law(F)
@@ -177,14 +213,16 @@ def test_rollout_with_the_tile_mlp_equals_the_torch_mlp():
     solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float64",
                                  max_refine=1))
     runs = {}
-    for kind in ("warp", "torch"):
+    for kind in ("warp", "simt", "torch"):
         material = _law()
         for net in (material.elasticity, material.plasticity):
             net.mlp_kernel = kind
         runs[kind] = _loss_and_grads(material, solver, True, *_scene())
-    (out, g), (ref, g_ref) = runs["warp"], runs["torch"]
-    for a, b in ((out.x, ref.x), (out.v, ref.v), (out.F, ref.F), (out.C, ref.C)):
-        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
-    assert len(g) == 1 + 12 and all(float(t.abs().max()) > 0 for t in g)
-    for a, b in zip(g, g_ref):
-        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-9)
+    ref, g_ref = runs["torch"]
+    for kind in ("warp", "simt"):
+        out, g = runs[kind]
+        for a, b in ((out.x, ref.x), (out.v, ref.v), (out.F, ref.F), (out.C, ref.C)):
+            torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+        assert len(g) == 1 + 12 and all(float(t.abs().max()) > 0 for t in g)
+        for a, b in zip(g, g_ref):
+            torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-9)

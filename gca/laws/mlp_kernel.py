@@ -247,15 +247,110 @@ class _TileMLP(torch.autograd.Function):
         return (v_z if need[0] else None, *(g if n else None for g, n in zip(v_W, need[1:4])), None, None, None)
 
 
-def mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, tile: int | None = None,
-        mathdx: bool = False) -> torch.Tensor:
-    """X [N, n_out] = the MLP of ``shape`` with ``weights`` [W1, W2, W3] ([out, in] each) on z [N, n_in], in one warp
-    tile kernel (differentiable in z and the weights; ``tile`` particles per block, default :func:`tile_size`)."""
+def _check(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape) -> None:
     if z.dim() != 2 or z.shape[1] != shape.n_in:
         raise ValueError(f"{_WHERE}: z must be [N, {shape.n_in}], got {tuple(z.shape)}")
     expect = [(shape.w1, shape.n_in), (shape.w2, shape.w1), (shape.n_out, shape.w2)]
     if [tuple(W.shape) for W in weights] != expect or any(W.dtype != z.dtype for W in weights):
         raise ValueError(f"{_WHERE}: weights must be {expect} in {z.dtype}, got "
                          f"{[(tuple(W.shape), W.dtype) for W in weights]}")
+
+
+def mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, tile: int | None = None,
+        mathdx: bool = False) -> torch.Tensor:
+    """X [N, n_out] = the MLP of ``shape`` with ``weights`` [W1, W2, W3] ([out, in] each) on z [N, n_in], in one warp
+    tile kernel (differentiable in z and the weights; ``tile`` particles per block, default :func:`tile_size`)."""
+    _check(z, weights, shape)
     tile = tile_size(z.dtype, z.device) if tile is None else int(tile)
     return _TileMLP.apply(z, *weights, shape, tile, bool(mathdx))
+
+
+# ----------------------------------------------------------------------------- one thread per particle (``simt``)
+
+
+@functools.cache
+def make_simt_kernel(dtype: torch.dtype, shape: MLPShape):
+    """The MLP's forward with one thread per particle: layer 1's w1 activations in registers (loops unrolled), layer 2
+    one hidden unit at a time straight into the n_out outputs; with ``save`` it also stores the pre-activations a1
+    [N, w1] and a2 [N, w2] for the backward (:class:`_SimtMLP`). The weights are read at addresses every thread of a
+    warp shares (one broadcast load each)."""
+    wp.init()
+    T = WARP_FLOATS[dtype]
+    n_in, w1, w2, n_out = shape.n_in, shape.w1, shape.w2, shape.n_out
+    module = f"gca_laws_mlp_simt_{T.__name__}_{n_in}x{w1}x{w2}x{n_out}_{shape.activation}"
+    wp.set_module_options({"enable_backward": False, "max_unroll": max(n_in, w1, w2, n_out)}, module=module)
+    act, _ = _activation(shape.activation, T, module)
+    vec_in, vec_h, vec_out = (wp.types.vector(length=k, dtype=T) for k in (n_in, w1, n_out))
+
+    @wp.kernel(module=module, enable_backward=False)
+    def forward(z: wp.array2d(dtype=T), W1: wp.array2d(dtype=T), W2: wp.array2d(dtype=T), W3: wp.array2d(dtype=T),
+                save: int, X: wp.array2d(dtype=T), A1: wp.array2d(dtype=T), A2: wp.array2d(dtype=T)):
+        p = wp.tid()
+        zp = vec_in()
+        for i in range(wp.static(n_in)):
+            zp[i] = z[p, i]
+        h1 = vec_h()
+        for j in range(wp.static(w1)):
+            a = T(0.0)
+            for i in range(wp.static(n_in)):
+                a += W1[j, i] * zp[i]
+            h1[j] = act(a)
+            if save != 0:
+                A1[p, j] = a
+        x = vec_out()
+        for k in range(w2):  # a runtime loop: one unit of layer 2 at a time
+            a = T(0.0)
+            for j in range(wp.static(w1)):
+                a += W2[k, j] * h1[j]
+            if save != 0:
+                A2[p, k] = a
+            h = act(a)
+            for m in range(wp.static(n_out)):
+                x[m] += W3[m, k] * h
+        for m in range(wp.static(n_out)):
+            X[p, m] = x[m]
+
+    return forward
+
+
+class _SimtMLP(torch.autograd.Function):
+    """z [N, n_in], W1, W2, W3 -> X [N, n_out]: the forward in one warp kernel (:func:`make_simt_kernel`); the backward
+    in torch from the stored pre-activations (the activation's own backward, products by cuBLAS), so it is torch's
+    backward without a recomputed forward."""
+
+    @staticmethod
+    def forward(ctx, z, W1, W2, W3, shape, activation):
+        z, Ws = z.detach().contiguous(), [W.detach().contiguous() for W in (W1, W2, W3)]
+        save = any(ctx.needs_input_grad[:4])
+        n = z.shape[0]
+        X = torch.empty(n, shape.n_out, dtype=z.dtype, device=z.device)
+        A1 = torch.empty(n if save else 0, shape.w1, dtype=z.dtype, device=z.device)
+        A2 = torch.empty(n if save else 0, shape.w2, dtype=z.dtype, device=z.device)
+        if n:
+            with on_torch_stream(z.device):
+                wp.launch(make_simt_kernel(z.dtype, shape), dim=n, device=wp.device_from_torch(z.device),
+                          inputs=[_a(z), *map(_a, Ws), int(save), _a(X), _a(A1), _a(A2)])
+        ctx.save_for_backward(z, *Ws, A1, A2)
+        ctx.activation = activation
+        return X
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_X):
+        z, W1, W2, W3, A1, A2 = ctx.saved_tensors
+        with torch.enable_grad():
+            a1, a2 = A1.detach().requires_grad_(True), A2.detach().requires_grad_(True)
+            h1, h2 = ctx.activation(a1), ctx.activation(a2)
+        (d2,) = torch.autograd.grad(h2, a2, v_X @ W3)  # (v_X W3) * act'(a2)
+        (d1,) = torch.autograd.grad(h1, a1, d2 @ W2)
+        need = ctx.needs_input_grad
+        return (d1 @ W1 if need[0] else None, d1.T @ z if need[1] else None, d2.T @ h1.detach() if need[2] else None,
+                v_X.T @ h2.detach() if need[3] else None, None, None)
+
+
+def simt_mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, activation: torch.nn.Module) -> torch.Tensor:
+    """X [N, n_out] = the MLP of ``shape`` on z [N, n_in] with ``weights`` [W1, W2, W3], its forward one thread per
+    particle (:func:`make_simt_kernel`), its backward torch's (``activation``: the network's activation module, so
+    its derivative is torch's own). Differentiable in z and the weights."""
+    _check(z, weights, shape)
+    return _SimtMLP.apply(z, *weights, shape, activation)

@@ -39,7 +39,7 @@ from gca.laws.svd import bmm3, check_F, det3, svd, warp_runs
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
 N_FEATURES = 13  # [sigma - 1 (3), vec(F^T F - I) (9), det F - 1 (1)]
-MLP_KERNELS = ("torch", "warp")  # _InvariantNetwork.mlp_kernel
+MLP_KERNELS = ("torch", "warp", "simt")  # _InvariantNetwork.mlp_kernel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,9 +107,10 @@ class _InvariantNetwork(nn.Module):
     gradients to rounding; the flag is an implementation choice, not part of the checkpoint.
 
     ``mlp_kernel`` (on the fast path): ``torch`` (default) runs the MLP as torch's ``nn.Sequential``; ``warp`` as one
-    warp tile kernel each way (``gca.laws.mlp_kernel``; two hidden layers only). Measured on an H100 at 30k particles
-    (``benchmarks/NOTES.md`` session 34) the tile kernel is slower (forward 55 vs 37 us, forward + backward 725 vs
-    124 us), so it is an option, not the default.
+    warp tile kernel each way (``gca.laws.mlp_kernel.mlp``), ``simt`` its forward one thread per particle with torch's
+    backward from the stored pre-activations (``gca.laws.mlp_kernel.simt_mlp``); both two hidden layers only.
+    Measured on an H100 at 30k particles (``benchmarks/NOTES.md`` session 34) the tile kernel is slower (forward +
+    backward 215 vs 124 us); ``simt`` is not measured yet. Options, not the default.
     """
 
     fast_path: bool = True
@@ -145,9 +146,12 @@ class _InvariantNetwork(nn.Module):
             return self.mlp(z)
         shape = mlp_kernel.shape_of(self.mlp)
         if shape is None:
-            raise ValueError(f"gca/laws/neural.py: mlp_kernel='warp' fuses two hidden layers with one of "
+            raise ValueError(f"gca/laws/neural.py: mlp_kernel={self.mlp_kernel!r} fuses two hidden layers with one of "
                              f"{mlp_kernel.ACTIVATIONS}, not {self.mlp}")
-        return mlp_kernel.mlp(z, [effective_weight(layer) for layer in self.mlp[0::2]], shape)
+        weights = [effective_weight(layer) for layer in self.mlp[0::2]]
+        if self.mlp_kernel == "simt":
+            return mlp_kernel.simt_mlp(z, weights, shape, self.mlp[1])
+        return mlp_kernel.mlp(z, weights, shape)
 
     def rotation_and_stretch(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """F [N,3,3] -> (R [N,3,3] polar rotation, S [N,3,3] symmetric network output) (torch reference)."""
