@@ -20,6 +20,7 @@ def on_torch_stream(device: torch.device):
     device = torch.device(device)
     if device.type != "cuda":
         return contextlib.nullcontext()
+    wp.init()  # wrapping a torch stream needs warp's runtime (a caller's first launch may come before any init)
     torch_stream = torch.cuda.current_stream(device)
     stream = _WARP_STREAMS.get(torch_stream.cuda_stream)
     if stream is None:

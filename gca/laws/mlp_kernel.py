@@ -327,8 +327,9 @@ class _SimtMLP(torch.autograd.Function):
         A1 = torch.empty(n if save else 0, shape.w1, dtype=z.dtype, device=z.device)
         A2 = torch.empty(n if save else 0, shape.w2, dtype=z.dtype, device=z.device)
         if n:
+            kernel = make_simt_kernel(z.dtype, shape)  # initialises warp before its stream is wrapped
             with on_torch_stream(z.device):
-                wp.launch(make_simt_kernel(z.dtype, shape), dim=n, device=wp.device_from_torch(z.device),
+                wp.launch(kernel, dim=n, device=wp.device_from_torch(z.device),
                           inputs=[_a(z), *map(_a, Ws), int(save), _a(X), _a(A1), _a(A2)])
         ctx.save_for_backward(z, *Ws, A1, A2)
         ctx.activation = activation
