@@ -9,7 +9,7 @@ on one device:
 - ``law``: one MPM step's calls of the law (plasticity on F_trial, then elasticity on F_e; NCLaw networks with LoRA
   r = 16 as training runs them, the paper prior's weights), forward, and forward + backward, per call [us], at FP32
   and at TF32 (``torch.backends.cuda.matmul.allow_tf32``);
-- ``rollout``: a lattice ball of ~64 particles per cell (the paper profile's density) dropped with a spin onto the
+- ``rollout``: a lattice ball of ~64 particles per cell (denser than the paper profile's ~12: session 34) dropped with a spin onto the
   floor, ``--steps`` steps, in float64 (the reference), float32, and float32 with TF32 products: each one's largest
   position deviation from float64 over all frames [m] and [cells], and of F;
 - ``gradient``: the gradient of a fixed random projection of the last frame's positions with respect to the LoRA

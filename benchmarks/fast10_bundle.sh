@@ -14,10 +14,7 @@
 #       bench_law_precision.py: the neural law's products in TF32 beside FP32: time, rollout and gradient deviation
 #   PART=tf32 (~4.5 min): gsplat's build, the ball's data, 10 GCA iterations at train.matmul_precision highest (FP32),
 #       high (TF32), highest again (same data)                                      -> {fp32,tf32,fp32b}/
-#   PART=mlp (session 34; ~3 min): bench_mlp.py, the neural law's MLP in torch's products and in the warp tile kernel
-#   PART=mlpab (session 34; ~7 min; needs ab_old = git archive 6f6fb22 gca params.yaml dvc.yaml stages tuning): gsplat's
-#       build, the ball's data, 10 GCA iterations with the tile MLP (HEAD), with torch's MLP (6f6fb22), HEAD again
-#                                                                                   -> {tile,torchmlp,tile2}/
+#   PART=mlp (session 34; ~3 min): bench_mlp.py, the neural law's MLP in torch, simt and the warp tile kernel (scalar products)
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
@@ -74,18 +71,6 @@ if [ "$PART" = mlp ]; then  # session 34: no gsplat needed; limit 300 s (cuBLASD
   stamp "bench_mlp: the MLP in torch products and in the tile kernel"
   timeout 300 python3 benchmarks/bench_mlp.py --device cuda --json "$OUT/mlp.json" > "$OUT/mlp.txt" 2>&1
   echo "mlp rc=$?"; grep -E "^\|" "$OUT/mlp.txt"
-fi
-
-if [ "$PART" = mlpab ]; then  # session 34: the tile-kernel MLP (HEAD) against the code before it (ab_old), same data
-  [ -f ab_old/gca/laws/neural.py ] && ! [ -f ab_old/gca/laws/mlp_kernel.py ] || {
-    echo "ab_old/gca must be the code before the tile MLP: git archive 6f6fb22 gca params.yaml dvc.yaml stages tuning"; exit 2; }
-  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
-  W=/tmp/fast10_ball
-  stamp "tile (HEAD): data + 10 iterations"; run tile ball $W 10 170
-  stamp "torchmlp (6f6fb22): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
-  PYTHONPATH=$PWD/ab_old:$PYTHONPATH run torchmlp ball $W 10 100 --reuse-data --stages train evaluate
-  stamp "tile again"; rm -rf $W/runs/ball $W/eval; run tile2 ball $W 10 100 --reuse-data --stages train evaluate
-  summary tile torchmlp tile2
 fi
 
 if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattice against C order (P2G only)
