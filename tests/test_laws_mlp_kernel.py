@@ -31,37 +31,37 @@ def test_activations_cover_the_laws():
     assert set(mk.ACTIVATIONS) == set(ACTIVATIONS)
 
 
+def _matches_torch(run, net: nn.Sequential, n: int) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+    """``run(z, Ws)`` against ``net(z)``: values and the gradients to z and the three weights, float64, 1e-13
+    relative; returns (X, z, Ws)."""
+    z = torch.randn(n, 13, dtype=f64, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+    Ws = _weights(net)
+    X, ref = run(z, Ws), net(z)
+    v = torch.randn(X.shape, dtype=f64, generator=torch.Generator().manual_seed(2))
+    got = torch.autograd.grad(X, [z, *Ws], v)
+    want = torch.autograd.grad(ref, [z, net[0].weight, net[2].weight, net[4].weight], v)
+    torch.testing.assert_close(X, ref, rtol=0, atol=1e-13 * float(ref.detach().abs().max()))
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-13 * float(b.abs().max()))
+    return X, z, Ws
+
+
 @pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
 @pytest.mark.parametrize("n", [37, 16, 200])  # a partial last tile, whole tiles, blocks that loop over several tiles
 def test_tile_mlp_equals_torch_values_and_gradients(activation, n):
     net = _net(activation)
     shape = mk.shape_of(net)
     assert shape == mk.MLPShape(13, 64, 64, 9, activation)
-    z = torch.randn(n, 13, dtype=f64, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
-    Ws = _weights(net)
-    X, ref = mk.mlp(z, Ws, shape), net(z)
-    v = torch.randn(X.shape, dtype=f64, generator=torch.Generator().manual_seed(2))
-    got = torch.autograd.grad(X, [z, *Ws], v)
-    want = torch.autograd.grad(ref, [z, net[0].weight, net[2].weight, net[4].weight], v)
-    torch.testing.assert_close(X, ref, rtol=0, atol=1e-13 * float(ref.detach().abs().max()))
-    for a, b in zip(got, want):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-13 * float(b.abs().max()))
+    _matches_torch(lambda z, Ws: mk.mlp(z, Ws, shape), net, n)
 
 
 @pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
 def test_simt_mlp_equals_torch_values_and_gradients(activation):
     net = _net(activation)
-    z = torch.randn(37, 13, dtype=f64, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
-    Ws = _weights(net)
-    X, ref = mk.simt_mlp(z, Ws, mk.shape_of(net), net[1]), net(z)
-    v = torch.randn(X.shape, dtype=f64, generator=torch.Generator().manual_seed(2))
-    got = torch.autograd.grad(X, [z, *Ws], v)
-    want = torch.autograd.grad(ref, [z, net[0].weight, net[2].weight, net[4].weight], v)
-    torch.testing.assert_close(X, ref, rtol=0, atol=1e-13 * float(ref.detach().abs().max()))
-    for a, b in zip(got, want):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-13 * float(b.abs().max()))
+    run = lambda z, Ws: mk.simt_mlp(z, Ws, mk.shape_of(net), net[1])  # noqa: E731
+    X, z, Ws = _matches_torch(run, net, 37)
     with torch.no_grad():  # no gradient wanted: the pre-activations are not stored, the values are the same
-        torch.testing.assert_close(mk.simt_mlp(z, Ws, mk.shape_of(net), net[1]), X.detach(), rtol=0, atol=0)
+        torch.testing.assert_close(run(z, Ws), X.detach(), rtol=0, atol=0)
 
 
 @pytest.mark.grad
