@@ -11,7 +11,9 @@ and memory-bound). The tile kernel keeps a block's activations on chip. Per size
   the MLP in torch, ``simt`` and the tile kernel (``warp``);
 
 each captured in one CUDA graph and replayed (what training does: ``gca.sim.graph``), so launch overheads count as
-they do there; on the CPU, eager calls. Variants: ``torch`` (nn.Sequential, FP32 products), ``simt`` (the forward one
+they do there; on the CPU, eager calls. Variants: ``torch`` (nn.Sequential, FP32 products), ``torch_tf32`` (the same
+with TF32 products, ``train.matmul_precision`` high: session 33's TF32 bench timed eager calls, bound by the host's
+launches, so it could not see what TF32 does to the kernels), ``simt`` (the forward one
 thread per particle, torch's backward from the stored pre-activations: ``gca.laws.mlp_kernel.simt_mlp``), ``t<k>`` (the tile kernel,
 k particles per block, cuBLASDx products: minutes to compile), ``t<k>s`` (warp's scalar tile product, the
 kernel's default). Each row also gives the largest
@@ -39,8 +41,9 @@ from gca.efficiency import best_time_us  # noqa: E402
 from gca.laws import mlp_kernel as mk  # noqa: E402
 from gca.laws.lora import apply_lora, lora_layers  # noqa: E402
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity, make_mlp  # noqa: E402
+from gca.train.loop import matmul_precision  # noqa: E402
 
-VARIANT = re.compile(r"^(torch|simt|t(\d+)(s?))$")
+VARIANT = re.compile(r"^(torch|torch_tf32|simt|t(\d+)(s?))$")
 
 
 def timed_us(fn, device: torch.device, iters: int, repeats: int) -> float:
@@ -68,7 +71,7 @@ def features(n: int, device, dtype, seed: int = 0) -> torch.Tensor:
 
 def run_mlp(variant: str, z: torch.Tensor, Ws: list[torch.Tensor], net: torch.nn.Sequential) -> torch.Tensor:
     m = VARIANT.match(variant)
-    if m.group(1) == "torch":
+    if m.group(1).startswith("torch"):  # torch_tf32: the same call, inside mlp_row's TF32 block
         return net(z)
     if m.group(1) == "simt":
         return mk.simt_mlp(z, Ws, mk.shape_of(net), net[1])
@@ -76,7 +79,13 @@ def run_mlp(variant: str, z: torch.Tensor, Ws: list[torch.Tensor], net: torch.nn
 
 
 def mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
-    """The MLP alone: time forward and forward + backward; deviations from float64."""
+    """The MLP alone: time forward and forward + backward; deviations from float64 (``torch_tf32``: torch's products
+    at ``train.matmul_precision`` high, TF32 on CUDA, captured and replayed as training would)."""
+    with matmul_precision("high" if variant == "torch_tf32" else "highest"):
+        return _mlp_row(variant, n, device, iters, repeats)
+
+
+def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)
@@ -98,7 +107,7 @@ def mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
     rel = lambda a, b: float((a.double() - b).abs().max() / b.abs().max())  # noqa: E731
     row["X_rel_dev"] = rel(X.detach(), X64.detach())
     row["grad_rel_dev"] = max(rel(a, b) for a, b in zip(g, g64))
-    if variant != "torch" and (variant.endswith("s") or variant == "simt" or device.type == "cpu"):  # its float64 build
+    if not variant.startswith("torch") and (variant.endswith("s") or variant == "simt" or device.type == "cpu"):  # f64
         # (scalar products only on CUDA: cuBLASDx compiled one float32 module for 281 s on the H100, session 34)
         W64l = [W.detach().requires_grad_(True) for W in W64]
         X = run_mlp(variant, z64, W64l, net64)
@@ -131,14 +140,14 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--sizes", type=int, nargs="+", default=[30000, 100000], help="particle counts")
-    ap.add_argument("--variants", nargs="+", default=["torch", "simt", "t16s"])  # t<k>: cuBLASDx compiles for minutes
+    ap.add_argument("--variants", nargs="+", default=["torch", "torch_tf32", "simt", "t16s"])  # t<k>: cuBLASDx compiles for minutes
     ap.add_argument("--iters", type=int, default=50)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     bad = [v for v in args.variants if not VARIANT.match(v)]
     if bad:
-        ap.error(f"variants must be torch, simt, t<k> or t<k>s, got {bad}")
+        ap.error(f"variants must be torch, torch_tf32, simt, t<k> or t<k>s, got {bad}")
     device = torch.device(args.device)
     out = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "mlp": [], "law": []}
     print("| particles | variant | mlp fwd us | mlp fwd+bwd us | X rel dev | grad rel dev | float64 rel dev |")

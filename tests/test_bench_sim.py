@@ -154,10 +154,12 @@ def test_bench_law_precision_runs_on_the_cpu_and_measures_float32_against_float6
 
 
 def test_bench_mlp_times_torch_and_the_tile_kernel_and_checks_both_against_float64():
-    out = _load("bench_mlp").main(["--device", "cpu", "--sizes", "70", "--variants", "torch", "simt", "t16", "--iters",
-                                   "1", "--repeats", "1"])
-    assert [r["variant"] for r in out["mlp"]] == ["torch", "simt", "t16"] and [r["variant"] for r in out["law"]] == \
-        ["torch", "simt", "warp"]
+    before = torch.get_float32_matmul_precision()
+    out = _load("bench_mlp").main(["--device", "cpu", "--sizes", "70", "--variants", "torch", "simt", "t16",
+                                   "torch_tf32", "--iters", "1", "--repeats", "1"])
+    assert torch.get_float32_matmul_precision() == before  # torch_tf32's precision is restored
+    assert [r["variant"] for r in out["mlp"]] == ["torch", "simt", "t16", "torch_tf32"]
+    assert [r["variant"] for r in out["law"]] == ["torch", "simt", "warp"]
     for r in out["mlp"]:
         assert r["mlp_fwd_us"] > 0 and r["mlp_fwd_bwd_us"] > 0
         assert 0 < r["X_rel_dev"] < 1e-5 and 0 < r["grad_rel_dev"] < 1e-5  # float32 ran, and stayed close
