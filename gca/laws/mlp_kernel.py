@@ -270,41 +270,43 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, tile: int
 
 @functools.cache
 def make_simt_kernel(dtype: torch.dtype, shape: MLPShape):
-    """The MLP's forward with one thread per particle: layer 1's w1 activations in registers (loops unrolled), layer 2
-    one hidden unit at a time straight into the n_out outputs; with ``save`` it also stores the pre-activations a1
-    [N, w1] and a2 [N, w2] for the backward (:class:`_SimtMLP`). The weights are read at addresses every thread of a
-    warp shares (one broadcast load each)."""
+    """The MLP's forward with one thread per particle: a runtime loop over layer 1's units, each added at once into
+    layer 2's w2 pre-activations (registers: that inner loop is unrolled), then layer 2's activations into the n_out
+    outputs; with ``save`` it also stores the pre-activations a1 [N, w1] and a2 [N, w2] for the backward
+    (:class:`_SimtMLP`). The weights are read at addresses every thread of a warp shares (one broadcast load each).
+    Only the w2- and n_out-wide loops are unrolled: unrolling layer 1 too made 61k lines of C++ (CPU build 17 s; on
+    the H100 NVRTC had not finished after 2 min, session 34); this order is ~10x less code."""
     wp.init()
     T = WARP_FLOATS[dtype]
     n_in, w1, w2, n_out = shape.n_in, shape.w1, shape.w2, shape.n_out
     module = f"gca_laws_mlp_simt_{T.__name__}_{n_in}x{w1}x{w2}x{n_out}_{shape.activation}"
-    wp.set_module_options({"enable_backward": False, "max_unroll": max(n_in, w1, w2, n_out)}, module=module)
+    wp.set_module_options({"enable_backward": False, "max_unroll": max(n_in, w2, n_out)}, module=module)
     act, _ = _activation(shape.activation, T, module)
-    vec_in, vec_h, vec_out = (wp.types.vector(length=k, dtype=T) for k in (n_in, w1, n_out))
+    vec_in, vec_h2, vec_out = (wp.types.vector(length=k, dtype=T) for k in (n_in, w2, n_out))
 
     @wp.kernel(module=module, enable_backward=False)
     def forward(z: wp.array2d(dtype=T), W1: wp.array2d(dtype=T), W2: wp.array2d(dtype=T), W3: wp.array2d(dtype=T),
-                save: int, X: wp.array2d(dtype=T), A1: wp.array2d(dtype=T), A2: wp.array2d(dtype=T)):
+                n1: int, save: int, X: wp.array2d(dtype=T), A1: wp.array2d(dtype=T), A2: wp.array2d(dtype=T)):
         p = wp.tid()
         zp = vec_in()
         for i in range(wp.static(n_in)):
             zp[i] = z[p, i]
-        h1 = vec_h()
-        for j in range(wp.static(w1)):
+        a2 = vec_h2()
+        for j in range(n1):  # a runtime loop (n1 = w1 passed at launch, so warp cannot unroll it): one unit of layer 1
+            # at a time, added into layer 2's pre-activations
             a = T(0.0)
             for i in range(wp.static(n_in)):
                 a += W1[j, i] * zp[i]
-            h1[j] = act(a)
             if save != 0:
                 A1[p, j] = a
-        x = vec_out()
-        for k in range(w2):  # a runtime loop: one unit of layer 2 at a time
-            a = T(0.0)
-            for j in range(wp.static(w1)):
-                a += W2[k, j] * h1[j]
-            if save != 0:
-                A2[p, k] = a
             h = act(a)
+            for k in range(wp.static(w2)):
+                a2[k] += W2[k, j] * h
+        x = vec_out()
+        for k in range(wp.static(w2)):
+            if save != 0:
+                A2[p, k] = a2[k]
+            h = act(a2[k])
             for m in range(wp.static(n_out)):
                 x[m] += W3[m, k] * h
         for m in range(wp.static(n_out)):
@@ -330,7 +332,7 @@ class _SimtMLP(torch.autograd.Function):
             kernel = make_simt_kernel(z.dtype, shape)  # initialises warp before its stream is wrapped
             with on_torch_stream(z.device):
                 wp.launch(kernel, dim=n, device=wp.device_from_torch(z.device),
-                          inputs=[_a(z), *map(_a, Ws), int(save), _a(X), _a(A1), _a(A2)])
+                          inputs=[_a(z), *map(_a, Ws), shape.w1, int(save), _a(X), _a(A1), _a(A2)])
         ctx.save_for_backward(z, *Ws, A1, A2)
         ctx.activation = activation
         return X
