@@ -64,6 +64,21 @@ def test_simt_mlp_equals_torch_values_and_gradients(activation):
         torch.testing.assert_close(run(z, Ws), X.detach(), rtol=0, atol=0)
 
 
+def test_simt_stores_pre_activations_only_when_a_gradient_is_wanted(monkeypatch):
+    net = _net()
+    shape = mk.shape_of(net)
+    z = torch.randn(20, 13, dtype=f64, requires_grad=True)
+    Ws = _weights(net)
+    saves = []
+    real = mk._SimtMLP.apply
+    monkeypatch.setattr(mk._SimtMLP, "apply", lambda *a: saves.append(a[-1]) or real(*a))
+    with torch.no_grad():  # the simulation's forward: Ws require grad (LoRA), but nothing will be differentiated
+        mk.simt_mlp(z, Ws, shape, net[1])
+    mk.simt_mlp(z.detach(), [W.detach() for W in Ws], shape, net[1])  # nothing requires grad
+    mk.simt_mlp(z, Ws, shape, net[1])  # the recomputed frame: a gradient follows
+    assert saves == [False, False, True]
+
+
 @pytest.mark.grad
 def test_simt_mlp_gradcheck_float64_and_its_negative_control():
     net = _net("gelu", widths=(8, 6))

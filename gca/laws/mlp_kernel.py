@@ -321,9 +321,8 @@ class _SimtMLP(torch.autograd.Function):
     backward without a recomputed forward."""
 
     @staticmethod
-    def forward(ctx, z, W1, W2, W3, shape, activation):
+    def forward(ctx, z, W1, W2, W3, shape, activation, save):
         z, Ws = z.detach().contiguous(), [W.detach().contiguous() for W in (W1, W2, W3)]
-        save = any(ctx.needs_input_grad[:4])
         n = z.shape[0]
         X = torch.empty(n, shape.n_out, dtype=z.dtype, device=z.device)
         A1 = torch.empty(n if save else 0, shape.w1, dtype=z.dtype, device=z.device)
@@ -348,7 +347,14 @@ class _SimtMLP(torch.autograd.Function):
         (d1,) = torch.autograd.grad(h1, a1, d2 @ W2)
         need = ctx.needs_input_grad
         return (d1 @ W1 if need[0] else None, d1.T @ z if need[1] else None, d2.T @ h1.detach() if need[2] else None,
-                v_X.T @ h2.detach() if need[3] else None, None, None)
+                v_X.T @ h2.detach() if need[3] else None, None, None, None)
+
+
+def wants_gradient(*tensors: torch.Tensor) -> bool:
+    """Whether a call on ``tensors`` will be differentiated: grad mode on and one of them requires grad. (Inside a
+    ``torch.autograd.Function``'s forward ``ctx.needs_input_grad`` says True under ``torch.no_grad()`` too, and grad
+    mode is always off there, so the caller decides.)"""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
 def simt_mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, activation: torch.nn.Module) -> torch.Tensor:
@@ -356,4 +362,4 @@ def simt_mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, acti
     particle (:func:`make_simt_kernel`), its backward torch's (``activation``: the network's activation module, so
     its derivative is torch's own). Differentiable in z and the weights."""
     _check(z, weights, shape)
-    return _SimtMLP.apply(z, *weights, shape, activation)
+    return _SimtMLP.apply(z, *weights, shape, activation, wants_gradient(z, *weights))
