@@ -88,7 +88,7 @@ def main(argv=None) -> None:
     n_video = args.horizon or len(data.video_frames)
 
     def step():
-        with loop.matmul_precision(cfg.matmul_precision):  # as train() runs it
+        with loop.run_settings(cfg, law):  # as train() runs it (matmul precision, MLP kernel)
             record = loop._gradient(solver, law, data, objective, cfg, n_video)
         opt.step()
         return record

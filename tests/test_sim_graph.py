@@ -127,6 +127,19 @@ def test_a_runner_is_reused_only_under_the_float32_product_precision_it_was_made
         torch.set_float32_matmul_precision(before)
 
 
+def test_a_runner_is_reused_only_under_the_mlp_kernels_it_was_made_under():
+    """train.mlp_kernel: a captured graph bakes the networks' MLP kernels in too."""
+    material = _law()
+    solver = MPMSolver(SimConfig(n_grid=12, dt=1e-3, bound=1, dtype="float64", boundary="sticky", friction=0.0,
+                                 max_refine=1))
+    n = _scene()[0].shape[0]
+    made = solver.frame_graphs(material, 2, n)
+    assert solver.frame_graphs(material, 2, n) is made and made.kernels == ("torch", "torch")  # reused (the control)
+    material.elasticity.mlp_kernel = "simt"
+    simt = solver.frame_graphs(material, 2, n)
+    assert simt is not made and simt.kernels == ("simt", "torch")
+
+
 def test_capture_refused_on_cpu():
     solver = MPMSolver(SimConfig(n_grid=8, dtype="float64", dt=1e-3, bound=3, boundary="sticky", friction=0.0,
                                  max_refine=1))

@@ -348,9 +348,34 @@ def test_training_runs_at_its_matmul_precision_and_restores_the_process_one(scen
         torch.set_float32_matmul_precision(own)
 
 
+def test_training_runs_its_mlp_kernel_and_restores_the_networks_own(scene, monkeypatch):
+    """train.mlp_kernel is on every neural network while the run differentiates and the networks' own after; the
+    simt run's first loss equals torch's to rounding (the same law)."""
+    import gca.train.loop as loop
+    from gca.laws.neural import NeuralElasticity, NeuralPlasticity
+    seen, original = [], loop._gradient
+
+    def spy(solver, law, *args, **kwargs):
+        seen.append({m.mlp_kernel for m in law.material.modules() if isinstance(m, (NeuralElasticity, NeuralPlasticity))})
+        return original(solver, law, *args, **kwargs)
+    monkeypatch.setattr(loop, "_gradient", spy)
+    losses = {}
+    for kind in ("simt", "torch"):
+        law, run = _neuma_run(scene, iterations=1, keep="last", mlp_kernel=kind)
+        result = run()
+        assert result.status == "ok"
+        losses[kind] = result.history[0]["loss"]
+        assert {m.mlp_kernel for m in law.material.modules() if isinstance(m, (NeuralElasticity, NeuralPlasticity))} \
+            == {"torch"}  # restored
+    assert seen == [{"simt"}, {"torch"}]
+    assert losses["simt"] == pytest.approx(losses["torch"], rel=1e-5)
+
+
 def test_matmul_precision_is_validated():
     with pytest.raises(ValueError, match="train.matmul_precision must be one of"):
         TrainConfig(matmul_precision="medium")
+    with pytest.raises(ValueError, match="train.mlp_kernel must be one of"):
+        TrainConfig(mlp_kernel="fast")
 
 
 def test_keep_best_returns_the_law_of_lowest_training_loss(scene):

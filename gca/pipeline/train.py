@@ -227,7 +227,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     summary = {"scene": scene_name, "method": method.name, "seed": tcfg.seed, "status": result.status, "message": result.message,
                "iterations": result.iterations, "train_seconds": cost.wall_s + result.seconds_before,
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
-               "memory_source": cost.source, "render_backend": data.body.backend, "matmul_precision": tcfg.matmul_precision, "mlflow_run_id": run.run_id if run else None,
+               "memory_source": cost.source, "render_backend": data.body.backend, "matmul_precision": tcfg.matmul_precision, "mlp_kernel": tcfg.mlp_kernel, "mlflow_run_id": run.run_id if run else None,
                "rejected_updates": result.rejected, "selected": result.selected, **gpu_sharing(),
                "commit": git_commit(), "device": device_name(device),  # what made it (a resumed run: what finished it)
                "velocity": {"v0": list(map(float, velocity[0])), "w0": list(map(float, velocity[1]))},  # it trained with

@@ -73,6 +73,12 @@ def _collector_paused():
             gc.enable()
 
 
+def _mlp_kernels(material) -> tuple[str, ...]:
+    """The MLP kernel of each neural network in ``material`` (``mlp_kernel``), in module order."""
+    mods = material.modules() if isinstance(material, torch.nn.Module) else ()
+    return tuple(m.mlp_kernel for m in mods if hasattr(m, "mlp_kernel"))
+
+
 class FrameGraphs:
     """Forward and backward of ``n_steps`` steps of ``material`` on ``n`` particles, replayable.
 
@@ -97,6 +103,7 @@ class FrameGraphs:
         # torch's float32 product precision (train.matmul_precision) is baked into a captured graph's kernels: a
         # runner made under one is never reused under another
         self.precision = torch.get_float32_matmul_precision()
+        self.kernels = _mlp_kernels(material)  # likewise the neural networks' MLP kernels (train.mlp_kernel)
         if self.capture and dev.type != "cuda":
             raise ValueError(f"{_WHERE}: CUDA graph capture needs a CUDA solver, this one runs on {dev}")
         shapes = {"x": (n, 3), "v": (n, 3), "C": (n, 3, 3), "F": (n, 3, 3)}
@@ -113,6 +120,7 @@ class FrameGraphs:
         return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
                 and (capture is None or self.capture_asked == capture)
                 and self.precision == torch.get_float32_matmul_precision()
+                and self.kernels == _mlp_kernels(material)
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 
     def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:

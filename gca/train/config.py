@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 from gca.config import NOT_A_PARAM
+from gca.laws.neural import MLP_KERNELS
 
 
 #: train.matmul_precision's values: torch.set_float32_matmul_precision levels (``medium``, bfloat16, is not offered)
@@ -62,6 +63,11 @@ class TrainConfig:
             ``benchmarks/bench_law_precision.py``; whether its deviation is acceptable is decided on calibration
             scenes only. Evaluation always runs at ``highest`` (a separate stage; a frame graph captured under one
             precision is never replayed under another, ``gca.sim.graph.FrameGraphs.matches``).
+        mlp_kernel: how the neural laws run their MLP while training (``NeuralElasticity.mlp_kernel``, set on the
+            run's networks for the run and restored after): ``torch`` (default), ``simt`` (the forward one thread
+            per particle, torch's backward; ``gca.laws.mlp_kernel.simt_mlp``) or ``warp`` (one tile kernel each
+            way; measured slower). The same law to float rounding; a speed option measured in
+            ``benchmarks/bench_mlp.py``. Evaluation runs torch's.
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
@@ -92,6 +98,7 @@ class TrainConfig:
     optimizer: str = "radam"
     reverse_sweep: bool = True
     matmul_precision: str = "highest"
+    mlp_kernel: str = "torch"
     frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_until: float = dataclasses.field(default=0.33, metadata=NOT_A_PARAM)  # set by the method's recipe
     frame_decay_every: float = dataclasses.field(default=0.2, metadata=NOT_A_PARAM)  # set by the method's recipe
@@ -116,6 +123,8 @@ class TrainConfig:
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"train.matmul_precision must be one of {list(MATMUL_PRECISIONS)}, got "
                              f"{self.matmul_precision!r}")
+        if self.mlp_kernel not in MLP_KERNELS:
+            raise ValueError(f"train.mlp_kernel must be one of {list(MLP_KERNELS)}, got {self.mlp_kernel!r}")
         if self.keep not in ("best", "last"):
             raise ValueError(f"train.keep must be 'best' or 'last', got {self.keep!r}")
         if self.max_rejections < 0:

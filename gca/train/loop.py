@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from gca import stop
 from gca.efficiency import synced_clock
+from gca.laws.neural import NeuralElasticity, NeuralPlasticity
 from gca.sim.cfl import CFLError
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
@@ -90,11 +91,34 @@ def matmul_precision(level: str):
         torch.set_float32_matmul_precision(before)
 
 
+@contextlib.contextmanager
+def mlp_kernel(material, kind: str):
+    """Every neural network of ``material`` runs its MLP on ``kind`` inside the block (``train.mlp_kernel``:
+    ``NeuralElasticity.mlp_kernel``), each one's own restored after it."""
+    nets = [m for m in material.modules() if isinstance(m, (NeuralElasticity, NeuralPlasticity))] \
+        if isinstance(material, torch.nn.Module) else []
+    before = [net.mlp_kernel for net in nets]
+    for net in nets:
+        net.mlp_kernel = kind
+    try:
+        yield
+    finally:
+        for net, old in zip(nets, before):
+            net.mlp_kernel = old
+
+
+@contextlib.contextmanager
+def run_settings(cfg: TrainConfig, law: LearnedLaw):
+    """What a training run's differentiation runs under: ``cfg.matmul_precision`` and ``cfg.mlp_kernel``."""
+    with matmul_precision(cfg.matmul_precision), mlp_kernel(law.material, cfg.mlp_kernel):
+        yield
+
+
 def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
           checkpoint_path: Path | None = None, on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
-    """Run the optimisation at ``cfg.matmul_precision``; returns the status, the per-iteration history and the
+    """Run the optimisation under :func:`run_settings`; returns the status, the per-iteration history and the
     rejected updates."""
-    with matmul_precision(cfg.matmul_precision):
+    with run_settings(cfg, law):
         return _train(solver, law, data, objective, cfg, checkpoint_path, on_iteration)
 
 
