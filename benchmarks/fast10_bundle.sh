@@ -15,6 +15,8 @@
 #   PART=tf32 (~4.5 min): gsplat's build, the ball's data, 10 GCA iterations at train.matmul_precision highest (FP32),
 #       high (TF32), highest again (same data)                                      -> {fp32,tf32,fp32b}/
 #   PART=mlp (session 34; ~3 min): bench_mlp.py, the neural law's MLP in torch, simt and the warp tile kernel (scalar products)
+#   PART=simt (for session 35; ~8 min, limits 600 s with the build's 200): bench_mlp (torch, torch_tf32, simt); gsplat's
+#       build; the ball's data, 10 GCA iterations with train.mlp_kernel torch, then simt (same data)  -> {torchmlp,simt}/
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
@@ -71,6 +73,20 @@ if [ "$PART" = mlp ]; then  # session 34: no gsplat needed; limit 300 s (cuBLASD
   stamp "bench_mlp: the MLP in torch products and in the tile kernel"
   timeout 300 python3 benchmarks/bench_mlp.py --device cuda --json "$OUT/mlp.json" > "$OUT/mlp.txt" 2>&1
   echo "mlp rc=$?"; grep -E "^\|" "$OUT/mlp.txt"
+fi
+
+if [ "$PART" = simt ]; then  # for session 35: the simt MLP and TF32 at the MLP, then the ball with train.mlp_kernel
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "bench_mlp: torch, torch_tf32, simt"
+  timeout 150 python3 benchmarks/bench_mlp.py --device cuda --variants torch torch_tf32 simt --json "$OUT/mlp.json" \
+      > "$OUT/mlp.txt" 2>&1
+  echo "mlp rc=$?"; grep -E "^\||Module gca_laws_mlp" "$OUT/mlp.txt"
+  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
+  W=/tmp/fast10_ball
+  stamp "torchmlp: data + 10 iterations"; run torchmlp ball $W 10 150
+  stamp "simt: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+  run simt ball $W 10 100 --reuse-data --stages train evaluate --set train.mlp_kernel=simt
+  summary torchmlp simt
 fi
 
 if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattice against C order (P2G only)
