@@ -1,4 +1,6 @@
-"""The neural laws' MLP in one warp tile kernel each way (forward; backward with the weights' gradients).
+"""The neural laws' MLP in warp kernels: one tile kernel each way (``mlp``), or a one-thread-per-particle forward with
+torch's backward (``simt_mlp``). Options of the laws (``NeuralElasticity.mlp_kernel``, ``train.mlp_kernel``); torch's
+``nn.Sequential`` is the default.
 
 :class:`gca.laws.neural.NeuralElasticity` (and the plasticity) map the 13 features z of F to 9 numbers X through a
 bias-free MLP with two hidden layers (NCLaw's ``InvariantFullMeta``: 13 -> 64 -> 64 -> 9, GELU):
@@ -6,24 +8,26 @@ bias-free MLP with two hidden layers (NCLaw's ``InvariantFullMeta``: 13 -> 64 ->
     a1 = z W1^T,  h1 = act(a1),  a2 = h1 W2^T,  h2 = act(a2),  X = h2 W3^T            (forward)
 
     d3 = v_X,  v_W3 = d3^T h2,  d2 = (d3 W3) * act'(a2),  v_W2 = d2^T h1,
-    d1 = (d2 W2) * act'(a1),  v_W1 = d1^T z,  v_z = d1 W1                           (backward, a recomputed forward)
+    d1 = (d2 W2) * act'(a1),  v_W1 = d1^T z,  v_z = d1 W1                           (backward)
 
 In torch that is 3 products and 2 activation kernels forward and about 10 kernels backward per network and MPM step,
 each streaming [N, 64] activations through memory (the largest share of a swept GCA iteration's kernel time on an
-H100, ``benchmarks/NOTES.md`` session 33). Here one thread block takes ``tile`` particles through all layers with the
-activations in shared memory; the backward recomputes the forward (nothing [N, 64] is stored) and adds each block's
-weight gradients into [out, in] sums with one tile atomic per weight matrix. The weights are the layers' effective
-(LoRA-merged) weights, so gradients reach the adapters through torch's autograd of the merge, as on the torch path.
+H100, ``benchmarks/NOTES.md`` session 33).
 
-Same values as ``nn.Sequential`` to rounding (the sums run in another order; float64 gradient checks in the tests).
-Only the two-hidden-layer shape is fused (:func:`shape_of`).
+``mlp`` (tile kernels): one thread block takes ``tile`` particles through all layers with the activations in shared
+memory; the backward recomputes the forward (nothing [N, 64] is stored) and runs persistent blocks, each summing its
+tiles' weight gradients on chip and storing one partial, summed in a fixed order afterwards (deterministic). Measured
+(H100, 30k particles, graph-replayed; ``benchmarks/bench_mlp.py``, NOTES session 34): **slower than torch**: forward
+76 us against 37, forward + backward 215 us against 124; warp's scalar tile product reads both operands from shared
+memory for every multiply-add. (The first version, one tile atomic per block and matrix, took 526 us; cuBLASDx
+products compiled one module for 281 s.)
 
-Measured (H100, 30k particles, graph-replayed; ``benchmarks/bench_mlp.py``, NOTES session 34): **slower than torch**,
-so the laws use it only on request (``mlp_kernel="warp"``): forward 55 us (cuBLASDx products, 16 particles per block)
-or 76 us (warp's scalar product) against torch's 37; forward + backward 725 / 526 us against 124. The backward's
-weight-gradient atomics (every block adds 5.5k sums to the same addresses) and the shared memory a block needs (the
-backward asks 272 KiB at 32 particles, beyond an H100's 227; only 16 fit) are where it loses, and cuBLASDx compiled
-one module for 281 s. What a faster one would need is in NOTES.
+``simt_mlp``: one thread per particle, layer 2's pre-activations in registers, every weight a load the whole warp
+shares; the backward is torch's from the stored pre-activations. Not measured yet (NOTES session 34).
+
+The weights are the layers' effective (LoRA-merged) weights, so gradients reach the adapters through torch's autograd
+of the merge, as on the torch path. Same values as ``nn.Sequential`` to rounding (float64 gradient checks in the
+tests). Only the two-hidden-layer shape runs here (:func:`shape_of`).
 """
 
 # no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
