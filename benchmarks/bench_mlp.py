@@ -1,11 +1,14 @@
-"""The neural law's MLP as torch's products against the warp tile kernel (``gca.laws.mlp_kernel``), side by side.
+"""The neural law's MLP in torch's products, in the warp tile kernel and as simt's forward (``gca.laws.mlp_kernel``),
+side by side.
 
 Issue 20, session 34: in a swept paper-profile GCA iteration on the ball (0.77 s of CUDA kernels, session 33) the
 neural law's MLP (13 -> 64 -> 64 -> 9, GELU, N ~ 30k particles, twice per MPM step: plasticity and elasticity) is ~210
 ms of FP32 products plus ~100 ms of activations and copies. TF32 did not speed it (session 34: the products are small
-and memory-bound). The tile kernel keeps a block's activations on chip. Per size and variant, per call [us]:
+and memory-bound). The tile kernel keeps a block's activations on chip; simt keeps a particle's in registers. Per
+size and variant, per call [us]:
 
-- ``mlp fwd`` / ``mlp fwd+bwd``: the MLP alone (the backward: the input gradient and the three weight gradients);
+- ``mlp fwd`` / ``mlp fwd+bwd``: the MLP alone; the forward under ``torch.no_grad()`` as the simulation's forward runs
+  it (simt then stores no pre-activations), the backward: the input gradient and the three weight gradients;
 - ``law fwd+bwd``: one MPM step's law calls (plasticity, then elasticity on its output), NCLaw-shaped networks with
   LoRA r = 16 merged once as a frame merges them, features + MLP + head, gradient to F and the merged weights, with
   the MLP in torch, ``simt`` and the tile kernel (``warp``);
@@ -85,6 +88,14 @@ def mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
         return _mlp_row(variant, n, device, iters, repeats)
 
 
+def _no_grad(fn):
+    """``fn`` called under ``torch.no_grad()`` (the simulation's forward pass)."""
+    def call():
+        with torch.no_grad():
+            return fn()
+    return call
+
+
 def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
@@ -96,7 +107,7 @@ def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
     leaves = [z, *Ws]
     fwd = lambda: run_mlp(variant, z, Ws, net)  # noqa: E731
     both = lambda: torch.autograd.grad(run_mlp(variant, z, Ws, net), leaves, v)  # noqa: E731
-    row = {"variant": variant, "particles": n, "mlp_fwd_us": timed_us(lambda: fwd(), device, iters, repeats),
+    row = {"variant": variant, "particles": n, "mlp_fwd_us": timed_us(_no_grad(fwd), device, iters, repeats),
            "mlp_fwd_bwd_us": timed_us(both, device, iters, repeats)}
     z64 = z.detach().double().requires_grad_(True)
     W64 = [net64[i].weight for i in (0, 2, 4)]
@@ -118,7 +129,7 @@ def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
 
 def law_row(kind: str, n: int, device, iters: int, repeats: int) -> dict:
     """One step's law calls (plasticity, then elasticity) with LoRA merged as a frame merges it, forward + backward,
-    the MLP in torch (``kind`` torch) or in the tile kernel (``warp``)."""
+    the MLP on ``kind``: torch, simt or the tile kernel (``warp``)."""
     torch.manual_seed(0)
     nets = [NeuralPlasticity(NeuralLawConfig()), NeuralElasticity(NeuralLawConfig())]
     leaves = []

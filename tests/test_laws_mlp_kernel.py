@@ -118,15 +118,19 @@ def test_gradcheck_catches_a_wrong_activation_derivative(monkeypatch):
         mk.make_mlp_kernels.cache_clear()
 
 
-def test_weight_gradients_repeat_bit_for_bit():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_weight_gradients_repeat_bit_for_bit(device):
     # the backward's blocks each sum their tiles' weight gradients on chip and the partials are summed in a fixed
-    # order: the same inputs give the same bits (no atomics)
+    # order: the same inputs give the same bits. On the CPU warp runs blocks one after another, so any version
+    # repeats there; the CUDA case is the one an atomic-per-block version (blocks finishing in any order) would fail.
+    n = 300 if device == "cpu" else 30000
     net = _net()
-    z = torch.randn(300, 13, dtype=torch.float32, generator=torch.Generator().manual_seed(6))
-    Ws = [W.detach().float().requires_grad_(True) for W in _weights(net)]
-    v = torch.randn(300, 9, generator=torch.Generator().manual_seed(7))
+    z = torch.randn(n, 13, generator=torch.Generator().manual_seed(6)).to(device)
+    Ws = [W.detach().float().to(device).requires_grad_(True) for W in _weights(net)]
+    v = torch.randn(n, 9, generator=torch.Generator().manual_seed(7)).to(device)
     first, second = (torch.autograd.grad(mk.mlp(z, Ws, mk.shape_of(net)), Ws, v) for _ in range(2))
-    assert mk.backward_blocks(-(-300 // 16), z.device) < -(-300 // 16)  # blocks loop over several tiles here
+    assert mk.backward_blocks(-(-n // 16), z.device) < -(-n // 16)  # blocks loop over several tiles here
     assert all(torch.equal(a, b) for a, b in zip(first, second))
 
 
@@ -158,6 +162,8 @@ def test_zero_features_map_to_zero():
                    nn.Linear(8, 9, bias=False)), "tanh-approximate GELU"),
     (nn.Sequential(nn.Linear(13, 8, bias=False), nn.GELU(), nn.Linear(8, 8, bias=False), nn.Tanh(),
                    nn.Linear(8, 9, bias=False)), "two activations"),
+    (nn.Sequential(nn.Linear(13, 8, bias=False), nn.GELU(), nn.Linear(8, 8, bias=False), nn.GELU("tanh"),
+                   nn.Linear(8, 9, bias=False)), "an approximate GELU in the second place only"),
 ])
 def test_unfusable_shapes_are_recognised(net, why):
     assert mk.shape_of(net) is None, why
@@ -166,6 +172,8 @@ def test_unfusable_shapes_are_recognised(net, why):
 def test_bad_inputs_are_refused():
     net = _net()
     shape = mk.shape_of(net)
+    with pytest.raises(ValueError, match="float32 or float64 on one device"):
+        mk.mlp(torch.zeros(4, 13, dtype=torch.float16), [W.half() for W in _weights(net)], shape)
     with pytest.raises(ValueError, match=r"z must be \[N, 13\]"):
         mk.mlp(torch.zeros(4, 12, dtype=f64), _weights(net), shape)
     with pytest.raises(ValueError, match="weights must be"):
@@ -241,3 +249,21 @@ def test_rollout_with_the_tile_mlp_equals_the_torch_mlp():
         assert len(g) == 1 + 12 and all(float(t.abs().max()) > 0 for t in g)
         for a, b in zip(g, g_ref):
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-9)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("kind", ["simt", "warp"])
+def test_frames_with_a_warp_mlp_are_captured_on_cuda(kind):
+    """The kernels launch on torch's stream and allocate through torch, so a frame runner captures them in its CUDA
+    graphs (a failed capture falls back to eager launches with only a warning: a slowdown, not an error)."""
+    from gca.sim import MPMSolver, SimConfig
+
+    from test_sim_graph import _law, _loss_and_grads, _scene
+
+    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1), "cuda")
+    material = _law(torch.float32).to("cuda")
+    for net in (material.elasticity, material.plasticity):
+        net.mlp_kernel = kind
+    _loss_and_grads(material, solver, True, *(t.float().cuda() for t in _scene(dtype=torch.float32)))
+    runner = solver.frame_graphs(material, 2, _scene()[0].shape[0])
+    assert runner.capture and runner.kernels == (kind, kind)

@@ -362,11 +362,12 @@ def test_training_runs_its_mlp_kernel_and_restores_the_networks_own(scene, monke
     losses = {}
     for kind in ("simt", "torch"):
         law, run = _neuma_run(scene, iterations=1, keep="last", mlp_kernel=kind)
+        nets = [m for m in law.material.modules() if isinstance(m, (NeuralElasticity, NeuralPlasticity))]
+        nets[0].mlp_kernel = "warp"  # a network's own choice (not the class default) must come back
         result = run()
         assert result.status == "ok"
         losses[kind] = result.history[0]["loss"]
-        assert {m.mlp_kernel for m in law.material.modules() if isinstance(m, (NeuralElasticity, NeuralPlasticity))} \
-            == {"torch"}  # restored
+        assert [net.mlp_kernel for net in nets] == ["warp"] + ["torch"] * (len(nets) - 1)  # restored, each its own
     assert seen == [{"simt"}, {"torch"}]
     assert losses["simt"] == pytest.approx(losses["torch"], rel=1e-5)
 

@@ -57,7 +57,8 @@ def batched_linear(h: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
 
 
 def batched_mlp(nets: Sequence[nn.Module], z: torch.Tensor) -> torch.Tensor:
-    """The runs' MLPs on their row blocks of ``z`` [B n, in] -> [B n, out], one ``bmm`` per layer."""
+    """The runs' MLPs on their row blocks of ``z`` [B n, in] -> [B n, out], one ``bmm`` per layer (torch's products
+    whatever the networks' ``mlp_kernel``: the warp MLP kernels take one run's weights)."""
     B = len(nets)
     h = z.reshape(B, z.shape[0] // B, z.shape[1])
     for layers in zip(*(net.mlp for net in nets)):

@@ -72,9 +72,9 @@ def shape_of(mlp: torch.nn.Sequential) -> MLPShape | None:
     name = names.pop() if len(names) == 1 else None
     if name not in ACTIVATIONS:
         return None
-    if isinstance(acts[0], torch.nn.GELU) and acts[0].approximate != "none":
+    if any(isinstance(a, torch.nn.GELU) and a.approximate != "none" for a in acts):  # the kernels' GELU is exact
         return None
-    if isinstance(acts[0], torch.nn.ELU) and acts[0].alpha != 1.0:
+    if any(isinstance(a, torch.nn.ELU) and a.alpha != 1.0 for a in acts):  # and their ELU's alpha 1
         return None
     if not (lin[0].out_features == lin[1].in_features and lin[1].out_features == lin[2].in_features):
         return None
@@ -82,8 +82,8 @@ def shape_of(mlp: torch.nn.Sequential) -> MLPShape | None:
 
 
 def tile_size(dtype: torch.dtype, device: torch.device) -> int:
-    """Particles per thread block: 16 (the backward's tiles at 32 float32 particles ask 272 KiB of shared memory, more
-    than an H100 block may have; warp's CPU tile arena is 256 KiB)."""
+    """Particles per thread block: 16 (the backward's tiles take 79 KiB of shared memory in float32, 114 at 32 particles,
+    where both ran at the same speed on the H100, session 34; warp's CPU tile arena is 256 KiB, float64 twice as wide)."""
     return 16
 
 
@@ -99,8 +99,8 @@ def make_mlp_kernels(dtype: torch.dtype, shape: MLPShape, tile: int, mathdx: boo
     T = WARP_FLOATS[dtype]
     n_in, w1, w2, n_out, TP = shape.n_in, shape.w1, shape.w2, shape.n_out, int(tile)
     module = f"gca_laws_mlp_{T.__name__}_{n_in}x{w1}x{w2}x{n_out}_{shape.activation}_t{TP}{'' if mathdx else '_scalar'}"
-    # enable_backward off for the module too: with it on, warp sized every tile twice (a gradient buffer beside it) and
-    # the backward asked 272 KiB at 32 particles per block on the H100 where its tiles take 136 (session 34)
+    # enable_backward off for the module too: with it on, warp sized every tile twice (a gradient buffer beside it): the
+    # first backward asked 272 KiB at 32 particles per block on the H100 where its tiles took 136 (session 34)
     wp.set_module_options({"enable_mathdx_gemm": bool(mathdx), "enable_backward": False}, module=module)
     act, act_vjp = _activation(shape.activation, T, module)
 
@@ -252,6 +252,9 @@ class _TileMLP(torch.autograd.Function):
 
 
 def _check(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape) -> None:
+    if z.dtype not in WARP_FLOATS or any(W.device != z.device for W in weights):
+        raise ValueError(f"{_WHERE}: z and the weights must be float32 or float64 on one device, got z {z.dtype} on "
+                         f"{z.device}, weights on {sorted({str(W.device) for W in weights})}")
     if z.dim() != 2 or z.shape[1] != shape.n_in:
         raise ValueError(f"{_WHERE}: z must be [N, {shape.n_in}], got {tuple(z.shape)}")
     expect = [(shape.w1, shape.n_in), (shape.w2, shape.w1), (shape.n_out, shape.w2)]
