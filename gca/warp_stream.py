@@ -20,9 +20,9 @@ def on_torch_stream(device: torch.device):
     device = torch.device(device)
     if device.type != "cuda":
         return contextlib.nullcontext()
-    wp.init()  # wrapping a torch stream needs warp's runtime (a caller's first launch may come before any init)
     torch_stream = torch.cuda.current_stream(device)
     stream = _WARP_STREAMS.get(torch_stream.cuda_stream)
     if stream is None:
+        wp.init()  # wrapping a torch stream needs warp's runtime (a caller's first launch may come before any init)
         stream = _WARP_STREAMS[torch_stream.cuda_stream] = wp.stream_from_torch(torch_stream)
     return wp.ScopedStream(stream, sync_enter=False)

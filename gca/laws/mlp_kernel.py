@@ -81,10 +81,9 @@ def shape_of(mlp: torch.nn.Sequential) -> MLPShape | None:
     return MLPShape(lin[0].in_features, lin[0].out_features, lin[1].out_features, lin[2].out_features, name)
 
 
-def tile_size(dtype: torch.dtype, device: torch.device) -> int:
-    """Particles per thread block: 16 (the backward's tiles take 79 KiB of shared memory in float32, 114 at 32 particles,
-    where both ran at the same speed on the H100, session 34; warp's CPU tile arena is 256 KiB, float64 twice as wide)."""
-    return 16
+# particles per thread block: the backward's tiles take 79 KiB of shared memory in float32 (114 at 32 particles, which
+# ran at the same speed on the H100, session 34); warp's CPU tile arena is 256 KiB, float64 twice as wide
+TILE = 16
 
 
 @functools.cache
@@ -266,9 +265,9 @@ def _check(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape) -> Non
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], shape: MLPShape, tile: int | None = None,
         mathdx: bool = False) -> torch.Tensor:
     """X [N, n_out] = the MLP of ``shape`` with ``weights`` [W1, W2, W3] ([out, in] each) on z [N, n_in], in one warp
-    tile kernel (differentiable in z and the weights; ``tile`` particles per block, default :func:`tile_size`)."""
+    tile kernel (differentiable in z and the weights; ``tile`` particles per block, default ``TILE``)."""
     _check(z, weights, shape)
-    tile = tile_size(z.dtype, z.device) if tile is None else int(tile)
+    tile = TILE if tile is None else int(tile)
     return _TileMLP.apply(z, *weights, shape, tile, bool(mathdx))
 
 
@@ -335,9 +334,8 @@ class _SimtMLP(torch.autograd.Function):
         A1 = torch.empty(n if save else 0, shape.w1, dtype=z.dtype, device=z.device)
         A2 = torch.empty(n if save else 0, shape.w2, dtype=z.dtype, device=z.device)
         if n:
-            kernel = make_simt_kernel(z.dtype, shape)  # initialises warp before its stream is wrapped
             with on_torch_stream(z.device):
-                wp.launch(kernel, dim=n, device=wp.device_from_torch(z.device),
+                wp.launch(make_simt_kernel(z.dtype, shape), dim=n, device=wp.device_from_torch(z.device),
                           inputs=[_a(z), *map(_a, Ws), shape.w1, int(save), _a(X), _a(A1), _a(A2)])
         ctx.save_for_backward(z, *Ws, A1, A2)
         ctx.activation = activation

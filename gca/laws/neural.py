@@ -162,6 +162,13 @@ class _InvariantNetwork(nn.Module):
         return R, 0.5 * (X + X.transpose(1, 2))
 
 
+def neural_networks(material) -> list[_InvariantNetwork]:
+    """The neural elasticity and plasticity networks inside ``material`` (an ``nn.Module``; none otherwise), in module
+    order."""
+    mods = material.modules() if isinstance(material, nn.Module) else ()
+    return [m for m in mods if isinstance(m, _InvariantNetwork)]
+
+
 class NeuralElasticity(_InvariantNetwork, Elasticity):
     """Neural elasticity: F_e [N,3,3] -> Kirchhoff stress tau = stress_scale * R S F^T [N,3,3] (Pa)."""
 

@@ -31,6 +31,7 @@ import warnings
 import torch
 from torch import nn
 
+from gca.laws.neural import neural_networks
 from gca.sim.frame import simulate_frame_trial
 
 _WHERE = "gca/sim/graph.py"
@@ -75,8 +76,7 @@ def _collector_paused():
 
 def _mlp_kernels(material) -> tuple[str, ...]:
     """The MLP kernel of each neural network in ``material`` (``mlp_kernel``), in module order."""
-    mods = material.modules() if isinstance(material, torch.nn.Module) else ()
-    return tuple(m.mlp_kernel for m in mods if hasattr(m, "mlp_kernel"))
+    return tuple(net.mlp_kernel for net in neural_networks(material))
 
 
 class FrameGraphs:

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from gca import stop
 from gca.efficiency import synced_clock
-from gca.laws.neural import NeuralElasticity, NeuralPlasticity
+from gca.laws.neural import neural_networks
 from gca.sim.cfl import CFLError
 from gca.sim.rollout import Rollout, SimulationDiverged, rollout
 from gca.sim.solver import MPMSolver
@@ -95,8 +95,7 @@ def matmul_precision(level: str):
 def mlp_kernel(material, kind: str):
     """Every neural network of ``material`` runs its MLP on ``kind`` inside the block (``train.mlp_kernel``:
     ``NeuralElasticity.mlp_kernel``), each one's own restored after it."""
-    nets = [m for m in material.modules() if isinstance(m, (NeuralElasticity, NeuralPlasticity))] \
-        if isinstance(material, torch.nn.Module) else []
+    nets = neural_networks(material)
     before = [net.mlp_kernel for net in nets]
     for net in nets:
         net.mlp_kernel = kind
