@@ -336,6 +336,37 @@ def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monk
         grid.restore_state(archive, knob)
 
 
+def test_a_grid_state_goes_on_across_execution_only_knobs(tmp_path):
+    """A state made before train.reverse_sweep, matmul_precision and mlp_kernel existed (Tables 2-6's state.tgz,
+    session 30) goes on under today's params, and one made under another MLP kernel or without the reverse sweep too
+    (the same numbers to float rounding); TF32 products are not rounding-equal: a state made at ``highest`` is refused
+    under ``high`` (negative control), and so is a knob that changes the method."""
+    import yaml as _yaml
+
+    params = grid.grid_params("ci", ["ball"], ["nclaw"], [])
+    older = tmp_path / "older"
+    grid.prepare(older, params)
+    raw = _yaml.safe_load((older / "params.yaml").read_text())
+    for knob in ("reverse_sweep", "matmul_precision", "mlp_kernel"):
+        assert knob in raw["train"]
+        del raw["train"][knob]
+    (older / "params.yaml").write_text(_yaml.safe_dump(raw))
+    _write(older, [".grid/train@ball:nclaw.done", "runs/ball/nclaw/train.json"])
+    archive = tmp_path / "state.tgz"
+    grid.save_state(older, archive)
+    for i, overrides in enumerate([[], ["train.mlp_kernel=simt", "train.reverse_sweep=false"]]):
+        here = tmp_path / f"here{i}"
+        grid.prepare(here, grid.grid_params("ci", ["ball"], ["nclaw"], overrides))
+        assert grid.restore_state(archive, here) == 2 + 1
+        assert (here / ".grid/train@ball:nclaw.done").is_file()
+    for i, overrides in enumerate([["train.matmul_precision=high"], ["train.iterations=7"]]):
+        refused = tmp_path / f"refused{i}"
+        grid.prepare(refused, grid.grid_params("ci", ["ball"], ["nclaw"], overrides))
+        with pytest.raises(SystemExit, match="made under other params"):
+            grid.restore_state(archive, refused)
+        assert not (refused / "runs").exists()
+
+
 def test_evaluations_that_lack_a_metric_added_since_run_again_once(tmp_path):
     """Session 21 added chamfer_mean_true_launch: Table 1's 54 evaluations lack it. Those jobs (and the report) are
     done no more, the training is kept; an evaluation that has it stays done, so a second call undoes nothing."""

@@ -401,8 +401,15 @@ def _made_under(work: Path) -> dict:
     by scenes (Tables 2, 5, 6 after them: one state, one report, one claims table), so the record is: ``digest``, of
     everything that is not a scene's (the scenes, their objects, prior families and demo captures taken out);
     ``scenes``, each scene's own digest (its spec but ``methods``, its object, its prior family, its capture);
-    ``methods``, each scene's methods."""
+    ``methods``, each scene's methods. The train knobs that change only how the same numbers are computed
+    (:data:`gca.train.config.EXECUTION_ONLY`, at their rounding-equal values) are not recorded."""
+    from gca.train.config import EXECUTION_ONLY
+
     params = yaml.safe_load((work / "params.yaml").read_text())
+    train = params.get("train") or {}
+    for knob, equal_at in EXECUTION_ONLY.items():
+        if knob in train and (equal_at is None or train[knob] == equal_at):
+            del train[knob]
     scenes = params.pop("scenes")
     objects = params.pop("objects", {})
     families = (params.get("prior") or {}).pop("families", {})

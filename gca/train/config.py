@@ -12,6 +12,13 @@ from gca.laws.neural import MLP_KERNELS
 #: train.matmul_precision's values: torch.set_float32_matmul_precision levels (``medium``, bfloat16, is not offered)
 MATMUL_PRECISIONS = ("highest", "high")
 
+#: train's knobs that choose how the same numbers are computed, not which (the same law and gradient to float
+#: rounding, tested: tests/test_sim_rollout.py's reverse sweep, tests/test_laws_mlp_kernel.py), with the value at which
+#: each is so (None: any value). A grid state does not record them (``gca.pipeline.grid._made_under``): one made
+#: before a knob existed, or under another of these values, goes on under this one, as one made on another machine
+#: does (float32 noise). ``matmul_precision: high`` (TF32) is not rounding-equal, so it is recorded.
+EXECUTION_ONLY = {"reverse_sweep": None, "mlp_kernel": None, "matmul_precision": "highest"}
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
