@@ -4,7 +4,11 @@
 #   sh benchmarks/carry_aside.sh out    # keeps benchmarks/results/{priors_paper,table1_launch,README.md}
 #     (table1_seeds goes aside too since session 24: the carry passed 64 MiB with it; no bundle reads it; since
 #     session 25 also table1_launch/records.tgz, reports/benchmark and reports/paper: the bundle reads the state only)
+#   LEAN=1 sh benchmarks/carry_aside.sh out   # also tests/, captures/, reports/ci and benchmarks/NOTES.md (for table_bundle.sh, which reads
+#     none of them; fast_bundle.sh and pack_bundle.sh run pytest: not for them). Session 35: with the grid's state.tgz
+#     at 6.4 MB the plain `out` left a 64.8-MiB carry, and the refused call lost its staged machine
 #   sh benchmarks/carry_aside.sh back
+# `out` then prints the carry the wheels' call would send (what git sends, plus .wpb .whl .whl_render) against 64 MiB.
 # HOLD: where they wait (default /tmp/gca_carry_aside; `out` refuses a HOLD that still holds an earlier `out`).
 set -eu
 HOLD=${HOLD:-/tmp/gca_carry_aside}
@@ -18,7 +22,16 @@ out)
   [ ! -d reports/ci/figures ] || mv reports/ci/figures "$HOLD/reports_ci/"
   [ ! -f benchmarks/results/table1_launch/records.tgz ] || mv benchmarks/results/table1_launch/records.tgz "$HOLD/launch/"
   for d in benchmark paper; do [ ! -d "reports/$d" ] || mv "reports/$d" "$HOLD/reports/"; done
-  echo "moved aside to $HOLD: $(ls "$HOLD/results" | wc -l) result folders/files and reports/ci/figures" ;;
+  if [ "${LEAN:-0}" = 1 ]; then
+    mkdir -p "$HOLD/lean"
+    for d in tests captures reports/ci benchmarks/NOTES.md; do [ ! -e "$d" ] || mv "$d" "$HOLD/lean/$(echo "$d" | tr / _)"; done
+  fi
+  echo "moved aside to $HOLD: $(ls "$HOLD/results" | wc -l) result folders/files and reports/ci/figures$( [ "${LEAN:-0}" != 1 ] || echo "; tests, captures, reports/ci, NOTES.md")"
+  if git rev-parse --git-dir > /dev/null 2>&1; then  # what the device tool sends: tracked and untracked-not-ignored files
+    mib=$( { git ls-files -z -co --exclude-standard | xargs -0 -r stat -c %s 2> /dev/null || true  # set -e: moved-aside files fail stat
+             find .wpb .whl .whl_render -type f -exec stat -c %s {} + 2> /dev/null || true; } | awk '{t += $1} END {printf "%.1f", t / 1048576}')
+    echo "the carry with .wpb .whl .whl_render: $mib MiB of 64$(awk "BEGIN {exit !($mib > 64)}" && echo ": OVER; LEAN=1 (after 'back') moves tests, captures, reports/ci and NOTES.md too")"
+  fi ;;
 back)  # what was made in the tree meanwhile is newer: it stays, and the held copy stays in HOLD (said)
   put() {  # put HELD DIR: move HELD into DIR unless DIR has that name already
     [ -e "$1" ] || return 0
@@ -27,6 +40,12 @@ back)  # what was made in the tree meanwhile is newer: it stays, and the held co
   }
   kept=0
   for f in "$HOLD"/results/* "$HOLD"/results/.[!.]*; do put "$f" benchmarks/results; done
+  for d in tests captures; do put "$HOLD/lean/$d" .; done  # LEAN=1's; reports/ci before its figures go back into it
+  [ ! -e "$HOLD/lean/benchmarks_NOTES.md" ] || { [ -e benchmarks/NOTES.md ] && { echo "kept benchmarks/NOTES.md (made since 'out'); the older copy stays in $HOLD/lean"; kept=1; } || mv "$HOLD/lean/benchmarks_NOTES.md" benchmarks/NOTES.md; }
+  if [ -e "$HOLD/lean/reports_ci" ]; then
+    if [ -e reports/ci ]; then echo "kept reports/ci (made since 'out'); the older copy stays in $HOLD/lean/reports_ci"; kept=1
+    else mkdir -p reports && mv "$HOLD/lean/reports_ci" reports/ci; fi
+  fi
   put "$HOLD/reports_ci/figures" reports/ci
   put "$HOLD/launch/records.tgz" benchmarks/results/table1_launch
   for d in "$HOLD"/reports/*; do put "$d" reports; done

@@ -8,8 +8,8 @@
 # The GPU machine has no mlflow: the runs reach MLflow here afterwards (grid --restore-state $STATE --records
 # records.tgz --mlflow-import, same grid options; README "After a run"). Inputs are remade on
 # each machine, only for the scenes with a run or an evaluation left (`grid.needed`). With the wheels' call, the
-# carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: `sh benchmarks/carry_aside.sh out` before the
-# calls (benchmarks/results/* but priors_paper and table1_launch, and reports/ci/figures), `... back` after them.
+# carry (64 MiB) holds the tree and $STATE beside ~58 MB of wheels: `LEAN=1 sh benchmarks/carry_aside.sh out` before the
+# calls (benchmarks/results/* but priors_paper and table1_launch, reports/ci, tests, captures, NOTES.md), `... back` after them.
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
