@@ -73,8 +73,8 @@ class TrainConfig:
         mlp_kernel: how the neural laws run their MLP while training (``NeuralElasticity.mlp_kernel``, set on the
             run's networks for the run and restored after): ``torch`` (default), ``simt`` (the forward one thread
             per particle, torch's backward; ``gca.laws.mlp_kernel.simt_mlp``) or ``warp`` (one tile kernel each
-            way; measured slower). The same law to float rounding; a speed option measured in
-            ``benchmarks/bench_mlp.py``. Evaluation runs torch's.
+            way); both measured slower on the H100 (NOTES s34-35). The same law to float rounding; a speed option
+            measured in ``benchmarks/bench_mlp.py``. Evaluation runs torch's.
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
