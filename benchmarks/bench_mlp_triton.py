@@ -78,7 +78,11 @@ def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precisi
     acts = [m for m in net if not isinstance(m, torch.nn.Linear)]
     if len(acts) != 2 or any(not isinstance(a, torch.nn.GELU) or a.approximate != "none" for a in acts):
         raise ValueError(f"fused_forward: two exact GELUs expected (the kernel computes x Phi(x)), got {acts}")
-    w1, w2, w3 = (m.weight.detach().contiguous() for m in net if isinstance(m, torch.nn.Linear))
+    linears = [m for m in net if isinstance(m, torch.nn.Linear)]
+    if any(m.bias is not None for m in linears) or block < 16:
+        raise ValueError("fused_forward: bias-free layers (make_mlp's) and block >= 16 (tl.dot) expected")
+    w1, w2, w3 = (m.weight.detach().float().contiguous() for m in linears)
+    x = x.float().contiguous()
     if w2.shape[0] != w2.shape[1] or w1.shape[0] != w2.shape[0] or w3.shape[1] != w2.shape[0]:
         raise ValueError(f"fused_forward: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
     n, k_in = x.shape

@@ -14,7 +14,8 @@ set -eu
 HOLD=${HOLD:-/tmp/gca_carry_aside}
 case "${1:-}" in
 out)
-  if [ -n "$(ls -A "$HOLD/results" 2>/dev/null)" ]; then echo "$HOLD: holds an earlier 'out'; run 'back' first"; exit 1; fi
+  if [ -n "$(find "$HOLD" -mindepth 2 -maxdepth 2 2> /dev/null | head -n 1)" ]; then  # results, lean, launch, ...:
+    echo "$HOLD: holds an earlier 'out' (or copies 'back' kept); run 'back' first, or move them"; exit 1; fi  # none mixed
   mkdir -p "$HOLD/results" "$HOLD/reports_ci" "$HOLD/launch" "$HOLD/reports"
   for f in benchmarks/results/*; do
     case "$(basename "$f")" in priors_paper|table1_launch|README.md) ;; *) mv "$f" "$HOLD/results/" ;; esac

@@ -84,3 +84,11 @@ def test_lean_also_moves_tests_captures_and_reports_ci_and_says_the_carry(tmp_pa
     assert out.returncode == 0 and "MiB of 64" in out.stdout and "OVER" not in out.stdout, out.stdout
     assert (repo / "tests/test_a.py").is_file()  # without LEAN, tests stay
     assert run("back").returncode == 0 and _tree(repo) == before
+    assert run("out", LEAN="1").returncode == 0
+    (repo / "tests").mkdir()
+    (repo / "tests/new.py").write_text("new")  # made meanwhile: `back` keeps it and leaves the older tests/ in HOLD
+    kept = run("back")
+    assert "kept ./tests" in kept.stdout and (hold / "lean/tests/test_a.py").is_file(), kept.stdout
+    refused = run("out", LEAN="1")  # which refuses the next `out`: nothing nested or overwritten in HOLD
+    assert refused.returncode == 1 and "run 'back' first" in refused.stdout, refused.stdout
+    assert (repo / "tests/new.py").is_file() and not (hold / "lean/tests/tests").exists()

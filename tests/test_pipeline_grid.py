@@ -354,6 +354,12 @@ def test_a_grid_state_goes_on_across_execution_only_knobs(tmp_path):
     _write(older, [".grid/train@ball:nclaw.done", "runs/ball/nclaw/train.json"])
     archive = tmp_path / "state.tgz"
     grid.save_state(older, archive)
+    switched = tmp_path / "switched"  # a profile switch at the rounding-equal value is that value
+    grid.prepare(switched, params)
+    raw_here = _yaml.safe_load((switched / "params.yaml").read_text())
+    raw_here["train"]["matmul_precision"] = {"paper": "high", "ci": "highest"}
+    (switched / "params.yaml").write_text(_yaml.safe_dump(raw_here))
+    assert grid.restore_state(archive, switched) == 2 + 1
     for i, overrides in enumerate([[], ["train.mlp_kernel=simt", "train.reverse_sweep=false"]]):
         here = tmp_path / f"here{i}"
         grid.prepare(here, grid.grid_params("ci", ["ball"], ["nclaw"], overrides))

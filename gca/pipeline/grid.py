@@ -403,12 +403,13 @@ def _made_under(work: Path) -> dict:
     ``scenes``, each scene's own digest (its spec but ``methods``, its object, its prior family, its capture);
     ``methods``, each scene's methods. The train knobs that change only how the same numbers are computed
     (:data:`gca.train.config.EXECUTION_ONLY`, at their rounding-equal values) are not recorded."""
+    from gca.config import resolve
     from gca.train.config import EXECUTION_ONLY
 
     params = yaml.safe_load((work / "params.yaml").read_text())
     train = params.get("train") or {}
-    for knob, equal_at in EXECUTION_ONLY.items():
-        if knob in train and (equal_at is None or train[knob] == equal_at):
+    for knob, equal_at in EXECUTION_ONLY.items():  # a {paper: a, ci: b} switch judged at the grid's profile
+        if knob in train and (equal_at is None or resolve(train[knob], params.get("profile", "paper")) == equal_at):
             del train[knob]
     scenes = params.pop("scenes")
     objects = params.pop("objects", {})
@@ -503,7 +504,7 @@ def restore_state(archive: Path, work: Path) -> int:
     report from a state with Table 3's runs, ``--scenes ball duck`` for a machine that finishes those): the files
     of scenes or methods the grid lacks (:func:`member_in`) go to :data:`CARRIED`, where nothing reads them, and
     :func:`save_state` hands them on. Refused, with nothing written, when made under other params (seeds, profile or
-    knobs; a scene of both defined otherwise here), or when it holds anything but state files. A checkpoint in an older state is not unpacked (:data:`CHECKPOINT_RE`:
+    knobs but :data:`gca.train.config.EXECUTION_ONLY`'s; a scene of both defined otherwise here), or when it holds anything but state files. A checkpoint in an older state is not unpacked (:data:`CHECKPOINT_RE`:
     it would not resume on this machine's remade inputs, and the lease check would take its run for resumable)."""
     from gca.io import unpack_files
 
