@@ -12,6 +12,7 @@
 # HOLD: where they wait (default /tmp/gca_carry_aside; `out` refuses a HOLD that still holds an earlier `out`).
 set -eu
 HOLD=${HOLD:-/tmp/gca_carry_aside}
+LEAN_PATHS="tests captures reports/ci benchmarks/NOTES.md"  # LEAN=1's, held as $HOLD/lean/<path with / as _>
 case "${1:-}" in
 out)
   if [ -n "$(find "$HOLD" -mindepth 2 -maxdepth 2 2> /dev/null | head -n 1)" ]; then  # results, lean, launch, ...:
@@ -25,7 +26,7 @@ out)
   for d in benchmark paper; do [ ! -d "reports/$d" ] || mv "reports/$d" "$HOLD/reports/"; done
   if [ "${LEAN:-0}" = 1 ]; then
     mkdir -p "$HOLD/lean"
-    for d in tests captures reports/ci benchmarks/NOTES.md; do [ ! -e "$d" ] || mv "$d" "$HOLD/lean/$(echo "$d" | tr / _)"; done
+    for d in $LEAN_PATHS; do [ ! -e "$d" ] || mv "$d" "$HOLD/lean/$(echo "$d" | tr / _)"; done
   fi
   echo "moved aside to $HOLD: $(ls "$HOLD/results" | wc -l) result folders/files and reports/ci/figures$( [ "${LEAN:-0}" != 1 ] || echo "; tests, captures, reports/ci, NOTES.md")"
   if git rev-parse --git-dir > /dev/null 2>&1; then  # what the device tool sends: tracked and untracked-not-ignored files
@@ -34,19 +35,16 @@ out)
     echo "the carry with .wpb .whl .whl_render: $mib MiB of 64$(awk "BEGIN {exit !($mib > 64)}" && echo ": OVER; LEAN=1 (after 'back') moves tests, captures, reports/ci and NOTES.md too")"
   fi ;;
 back)  # what was made in the tree meanwhile is newer: it stays, and the held copy stays in HOLD (said)
-  put() {  # put HELD DIR: move HELD into DIR unless DIR has that name already
+  put_as() {  # put_as HELD PATH: move HELD to PATH unless PATH exists already
     [ -e "$1" ] || return 0
-    if [ -e "$2/$(basename "$1")" ]; then echo "kept $2/$(basename "$1") (made since 'out'); the older copy stays in $1"; kept=1
-    else mv "$1" "$2/"; fi
+    if [ -e "$2" ]; then echo "kept $2 (made since 'out'); the older copy stays in $1"; kept=1
+    else mv "$1" "$2"; fi
   }
+  put() { put_as "$1" "$2/$(basename "$1")"; }  # put HELD DIR: into DIR under its own name
   kept=0
   for f in "$HOLD"/results/* "$HOLD"/results/.[!.]*; do put "$f" benchmarks/results; done
-  for d in tests captures; do put "$HOLD/lean/$d" .; done  # LEAN=1's; reports/ci before its figures go back into it
-  [ ! -e "$HOLD/lean/benchmarks_NOTES.md" ] || { [ -e benchmarks/NOTES.md ] && { echo "kept benchmarks/NOTES.md (made since 'out'); the older copy stays in $HOLD/lean"; kept=1; } || mv "$HOLD/lean/benchmarks_NOTES.md" benchmarks/NOTES.md; }
-  if [ -e "$HOLD/lean/reports_ci" ]; then
-    if [ -e reports/ci ]; then echo "kept reports/ci (made since 'out'); the older copy stays in $HOLD/lean/reports_ci"; kept=1
-    else mkdir -p reports && mv "$HOLD/lean/reports_ci" reports/ci; fi
-  fi
+  for d in $LEAN_PATHS; do  # reports/ci before its figures go back into it
+    put_as "$HOLD/lean/$(echo "$d" | tr / _)" "./$d"; done
   put "$HOLD/reports_ci/figures" reports/ci
   put "$HOLD/launch/records.tgz" benchmarks/results/table1_launch
   for d in "$HOLD"/reports/*; do put "$d" reports; done
