@@ -17,6 +17,8 @@
 #   PART=mlp (session 34; ~3 min): bench_mlp.py, the neural law's MLP in torch, simt and the warp tile kernel (scalar products)
 #   PART=simt (for session 35; ~8 min, limits 600 s with the build's 200): bench_mlp (torch, torch_tf32, simt); gsplat's
 #       build; the ball's data, 10 GCA iterations with train.mlp_kernel torch, then simt (same data)  -> {torchmlp,simt}/
+#   PART=packbatch (session 36; ~3 min, no gsplat needed): bench_runs_packed.py under CUDA MPS, R runs' rollouts split
+#       as P processes x B batched runs each (1x1, 8x1, 2x4, 4x2, 1x8, 12x1, 3x4)                -> packbatch.*
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
@@ -88,6 +90,14 @@ if [ "$PART" = simt ]; then  # for session 35: the simt MLP and TF32 at the MLP,
   run simt ball $W 10 100 --reuse-data --stages train evaluate --set train.mlp_kernel=simt
   grep -c "running eagerly" "$OUT/simt.log" "$OUT/torchmlp.log"  # a frame whose CUDA-graph capture failed (0: none)
   summary torchmlp simt
+fi
+
+if [ "$PART" = packbatch ]; then  # session 36: do MPS packing and batched runs add up?
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "bench_runs_packed: processes x batched runs under MPS"
+  timeout "${LIMIT:-230}" python3 benchmarks/bench_runs_packed.py --device cuda --mps \
+      --configs 1x1 8x1 2x4 4x2 1x8 12x1 3x4 --json "$OUT/packbatch.json" > "$OUT/packbatch.txt" 2>&1
+  echo "packbatch rc=$?"; grep -E "^\||MPS" "$OUT/packbatch.txt"
 fi
 
 if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattice against C order (P2G only)

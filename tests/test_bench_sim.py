@@ -3,8 +3,10 @@ block, every P2G kernel layout timed on each order, the law's FP32 / TF32 bench 
 run)."""
 
 import importlib.util
+import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from gca.sim import SimConfig
@@ -165,3 +167,25 @@ def test_bench_mlp_times_torch_and_the_tile_kernel_and_checks_both_against_float
         assert 0 < r["X_rel_dev"] < 1e-5 and 0 < r["grad_rel_dev"] < 1e-5  # float32 ran, and stayed close
     assert out["mlp"][1]["f64_rel_dev"] < 1e-12 and out["mlp"][2]["f64_rel_dev"] < 1e-12  # float64 builds = torch's
     assert all(r["law_fwd_bwd_us"] > 0 for r in out["law"])
+
+
+def test_bench_runs_packed_runs_processes_of_batched_runs_at_once_on_the_cpu(tmp_path):
+    mod = _load("bench_runs_packed")
+    rows = mod.main(["--device", "cpu", "--configs", "1x1", "2x1", "1x2", "--particles", "200", "--n-grid", "12",
+                     "--steps", "4", "--steps-per-frame", "2", "--run-rollouts", "4", "--json", str(tmp_path / "p.json")])
+    assert [(r["processes"], r["runs_per_process"], r["rollouts_per_process"]) for r in rows] == [(1, 1, 4), (2, 1, 2),
+                                                                                                   (1, 2, 2)]
+    assert rows[0]["x_solo"] == 1.0 and all(r["span_s"] > 0 and r["run_rollouts_per_s"] > 0 for r in rows)
+    for r in rows[1:]:  # the ratio is the rates' ratio, against the one-run row
+        assert r["x_solo"] == pytest.approx(r["run_rollouts_per_s"] / rows[0]["run_rollouts_per_s"])
+    assert json.loads((tmp_path / "p.json").read_text())["rows"] == rows
+
+
+def test_bench_runs_packed_refuses_a_bad_config_and_reports_a_failed_worker():
+    mod = _load("bench_runs_packed")
+    for bad in ("8", "0x2", "2xb"):
+        with pytest.raises(SystemExit):  # argparse: one line naming the config
+            mod.main(["--device", "cpu", "--configs", bad])
+    with pytest.raises(SystemExit, match="a worker failed"):  # control: a worker that cannot start is not waited on
+        mod.main(["--device", "no_such_device", "--configs", "1x1", "--particles", "200", "--n-grid", "12",
+                  "--steps", "2", "--steps-per-frame", "2", "--ready-timeout", "120"])

@@ -1,0 +1,166 @@
+"""MPS packing and batched runs together: P processes at once, each rolling out B runs in one launch per step
+(a script, not a test; issue 20 item 3, session 36).
+
+Session 13 measured the two ways to put several runs on one GPU apart: B runs batched in one process
+(``bench_runs.py --laws batched``: 1.33x at B = 8 against one after another) and whole trainings packed as processes
+under CUDA MPS (2.2x at 4, 2.4x at 8: ``pack_bundle.sh``, session 32). Whether they add up was not measured. Here the
+total number of runs R = P x B is fixed and split between processes and batches: P workers
+(``python -m benchmarks.bench_runs_packed --worker``) each build B LoRA-adapted neural laws on lattice blocks (as
+``bench_runs.py``), warm up (graph capture), say ready, wait for one start signal, then roll out ``--rollouts`` times
+(forward + backward, ``--steps`` steps in frames). Throughput = run-rollouts per second over the span from the first
+worker's start to the last one's end; the table gives it against P = B = 1 (one run, one process).
+
+Only the simulation and the law (the part batching covers, ~75 % of a swept training iteration's kernels, session 31);
+rendering and the losses are not in it.
+
+Usage (the GPU machine; ``--mps`` starts and stops the MPS daemon through ``gca.pipeline.grid.mps_daemon``)::
+
+    python benchmarks/bench_runs_packed.py --device cuda --mps --configs 1x1 8x1 4x2 2x4 1x8 --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def parse_config(text: str) -> tuple[int, int]:
+    """``"PxB"`` -> (processes, runs per process), both >= 1."""
+    try:
+        p, b = (int(t) for t in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a config is PxB (processes x runs per process), got {text!r}") from None
+    if p < 1 or b < 1:
+        raise argparse.ArgumentTypeError(f"a config needs P >= 1 and B >= 1, got {text!r}")
+    return p, b
+
+
+def worker(a) -> None:
+    """One process: B runs' batched rollout; ready file, wait for the go file, ``--rollouts`` timed rollouts; writes
+    ``{"start": t0, "end": t1}`` (epoch seconds) to ``--result``."""
+    import torch
+    import warp as wp
+
+    from benchmarks.bench_runs import make_law
+    from benchmarks.bench_sim import block
+    from gca.laws.batched import runs_material
+    from gca.sim import MPMSolver, SimConfig, rollout
+
+    wp.config.quiet = True
+    device = torch.device(a.device)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    cfg = SimConfig(n_grid=a.n_grid, dt=2e-4, dtype="float32", max_refine=1)
+    solver = MPMSolver(cfg, device)
+    x, vol, mass = block(a.particles, cfg, device, order="lattice")
+    n, b = x.shape[0], a.runs
+    laws = [make_law(a.seed * 1000 + r, device, torch.float32) for r in range(b)]
+    v0 = torch.cat([torch.tensor([0.3 * r, -1.0, 0.0], device=device).expand(n, 3) for r in range(b)])
+    if b == 1:
+        solver_b, law = solver, laws[0]
+    else:
+        solver_b = solver.with_runs(torch.arange(b, device=device, dtype=torch.int32).repeat_interleave(n), b)
+        law = runs_material(laws, [n] * b)
+    xs, vols, masses = x.repeat(b, 1), vol.repeat(b), mass.repeat(b)
+
+    def once():
+        v = v0.clone().requires_grad_(True)
+        out = rollout(solver_b, law, xs, v, vols, masses, a.steps, a.steps_per_frame, wave_speed=12.0)
+        (out.x[1:] ** 2).sum().backward()
+
+    once()  # warm-up: kernel loads, graph capture
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    Path(a.ready).touch()
+    while not Path(a.go).exists():
+        time.sleep(0.005)
+    t0 = time.time()
+    for _ in range(a.rollouts):
+        once()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    Path(a.result).write_text(json.dumps({"start": t0, "end": time.time(), "particles_per_run": n}))
+
+
+def run_config(p: int, b: int, rollouts: int, a, tmp: Path) -> dict:
+    """P workers of B runs at once; returns the config's row (throughput in run-rollouts per second)."""
+    d = tmp / f"{p}x{b}"
+    d.mkdir(parents=True, exist_ok=True)
+    procs = []
+    for i in range(p):
+        cmd = [sys.executable, "-m", "benchmarks.bench_runs_packed", "--worker", "--device", a.device,
+               "--runs", str(b), "--particles", str(a.particles), "--n-grid", str(a.n_grid), "--steps", str(a.steps),
+               "--steps-per-frame", str(a.steps_per_frame), "--rollouts", str(rollouts), "--seed", str(i),
+               "--ready", str(d / f"ready{i}"), "--go", str(d / "go"), "--result", str(d / f"result{i}.json")]
+        procs.append(subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}"
+                                                          f"{os.environ.get('PYTHONPATH', '')}"}))
+    deadline = time.monotonic() + a.ready_timeout
+    while sum((d / f"ready{i}").exists() for i in range(p)) < p:
+        if any(q.poll() not in (None, 0) for q in procs) or time.monotonic() > deadline:
+            for q in procs:
+                q.kill()
+            raise SystemExit(f"bench_runs_packed: config {p}x{b}: a worker failed or was not ready in "
+                             f"{a.ready_timeout} s (see its stderr above)")
+        time.sleep(0.01)
+    (d / "go").touch()
+    for q in procs:
+        if q.wait() != 0:
+            raise SystemExit(f"bench_runs_packed: config {p}x{b}: a worker exited with status {q.returncode}")
+    rs = [json.loads((d / f"result{i}.json").read_text()) for i in range(p)]
+    span = max(r["end"] for r in rs) - min(r["start"] for r in rs)
+    return {"processes": p, "runs_per_process": b, "runs": p * b, "rollouts_per_process": rollouts,
+            "particles_per_run": rs[0]["particles_per_run"], "span_s": span,
+            "run_rollouts_per_s": p * b * rollouts / span}
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--configs", type=parse_config, nargs="+", default=[(1, 1), (8, 1), (4, 2), (2, 4), (1, 8)])
+    ap.add_argument("--run-rollouts", type=int, default=64,
+                    help="run-rollouts per config (P x B x rollouts per process, at least 2 per process)")
+    ap.add_argument("--particles", type=int, default=30000)
+    ap.add_argument("--n-grid", type=int, default=32)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--steps-per-frame", type=int, default=20)
+    ap.add_argument("--mps", action="store_true", help="start the CUDA MPS daemon for the configs (root), stop it after")
+    ap.add_argument("--ready-timeout", type=float, default=240.0)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    for name in ("--runs", "--rollouts", "--seed"):
+        ap.add_argument(name, type=int, default=1, help=argparse.SUPPRESS)
+    for name in ("--ready", "--go", "--result"):
+        ap.add_argument(name, default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.worker:
+        worker(a)
+        return []
+    from gca.pipeline.grid import mps_daemon
+
+    rows = []
+    print("| processes x runs each | runs | rollouts each | span s | run-rollouts / s | x (1 x 1) |\n"
+          "| --- | --- | --- | --- | --- | --- |", flush=True)
+    with tempfile.TemporaryDirectory() as tmp, mps_daemon(a.mps, lambda m: print(m, flush=True)) as mps_on:
+        for p, b in a.configs:
+            r = run_config(p, b, max(2, a.run_rollouts // (p * b)), a, Path(tmp))
+            r["mps"] = mps_on
+            base = next((x for x in rows + [r] if x["runs"] == 1), None)
+            r["x_solo"] = r["run_rollouts_per_s"] / base["run_rollouts_per_s"] if base else None
+            rows.append(r)
+            print(f"| {p} x {b} | {p * b} | {r['rollouts_per_process']} | {r['span_s']:.2f} | "
+                  f"{r['run_rollouts_per_s']:.2f} | " + (f"{r['x_solo']:.2f}x |" if base else "- |"), flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps({"device": a.device, "mps": bool(a.mps), "rows": rows}, indent=2))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
