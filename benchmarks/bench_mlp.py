@@ -52,8 +52,14 @@ VARIANT = re.compile(r"^(torch|torch_tf32|simt|t(\d+)(s?))$")
 def timed_us(fn, device: torch.device, iters: int, repeats: int) -> float:
     """Per call [us]: on CUDA ``fn`` captured once in a CUDA graph (after warm-up on a side stream) and the graph
     replayed; on the CPU ``fn`` itself (:func:`gca.efficiency.best_time_us`, warm-up excluded)."""
+    return best_time_us(captured(fn, device), device, iters, repeats)
+
+
+def captured(fn, device: torch.device):
+    """On CUDA: ``fn`` warmed up on a side stream, captured once in a CUDA graph; returns the graph's replay. On the
+    CPU: ``fn`` itself."""
     if device.type != "cuda":
-        return best_time_us(fn, device, iters, repeats)
+        return fn
     side = torch.cuda.Stream(device)
     side.wait_stream(torch.cuda.current_stream(device))
     with torch.cuda.stream(side):
@@ -63,7 +69,7 @@ def timed_us(fn, device: torch.device, iters: int, repeats: int) -> float:
     graph = torch.cuda.CUDAGraph()
     with torch.cuda.graph(graph):
         fn()
-    return best_time_us(graph.replay, device, iters, repeats)
+    return graph.replay
 
 
 def features(n: int, device, dtype, seed: int = 0) -> torch.Tensor:
@@ -96,7 +102,9 @@ def _no_grad(fn):
     return call
 
 
-def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
+def mlp_calls(variant: str, n: int, device):
+    """The MLP of ``variant`` on n particles' features: (fwd, both, net64, net, z, v): ``fwd()`` its output, ``both()``
+    the gradients of <output, v> w.r.t. z and the three weights (seeded; net64 the float64 twin of net)."""
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)
@@ -104,9 +112,15 @@ def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
     z = features(n, device, torch.float32).requires_grad_(True)
     Ws = [net[i].weight for i in (0, 2, 4)]
     v = torch.randn(n, 9, device=device, generator=torch.Generator(device).manual_seed(1))
-    leaves = [z, *Ws]
     fwd = lambda: run_mlp(variant, z, Ws, net)  # noqa: E731
-    both = lambda: torch.autograd.grad(run_mlp(variant, z, Ws, net), leaves, v)  # noqa: E731
+    both = lambda: torch.autograd.grad(run_mlp(variant, z, Ws, net), [z, *Ws], v)  # noqa: E731
+    return fwd, both, net64, net, z, v
+
+
+def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
+    fwd, both, net64, net, z, v = mlp_calls(variant, n, device)
+    Ws = [net[i].weight for i in (0, 2, 4)]
+    leaves = [z, *Ws]
     row = {"variant": variant, "particles": n, "mlp_fwd_us": timed_us(_no_grad(fwd), device, iters, repeats),
            "mlp_fwd_bwd_us": timed_us(both, device, iters, repeats)}
     z64 = z.detach().double().requires_grad_(True)
@@ -130,6 +144,12 @@ def _mlp_row(variant: str, n: int, device, iters: int, repeats: int) -> dict:
 def law_row(kind: str, n: int, device, iters: int, repeats: int) -> dict:
     """One step's law calls (plasticity, then elasticity) with LoRA merged as a frame merges it, forward + backward,
     the MLP on ``kind``: torch, simt or the tile kernel (``warp``)."""
+    return {"variant": kind, "particles": n, "law_fwd_bwd_us": timed_us(law_step(kind, n, device), device, iters,
+                                                                        repeats)}
+
+
+def law_step(kind: str, n: int, device):
+    """:func:`law_row`'s call: ``step()`` gives the gradients of one step's law calls on n particles (seeded)."""
     torch.manual_seed(0)
     nets = [NeuralPlasticity(NeuralLawConfig()), NeuralElasticity(NeuralLawConfig())]
     leaves = []
@@ -143,8 +163,7 @@ def law_row(kind: str, n: int, device, iters: int, repeats: int) -> dict:
     F = (torch.eye(3, dtype=torch.float64) + 0.03 * torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
     F = F.float().to(device).requires_grad_(True)
     v = torch.randn(n, 3, 3, device=device, generator=torch.Generator(device).manual_seed(3))
-    step = lambda: torch.autograd.grad(nets[1](nets[0](F)), [F, *leaves], v)  # noqa: E731
-    return {"variant": kind, "particles": n, "law_fwd_bwd_us": timed_us(step, device, iters, repeats)}
+    return lambda: torch.autograd.grad(nets[1](nets[0](F)), [F, *leaves], v)
 
 
 def main(argv=None) -> dict:

@@ -22,14 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script from anywhere
+from benchmarks.packed import ready_then_go, run_workers, write_result  # noqa: E402
 
 
 def parse_config(text: str) -> tuple[int, int]:
@@ -79,43 +77,21 @@ def worker(a) -> None:
     once()  # warm-up: kernel loads, graph capture
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-    Path(a.ready).touch()
-    while not Path(a.go).exists():
-        time.sleep(0.005)
-    t0 = time.time()
+    t0 = ready_then_go(a.ready, a.go)
     for _ in range(a.rollouts):
         once()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-    Path(a.result).write_text(json.dumps({"start": t0, "end": time.time(), "particles_per_run": n}))
+    write_result(a.result, t0, particles_per_run=n)
 
 
 def run_config(p: int, b: int, rollouts: int, a, tmp: Path) -> dict:
     """P workers of B runs at once; returns the config's row (throughput in run-rollouts per second)."""
-    d = tmp / f"{p}x{b}"
-    d.mkdir(parents=True, exist_ok=True)
-    procs = []
-    for i in range(p):
-        cmd = [sys.executable, "-m", "benchmarks.bench_runs_packed", "--worker", "--device", a.device,
-               "--runs", str(b), "--particles", str(a.particles), "--n-grid", str(a.n_grid), "--steps", str(a.steps),
-               "--steps-per-frame", str(a.steps_per_frame), "--rollouts", str(rollouts), "--seed", str(i),
-               "--ready", str(d / f"ready{i}"), "--go", str(d / "go"), "--result", str(d / f"result{i}.json")]
-        procs.append(subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}"
-                                                          f"{os.environ.get('PYTHONPATH', '')}"}))
-    deadline = time.monotonic() + a.ready_timeout
-    while sum((d / f"ready{i}").exists() for i in range(p)) < p:
-        if any(q.poll() not in (None, 0) for q in procs) or time.monotonic() > deadline:
-            for q in procs:
-                q.kill()
-            raise SystemExit(f"bench_runs_packed: config {p}x{b}: a worker failed or was not ready in "
-                             f"{a.ready_timeout} s (see its stderr above)")
-        time.sleep(0.01)
-    (d / "go").touch()
-    for q in procs:
-        if q.wait() != 0:
-            raise SystemExit(f"bench_runs_packed: config {p}x{b}: a worker exited with status {q.returncode}")
-    rs = [json.loads((d / f"result{i}.json").read_text()) for i in range(p)]
-    span = max(r["end"] for r in rs) - min(r["start"] for r in rs)
+    cmds = [["-m", "benchmarks.bench_runs_packed", "--worker", "--device", a.device, "--runs", str(b),
+             "--particles", str(a.particles), "--n-grid", str(a.n_grid), "--steps", str(a.steps),
+             "--steps-per-frame", str(a.steps_per_frame), "--rollouts", str(rollouts), "--seed", str(i)]
+            for i in range(p)]
+    span, rs = run_workers(cmds, tmp / f"{p}x{b}", a.ready_timeout, f"bench_runs_packed: config {p}x{b}")
     return {"processes": p, "runs_per_process": b, "runs": p * b, "rollouts_per_process": rollouts,
             "particles_per_run": rs[0]["particles_per_run"], "span_s": span,
             "run_rollouts_per_s": p * b * rollouts / span}

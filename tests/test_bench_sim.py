@@ -1,6 +1,7 @@
-"""benchmarks/bench_sim.py, bench_p2g.py, bench_law_precision.py and bench_mlp.py on the CPU: the particle orders of the benchmark
-block, every P2G kernel layout timed on each order, the law's FP32 / TF32 bench (smoke runs of what the H100 bundles
-run)."""
+"""benchmarks/bench_sim.py, bench_p2g.py, bench_law_precision.py, bench_mlp.py and the packed drivers
+(bench_runs_packed.py, bench_mlp_packed.py) on the CPU: the particle orders of the benchmark block, every P2G kernel
+layout timed on each order, the law's FP32 / TF32 bench, P processes started at one signal (smoke runs of what the
+H100 bundles run)."""
 
 import importlib.util
 import json
@@ -189,3 +190,37 @@ def test_bench_runs_packed_refuses_a_bad_config_and_reports_a_failed_worker():
     with pytest.raises(SystemExit, match="a worker failed"):  # control: a worker that cannot start is not waited on
         mod.main(["--device", "no_such_device", "--configs", "1x1", "--particles", "200", "--n-grid", "12",
                   "--steps", "2", "--steps-per-frame", "2", "--ready-timeout", "120"])
+
+
+def test_bench_mlp_packed_replays_each_variant_in_several_processes_on_the_cpu(tmp_path):
+    mod = _load("bench_mlp_packed")
+    rows = mod.main(["--device", "cpu", "--procs", "2", "--variants", "torch", "simt", "law_torch",
+                     "--particles", "200", "--calls", "8", "--json", str(tmp_path / "m.json")])
+    assert [(r["variant"], r["pass"], r["processes"], r["calls_per_process"]) for r in rows] == [
+        (v, p, 2, 4) for v in ("torch", "simt") for p in ("fwd", "fwdbwd")] + [("law_torch", "fwdbwd", 2, 4)]
+    assert all(r["us_per_call"] > 0 for r in rows)
+    for r in rows:  # each against its own kind at the same P: the MLP against torch's, a law step against law_torch's
+        ref = next(x for x in rows if x["variant"] == ("law_torch" if r["variant"].startswith("law_") else "torch")
+                   and x["pass"] == r["pass"] and x["processes"] == r["processes"])
+        assert r["x_torch"] == pytest.approx(ref["us_per_call"] / r["us_per_call"])
+    assert json.loads((tmp_path / "m.json").read_text())["rows"] == rows
+    with pytest.raises(SystemExit):  # argparse: an unknown variant named
+        mod.main(["--device", "cpu", "--variants", "torch", "cublas"])
+
+
+def test_bench_mlp_packed_calls_are_the_variants_own():
+    """The replayed calls compute what they are named: simt's and the law's equal torch's (float32 sums in another
+    order: to 1e-4 of the largest value)."""
+    mod = _load("bench_mlp_packed")
+    dev = torch.device("cpu")
+
+    def close(a, b):
+        for x, y in zip([a] if torch.is_tensor(a) else a, [b] if torch.is_tensor(b) else b):
+            assert x.shape == y.shape and float((x - y).abs().max()) <= 1e-4 * float(y.abs().max())
+
+    close(mod.call_of("simt", "fwd", 64, dev)(), mod.call_of("torch", "fwd", 64, dev)())
+    close(mod.call_of("simt", "fwdbwd", 64, dev)(), mod.call_of("torch", "fwdbwd", 64, dev)())
+    close(mod.call_of("law_simt", "fwdbwd", 64, dev)(), mod.call_of("law_torch", "fwdbwd", 64, dev)())
+    with pytest.raises(AssertionError):  # control: the forward of other particles is another output
+        close(mod.call_of("torch", "fwd", 64, dev)(), mod.call_of("torch", "fwd", 64, dev)().flip(0))
+    assert mod.passes_of("ieee_64") == ("fwd",) and mod.passes_of("law_torch") == ("fwdbwd",)

@@ -1,0 +1,141 @@
+"""The neural law's MLP variants under a saturated GPU: P processes at once, each replaying one variant's call
+(a script, not a test; issue 20, session 36).
+
+`bench_runs_packed.py` found the simulation and law saturating one H100 at ~0.1 s per run's 200-step rollout, however
+eight or twelve runs share it (processes, batches or both), so a packed table is bound by the GPU work per step, not
+by one kernel's latency. The MLP variants were timed alone (``bench_mlp.py``, ``bench_mlp_triton.py``: torch fastest,
+34.5 us forward at 30k), where a kernel that keeps its [N, 64] activations on chip but fills the GPU poorly loses; packed,
+it is the bytes and operations that count. Here each variant's call is captured in a CUDA graph (as training replays
+it) and replayed ``--calls`` times by P workers at once after one start signal (``benchmarks/packed.py``); the
+figure is the span per call over all workers (us), against torch's at the same P (law rows: against law_torch's).
+
+Variants: ``torch``, ``torch_tf32``, ``simt``, ``t<k>s`` (``bench_mlp.py``'s MLPs; pass ``fwd`` under no_grad or
+``fwdbwd``, the gradients w.r.t. the features and the three weights), ``ieee_<B>`` and ``tf32_<B>`` (the fused Triton
+forward of ``bench_mlp_triton.py``: pass ``fwd`` only; needs triton), ``law_torch``, ``law_simt`` (one step's law
+calls, plasticity then elasticity with LoRA merged, forward + backward: pass ``fwdbwd`` only).
+
+Usage (the GPU machine)::
+
+    python benchmarks/bench_mlp_packed.py --device cuda --mps --procs 1 8 --variants torch simt ieee_64 --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import re
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script from anywhere
+from benchmarks.packed import ready_then_go, run_workers, write_result  # noqa: E402
+
+VARIANT = re.compile(r"^(torch|torch_tf32|simt|t\d+s|(ieee|tf32)_\d+|law_(torch|simt))$")
+
+
+def passes_of(variant: str) -> tuple[str, ...]:
+    """The passes a variant has: the Triton forward has no backward, the law rows are forward + backward."""
+    if variant.startswith(("ieee_", "tf32_")):
+        return ("fwd",)
+    if variant.startswith("law_"):
+        return ("fwdbwd",)
+    return ("fwd", "fwdbwd")
+
+
+def call_of(variant: str, pass_: str, n: int, device):
+    """The callable a worker replays: ``variant``'s ``pass_`` on n particles."""
+    import torch
+
+    from benchmarks.bench_mlp import _no_grad, law_step, mlp_calls
+
+    if variant.startswith("law_"):
+        return law_step(variant[4:], n, device)
+    if variant.startswith(("ieee_", "tf32_")):
+        from benchmarks.bench_mlp import features
+        from benchmarks.bench_mlp_triton import fused_forward
+        from gca.laws.neural import NeuralLawConfig, make_mlp
+
+        torch.manual_seed(0)
+        net, z = make_mlp(NeuralLawConfig()).to(device), features(n, device, torch.float32)
+        precision, block = variant.split("_")
+        return _no_grad(lambda: fused_forward(net, z, int(block), precision))
+    fwd, both, *_ = mlp_calls(variant, n, device)
+    return _no_grad(fwd) if pass_ == "fwd" else both
+
+
+def worker(a) -> None:
+    """One process: capture the call (CUDA) or take it as is (CPU), say ready, wait for the go, ``--calls`` calls."""
+    import torch
+
+    from benchmarks.bench_mlp import captured
+    from gca.train.loop import matmul_precision
+
+    device = torch.device(a.device)
+    with matmul_precision("high" if a.variant == "torch_tf32" else "highest"):
+        call = captured(call_of(a.variant, a.pass_, a.particles, device), device)
+        call()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = ready_then_go(a.ready, a.go)
+        for _ in range(a.calls):
+            call()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+    write_result(a.result, t0)
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--procs", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--variants", nargs="+", default=["torch", "torch_tf32", "simt", "ieee_64", "tf32_64", "law_torch"])
+    ap.add_argument("--particles", type=int, default=30000)
+    ap.add_argument("--calls", type=int, default=2000, help="calls per worker at one process (divided by P beyond)")
+    ap.add_argument("--mps", action="store_true", help="start the CUDA MPS daemon (root), stop it after")
+    ap.add_argument("--ready-timeout", type=float, default=240.0)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--variant", default="torch", help=argparse.SUPPRESS)
+    ap.add_argument("--pass", dest="pass_", default="fwd", help=argparse.SUPPRESS)
+    for name in ("--ready", "--go", "--result"):
+        ap.add_argument(name, default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.worker:
+        worker(a)
+        return []
+    bad = [v for v in a.variants if not VARIANT.match(v)]
+    if bad or any(p < 1 for p in a.procs):
+        ap.error(f"variants: torch, torch_tf32, simt, t<k>s, ieee_<B>, tf32_<B>, law_torch, law_simt (got {bad}); "
+                 f"procs >= 1 (got {a.procs})")
+    from gca.pipeline.grid import mps_daemon
+
+    rows = []
+    print("| variant | pass | processes | calls each | span s | us per call | x torch (law_torch) at this P |\n"
+          "| --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    with tempfile.TemporaryDirectory() as tmp, mps_daemon(a.mps, lambda m: print(m, flush=True)) as mps_on:
+        for variant in a.variants:
+            for pass_ in passes_of(variant):
+                for p in a.procs:
+                    calls = max(2, a.calls // p)
+                    cmd = ["-m", "benchmarks.bench_mlp_packed", "--worker", "--device", a.device, "--variant",
+                           variant, "--pass", pass_, "--particles", str(a.particles), "--calls", str(calls)]
+                    span, _ = run_workers([cmd] * p, Path(tmp) / f"{variant}_{pass_}_{p}", a.ready_timeout,
+                                          f"bench_mlp_packed: {variant} {pass_} x{p}")
+                    r = {"variant": variant, "pass": pass_, "processes": p, "calls_per_process": calls,
+                         "particles": a.particles, "span_s": span, "us_per_call": 1e6 * span / (p * calls),
+                         "mps": mps_on}
+                    base = "law_torch" if variant.startswith("law_") else "torch"  # like against like
+                    ref = next((x for x in rows + [r] if x["variant"] == base and x["pass"] == pass_ and
+                                x["processes"] == p), None)
+                    r["x_torch"] = ref["us_per_call"] / r["us_per_call"] if ref else None
+                    rows.append(r)
+                    print(f"| {variant} | {pass_} | {p} | {calls} | {span:.3f} | {r['us_per_call']:.1f} | "
+                          + (f"{r['x_torch']:.2f}x |" if ref else "- |"), flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps({"device": a.device, "rows": rows}, indent=2))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
