@@ -29,7 +29,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script from anywhere
-from benchmarks.packed import ready_then_go, run_workers, write_result  # noqa: E402
+from benchmarks.packed import add_arguments, repeat_after_go, run_workers, write_result  # noqa: E402
 
 VARIANT = re.compile(r"^(torch|torch_tf32|simt|t\d+s|(ieee|tf32)_\d+|law_(torch|simt))$")
 
@@ -74,14 +74,7 @@ def worker(a) -> None:
     device = torch.device(a.device)
     with matmul_precision("high" if a.variant == "torch_tf32" else "highest"):
         call = captured(call_of(a.variant, a.pass_, a.particles, device), device)
-        call()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = ready_then_go(a.ready, a.go)
-        for _ in range(a.calls):
-            call()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        t0 = repeat_after_go(call, a.calls, device, a.ready, a.go)
     write_result(a.result, t0)
 
 
@@ -92,14 +85,9 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--variants", nargs="+", default=["torch", "torch_tf32", "simt", "ieee_64", "tf32_64", "law_torch"])
     ap.add_argument("--particles", type=int, default=30000)
     ap.add_argument("--calls", type=int, default=2000, help="calls per worker at one process (divided by P beyond)")
-    ap.add_argument("--mps", action="store_true", help="start the CUDA MPS daemon (root), stop it after")
-    ap.add_argument("--ready-timeout", type=float, default=240.0)
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    add_arguments(ap)
     ap.add_argument("--variant", default="torch", help=argparse.SUPPRESS)
     ap.add_argument("--pass", dest="pass_", default="fwd", help=argparse.SUPPRESS)
-    for name in ("--ready", "--go", "--result"):
-        ap.add_argument(name, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.worker:
         worker(a)

@@ -27,7 +27,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script from anywhere
-from benchmarks.packed import ready_then_go, run_workers, write_result  # noqa: E402
+from benchmarks.packed import add_arguments, repeat_after_go, run_workers, write_result  # noqa: E402
 
 
 def parse_config(text: str) -> tuple[int, int]:
@@ -74,15 +74,7 @@ def worker(a) -> None:
         out = rollout(solver_b, law, xs, v, vols, masses, a.steps, a.steps_per_frame, wave_speed=12.0)
         (out.x[1:] ** 2).sum().backward()
 
-    once()  # warm-up: kernel loads, graph capture
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    t0 = ready_then_go(a.ready, a.go)
-    for _ in range(a.rollouts):
-        once()
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    write_result(a.result, t0, particles_per_run=n)
+    write_result(a.result, repeat_after_go(once, a.rollouts, device, a.ready, a.go), particles_per_run=n)
 
 
 def run_config(p: int, b: int, rollouts: int, a, tmp: Path) -> dict:
@@ -107,14 +99,9 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--n-grid", type=int, default=32)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--steps-per-frame", type=int, default=20)
-    ap.add_argument("--mps", action="store_true", help="start the CUDA MPS daemon for the configs (root), stop it after")
-    ap.add_argument("--ready-timeout", type=float, default=240.0)
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    add_arguments(ap)
     for name in ("--runs", "--rollouts", "--seed"):
         ap.add_argument(name, type=int, default=1, help=argparse.SUPPRESS)
-    for name in ("--ready", "--go", "--result"):
-        ap.add_argument(name, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.worker:
         worker(a)

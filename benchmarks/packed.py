@@ -9,6 +9,7 @@ start to the last end with the workers' results.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -17,6 +18,17 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options every packed bench has: ``--mps``, ``--ready-timeout``, ``--json``, and the workers' hidden
+    ``--worker``, ``--ready``, ``--go``, ``--result``."""
+    ap.add_argument("--mps", action="store_true", help="start the CUDA MPS daemon (root) for the runs, stop it after")
+    ap.add_argument("--ready-timeout", type=float, default=240.0)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    for name in ("--ready", "--go", "--result"):
+        ap.add_argument(name, default=None, help=argparse.SUPPRESS)
 
 
 def run_workers(cmds: list[list[str]], d: Path, ready_timeout: float, what: str) -> tuple[float, list[dict]]:
@@ -49,6 +61,24 @@ def ready_then_go(ready: str, go: str) -> float:
     while not Path(go).exists():
         time.sleep(0.005)
     return time.time()
+
+
+def repeat_after_go(call, times: int, device, ready: str, go: str) -> float:
+    """The worker's timed work: ``call()`` once to warm up (kernel loads, graph capture), then, after the go,
+    ``times`` times, the device synchronised before and after; returns the start time (epoch seconds)."""
+    import torch
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    call()
+    sync()
+    t0 = ready_then_go(ready, go)
+    for _ in range(times):
+        call()
+    sync()
+    return t0
 
 
 def write_result(path: str, start: float, **extra) -> None:
