@@ -11,8 +11,8 @@ figure is the span per call over all workers (us), against torch's at the same P
 
 Variants: ``torch``, ``torch_tf32``, ``simt``, ``t<k>s`` (``bench_mlp.py``'s MLPs; pass ``fwd`` under no_grad or
 ``fwdbwd``, the gradients w.r.t. the features and the three weights), ``ieee_<B>`` and ``tf32_<B>`` (the fused Triton
-forward of ``bench_mlp_triton.py``: pass ``fwd`` only; needs triton), ``law_torch``, ``law_simt`` (one step's law
-calls, plasticity then elasticity with LoRA merged, forward + backward: pass ``fwdbwd`` only).
+MLP of ``bench_mlp_triton.py``, both passes; needs triton), ``law_torch``, ``law_simt`` (one step's law calls,
+plasticity then elasticity with LoRA merged, forward + backward: pass ``fwdbwd`` only).
 
 Usage (the GPU machine)::
 
@@ -35,16 +35,13 @@ VARIANT = re.compile(r"^(torch|torch_tf32|simt|t\d+s|(ieee|tf32)_\d+|law_(torch|
 
 
 def passes_of(variant: str) -> tuple[str, ...]:
-    """The passes a variant has: the Triton forward has no backward, the law rows are forward + backward."""
-    if variant.startswith(("ieee_", "tf32_")):
-        return ("fwd",)
-    if variant.startswith("law_"):
-        return ("fwdbwd",)
-    return ("fwd", "fwdbwd")
+    """The passes a variant has: the law rows are forward + backward only."""
+    return ("fwdbwd",) if variant.startswith("law_") else ("fwd", "fwdbwd")
 
 
 def call_of(variant: str, pass_: str, n: int, device):
-    """The callable a worker replays: ``variant``'s ``pass_`` on n particles."""
+    """The callable a worker replays: ``variant``'s ``pass_`` on n particles (the MLP variants on one seeded network,
+    features and cotangent: ``bench_mlp.mlp_calls``'s)."""
     import torch
 
     from benchmarks.bench_mlp import _no_grad, law_step, mlp_calls
@@ -52,14 +49,13 @@ def call_of(variant: str, pass_: str, n: int, device):
     if variant.startswith("law_"):
         return law_step(variant[4:], n, device)
     if variant.startswith(("ieee_", "tf32_")):
-        from benchmarks.bench_mlp import features
-        from benchmarks.bench_mlp_triton import fused_forward
-        from gca.laws.neural import NeuralLawConfig, make_mlp
+        from benchmarks.bench_mlp_triton import fused_mlp
 
-        torch.manual_seed(0)
-        net, z = make_mlp(NeuralLawConfig()).to(device), features(n, device, torch.float32)
+        _, _, _, net, z, v = mlp_calls("torch", n, device)
         precision, block = variant.split("_")
-        return _no_grad(lambda: fused_forward(net, z, int(block), precision))
+        fwd = lambda: fused_mlp(net, z, int(block), precision)  # noqa: E731
+        Ws = [net[i].weight for i in (0, 2, 4)]
+        return _no_grad(fwd) if pass_ == "fwd" else (lambda: torch.autograd.grad(fwd(), [z, *Ws], v))
     fwd, both, *_ = mlp_calls(variant, n, device)
     return _no_grad(fwd) if pass_ == "fwd" else both
 

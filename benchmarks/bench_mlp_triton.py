@@ -6,14 +6,19 @@ Sessions 34-35 measured every warp form slower than torch (forward at 30k partic
 kernel 55-76, simt 165.7): warp's scalar tile product reads both operands from shared memory for every multiply-add,
 and simt's accumulators did not stay in registers. Triton's dot keeps a per-thread register tile (each operand loaded
 once feeds several multiply-adds), and ``input_precision="ieee"`` keeps FP32 products (no TF32), so the law stays the
-same to rounding. Forward only: the simulation's no-gradient forward and the frame recompute's forward are half of
-the MLP's calls; a fused backward is worth building only if this forward wins clearly.
+same to rounding. Session 35 measured the forward alone (47.7 us against torch's 34.7 at 30k: slower when timed
+alone). Session 36 added the backward (:class:`FusedMLP`: one persistent launch recomputes the forward on chip and
+gives dx and the three weight gradients, summed per program in registers and stored as partials that torch sums in a
+fixed order), because a packed grid is bound by the GPU's throughput, where bytes count more than one call's latency
+(``bench_mlp_packed.py`` times both ways). A benchmark probe, not a training path: triton is no CI dependency, and
+its tests run in Triton's CPU interpreter where triton is installed (``tests/test_bench_mlp_triton.py``: float64 equal
+to torch's autograd to 1e-12, a gradcheck, a transposed weight caught).
 
 Per size and variant, per call [us] (CUDA: captured in one CUDA graph and replayed, as ``bench_mlp.py`` times;
-CPU: Triton's interpreter, ``TRITON_INTERPRET=1``, a correctness smoke only), and the largest deviation of the output
-from a float64 evaluation relative to the largest value. Variants: ``torch`` (nn.Sequential, FP32), ``ieee_<B>``
-(fused, FP32 products, B particles per program), ``tf32_<B>`` (fused, TF32 products: a precision change, shown for
-scale only).
+CPU: Triton's interpreter, ``TRITON_INTERPRET=1``, a correctness smoke only): the forward (no gradient) and the
+forward + backward, and the largest deviations of the output and the gradients from float64 relative to the largest
+value. Variants: ``torch`` (nn.Sequential, FP32), ``ieee_<B>`` (fused, FP32 products, B particles per program),
+``tf32_<B>`` (fused, TF32 products: a precision change, shown for scale only).
 
 Usage::
 
@@ -73,52 +78,162 @@ def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr
 
 
 def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precision: str = "ieee") -> torch.Tensor:
-    """``net(x)`` for a two-hidden-layer bias-free GELU ``make_mlp`` network, as one Triton launch. x: [N, 13] float32
-    (contiguous); returns [N, 9]."""
+    """``net(x)`` for a two-hidden-layer bias-free GELU ``make_mlp`` network, as one Triton launch, no gradient.
+    x: [N, 13] (made float32 contiguous); returns [N, 9]."""
+    if block < 16:
+        raise ValueError("fused MLP: block >= 16 (tl.dot) expected")
+    w1, w2, w3 = (m.weight.detach().float().contiguous() for m in _weights(net))
+    with torch.no_grad():
+        return FusedMLP.apply(x.float().contiguous(), w1, w2, w3, block, precision, 1)
+
+
+@triton.jit
+def _gelu_grad(x):
+    """d/dx of x Phi(x): Phi(x) + x phi(x)."""
+    return 0.5 * (1.0 + tl.math.erf(x * 0.7071067811865476)) + x * 0.3989422804014327 * tl.exp(-0.5 * x * x)
+
+
+@triton.jit
+def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, n, n_programs,
+                   K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
+                   OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
+                   PER_PROGRAM: tl.constexpr):
+    """One persistent program: for its PER_PROGRAM tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
+    recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per particle; the
+    weight gradients summed over the program's tiles in registers and stored once as this program's partial
+    (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic)."""
+    pid = tl.program_id(0)
+    k = tl.arange(0, K_PAD)
+    h = tl.arange(0, H)
+    o = tl.arange(0, OUT_PAD)
+    w1 = tl.load(w1_ptr + h[:, None] * K_IN + k[None, :], mask=k[None, :] < K_IN, other=0.0)  # [H, K_PAD]
+    w2 = tl.load(w2_ptr + h[:, None] * H + h[None, :])  # [H, H]
+    w3 = tl.load(w3_ptr + o[:, None] * H + h[None, :], mask=o[:, None] < N_OUT, other=0.0)  # [OUT_PAD, H]
+    dw1 = tl.zeros((H, K_PAD), dtype=w1.dtype)
+    dw2 = tl.zeros((H, H), dtype=w1.dtype)
+    dw3 = tl.zeros((OUT_PAD, H), dtype=w1.dtype)
+    for i in range(0, PER_PROGRAM):  # tile pid + i programs (past the last tile: every row masked)
+        rows = (pid + i * n_programs) * BLOCK + tl.arange(0, BLOCK)
+        live = rows < n
+        x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
+        g = tl.load(g_ptr + rows[:, None] * N_OUT + o[None, :], mask=live[:, None] & (o[None, :] < N_OUT), other=0.0)
+        h1 = tl.dot(x, tl.trans(w1), input_precision=PRECISION)  # [BLOCK, H]
+        a1 = _gelu(h1)
+        h2 = tl.dot(a1, tl.trans(w2), input_precision=PRECISION)
+        a2 = _gelu(h2)
+        dw3 += tl.dot(tl.trans(g), a2, input_precision=PRECISION)  # [OUT_PAD, H]
+        d2 = tl.dot(g, w3, input_precision=PRECISION) * _gelu_grad(h2)  # [BLOCK, H]
+        dw2 += tl.dot(tl.trans(d2), a1, input_precision=PRECISION)
+        d1 = tl.dot(d2, w2, input_precision=PRECISION) * _gelu_grad(h1)
+        dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
+        dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
+        tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
+    tl.store(dw1_ptr + pid * H * K_IN + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
+    tl.store(dw2_ptr + pid * H * H + h[:, None] * H + h[None, :], dw2)
+    tl.store(dw3_ptr + pid * N_OUT * H + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
+
+
+def _weights(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
+    """The three bias-free layers of a two-hidden-layer exact-GELU ``make_mlp`` network (anything else refused)."""
     acts = [m for m in net if not isinstance(m, torch.nn.Linear)]
     if len(acts) != 2 or any(not isinstance(a, torch.nn.GELU) or a.approximate != "none" for a in acts):
-        raise ValueError(f"fused_forward: two exact GELUs expected (the kernel computes x Phi(x)), got {acts}")
+        raise ValueError(f"fused MLP: two exact GELUs expected (the kernels compute x Phi(x)), got {acts}")
     linears = [m for m in net if isinstance(m, torch.nn.Linear)]
-    if any(m.bias is not None for m in linears) or block < 16:
-        raise ValueError("fused_forward: bias-free layers (make_mlp's) and block >= 16 (tl.dot) expected")
-    w1, w2, w3 = (m.weight.detach().float().contiguous() for m in linears)
-    x = x.float().contiguous()
+    if any(m.bias is not None for m in linears):
+        raise ValueError("fused MLP: bias-free layers (make_mlp's) expected")
+    w1, w2, w3 = (m.weight for m in linears)
     if w2.shape[0] != w2.shape[1] or w1.shape[0] != w2.shape[0] or w3.shape[1] != w2.shape[0]:
-        raise ValueError(f"fused_forward: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
-    n, k_in = x.shape
-    out = torch.empty(n, w3.shape[0], device=x.device, dtype=x.dtype)
-    pad = lambda v: max(16, triton.next_power_of_2(v))  # noqa: E731
-    _fused_mlp_fwd[(triton.cdiv(n, block),)](x, w1, w2, w3, out, n, K_IN=k_in, K_PAD=pad(k_in), H=w2.shape[0],
-                                             N_OUT=w3.shape[0], OUT_PAD=pad(w3.shape[0]), BLOCK=block,
-                                             PRECISION=precision)
-    return out
+        raise ValueError(f"fused MLP: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
+    return linears
+
+
+def _pad(v: int) -> int:
+    """A dimension padded for tl.dot: a power of two, at least 16."""
+    return max(16, triton.next_power_of_2(v))
+
+
+BWD_WARPS = 8  # the backward holds three weight-gradient accumulators ([64, 64] the largest) and six [BLOCK, 64]
+# activations per program: 8 warps (256 threads) halve the registers each thread holds against Triton's default 4
+
+
+class FusedMLP(torch.autograd.Function):
+    """out = W3 gelu(W2 gelu(W1 x)) for x [N, K_IN] and weights [H, K_IN], [H, H], [N_OUT, H] (torch's layout): the
+    forward one launch with nothing stored but the inputs; the backward one persistent launch that recomputes the
+    forward on chip and gives dx and the three weight gradients (partials per program summed by torch). float32
+    (``precision`` ieee or tf32) or float64 (ieee: the CPU interpreter's gradcheck)."""
+
+    @staticmethod
+    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int):
+        ctx.save_for_backward(x, w1, w2, w3)
+        ctx.cfg = (block, precision, programs)
+        out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
+        _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
+                                                         K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
+                                                         OUT_PAD=_pad(w3.shape[0]), BLOCK=block, PRECISION=precision)
+        return out
+
+    @staticmethod
+    def backward(ctx, g):
+        x, w1, w2, w3 = ctx.saved_tensors
+        block, precision, programs = ctx.cfg
+        n, tiles = x.shape[0], triton.cdiv(x.shape[0], block)
+        p = max(1, min(programs, tiles))
+        dx = torch.empty_like(x)
+        parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
+        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, n, p, K_IN=x.shape[1],
+                             K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0], OUT_PAD=_pad(w3.shape[0]),
+                             BLOCK=block, PRECISION=precision, PER_PROGRAM=triton.cdiv(tiles, p),
+                             num_warps=BWD_WARPS)
+        return (dx, *(part.sum(0) for part in parts), None, None, None)
+
+
+def fused_mlp(net: torch.nn.Sequential, x: torch.Tensor, block: int = 32, precision: str = "ieee",
+              programs: int = 4 * 132) -> torch.Tensor:
+    """``net(x)`` with gradients to x and the three weights through :class:`FusedMLP` (block >= 16; ``programs``: the
+    backward's persistent programs, default 4 per SM of an H100)."""
+    if block < 16:
+        raise ValueError("fused MLP: block >= 16 (tl.dot) expected")
+    w1, w2, w3 = (m.weight for m in _weights(net))
+    if x.dtype not in (torch.float32, torch.float64) or any(w.dtype != x.dtype for w in (w1, w2, w3)):
+        raise ValueError(f"fused MLP: float32 or float64 input and weights alike expected, got {x.dtype}, {w1.dtype}")
+    return FusedMLP.apply(x.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
+                          programs)
 
 
 def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int) -> list[dict]:
+    """Per size and variant: the forward (no gradient) and the forward + backward (the gradients w.r.t. x and the
+    three weights of <out, v>) per call [us], and their largest deviations from float64 relative to the largest value."""
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)
     net.load_state_dict({k: v.float() for k, v in net64.state_dict().items()})
+    W64 = [m.weight for m in _weights(net64)]
+    Ws = [m.weight for m in _weights(net)]
     out = []
     for n in sizes:
-        x64 = torch.randn(n, 13, dtype=torch.float64, device=device)
-        x = x64.float().contiguous()
-        with torch.no_grad():
-            ref = net64(x64)
-        for v in variants:
-            m = VARIANT.match(v)
+        x64 = torch.randn(n, 13, dtype=torch.float64, device=device).requires_grad_(True)
+        x = x64.detach().float().contiguous().requires_grad_(True)
+        v64 = torch.randn(n, 9, dtype=torch.float64, device=device)
+        ref = net64(x64)
+        gref = torch.autograd.grad(ref, [x64, *W64], v64)
+        for name in variants:
+            m = VARIANT.match(name)
             if m is None:
-                raise SystemExit(f"bench_mlp_triton.py: unknown variant {v!r} (torch, ieee_<B>, tf32_<B>)")
-            if v == "torch":
+                raise SystemExit(f"bench_mlp_triton.py: unknown variant {name!r} (torch, ieee_<B>, tf32_<B>)")
+            if name == "torch":
                 fn = lambda: net(x)  # noqa: E731
             else:
-                fn = lambda p=m.group(2), b=int(m.group(3)): fused_forward(net, x, b, p)  # noqa: E731
+                fn = lambda p=m.group(2), b=int(m.group(3)): fused_mlp(net, x, b, p)  # noqa: E731
+            both = lambda: torch.autograd.grad(fn(), [x, *Ws], v64.float())  # noqa: E731
+            rel = lambda a, b: float((a.double() - b).abs().max() / b.abs().max())  # noqa: E731
             with torch.no_grad():
-                y = fn()
-                dev = float((y.double() - ref).abs().max() / ref.abs().max())
+                dev = rel(fn(), ref.detach())
                 us = timed_us(fn, device, iters, repeats)
-            out.append({"particles": n, "variant": v, "fwd_us": us, "rel_dev": dev})
-            print(f"| {n} | {v} | {us:.1f} | {dev:.1e} |", flush=True)
+            gdev = max(rel(a, b) for a, b in zip(both(), gref))
+            us_both = timed_us(both, device, iters, repeats)
+            out.append({"particles": n, "variant": name, "fwd_us": us, "fwd_bwd_us": us_both, "rel_dev": dev,
+                        "grad_rel_dev": gdev})
+            print(f"| {n} | {name} | {us:.1f} | {us_both:.1f} | {dev:.1e} | {gdev:.1e} |", flush=True)
     return out
 
 
@@ -132,7 +247,8 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     device = torch.device(args.device)
-    print("| particles | variant | fwd us | rel dev from float64 |\n| --- | --- | --- | --- |", flush=True)
+    print("| particles | variant | fwd us | fwd+bwd us | rel dev from float64 | grad rel dev |\n"
+          "| --- | --- | --- | --- | --- | --- |", flush=True)
     res = rows(device, args.sizes, args.variants, args.iters, args.repeats)
     if args.json:
         name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"

@@ -19,8 +19,9 @@
 #       build; the ball's data, 10 GCA iterations with train.mlp_kernel torch, then simt (same data)  -> {torchmlp,simt}/
 #   PART=packbatch (session 36; ~3 min, no gsplat needed): bench_runs_packed.py under CUDA MPS, R runs' rollouts split
 #       as P processes x B batched runs each (1x1, 8x1, 2x4, 4x2, 1x8, 12x1, 3x4)                -> packbatch.*
-#   PART=mlppacked (for session 37; ~3 min, no gsplat): bench_mlp_packed.py, the MLP variants and one step's law calls
-#       replayed by 1 and 8 processes at once under MPS: us per call at a saturated GPU            -> mlppacked.*
+#   PART=mlppacked (for session 37; ~4 min, no gsplat): bench_mlp_triton.py (the fused MLP forward and forward +
+#       backward alone), then bench_mlp_packed.py, the MLP variants and one step's law calls replayed by 1 and 8
+#       processes at once under MPS: us per call at a saturated GPU                   -> triton_bwd.*, mlppacked.*
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
@@ -104,8 +105,12 @@ fi
 
 if [ "$PART" = mlppacked ]; then  # for session 37: which MLP is cheapest when the GPU is full?
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "bench_mlp_triton: the fused MLP forward and forward + backward alone"
+  timeout 120 python3 benchmarks/bench_mlp_triton.py --device cuda --sizes 30000 100000 \
+      --variants torch ieee_32 ieee_64 tf32_64 --json "$OUT/triton_bwd.json" > "$OUT/triton_bwd.txt" 2>&1
+  echo "triton rc=$?"; grep -E "^\|" "$OUT/triton_bwd.txt"
   stamp "bench_mlp_packed: the MLP variants, 1 and 8 processes under MPS"
-  timeout "${LIMIT:-230}" python3 benchmarks/bench_mlp_packed.py --device cuda --mps --procs 1 8 \
+  timeout "${LIMIT:-300}" python3 benchmarks/bench_mlp_packed.py --device cuda --mps --procs 1 8 \
       --variants torch torch_tf32 simt ieee_64 tf32_64 law_torch law_simt --json "$OUT/mlppacked.json" \
       > "$OUT/mlppacked.txt" 2>&1
   echo "mlppacked rc=$?"; grep -E "^\||MPS" "$OUT/mlppacked.txt"
