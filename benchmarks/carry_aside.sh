@@ -4,15 +4,18 @@
 #   sh benchmarks/carry_aside.sh out    # keeps benchmarks/results/{priors_paper,table1_launch,README.md}
 #     (table1_seeds goes aside too since session 24: the carry passed 64 MiB with it; no bundle reads it; since
 #     session 25 also table1_launch/records.tgz, reports/benchmark and reports/paper: the bundle reads the state only)
-#   LEAN=1 sh benchmarks/carry_aside.sh out   # also tests/, captures/, reports/ci and benchmarks/NOTES.md (for table_bundle.sh, which reads
-#     none of them; fast_bundle.sh and pack_bundle.sh run pytest: not for them). Session 35: with the grid's state.tgz
-#     at 6.4 MB the plain `out` left a 64.8-MiB carry, and the refused call lost its staged machine
+#   LEAN=1 sh benchmarks/carry_aside.sh out   # also tests/, captures/, reports/ci, benchmarks/NOTES.md and the grid
+#     logs table1_launch/logs (for table_bundle.sh, which reads none of them; fast_bundle.sh and pack_bundle.sh run
+#     pytest: not for them). Session 35: with the grid's state.tgz at 6.4 MB the plain `out` left a 64.8-MiB carry,
+#     and the refused call lost its staged machine; session 36: LEAN=1's 63.8 MiB with the state at 6.7 MB, so the
+#     logs (0.5 MB) go too
 #   sh benchmarks/carry_aside.sh back
 # `out` then prints the carry the wheels' call would send (what git sends, plus .wpb .whl .whl_render) against 64 MiB.
 # HOLD: where they wait (default /tmp/gca_carry_aside; `out` refuses a HOLD that still holds an earlier `out`).
 set -eu
 HOLD=${HOLD:-/tmp/gca_carry_aside}
-LEAN_PATHS="tests captures reports/ci benchmarks/NOTES.md"  # LEAN=1's, held as $HOLD/lean/<path with / as _>
+LEAN_PATHS="tests captures reports/ci benchmarks/NOTES.md benchmarks/results/table1_launch/logs"  # LEAN=1's, held as
+# $HOLD/lean/<path with / as _>
 case "${1:-}" in
 out)
   if [ -n "$(find "$HOLD" -mindepth 2 -maxdepth 2 2> /dev/null | head -n 1)" ]; then  # results, lean, launch, ...:
@@ -28,11 +31,11 @@ out)
     mkdir -p "$HOLD/lean"
     for d in $LEAN_PATHS; do [ ! -e "$d" ] || mv "$d" "$HOLD/lean/$(echo "$d" | tr / _)"; done
   fi
-  echo "moved aside to $HOLD: $(ls "$HOLD/results" | wc -l) result folders/files and reports/ci/figures$( [ "${LEAN:-0}" != 1 ] || echo "; tests, captures, reports/ci, NOTES.md")"
+  echo "moved aside to $HOLD: $(ls "$HOLD/results" | wc -l) result folders/files and reports/ci/figures$( [ "${LEAN:-0}" != 1 ] || echo "; tests, captures, reports/ci, NOTES.md, the grid logs")"
   if git rev-parse --git-dir > /dev/null 2>&1; then  # what the device tool sends: tracked and untracked-not-ignored files
     mib=$( { git ls-files -z -co --exclude-standard | xargs -0 -r stat -c %s 2> /dev/null || true  # set -e: moved-aside files fail stat
              find .wpb .whl .whl_render -type f -exec stat -c %s {} + 2> /dev/null || true; } | awk '{t += $1} END {printf "%.1f", t / 1048576}')
-    echo "the carry with .wpb .whl .whl_render: $mib MiB of 64$(awk "BEGIN {exit !($mib > 64)}" && echo ": OVER; LEAN=1 (after 'back') moves tests, captures, reports/ci and NOTES.md too")"
+    echo "the carry with .wpb .whl .whl_render: $mib MiB of 64$(awk "BEGIN {exit !($mib > 64)}" && echo ": OVER; LEAN=1 (after 'back') moves tests, captures, reports/ci, NOTES.md and the grid logs too")"
   fi ;;
 back)  # what was made in the tree meanwhile is newer: it stays, and the held copy stays in HOLD (said)
   put_as() {  # put_as HELD PATH: move HELD to PATH unless PATH exists already

@@ -53,13 +53,13 @@ def test_back_keeps_what_was_made_meanwhile(tmp_path):
 
 
 def test_lean_also_moves_tests_captures_and_reports_ci_and_says_the_carry(tmp_path):
-    """LEAN=1 (table_bundle.sh's calls, which run no pytest): tests/, captures/, reports/ci and NOTES.md leave too and come back
-    whole (reports/ci before its figures: they went aside apart); in a git checkout `out` says the carry's size
+    """LEAN=1 (table_bundle.sh's calls, which run no pytest): tests/, captures/, reports/ci, NOTES.md and the grid logs
+    leave too and come back whole (reports/ci before its figures: they went aside apart); in a git checkout `out` says the carry's size
     against 64 MiB, OVER when the tree and the wheels pass it (session 35: 64.8 MiB, a refused call)."""
     repo, hold = tmp_path / "repo", tmp_path / "hold"
     for rel in ("benchmarks/results/table1_launch/state.tgz", "benchmarks/results/x.json", "tests/test_a.py",
                 "captures/example/scan.ply", "reports/ci/figures/f.png", "reports/ci/table1.md", "gca/a.py",
-                "benchmarks/NOTES.md"):
+                "benchmarks/NOTES.md", "benchmarks/results/table1_launch/logs/s36.grid.log"):
         (repo / rel).parent.mkdir(parents=True, exist_ok=True)
         (repo / rel).write_text(rel)
     (repo / ".whl").mkdir()
