@@ -99,9 +99,11 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
                    OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
                    PER_PROGRAM: tl.constexpr):
     """One persistent program: for its PER_PROGRAM tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
-    recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per particle; the
-    weight gradients summed over the program's tiles in registers and stored once as this program's partial
-    (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic)."""
+    recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
+    particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
+    partial (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic). PER_PROGRAM is a
+    compile-time count (Triton's interpreter cannot loop to a runtime bound); the caller sizes the grid so that fewer
+    than PER_PROGRAM iterations of all programs fall past the last tile."""
     pid = tl.program_id(0)
     k = tl.arange(0, K_PAD)
     h = tl.arange(0, H)
@@ -144,6 +146,8 @@ def _weights(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
     w1, w2, w3 = (m.weight for m in linears)
     if w2.shape[0] != w2.shape[1] or w1.shape[0] != w2.shape[0] or w3.shape[1] != w2.shape[0]:
         raise ValueError(f"fused MLP: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
+    if w2.shape[0] < 16 or w2.shape[0] & (w2.shape[0] - 1):
+        raise ValueError(f"fused MLP: a hidden width that is a power of two >= 16 expected (tl.dot), got {w2.shape[0]}")
     return linears
 
 
@@ -173,16 +177,18 @@ class FusedMLP(torch.autograd.Function):
         return out
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, g):
         x, w1, w2, w3 = ctx.saved_tensors
         block, precision, programs = ctx.cfg
         n, tiles = x.shape[0], triton.cdiv(x.shape[0], block)
-        p = max(1, min(programs, tiles))
+        per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
+        p = max(1, triton.cdiv(tiles, per))
         dx = torch.empty_like(x)
         parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
         _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, n, p, K_IN=x.shape[1],
                              K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0], OUT_PAD=_pad(w3.shape[0]),
-                             BLOCK=block, PRECISION=precision, PER_PROGRAM=triton.cdiv(tiles, p),
+                             BLOCK=block, PRECISION=precision, PER_PROGRAM=per,
                              num_warps=BWD_WARPS)
         return (dx, *(part.sum(0) for part in parts), None, None, None)
 
@@ -202,7 +208,8 @@ def fused_mlp(net: torch.nn.Sequential, x: torch.Tensor, block: int = 32, precis
 
 def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int) -> list[dict]:
     """Per size and variant: the forward (no gradient) and the forward + backward (the gradients w.r.t. x and the
-    three weights of <out, v>) per call [us], and their largest deviations from float64 relative to the largest value."""
+    three weights of <out, v>) per call [us], and their largest deviations from float64 relative to the largest
+    value."""
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)

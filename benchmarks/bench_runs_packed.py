@@ -27,7 +27,8 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script from anywhere
-from benchmarks.packed import add_arguments, repeat_after_go, run_workers, write_result  # noqa: E402
+from benchmarks.packed import (add_arguments, exit_on_sigterm, ratios, repeat_after_go, run_workers,  # noqa: E402
+                               write_result)
 
 
 def parse_config(text: str) -> tuple[int, int]:
@@ -74,7 +75,7 @@ def worker(a) -> None:
         out = rollout(solver_b, law, xs, v, vols, masses, a.steps, a.steps_per_frame, wave_speed=12.0)
         (out.x[1:] ** 2).sum().backward()
 
-    write_result(a.result, repeat_after_go(once, a.rollouts, device, a.ready, a.go), particles_per_run=n)
+    write_result(a.result, repeat_after_go(once, a.rollouts, device, a), particles_per_run=n)
 
 
 def run_config(p: int, b: int, rollouts: int, a, tmp: Path) -> dict:
@@ -83,10 +84,10 @@ def run_config(p: int, b: int, rollouts: int, a, tmp: Path) -> dict:
              "--particles", str(a.particles), "--n-grid", str(a.n_grid), "--steps", str(a.steps),
              "--steps-per-frame", str(a.steps_per_frame), "--rollouts", str(rollouts), "--seed", str(i)]
             for i in range(p)]
-    span, rs = run_workers(cmds, tmp / f"{p}x{b}", a.ready_timeout, f"bench_runs_packed: config {p}x{b}")
+    span, rs = run_workers(cmds, tmp, a.ready_timeout, f"bench_runs_packed: config {p}x{b}", a.run_timeout)
     return {"processes": p, "runs_per_process": b, "runs": p * b, "rollouts_per_process": rollouts,
             "particles_per_run": rs[0]["particles_per_run"], "span_s": span,
-            "run_rollouts_per_s": p * b * rollouts / span}
+            "run_rollouts_per_s": p * b * rollouts / span, "s_per_run_rollout": span / (p * b * rollouts)}
 
 
 def main(argv=None) -> list[dict]:
@@ -108,22 +109,22 @@ def main(argv=None) -> list[dict]:
         return []
     from gca.pipeline.grid import mps_daemon
 
+    exit_on_sigterm()
     rows = []
+    solo = lambda r: next((x for x in rows if x["runs"] == 1), None)  # noqa: E731
     print("| processes x runs each | runs | rollouts each | span s | run-rollouts / s | x (1 x 1) |\n"
           "| --- | --- | --- | --- | --- | --- |", flush=True)
     with tempfile.TemporaryDirectory() as tmp, mps_daemon(a.mps, lambda m: print(m, flush=True)) as mps_on:
         for p, b in a.configs:
             r = run_config(p, b, max(2, a.run_rollouts // (p * b)), a, Path(tmp))
             r["mps"] = mps_on
-            base = next((x for x in rows + [r] if x["runs"] == 1), None)
-            r["x_solo"] = r["run_rollouts_per_s"] / base["run_rollouts_per_s"] if base else None
             rows.append(r)
+            ratios(rows, "x_solo", solo, "s_per_run_rollout")
             print(f"| {p} x {b} | {p * b} | {r['rollouts_per_process']} | {r['span_s']:.2f} | "
-                  f"{r['run_rollouts_per_s']:.2f} | " + (f"{r['x_solo']:.2f}x |" if base else "- |"), flush=True)
-    if a.json:
-        Path(a.json).write_text(json.dumps({"device": a.device, "mps": bool(a.mps), "rows": rows}, indent=2))
+                  f"{r['run_rollouts_per_s']:.2f} | " + (f"{r['x_solo']:.2f}x |" if r["x_solo"] else "- |"), flush=True)
+            if a.json:  # after every row: a command stopped by its limit keeps what it measured
+                Path(a.json).write_text(json.dumps({"device": a.device, "mps": bool(a.mps), "rows": rows}, indent=2))
     return rows
-
 
 if __name__ == "__main__":
     main()

@@ -110,7 +110,7 @@ if [ "$PART" = mlppacked ]; then  # for session 37: which MLP is cheapest when t
       --variants torch ieee_32 ieee_64 tf32_64 --json "$OUT/triton_bwd.json" > "$OUT/triton_bwd.txt" 2>&1
   echo "triton rc=$?"; grep -E "^\|" "$OUT/triton_bwd.txt"
   stamp "bench_mlp_packed: the MLP variants, 1 and 8 processes under MPS"
-  timeout "${LIMIT:-300}" python3 benchmarks/bench_mlp_packed.py --device cuda --mps --procs 1 8 \
+  timeout "${MLP_LIMIT:-420}" python3 benchmarks/bench_mlp_packed.py --device cuda --mps --procs 1 8 \
       --variants torch torch_tf32 simt ieee_64 tf32_64 law_torch law_simt --json "$OUT/mlppacked.json" \
       > "$OUT/mlppacked.txt" 2>&1
   echo "mlppacked rc=$?"; grep -E "^\||MPS" "$OUT/mlppacked.txt"

@@ -5,6 +5,7 @@ H100 bundles run)."""
 
 import importlib.util
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -173,7 +174,8 @@ def test_bench_mlp_times_torch_and_the_tile_kernel_and_checks_both_against_float
 def test_bench_runs_packed_runs_processes_of_batched_runs_at_once_on_the_cpu(tmp_path):
     mod = _load("bench_runs_packed")
     rows = mod.main(["--device", "cpu", "--configs", "1x1", "2x1", "1x2", "--particles", "200", "--n-grid", "12",
-                     "--steps", "4", "--steps-per-frame", "2", "--run-rollouts", "4", "--json", str(tmp_path / "p.json")])
+                     "--steps", "4", "--steps-per-frame", "2", "--run-rollouts", "4",
+                     "--json", str(tmp_path / "p.json")])
     assert [(r["processes"], r["runs_per_process"], r["rollouts_per_process"]) for r in rows] == [(1, 1, 4), (2, 1, 2),
                                                                                                    (1, 2, 2)]
     assert rows[0]["x_solo"] == 1.0 and all(r["span_s"] > 0 and r["run_rollouts_per_s"] > 0 for r in rows)
@@ -224,3 +226,57 @@ def test_bench_mlp_packed_calls_are_the_variants_own():
     with pytest.raises(AssertionError):  # control: the forward of other particles is another output
         close(mod.call_of("torch", "fwd", 64, dev)(), mod.call_of("torch", "fwd", 64, dev)().flip(0))
     assert mod.passes_of("ieee_64") == ("fwd", "fwdbwd") and mod.passes_of("law_torch") == ("fwdbwd",)
+
+
+_DUMMY = """
+import argparse, sys, time
+sys.path.insert(0, {root!r})
+from benchmarks.packed import add_arguments, ready_then_go, write_result
+ap = argparse.ArgumentParser()
+add_arguments(ap)
+ap.add_argument("--setup", type=float, default=0.0)
+ap.add_argument("--work", type=float, default=0.0)
+ap.add_argument("--fail", action="store_true")
+a = ap.parse_args()
+time.sleep(a.setup)
+t0 = ready_then_go(a.ready, a.go, a.ready_timeout)
+if a.fail:
+    sys.exit(3)
+time.sleep(a.work)
+write_result(a.result, t0)
+"""
+
+
+def _dummy(tmp_path) -> str:
+    path = tmp_path / "dummy.py"
+    path.write_text(_DUMMY.format(root=str(ROOT)))
+    return str(path)
+
+
+def test_packed_workers_start_together_each_run_in_a_fresh_folder(tmp_path):
+    """The span counts the timed work only, not the workers' unequal set-up, also when the same runs go again in the
+    same parent folder (an earlier run's ready and go files do not count: a config listed twice)."""
+    packed = _load("packed")
+    cmds = [[_dummy(tmp_path), "--setup", str(0.6 * i), "--work", "0.2"] for i in range(3)]
+    for _ in range(2):
+        span, results = packed.run_workers(cmds, tmp_path / "runs", 60.0, "dummy")
+        assert 0.2 <= span < 0.55 and len(results) == 3  # the control, no start signal: a span of ~1.4 s
+    assert len(list((tmp_path / "runs").iterdir())) == 2
+
+
+def test_a_worker_failing_after_the_go_stops_the_others_and_a_worker_without_a_go_gives_up(tmp_path):
+    packed = _load("packed")
+    t0 = time.monotonic()
+    with pytest.raises(SystemExit, match="exited with status 3"):
+        packed.run_workers([[_dummy(tmp_path), "--work", "60"], [_dummy(tmp_path), "--fail"]], tmp_path / "runs",
+                           60.0, "dummy")
+    assert time.monotonic() - t0 < 20  # the 60-s worker was stopped, not waited for
+    with pytest.raises(SystemExit, match="exited with status 3"):  # its order does not matter
+        packed.run_workers([[_dummy(tmp_path), "--fail"], [_dummy(tmp_path), "--work", "60"]], tmp_path / "runs",
+                           60.0, "dummy")
+    assert time.monotonic() - t0 < 40
+    with pytest.raises(SystemExit, match="no go within"):  # a driver that died gives no go: the worker gives up
+        packed.ready_then_go(str(tmp_path / "ready"), str(tmp_path / "never"), timeout=0.2)
+    rows = [{"cost": 2.0, "b": True}, {"cost": 1.0, "b": False}]
+    packed.ratios(rows, "x", lambda r: rows[0] if not r["b"] else None, "cost")
+    assert rows[0]["x"] is None and rows[1]["x"] == 2.0  # the baseline's cost over the row's: lower is better
