@@ -102,9 +102,10 @@ def _no_grad(fn):
     return call
 
 
-def mlp_calls(variant: str, n: int, device):
+def mlp_calls(variant: str, n: int, device, run=None):
     """The MLP of ``variant`` on n particles' features: (fwd, both, net64, net, z, v): ``fwd()`` its output, ``both()``
-    the gradients of <output, v> w.r.t. z and the three weights (seeded; net64 the float64 twin of net)."""
+    the gradients of <output, v> w.r.t. z and the three weights (seeded; net64 the float64 twin of net). ``run(z, Ws,
+    net)``: another forward of the same network in place of ``variant``'s (the fused Triton MLP's)."""
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)
@@ -112,8 +113,9 @@ def mlp_calls(variant: str, n: int, device):
     z = features(n, device, torch.float32).requires_grad_(True)
     Ws = [net[i].weight for i in (0, 2, 4)]
     v = torch.randn(n, 9, device=device, generator=torch.Generator(device).manual_seed(1))
-    fwd = lambda: run_mlp(variant, z, Ws, net)  # noqa: E731
-    both = lambda: torch.autograd.grad(run_mlp(variant, z, Ws, net), [z, *Ws], v)  # noqa: E731
+    run = run or (lambda z, Ws, net: run_mlp(variant, z, Ws, net))
+    fwd = lambda: run(z, Ws, net)  # noqa: E731
+    both = lambda: torch.autograd.grad(fwd(), [z, *Ws], v)  # noqa: E731
     return fwd, both, net64, net, z, v
 
 

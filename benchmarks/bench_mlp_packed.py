@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -43,21 +43,17 @@ def passes_of(variant: str) -> tuple[str, ...]:
 def call_of(variant: str, pass_: str, n: int, device):
     """The callable a worker replays: ``variant``'s ``pass_`` on n particles (the MLP variants on one seeded network,
     features and cotangent: ``bench_mlp.mlp_calls``'s)."""
-    import torch
-
     from benchmarks.bench_mlp import _no_grad, law_step, mlp_calls
 
     if variant.startswith("law_"):
         return law_step(variant[4:], n, device)
+    run = None
     if variant.startswith(("ieee_", "tf32_")):
         from benchmarks.bench_mlp_triton import fused_mlp
 
-        _, _, _, net, z, v = mlp_calls("torch", n, device)
         precision, block = variant.split("_")
-        fwd = lambda: fused_mlp(net, z, int(block), precision)  # noqa: E731
-        Ws = [net[i].weight for i in (0, 2, 4)]
-        return _no_grad(fwd) if pass_ == "fwd" else (lambda: torch.autograd.grad(fwd(), [z, *Ws], v))
-    fwd, both, *_ = mlp_calls(variant, n, device)
+        run = lambda z, Ws, net: fused_mlp(net, z, int(block), precision)  # noqa: E731
+    fwd, both, *_ = mlp_calls(variant, n, device, run)
     return _no_grad(fwd) if pass_ == "fwd" else both
 
 

@@ -78,13 +78,10 @@ def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr
 
 
 def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precision: str = "ieee") -> torch.Tensor:
-    """``net(x)`` for a two-hidden-layer bias-free GELU ``make_mlp`` network, as one Triton launch, no gradient.
-    x: [N, 13] (made float32 contiguous); returns [N, 9]."""
-    if block < 16:
-        raise ValueError("fused MLP: block >= 16 (tl.dot) expected")
-    w1, w2, w3 = (m.weight.detach().float().contiguous() for m in _weights(net))
+    """``net(x)`` for a float32 two-hidden-layer bias-free GELU ``make_mlp`` network, as one Triton launch, no
+    gradient (:func:`fused_mlp` under no_grad). x: [N, 13] (made float32); returns [N, 9]."""
     with torch.no_grad():
-        return FusedMLP.apply(x.float().contiguous(), w1, w2, w3, block, precision, 1)
+        return fused_mlp(net, x.float(), block, precision)
 
 
 @triton.jit

@@ -50,32 +50,50 @@ def _sync(device):
         torch.cuda.synchronize(device)
 
 
-def measure(n_runs: int, n: int, n_grid: int, steps: int, per_frame: int, device, repeats: int,
-            laws_mode: str = "composite") -> dict:
+WAVE_SPEED = 12.0  # for the rollouts' CFL check [m/s]
+
+
+def runs_setup(n_runs: int, n: int, n_grid: int, device, seed: int = 0):
+    """B = ``n_runs`` runs on one lattice block of ~n particles: (solver, x, vol, mass, laws, v0s); run r's law is
+    ``make_law(seed * 1000 + r)``, its launch velocity (0.3 r, -1, 0) m/s."""
     cfg = SimConfig(n_grid=n_grid, dt=2e-4, dtype="float32", max_refine=1)
     solver = MPMSolver(cfg, device)
     x, vol, mass = block(n, cfg, device, order="lattice")
     n = x.shape[0]
-    laws = [make_law(r, device, torch.float32) for r in range(n_runs)]
+    laws = [make_law(seed * 1000 + r, device, torch.float32) for r in range(n_runs)]
     v0s = [torch.tensor([0.3 * r, -1.0, 0.0], device=device).expand(n, 3).contiguous() for r in range(n_runs)]
-    c = 12.0  # wave speed for the CFL check [m/s]
+    return solver, x, vol, mass, laws, v0s
 
-    def one(solver, material, x, v0, vol, mass):
-        v0 = v0.clone().requires_grad_(True)
-        out = rollout(solver, material, x, v0, vol, mass, steps, per_frame, wave_speed=c)
-        (out.x[1:] ** 2).sum().backward()
+
+def one_rollout(solver, material, x, v0, vol, mass, steps: int, per_frame: int) -> None:
+    """A rollout from launch velocity v0 forward and backward (a fixed loss of the positions), as training runs it."""
+    v0 = v0.clone().requires_grad_(True)
+    out = rollout(solver, material, x, v0, vol, mass, steps, per_frame, wave_speed=WAVE_SPEED)
+    (out.x[1:] ** 2).sum().backward()
+
+
+def as_batch(solver, x, vol, mass, laws, v0s, laws_mode: str = "batched"):
+    """The runs as one: (the solver over the runs' stacked grids, their material, x, v0, vol, mass concatenated), for
+    :func:`one_rollout`; ``laws_mode`` composite (a ``CompositeMaterial``) or batched (``gca.laws.batched``)."""
+    b, n = len(laws), x.shape[0]
+    run = torch.arange(b, device=x.device, dtype=torch.int32).repeat_interleave(n)
+    both = CompositeMaterial(laws, [n] * b) if laws_mode == "composite" else runs_material(laws, [n] * b)
+    return solver.with_runs(run, b), both, x.repeat(b, 1), torch.cat(v0s), vol.repeat(b), mass.repeat(b)
+
+
+def measure(n_runs: int, n: int, n_grid: int, steps: int, per_frame: int, device, repeats: int,
+            laws_mode: str = "composite") -> dict:
+    solver, x, vol, mass, laws, v0s = runs_setup(n_runs, n, n_grid, device)
+    n = x.shape[0]
 
     def sequential():
         for law, v0 in zip(laws, v0s):
-            one(solver, law, x, v0, vol, mass)
+            one_rollout(solver, law, x, v0, vol, mass, steps, per_frame)
 
-    run = torch.arange(n_runs, device=device, dtype=torch.int32).repeat_interleave(n)
-    both = CompositeMaterial(laws, [n] * n_runs) if laws_mode == "composite" else runs_material(laws, [n] * n_runs)
-    batch = solver.with_runs(run, n_runs)
-    cat = [x.repeat(n_runs, 1), torch.cat(v0s), vol.repeat(n_runs), mass.repeat(n_runs)]
+    batch = as_batch(solver, x, vol, mass, laws, v0s, laws_mode)
 
     def batched():
-        one(batch, both, *cat)
+        one_rollout(*batch, steps, per_frame)
 
     row = {"runs": n_runs, "particles_per_run": n, "n_grid": n_grid, "steps": steps, "laws": laws_mode}
     for name, fn in (("sequential", sequential), ("batched", batched)):

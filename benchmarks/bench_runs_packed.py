@@ -43,39 +43,22 @@ def parse_config(text: str) -> tuple[int, int]:
 
 
 def worker(a) -> None:
-    """One process: B runs' batched rollout; ready file, wait for the go file, ``--rollouts`` timed rollouts; writes
-    ``{"start": t0, "end": t1}`` (epoch seconds) to ``--result``."""
+    """One process: B runs' batched rollout (``bench_runs.runs_setup`` with this worker's seed, ``as_batch``; one run
+    alone on the plain solver); ready file, wait for the go file, ``--rollouts`` timed rollouts; writes
+    ``{"start": t0, "end": t1}`` (``time.monotonic``) to ``--result``."""
     import torch
     import warp as wp
 
-    from benchmarks.bench_runs import make_law
-    from benchmarks.bench_sim import block
-    from gca.laws.batched import runs_material
-    from gca.sim import MPMSolver, SimConfig, rollout
+    from benchmarks.bench_runs import as_batch, one_rollout, runs_setup
 
     wp.config.quiet = True
     device = torch.device(a.device)
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
-    cfg = SimConfig(n_grid=a.n_grid, dt=2e-4, dtype="float32", max_refine=1)
-    solver = MPMSolver(cfg, device)
-    x, vol, mass = block(a.particles, cfg, device, order="lattice")
-    n, b = x.shape[0], a.runs
-    laws = [make_law(a.seed * 1000 + r, device, torch.float32) for r in range(b)]
-    v0 = torch.cat([torch.tensor([0.3 * r, -1.0, 0.0], device=device).expand(n, 3) for r in range(b)])
-    if b == 1:
-        solver_b, law = solver, laws[0]
-    else:
-        solver_b = solver.with_runs(torch.arange(b, device=device, dtype=torch.int32).repeat_interleave(n), b)
-        law = runs_material(laws, [n] * b)
-    xs, vols, masses = x.repeat(b, 1), vol.repeat(b), mass.repeat(b)
-
-    def once():
-        v = v0.clone().requires_grad_(True)
-        out = rollout(solver_b, law, xs, v, vols, masses, a.steps, a.steps_per_frame, wave_speed=12.0)
-        (out.x[1:] ** 2).sum().backward()
-
-    write_result(a.result, repeat_after_go(once, a.rollouts, device, a), particles_per_run=n)
+    solver, x, vol, mass, laws, v0s = runs_setup(a.runs, a.particles, a.n_grid, device, a.seed)
+    batch = (solver, laws[0], x, v0s[0], vol, mass) if a.runs == 1 else as_batch(solver, x, vol, mass, laws, v0s)
+    write_result(a.result, repeat_after_go(lambda: one_rollout(*batch, a.steps, a.steps_per_frame), a.rollouts,
+                                           device, a), particles_per_run=x.shape[0])
 
 
 def run_config(p: int, b: int, rollouts: int, a, tmp: Path) -> dict:
@@ -125,6 +108,7 @@ def main(argv=None) -> list[dict]:
             if a.json:  # after every row: a command stopped by its limit keeps what it measured
                 Path(a.json).write_text(json.dumps({"device": a.device, "mps": bool(a.mps), "rows": rows}, indent=2))
     return rows
+
 
 if __name__ == "__main__":
     main()

@@ -14,8 +14,17 @@ pytest.importorskip("triton")
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_mlp_triton.py"
 
 
+def _run(code: str) -> str:
+    """``code`` in a fresh Python under Triton's CPU interpreter; it must print "ok"."""
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=SCRIPT.parents[1], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
+    return out.stdout
+
+
 def test_the_fused_forward_equals_torch_and_refuses_other_activations():
-    code = """
+    _run("""
 import sys, torch
 sys.argv = ["x", "--device", "cpu"]
 sys.path.insert(0, "benchmarks")
@@ -35,19 +44,7 @@ try:
 except ValueError as e:
     assert "exact GELUs" in str(e)
 print("ok", dev)
-"""
-    env = {**os.environ, "TRITON_INTERPRET": "1"}
-    out = subprocess.run([sys.executable, "-c", code], cwd=SCRIPT.parents[1], env=env, capture_output=True, text=True,
-                         timeout=600)
-    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
-
-
-def _run(code: str) -> str:
-    env = {**os.environ, "TRITON_INTERPRET": "1"}
-    out = subprocess.run([sys.executable, "-c", code], cwd=SCRIPT.parents[1], env=env, capture_output=True, text=True,
-                         timeout=600)
-    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
-    return out.stdout
+""")
 
 
 def test_the_fused_backward_equals_autograd_in_float64():
