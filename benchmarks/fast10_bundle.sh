@@ -18,7 +18,7 @@
 #   PART=simt (for session 35; ~8 min, limits 600 s with the build's 200): bench_mlp (torch, torch_tf32, simt); gsplat's
 #       build; the ball's data, 10 GCA iterations with train.mlp_kernel torch, then simt (same data)  -> {torchmlp,simt}/
 #   PART=packbatch (session 36; ~3 min, no gsplat needed): bench_runs_packed.py under CUDA MPS, R runs' rollouts split
-#       as P processes x B batched runs each (1x1, 8x1, 2x4, 4x2, 1x8, 12x1, 3x4)                -> packbatch.*
+#       as P processes x B batched runs each (CONFIGS, default 1x1 8x1 2x4 4x2 1x8 12x1 3x4)        -> packbatch.*
 #   PART=mlppacked (for session 37; ~4 min, no gsplat): bench_mlp_triton.py (the fused MLP forward and forward +
 #       backward alone), then bench_mlp_packed.py, the MLP variants and one step's law calls replayed by 1 and 8
 #       processes at once under MPS: us per call at a saturated GPU                   -> triton_bwd.*, mlppacked.*
@@ -99,7 +99,7 @@ if [ "$PART" = packbatch ]; then  # session 36: do MPS packing and batched runs 
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   stamp "bench_runs_packed: processes x batched runs under MPS"
   timeout "${LIMIT:-230}" python3 benchmarks/bench_runs_packed.py --device cuda --mps \
-      --configs 1x1 8x1 2x4 4x2 1x8 12x1 3x4 --json "$OUT/packbatch.json" > "$OUT/packbatch.txt" 2>&1
+      --configs ${CONFIGS:-1x1 8x1 2x4 4x2 1x8 12x1 3x4} --json "$OUT/packbatch.json" > "$OUT/packbatch.txt" 2>&1
   echo "packbatch rc=$?"; grep -E "^\||MPS" "$OUT/packbatch.txt"
 fi
 
@@ -126,6 +126,8 @@ if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattic
 fi
 
 if [ "$PART" = b ]; then
+  stamp "gsplat: build its extension once per machine (else the first run's training would time the build)"
+  build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   for scene in ${SCENES:-ball}; do
     stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}"
   done
