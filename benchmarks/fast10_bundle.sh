@@ -30,7 +30,7 @@ OUT=${OUT:-/tmp/fast10_out}; PART=${PART:-a}
 mkdir -p "$OUT"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[fast10 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[fast10 {int(time.time()) - $T0:>4} s] {sys.argv[1]}', flush=True)" "$1"; }
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine (and build_gsplat)
 . benchmarks/harness_runs.sh  # run, summary
 
@@ -126,7 +126,7 @@ if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattic
 fi
 
 if [ "$PART" = b ]; then
-  stamp "gsplat: build its extension once per machine (else the first run's training would time the build)"
+  stamp "gsplat: build its extension once per machine (or the first run would time the build)"
   build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   for scene in ${SCENES:-ball}; do
     stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}"

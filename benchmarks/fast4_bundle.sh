@@ -16,7 +16,7 @@ OUT=${OUT:-/tmp/fast4_out}; W=${W:-/tmp/fast4_w}; PART=${PART:-a}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[fast4 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[fast4 {int(time.time()) - $T0:>4} s] {sys.argv[1]}', flush=True)" "$1"; }
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
 COMMON="--scene ball --methods gca --profile paper --work $W --set velocity.iterations=20 --set render.backend=gsplat"
 fresh() { rm -rf "$W/runs" "$W/eval"; }

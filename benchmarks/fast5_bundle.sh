@@ -14,7 +14,7 @@ OUT=${OUT:-/tmp/fast5_out}; W=${W:-/tmp/fast5_w}; PART=${PART:-a}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[fast5 {int(time.time()) - $T0:>4} s] ' + '$1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[fast5 {int(time.time()) - $T0:>4} s] ' + sys.argv[1], flush=True)" "$1"; }
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
 train() {  # tag scene iterations timeout
   rm -rf "$W/$2/runs" "$W/$2/eval"; mkdir -p "$OUT/$1" "$W/$2/prior"; cp .priors/jelly.pt "$W/$2/prior/jelly.pt"

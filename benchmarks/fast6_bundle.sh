@@ -14,7 +14,7 @@ OUT=${OUT:-/tmp/fast6_out}
 mkdir -p "$OUT"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[fast6 {int(time.time()) - $T0:>4} s] ' + '$1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[fast6 {int(time.time()) - $T0:>4} s] ' + sys.argv[1], flush=True)" "$1"; }
 . benchmarks/gpu_wheels.sh && install_wheels
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 stamp "bench_sim"

@@ -15,7 +15,7 @@ OUT=${OUT:-/tmp/fast8_out}; PART=${PART:-a}
 mkdir -p "$OUT"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[fast8 {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[fast8 {int(time.time()) - $T0:>4} s] {sys.argv[1]}', flush=True)" "$1"; }
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine
 . benchmarks/harness_runs.sh  # run, summary
 

@@ -18,7 +18,7 @@ OUT=${OUT:-/tmp/fast_out}; W=${W:-/tmp/fast_w}; STEPS=${STEPS:-200}
 mkdir -p "$OUT" "$W"
 export PYTHONPATH=.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[bundle {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[bundle {int(time.time()) - $T0:>4} s] {sys.argv[1]}', flush=True)" "$1"; }
 
 stamp "gsplat: install and build its extension once"
 if ! python3 -c "import gsplat" 2>/dev/null; then

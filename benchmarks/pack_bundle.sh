@@ -16,7 +16,7 @@ mkdir -p "$OUT/nomps" "$OUT/mps" "$W/h/prior"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW_TRACKING_URI=sqlite:///$W/mlflow.db
 . benchmarks/gpu_wheels.sh
 T0=$(date +%s)
-stamp() { python3 -c "import time; print(f'[pack {int(time.time()) - $T0:>4} s] $1', flush=True)"; }
+stamp() { python3 -c "import sys, time; print(f'[pack {int(time.time()) - $T0:>4} s] {sys.argv[1]}', flush=True)" "$1"; }
 SETS="--set train.iterations=$ITS --set velocity.iterations=20 --set render.backend=gsplat"
 install_wheels
 
