@@ -25,6 +25,7 @@
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
+#       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair)
 set -u
 OUT=${OUT:-/tmp/fast10_out}; PART=${PART:-a}
 mkdir -p "$OUT"
@@ -129,7 +130,8 @@ if [ "$PART" = b ]; then
   stamp "gsplat: build its extension once per machine (or the first run would time the build)"
   build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   for scene in ${SCENES:-ball}; do
-    stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}"
+    stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}" \
+        ${METHODS:+--methods $METHODS}
   done
   summary $(for s in ${SCENES:-ball}; do printf 'solo_%s ' "$s"; done)
 fi

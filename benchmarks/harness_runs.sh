@@ -18,10 +18,10 @@ summary() {
   python3 - "$OUT" "$@" <<'PY'
 import glob, json, statistics, sys
 out = sys.argv[1]
-print(f"{'run':>12} {'its':>4} {'s/it':>6} {'full-horizon s/it':>17} {'sim':>5} {'render+loss':>11} {'bwd':>5} {'peak GiB':>8} "
+print(f"{'run':>12} {'method':>12} {'its':>4} {'s/it':>6} {'full-horizon s/it':>17} {'sim':>5} {'render+loss':>11} {'bwd':>5} {'peak GiB':>8} "
       f"{'train s':>7} {'CD':>9} status")
 for tag in sys.argv[2:]:
-    for f in glob.glob(f"{out}/{tag}/harness_*.json"):
+    for f in sorted(glob.glob(f"{out}/{tag}/harness_*.json")):
         r = json.load(open(f))
         hist = r.get("history", [])
         full = [h for h in hist[1:] if h.get("horizon") == max(x.get("horizon", 0) for x in hist)
@@ -29,7 +29,7 @@ for tag in sys.argv[2:]:
         med = lambda k: statistics.median(h.get(f"time/{k}", 0.0) for h in full) if full else float("nan")  # noqa
         per_it = med("simulate") + med("render_losses") + med("backward") + med("optimizer")
         cd = r.get("chamfer_mean")
-        print(f"{tag:>12} {r['iterations']:>4} {r['seconds_per_iteration']:6.2f} {per_it:17.3f} {med('simulate'):5.2f} "
+        print(f"{tag:>12} {r.get('method', '?'):>12} {r['iterations']:>4} {r['seconds_per_iteration']:6.2f} {per_it:17.3f} {med('simulate'):5.2f} "
               f"{med('render_losses'):11.2f} {med('backward'):5.2f} {r['peak_memory_gib']:8.2f} {r['train_seconds']:7.1f} "
               f"{cd if cd is None else round(cd, 6)!s:>9} {r['status']}")
         print(f"{'':>12} losses: " + " ".join(f"{h['loss']:.6g}" for h in hist[:6]))

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from gca.pipeline import dispatch, grid
 
@@ -233,6 +234,53 @@ def test_a_training_runs_expected_time_comes_from_the_runs_finished_here(tmp_pat
     (tmp_path / "runs/cat/neuma/train.json").write_text(json.dumps({"train_seconds": 300.0, "status": "ok"}))
     assert grid.expected_train_s(tmp_path, "train@ball:neuma", 900.0) == pytest.approx(start + 300.0 * 850.0 / 400.0)
     assert grid.expected_train_s(tmp_path, "train@duck:neuma", 900.0) == start + 300.0  # nobody finished the duck
+
+
+def test_a_method_that_does_not_train_is_no_scale_between_scenes():
+    """Session 36: NCLaw's near-zero train_seconds (it does not train) were taken as the ratio between two scenes'
+    costs and set wolf's GCA at ~1.5x what it took."""
+    finished = {"gca": {"ball": 850.0, "pawn": 440.0}, "nclaw": {"ball": 7e-4, "pawn": 4e-4, "wolf": 1e-3}}
+    assert grid._scaled_elsewhere(finished, "gca", "wolf") == 850.0  # its slowest time anywhere
+    trained = {"gca": {"ball": 850.0, "pawn": 440.0}, "neuma": {"ball": 70.0, "wolf": 100.0}}  # control: it trained
+    assert grid._scaled_elsewhere(trained, "gca", "wolf") == pytest.approx(850.0 * 100.0 / 70.0)
+
+
+def test_a_scenes_steps_scale_a_methods_times_from_elsewhere():
+    finished = {"gca": {"ball": 850.0, "pawn": 440.0}}
+    steps = {"ball": 800, "pawn": 400, "wolf": 1000, "cat": 400}
+    assert grid._scaled_elsewhere(finished, "gca", "wolf", steps) == pytest.approx(
+        (850.0 * 1000 / 800 + 440.0 * 1000 / 400) / 2)  # the median of the scaled times: 1081 s, not 850
+    assert grid._scaled_elsewhere(finished, "gca", "cat", steps) == 850.0  # fewer steps: the slowest time stays a floor
+    assert grid._scaled_elsewhere(finished, "gca", "duck", steps) == 850.0  # no steps known for it: as without
+    assert grid._scaled_elsewhere(finished, "gca", "wolf", {"wolf": 1000}) == 850.0  # none for the scenes it ran on
+
+
+def test_scene_steps_come_from_the_work_directorys_params(tmp_path):
+    assert grid.scene_steps(tmp_path) == {}  # no params.yaml: no steps (the estimates as before)
+    (tmp_path / "params.yaml").write_text("items:\n  x: {n: 2}\n")
+    assert grid.scene_steps(tmp_path) == {}  # another project's params (--repo): none either
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({**raw, "profile": "paper"}))
+    paper = grid.scene_steps(tmp_path)
+    assert {s: paper[s] for s in ("ball", "pawn", "fish", "wolf")} == {"ball": 800, "pawn": 400, "fish": 500, "wolf": 1000}
+    assert not any(spec.get("capture") and name in paper for name, spec in raw["scenes"].items())
+    assert any(spec.get("capture") for spec in raw["scenes"].values())  # the capture scene exists and is left out
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({**raw, "profile": "ci"}))
+    ci = grid.scene_steps(tmp_path)
+    assert set(ci) == set(paper) and all(0 < ci[s] < paper[s] for s in ci)
+
+
+def test_the_grids_estimate_reads_the_scenes_steps(tmp_path):
+    for scene, seconds in (("ball", 850.0), ("pawn", 440.0)):
+        (tmp_path / "runs" / scene / "gca").mkdir(parents=True)
+        (tmp_path / "runs" / scene / "gca" / "train.json").write_text(json.dumps({"train_seconds": seconds,
+                                                                                 "status": "ok"}))
+    (tmp_path / ".grid").mkdir()
+    assert grid._expected_in(tmp_path, 900.0)("train@wolf:gca") == grid.JOB_START_S + 850.0  # no params: as before
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({**raw, "profile": "paper"}))
+    assert grid._expected_in(tmp_path, 900.0)("train@wolf:gca") == pytest.approx(
+        grid.JOB_START_S + (850.0 * 1000 / 800 + 440.0 * 1000 / 400) / 2)
 
 
 def test_a_training_jobs_marker_records_how_many_trainings_shared_the_gpu_with_it(tmp_path):

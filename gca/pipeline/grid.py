@@ -43,6 +43,7 @@ import json
 import os
 import re
 import shutil
+import statistics
 import subprocess
 import sys
 import tarfile
@@ -633,11 +634,12 @@ def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, di
     return out
 
 
-def expected_train_s(work: Path, job: str, default: float, finished: dict | None = None) -> float:
+def expected_train_s(work: Path, job: str, default: float, finished: dict | None = None,
+                     steps: dict[str, int] | None = None) -> float:
     """Expected seconds of training job ``train@<scene>:<run>[+<run>...]``: per run, the longest ``train_seconds`` of
     the runs of its scene and method that finished ``ok`` in ``work`` (``finished``: :func:`finished_train_seconds`
-    of it, read here when not given); else its method's time on another scene scaled by how much slower this scene
-    is for another method that finished on both (:func:`_scaled_elsewhere`); else, for a method none of whose runs
+    of it, read here when not given); else its method's time on other scenes scaled to this one
+    (:func:`_scaled_elsewhere`, with ``steps``: :func:`scene_steps`); else, for a method none of whose runs
     finished (Table 3's ablations after Table 1), GCA's time on this scene (or scaled from elsewhere) times the
     method's :func:`train_cost` over GCA's (uncapped: full fine-tuning 1.33x); else ``default`` times that ratio capped
     at 1 (NCLaw, which does not train: ~0.13); plus
@@ -649,43 +651,83 @@ def expected_train_s(work: Path, job: str, default: float, finished: dict | None
     for run in runs:
         method = run.split("@", 1)[0]
         if finished.get(method):
-            total += _seconds_on(finished, method, scene)
+            total += _seconds_on(finished, method, scene, steps)
         elif finished.get("gca"):
-            total += _seconds_on(finished, "gca", scene) * train_cost(method) / COST["train:gca"]
+            total += _seconds_on(finished, "gca", scene, steps) * train_cost(method) / COST["train:gca"]
         else:
             total += default * min(1.0, train_cost(method) / COST["train:gca"])
     return total
 
 
-def _seconds_on(finished: dict[str, dict[str, float]], method: str, scene: str) -> float:
+def _seconds_on(finished: dict[str, dict[str, float]], method: str, scene: str,
+                steps: dict[str, int] | None = None) -> float:
     """Seconds of ``method`` (finished somewhere) on ``scene``: its own time there, else :func:`_scaled_elsewhere`."""
     times = finished[method]
-    return times[scene] if scene in times else _scaled_elsewhere(finished, method, scene)
+    return times[scene] if scene in times else _scaled_elsewhere(finished, method, scene, steps)
 
 
-def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene: str) -> float:
-    """Seconds of ``method`` on ``scene``, where it has finished only on other scenes: the largest of its time on a
-    scene s times ``t(other, scene) / t(other, s)`` over the other methods that finished on both (scenes differ
-    several-fold: ball ~850 s, pawn ~470 s for GCA, session 20), and of its slowest time anywhere. [s]"""
+MIN_REFERENCE_S = 10.0  # a method's time on a scene below this says nothing of the scene's cost: it did not train
+# (NCLaw records ~1e-3 s; session 36: its ratios between scenes, 0.0007 / 0.0004, set wolf's GCA at 1409 s, ~1.5x)
+
+
+def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene: str,
+                      steps: dict[str, int] | None = None) -> float:
+    """Seconds of ``method`` on ``scene``, where it has finished only on other scenes: the largest of (1) its slowest
+    time anywhere, (2) with ``steps`` (MPM steps per rollout, :func:`scene_steps`), the median of its times on the
+    other scenes scaled by ``steps[scene] / steps[s]`` (a training's cost grows with its steps: session 31's solo GCA
+    took 0.24-0.29 s per step on the six Table 1 scenes), and (3) its time on a scene s times ``t(other, scene) /
+    t(other, s)`` for the other methods that trained (>= :data:`MIN_REFERENCE_S`) on both. [s]
+
+    Session 36, on the state before its wave (wolf: 1000 steps): GCA on wolf 1469 s expected at 8-way (NCLaw's
+    near-zero times as the ratio of (3)), ~965 measured; with steps and without NCLaw 1161 (pudding 941 vs ~920)."""
     times = finished[method]
     guesses = [max(times.values())]
+    if steps and steps.get(scene):
+        scaled = [t * steps[scene] / steps[s] for s, t in times.items() if steps.get(s)]
+        if scaled:
+            guesses.append(statistics.median(scaled))
     for other, their in finished.items():
-        if other != method and scene in their:
-            guesses += [t * their[scene] / their[s] for s, t in times.items() if their.get(s)]
+        if other != method and their.get(scene, 0.0) >= MIN_REFERENCE_S:
+            guesses += [t * their[scene] / their[s] for s, t in times.items() if their.get(s, 0.0) >= MIN_REFERENCE_S]
     return max(guesses)
+
+
+def scene_steps(work: Path) -> dict[str, int]:
+    """MPM steps of one rollout of each scene of ``work/params.yaml`` at its profile (simulated frames x substeps,
+    :func:`gca.scenes.config.scene_video`). A capture scene (its timing comes from its video) is left out; so is
+    every scene when the file is absent or has no ``scenes`` and ``video`` (a DVC repository of another project:
+    ``--repo``)."""
+    from gca.pipeline import schema  # the typed configs: only where an estimate needs them
+    from gca.scenes.config import scene_video
+
+    path = work / "params.yaml"
+    if not path.is_file():
+        return {}
+    raw = schema.read_yaml(path)
+    if not isinstance(raw, dict) or not raw.get("scenes") or "video" not in raw:
+        return {}
+    profile = raw.get("profile", "paper")
+    params = {**schema.resolve(raw, profile), "profile": profile}
+    video = schema.build_section(params, "video")
+    out = {}
+    for name, spec in (params.get("scenes") or {}).items():
+        if "capture" not in spec:
+            timing = scene_video(video, schema.scene_config(spec, f"{path}: scenes.{name}"))
+            out[name] = timing.n_frames * timing.substeps
+    return out
 
 
 def _expected_in(work: Path, default: float, slots: int | None = None) -> Callable[[str], float]:
     """:func:`expected_train_s` for ``dispatch.run``, which asks each poll for every training run it holds back: the
     finished runs' times are read again only when a training marker appeared or grew since (a job's end, then its
-    sharing: ``dispatch.record_sharing``)."""
-    memo: dict = {}
+    sharing: ``dispatch.record_sharing``); the scenes' steps (:func:`scene_steps`) once."""
+    memo: dict = {"steps": scene_steps(work)}
 
     def expected(job: str) -> float:
         key = sorted((p.name, p.stat().st_size) for p in (work / ".grid").glob("train@*.done"))
         if memo.get("key") != key:
             memo.update(key=key, finished=finished_train_seconds(work, slots))
-        return expected_train_s(work, job, default, memo["finished"])
+        return expected_train_s(work, job, default, memo["finished"], memo["steps"])
 
     return expected
 
