@@ -130,7 +130,9 @@ if [ "$PART" = b ]; then
   stamp "gsplat: build its extension once per machine (or the first run would time the build)"
   build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   for scene in ${SCENES:-ball}; do
-    stamp "solo_$scene: data, 200 iterations of GCA, evaluation"; run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}" \
+    stamp "solo_$scene: data, 200 iterations of ${METHODS:-gca}, evaluation"
+    # run passes --methods gca first; a later --methods replaces it (argparse keeps the last)
+    run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}" \
         ${METHODS:+--methods $METHODS}
   done
   summary $(for s in ${SCENES:-ball}; do printf 'solo_%s ' "$s"; done)

@@ -241,33 +241,46 @@ def test_a_method_that_does_not_train_is_no_scale_between_scenes():
     costs and set wolf's GCA at ~1.5x what it took."""
     finished = {"gca": {"ball": 850.0, "pawn": 440.0}, "nclaw": {"ball": 7e-4, "pawn": 4e-4, "wolf": 1e-3}}
     assert grid._scaled_elsewhere(finished, "gca", "wolf") == 850.0  # its slowest time anywhere
-    trained = {"gca": {"ball": 850.0, "pawn": 440.0}, "neuma": {"ball": 70.0, "wolf": 100.0}}  # control: it trained
+    trained = {"gca": {"ball": 850.0, "pawn": 440.0}, "neuma": {"ball": 70.0, "wolf": 100.0}}  # control: it trains
     assert grid._scaled_elsewhere(trained, "gca", "wolf") == pytest.approx(850.0 * 100.0 / 70.0)
+    quick = {"gca": {"ball": 8.0}, "neuma": {"ball": 5.0, "wolf": 6.0}}  # the CI profile's seconds: still a reference
+    assert grid._scaled_elsewhere(quick, "gca", "wolf") == pytest.approx(8.0 * 6.0 / 5.0)
 
 
 def test_a_scenes_steps_scale_a_methods_times_from_elsewhere():
-    finished = {"gca": {"ball": 850.0, "pawn": 440.0}}
-    steps = {"ball": 800, "pawn": 400, "wolf": 1000, "cat": 400}
-    assert grid._scaled_elsewhere(finished, "gca", "wolf", steps) == pytest.approx(
-        (850.0 * 1000 / 800 + 440.0 * 1000 / 400) / 2)  # the median of the scaled times: 1081 s, not 850
+    finished = {"gca": {"ball": 850.0, "pawn": 440.0, "fish": 700.0}}
+    steps = {"ball": 800, "pawn": 400, "fish": 500, "wolf": 1000, "cat": 400}
+    # the median of the scaled times (1062.5, 1100, 1400): 1100 s, not 850 (nor their mean, 1187.5)
+    assert grid._scaled_elsewhere(finished, "gca", "wolf", steps) == pytest.approx(1100.0)
     assert grid._scaled_elsewhere(finished, "gca", "cat", steps) == 850.0  # fewer steps: the slowest time stays a floor
     assert grid._scaled_elsewhere(finished, "gca", "duck", steps) == 850.0  # no steps known for it: as without
     assert grid._scaled_elsewhere(finished, "gca", "wolf", {"wolf": 1000}) == 850.0  # none for the scenes it ran on
 
 
+@pytest.mark.parametrize("text", ["", "items:\n  x: {n: 2}\n", "scenes: [a]\nvideo: {}\n",
+                                  "scenes: {a: null}\nvideo: {}\n", "scenes: {a: {dt: 1}}\nvideo: {fps: x}\n",
+                                  "scenes: {a: [\n"])
+def test_scene_steps_of_params_that_are_not_this_projects_are_none(tmp_path, text):
+    """--repo runs the grid in another DVC repository: its params give no steps, and the grid still runs."""
+    (tmp_path / "params.yaml").write_text(text)
+    assert grid.scene_steps(tmp_path) == {}
+
+
 def test_scene_steps_come_from_the_work_directorys_params(tmp_path):
     assert grid.scene_steps(tmp_path) == {}  # no params.yaml: no steps (the estimates as before)
-    (tmp_path / "params.yaml").write_text("items:\n  x: {n: 2}\n")
-    assert grid.scene_steps(tmp_path) == {}  # another project's params (--repo): none either
     raw = yaml.safe_load((ROOT / "params.yaml").read_text())
     (tmp_path / "params.yaml").write_text(yaml.safe_dump({**raw, "profile": "paper"}))
     paper = grid.scene_steps(tmp_path)
     assert {s: paper[s] for s in ("ball", "pawn", "fish", "wolf")} == {"ball": 800, "pawn": 400, "fish": 500, "wolf": 1000}
-    assert not any(spec.get("capture") and name in paper for name, spec in raw["scenes"].items())
-    assert any(spec.get("capture") for spec in raw["scenes"].values())  # the capture scene exists and is left out
+    captures = [name for name, spec in raw["scenes"].items() if spec.get("capture")]
+    assert captures and not set(captures) & set(paper)  # the capture scene exists and is left out
+    assert set(paper) == set(raw["scenes"]) - set(captures)
     (tmp_path / "params.yaml").write_text(yaml.safe_dump({**raw, "profile": "ci"}))
     ci = grid.scene_steps(tmp_path)
     assert set(ci) == set(paper) and all(0 < ci[s] < paper[s] for s in ci)
+    broken = {**raw, "profile": "paper", "scenes": {**raw["scenes"], "ball": {"object": "ball"}}}  # no material...
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(broken))
+    assert set(grid.scene_steps(tmp_path)) == set(paper) - {"ball"}  # that scene alone is left out
 
 
 def test_the_grids_estimate_reads_the_scenes_steps(tmp_path):

@@ -666,8 +666,12 @@ def _seconds_on(finished: dict[str, dict[str, float]], method: str, scene: str,
     return times[scene] if scene in times else _scaled_elsewhere(finished, method, scene, steps)
 
 
-MIN_REFERENCE_S = 10.0  # a method's time on a scene below this says nothing of the scene's cost: it did not train
-# (NCLaw records ~1e-3 s; session 36: its ratios between scenes, 0.0007 / 0.0004, set wolf's GCA at 1409 s, ~1.5x)
+def _trains(method: str) -> bool:
+    """Whether ``method``'s training times say anything of a scene's cost: NCLaw does not train (its
+    ``train_seconds`` are ~1e-3 s of bookkeeping); a method this module does not know is taken as training."""
+    from gca.train.methods import METHODS
+
+    return method not in METHODS or METHODS[method].trains
 
 
 def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene: str,
@@ -676,10 +680,13 @@ def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene:
     time anywhere, (2) with ``steps`` (MPM steps per rollout, :func:`scene_steps`), the median of its times on the
     other scenes scaled by ``steps[scene] / steps[s]`` (a training's cost grows with its steps: session 31's solo GCA
     took 0.24-0.29 s per step on the six Table 1 scenes), and (3) its time on a scene s times ``t(other, scene) /
-    t(other, s)`` for the other methods that trained (>= :data:`MIN_REFERENCE_S`) on both. [s]
+    t(other, s)`` for the other methods that train (:func:`_trains`) and finished on both. [s]
 
-    Session 36, on the state before its wave (wolf: 1000 steps): GCA on wolf 1469 s expected at 8-way (NCLaw's
-    near-zero times as the ratio of (3)), ~965 measured; with steps and without NCLaw 1161 (pudding 941 vs ~920)."""
+    A central estimate, not a bound: a scene with more steps than any finished one and a higher cost per step than
+    their median (GCA: 0.82-1.27 s per step at 8-way over eight scenes) can take longer. Session 36, on the state
+    before its wave (wolf: 1000 steps): GCA on wolf was expected at 1469 s at 8-way (NCLaw's near-zero times as the
+    ratio of (3)); now 1161, against 1015 for the run as measured (its seconds packed to 8-way as the grid packs them,
+    :func:`finished_train_seconds`, plus the job's start); pudding 941 against 871."""
     times = finished[method]
     guesses = [max(times.values())]
     if steps and steps.get(scene):
@@ -687,32 +694,41 @@ def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene:
         if scaled:
             guesses.append(statistics.median(scaled))
     for other, their in finished.items():
-        if other != method and their.get(scene, 0.0) >= MIN_REFERENCE_S:
-            guesses += [t * their[scene] / their[s] for s, t in times.items() if their.get(s, 0.0) >= MIN_REFERENCE_S]
+        if other != method and _trains(other) and their.get(scene):
+            guesses += [t * their[scene] / their[s] for s, t in times.items() if their.get(s)]
     return max(guesses)
 
 
 def scene_steps(work: Path) -> dict[str, int]:
     """MPM steps of one rollout of each scene of ``work/params.yaml`` at its profile (simulated frames x substeps,
-    :func:`gca.scenes.config.scene_video`). A capture scene (its timing comes from its video) is left out; so is
-    every scene when the file is absent or has no ``scenes`` and ``video`` (a DVC repository of another project:
-    ``--repo``)."""
+    :func:`gca.scenes.config.scene_video`), for :func:`_scaled_elsewhere`. A capture scene (its timing comes from its
+    video) is left out, and so is a scene whose entry does not build; none when the file is absent or is not this
+    project's (``--repo``: another DVC repository's params, without ``scenes`` and ``video`` of these shapes). The
+    stages check the params; an estimate only falls back to the runs' own times."""
+    from gca.config import ConfigError
     from gca.pipeline import schema  # the typed configs: only where an estimate needs them
     from gca.scenes.config import scene_video
 
     path = work / "params.yaml"
     if not path.is_file():
         return {}
-    raw = schema.read_yaml(path)
-    if not isinstance(raw, dict) or not raw.get("scenes") or "video" not in raw:
+    not_ours = (ConfigError, yaml.YAMLError, TypeError, ValueError, AttributeError, KeyError)
+    try:
+        raw = schema.read_yaml(path)
+        if not isinstance(raw, dict) or not isinstance(raw.get("scenes"), dict) or "video" not in raw:
+            return {}
+        profile = raw.get("profile", "paper")
+        params = {**schema.resolve(raw, profile), "profile": profile}
+        video = schema.build_section(params, "video")
+    except not_ours:
         return {}
-    profile = raw.get("profile", "paper")
-    params = {**schema.resolve(raw, profile), "profile": profile}
-    video = schema.build_section(params, "video")
     out = {}
-    for name, spec in (params.get("scenes") or {}).items():
-        if "capture" not in spec:
-            timing = scene_video(video, schema.scene_config(spec, f"{path}: scenes.{name}"))
+    for name, spec in params["scenes"].items():
+        if isinstance(spec, dict) and "capture" not in spec:
+            try:
+                timing = scene_video(video, schema.scene_config(spec, f"{path}: scenes.{name}"))
+            except not_ours:
+                continue
             out[name] = timing.n_frames * timing.substeps
     return out
 
