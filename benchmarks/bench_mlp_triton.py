@@ -10,9 +10,11 @@ same to rounding. Session 35 measured the forward alone (47.7 us against torch's
 alone). Session 36 added the backward (:class:`FusedMLP`: one persistent launch recomputes the forward on chip and
 gives dx and the three weight gradients, summed per program in registers and stored as partials that torch sums in a
 fixed order), because a packed grid is bound by the GPU's throughput, where bytes count more than one call's latency
-(``bench_mlp_packed.py`` times both ways). A benchmark probe, not a training path: triton is no CI dependency, and
-its tests run in Triton's CPU interpreter where triton is installed (``tests/test_bench_mlp_triton.py``: float64 equal
-to torch's autograd to 1e-12, a gradcheck, a transposed weight caught).
+(``bench_mlp_packed.py`` times both ways). Session 37: the FP32 kernels lose packed too (0.57x), the TF32 ones win
+(1.44x forward + backward at 8 processes, H200); the kernels moved into the library (``gca.laws.mlp_triton``, the laws'
+``mlp_kernel: triton_tf32`` option, off by default) and this script times them. Tests run in Triton's CPU interpreter
+(``tests/test_bench_mlp_triton.py``: float64 equal to torch's autograd to 1e-12, a gradcheck, a transposed weight
+caught; ``tests/test_laws_mlp_triton.py``: the laws with the option).
 
 Per size and variant, per call [us] (CUDA: captured in one CUDA graph and replayed, as ``bench_mlp.py`` times;
 CPU: Triton's interpreter, ``TRITON_INTERPRET=1``, a correctness smoke only): the forward (no gradient) and the
@@ -41,40 +43,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 if "--device" in sys.argv and sys.argv[sys.argv.index("--device") + 1] == "cpu":
     os.environ.setdefault("TRITON_INTERPRET", "1")  # read when the kernel is decorated: before triton's import
-import triton  # noqa: E402
-import triton.language as tl  # noqa: E402
 
 from bench_mlp import timed_us  # noqa: E402
+from gca.laws import mlp_triton  # noqa: E402  (after TRITON_INTERPRET is set: read at its import)
 from gca.laws.neural import NeuralLawConfig, make_mlp  # noqa: E402
 
 VARIANT = re.compile(r"^(torch|(ieee|tf32)_(\d+))$")
-
-
-@triton.jit
-def _gelu(x):
-    """Exact GELU, x Phi(x) (torch's default ``nn.GELU()``)."""
-    return 0.5 * x * (1.0 + tl.math.erf(x * 0.7071067811865476))
-
-
-@triton.jit
-def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr, K_PAD: tl.constexpr,
-                   H: tl.constexpr, N_OUT: tl.constexpr, OUT_PAD: tl.constexpr, BLOCK: tl.constexpr,
-                   PRECISION: tl.constexpr):
-    """One program: BLOCK particles' rows of out = W3 gelu(W2 gelu(W1 x)) (torch's weight layouts [out, in]); the
-    inputs padded K_IN -> K_PAD and the outputs N_OUT -> OUT_PAD with zeros (tl.dot needs 16)."""
-    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    live = rows < n
-    k = tl.arange(0, K_PAD)
-    h = tl.arange(0, H)
-    o = tl.arange(0, OUT_PAD)
-    x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
-    w1t = tl.load(w1_ptr + h[None, :] * K_IN + k[:, None], mask=k[:, None] < K_IN, other=0.0)  # [K_PAD, H]
-    a = _gelu(tl.dot(x, w1t, input_precision=PRECISION))
-    w2t = tl.load(w2_ptr + h[None, :] * H + h[:, None])  # [H, H]
-    a = _gelu(tl.dot(a, w2t, input_precision=PRECISION))
-    w3t = tl.load(w3_ptr + o[None, :] * H + h[:, None], mask=o[None, :] < N_OUT, other=0.0)  # [H, OUT_PAD]
-    y = tl.dot(a, w3t, input_precision=PRECISION)
-    tl.store(out_ptr + rows[:, None] * N_OUT + o[None, :], y, mask=live[:, None] & (o[None, :] < N_OUT))
 
 
 def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precision: str = "ieee") -> torch.Tensor:
@@ -84,123 +58,12 @@ def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precisi
         return fused_mlp(net, x.float(), block, precision)
 
 
-@triton.jit
-def _gelu_grad(x):
-    """d/dx of x Phi(x): Phi(x) + x phi(x)."""
-    return 0.5 * (1.0 + tl.math.erf(x * 0.7071067811865476)) + x * 0.3989422804014327 * tl.exp(-0.5 * x * x)
-
-
-@triton.jit
-def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, n, n_programs,
-                   K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
-                   OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                   PER_PROGRAM: tl.constexpr):
-    """One persistent program: for its PER_PROGRAM tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
-    recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
-    particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
-    partial (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic). PER_PROGRAM is a
-    compile-time count (Triton's interpreter cannot loop to a runtime bound); the caller sizes the grid so that fewer
-    than PER_PROGRAM iterations of all programs fall past the last tile."""
-    pid = tl.program_id(0)
-    k = tl.arange(0, K_PAD)
-    h = tl.arange(0, H)
-    o = tl.arange(0, OUT_PAD)
-    w1 = tl.load(w1_ptr + h[:, None] * K_IN + k[None, :], mask=k[None, :] < K_IN, other=0.0)  # [H, K_PAD]
-    w2 = tl.load(w2_ptr + h[:, None] * H + h[None, :])  # [H, H]
-    w3 = tl.load(w3_ptr + o[:, None] * H + h[None, :], mask=o[:, None] < N_OUT, other=0.0)  # [OUT_PAD, H]
-    dw1 = tl.zeros((H, K_PAD), dtype=w1.dtype)
-    dw2 = tl.zeros((H, H), dtype=w1.dtype)
-    dw3 = tl.zeros((OUT_PAD, H), dtype=w1.dtype)
-    for i in range(0, PER_PROGRAM):  # tile pid + i programs (past the last tile: every row masked)
-        rows = (pid + i * n_programs) * BLOCK + tl.arange(0, BLOCK)
-        live = rows < n
-        x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
-        g = tl.load(g_ptr + rows[:, None] * N_OUT + o[None, :], mask=live[:, None] & (o[None, :] < N_OUT), other=0.0)
-        h1 = tl.dot(x, tl.trans(w1), input_precision=PRECISION)  # [BLOCK, H]
-        a1 = _gelu(h1)
-        h2 = tl.dot(a1, tl.trans(w2), input_precision=PRECISION)
-        a2 = _gelu(h2)
-        dw3 += tl.dot(tl.trans(g), a2, input_precision=PRECISION)  # [OUT_PAD, H]
-        d2 = tl.dot(g, w3, input_precision=PRECISION) * _gelu_grad(h2)  # [BLOCK, H]
-        dw2 += tl.dot(tl.trans(d2), a1, input_precision=PRECISION)
-        d1 = tl.dot(d2, w2, input_precision=PRECISION) * _gelu_grad(h1)
-        dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
-        dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
-        tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
-    tl.store(dw1_ptr + pid * H * K_IN + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
-    tl.store(dw2_ptr + pid * H * H + h[:, None] * H + h[None, :], dw2)
-    tl.store(dw3_ptr + pid * N_OUT * H + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
-
-
-def _weights(net: torch.nn.Sequential) -> list[torch.nn.Linear]:
-    """The three bias-free layers of a two-hidden-layer exact-GELU ``make_mlp`` network (anything else refused)."""
-    acts = [m for m in net if not isinstance(m, torch.nn.Linear)]
-    if len(acts) != 2 or any(not isinstance(a, torch.nn.GELU) or a.approximate != "none" for a in acts):
-        raise ValueError(f"fused MLP: two exact GELUs expected (the kernels compute x Phi(x)), got {acts}")
-    linears = [m for m in net if isinstance(m, torch.nn.Linear)]
-    if any(m.bias is not None for m in linears):
-        raise ValueError("fused MLP: bias-free layers (make_mlp's) expected")
-    w1, w2, w3 = (m.weight for m in linears)
-    if w2.shape[0] != w2.shape[1] or w1.shape[0] != w2.shape[0] or w3.shape[1] != w2.shape[0]:
-        raise ValueError(f"fused MLP: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
-    if w2.shape[0] < 16 or w2.shape[0] & (w2.shape[0] - 1):
-        raise ValueError(f"fused MLP: a hidden width that is a power of two >= 16 expected (tl.dot), got {w2.shape[0]}")
-    return linears
-
-
-def _pad(v: int) -> int:
-    """A dimension padded for tl.dot: a power of two, at least 16."""
-    return max(16, triton.next_power_of_2(v))
-
-
-BWD_WARPS = 8  # the backward holds three weight-gradient accumulators ([64, 64] the largest) and six [BLOCK, 64]
-# activations per program: 8 warps (256 threads) halve the registers each thread holds against Triton's default 4
-
-
-class FusedMLP(torch.autograd.Function):
-    """out = W3 gelu(W2 gelu(W1 x)) for x [N, K_IN] and weights [H, K_IN], [H, H], [N_OUT, H] (torch's layout): the
-    forward one launch with nothing stored but the inputs; the backward one persistent launch that recomputes the
-    forward on chip and gives dx and the three weight gradients (partials per program summed by torch). float32
-    (``precision`` ieee or tf32) or float64 (ieee: the CPU interpreter's gradcheck)."""
-
-    @staticmethod
-    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int):
-        ctx.save_for_backward(x, w1, w2, w3)
-        ctx.cfg = (block, precision, programs)
-        out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
-        _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
-                                                         K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
-                                                         OUT_PAD=_pad(w3.shape[0]), BLOCK=block, PRECISION=precision)
-        return out
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, g):
-        x, w1, w2, w3 = ctx.saved_tensors
-        block, precision, programs = ctx.cfg
-        n, tiles = x.shape[0], triton.cdiv(x.shape[0], block)
-        per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
-        p = max(1, triton.cdiv(tiles, per))
-        dx = torch.empty_like(x)
-        parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
-        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, n, p, K_IN=x.shape[1],
-                             K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0], OUT_PAD=_pad(w3.shape[0]),
-                             BLOCK=block, PRECISION=precision, PER_PROGRAM=per,
-                             num_warps=BWD_WARPS)
-        return (dx, *(part.sum(0) for part in parts), None, None, None)
-
-
 def fused_mlp(net: torch.nn.Sequential, x: torch.Tensor, block: int = 32, precision: str = "ieee",
               programs: int = 4 * 132) -> torch.Tensor:
-    """``net(x)`` with gradients to x and the three weights through :class:`FusedMLP` (block >= 16; ``programs``: the
-    backward's persistent programs, default 4 per SM of an H100)."""
-    if block < 16:
-        raise ValueError("fused MLP: block >= 16 (tl.dot) expected")
-    w1, w2, w3 = (m.weight for m in _weights(net))
-    if x.dtype not in (torch.float32, torch.float64) or any(w.dtype != x.dtype for w in (w1, w2, w3)):
-        raise ValueError(f"fused MLP: float32 or float64 input and weights alike expected, got {x.dtype}, {w1.dtype}")
-    return FusedMLP.apply(x.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
-                          programs)
+    """``net(x)`` with gradients to x and the three weights through the library's :class:`FusedMLP`
+    (``gca.laws.mlp_triton``; block >= 16; ``programs``: the backward's persistent programs, default 4 per SM of an
+    H100 / H200)."""
+    return mlp_triton.mlp(x, [m.weight for m in mlp_triton.check(net)], precision, block, programs)
 
 
 def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int) -> list[dict]:
@@ -211,8 +74,8 @@ def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)
     net.load_state_dict({k: v.float() for k, v in net64.state_dict().items()})
-    W64 = [m.weight for m in _weights(net64)]
-    Ws = [m.weight for m in _weights(net)]
+    W64 = [m.weight for m in mlp_triton.check(net64)]
+    Ws = [m.weight for m in mlp_triton.check(net)]
     out = []
     for n in sizes:
         x64 = torch.randn(n, 13, dtype=torch.float64, device=device).requires_grad_(True)

@@ -25,7 +25,8 @@
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
-#       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair)
+#       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair;
+#        EXTRA="--reuse-data --set train.mlp_kernel=triton_tf32" TAG=_tf32: more harness options, another folder)
 set -u
 OUT=${OUT:-/tmp/fast10_out}; PART=${PART:-a}
 mkdir -p "$OUT"
@@ -130,11 +131,12 @@ if [ "$PART" = b ]; then
   stamp "gsplat: build its extension once per machine (or the first run would time the build)"
   build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   for scene in ${SCENES:-ball}; do
-    stamp "solo_$scene: data, 200 iterations of ${METHODS:-gca}, evaluation"
+    stamp "solo_$scene${TAG:-}: data, 200 iterations of ${METHODS:-gca}, evaluation ${EXTRA:-}"
     # run passes --methods gca first; a later --methods replaces it (argparse keeps the last)
-    run "solo_$scene" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}" \
-        ${METHODS:+--methods $METHODS}
+    # shellcheck disable=SC2086
+    run "solo_$scene${TAG:-}" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}" \
+        ${METHODS:+--methods $METHODS} ${EXTRA:-}
   done
-  summary $(for s in ${SCENES:-ball}; do printf 'solo_%s ' "$s"; done)
+  summary $(for s in ${SCENES:-ball}; do printf 'solo_%s%s ' "$s" "${TAG:-}"; done)
 fi
 stamp done

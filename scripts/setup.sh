@@ -29,7 +29,7 @@ if [ -z "${SKIP_GSPLAT:-}" ] && python -c "import torch, sys; sys.exit(0 if torc
   echo "setup: compiling gsplat's CUDA extension once, before the pipeline starts"
   python -m gca.render.backend --build || echo "setup: gsplat's extension did not build: render.backend=auto will use the torch rasterizer and say so" >&2
 else
-  python -m pip install -q -e ".[dev]"
+  python -m pip install -q -e ".[dev,interp]"  # interp: triton, whose interpreter runs the fused MLP's CPU twin
 fi
 # the depth extra (transformers) when a local Depth Anything folder is configured (vision.depth.transformers.weights_dir)
 weights=$(python -c "import yaml; print(yaml.safe_load(open('params.yaml'))['vision']['depth']['transformers']['weights_dir'])" 2>/dev/null || true)

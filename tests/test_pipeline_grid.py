@@ -340,7 +340,7 @@ def test_a_grid_state_goes_on_across_execution_only_knobs(tmp_path):
     """A state made before train.reverse_sweep, matmul_precision and mlp_kernel existed (Tables 2-6's state.tgz,
     session 30) goes on under today's params, and one made under another MLP kernel or without the reverse sweep too
     (the same numbers to float rounding); TF32 products are not rounding-equal: a state made at ``highest`` is refused
-    under ``high`` (negative control), and so is a knob that changes the method."""
+    under ``high`` (negative control), so is one under the TF32 Triton MLP, and so is a knob that changes the method.""" 
     import yaml as _yaml
 
     params = grid.grid_params("ci", ["ball"], ["nclaw"], [])
@@ -365,7 +365,8 @@ def test_a_grid_state_goes_on_across_execution_only_knobs(tmp_path):
         grid.prepare(here, grid.grid_params("ci", ["ball"], ["nclaw"], overrides))
         assert grid.restore_state(archive, here) == 2 + 1
         assert (here / ".grid/train@ball:nclaw.done").is_file()
-    for i, overrides in enumerate([["train.matmul_precision=high"], ["train.iterations=7"]]):
+    for i, overrides in enumerate([["train.matmul_precision=high"], ["train.mlp_kernel=triton_tf32"],
+                                   ["train.iterations=7"]]):
         refused = tmp_path / f"refused{i}"
         grid.prepare(refused, grid.grid_params("ci", ["ball"], ["nclaw"], overrides))
         with pytest.raises(SystemExit, match="made under other params"):

@@ -39,7 +39,7 @@ from gca.laws.svd import bmm3, check_F, det3, svd, warp_runs
 # Activations allowed in the MLP: all satisfy act(0) = 0 exactly (needed for zero-at-rest).
 ACTIVATIONS = {"gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiLU, "elu": nn.ELU, "relu": nn.ReLU}
 N_FEATURES = 13  # [sigma - 1 (3), vec(F^T F - I) (9), det F - 1 (1)]
-MLP_KERNELS = ("torch", "warp", "simt")  # _InvariantNetwork.mlp_kernel
+MLP_KERNELS = ("torch", "warp", "simt", "triton_tf32")  # _InvariantNetwork.mlp_kernel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +98,18 @@ def make_mlp(cfg: NeuralLawConfig) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor:
+    """``mlp_kernel: triton_tf32``: the MLP through ``gca.laws.mlp_triton`` (TF32 products for float32; a float64 law,
+    the interpreter's gradient checks, runs FP64 products), imported here: triton is needed only by this option."""
+    try:
+        from gca.laws import mlp_triton
+    except ImportError as exc:
+        raise ImportError(f"gca/laws/neural.py: mlp_kernel='triton_tf32' needs triton ({exc}); the GPU image has it, "
+                          "else pip install triton") from exc
+    mlp_triton.check(mlp)
+    return mlp_triton.mlp(z, weights, "tf32" if z.dtype == torch.float32 else "ieee")
+
+
 class _InvariantNetwork(nn.Module):
     """Shared trunk: F -> (R, S) with R the polar rotation and S = sym(MLP(z(F))).
 
@@ -110,7 +122,10 @@ class _InvariantNetwork(nn.Module):
     warp tile kernel each way (``gca.laws.mlp_kernel.mlp``), ``simt`` its forward one thread per particle with torch's
     backward from the stored pre-activations (``gca.laws.mlp_kernel.simt_mlp``); both two hidden layers only.
     Measured on an H100 at 30k particles (``benchmarks/NOTES.md`` session 34) the tile kernel is slower (forward +
-    backward 215 vs 124 us), and so is ``simt`` (forward 165.7 vs 34.5 us, session 35). Options, not the default.
+    backward 215 vs 124 us), and so is ``simt`` (forward 165.7 vs 34.5 us, session 35). ``triton_tf32``: one fused
+    Triton kernel each way with TF32 products (``gca.laws.mlp_triton``; exact GELU only): faster (1.44x forward +
+    backward, 4.3x forward at 8 processes, H200, session 37) but **not the same numbers** (TF32's 10-bit mantissa in
+    every product): a precision change, to be decided on the calibration scenes. Options, not the default.
     """
 
     fast_path: bool = True
@@ -149,6 +164,8 @@ class _InvariantNetwork(nn.Module):
             raise ValueError(f"gca/laws/neural.py: mlp_kernel={self.mlp_kernel!r} fuses two hidden layers with one of "
                              f"{mlp_kernel.ACTIVATIONS}, not {self.mlp}")
         weights = [effective_weight(layer) for layer in self.mlp[0::2]]
+        if self.mlp_kernel == "triton_tf32":
+            return _triton_mlp(self.mlp, z, weights)
         if self.mlp_kernel == "simt":
             return mlp_kernel.simt_mlp(z, weights, shape, self.mlp[1])
         return mlp_kernel.mlp(z, weights, shape)

@@ -410,7 +410,7 @@ def _made_under(work: Path) -> dict:
     params = yaml.safe_load((work / "params.yaml").read_text())
     train = params.get("train") or {}
     for knob, equal_at in EXECUTION_ONLY.items():  # a {paper: a, ci: b} switch judged at the grid's profile
-        if knob in train and (equal_at is None or resolve(train[knob], params.get("profile", "paper")) == equal_at):
+        if knob in train and (equal_at is None or resolve(train[knob], params.get("profile", "paper")) in equal_at):
             del train[knob]
     scenes = params.pop("scenes")
     objects = params.pop("objects", {})

@@ -13,11 +13,12 @@ from gca.laws.neural import MLP_KERNELS
 MATMUL_PRECISIONS = ("highest", "high")
 
 #: train's knobs that choose how the same numbers are computed, not which (the same law and gradient to float
-#: rounding, tested: tests/test_sim_rollout.py's reverse sweep, tests/test_laws_mlp_kernel.py), with the value at which
+#: rounding, tested: tests/test_sim_rollout.py's reverse sweep, tests/test_laws_mlp_kernel.py), with the values at which
 #: each is so (None: any value). A grid state does not record them (``gca.pipeline.grid._made_under``): one made
 #: before a knob existed, or under another of these values, goes on under this one, as one made on another machine
-#: does (float32 noise). ``matmul_precision: high`` (TF32) is not rounding-equal, so it is recorded.
-EXECUTION_ONLY = {"reverse_sweep": None, "mlp_kernel": None, "matmul_precision": "highest"}
+#: does (float32 noise). ``matmul_precision: high`` and ``mlp_kernel: triton_tf32`` (TF32) are not rounding-equal,
+#: so they are recorded.
+EXECUTION_ONLY = {"reverse_sweep": None, "mlp_kernel": ("torch", "warp", "simt"), "matmul_precision": ("highest",)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +75,10 @@ class TrainConfig:
             run's networks for the run and restored after): ``torch`` (default), ``simt`` (the forward one thread
             per particle, torch's backward; ``gca.laws.mlp_kernel.simt_mlp``) or ``warp`` (one tile kernel each
             way); both measured slower on the H100 (NOTES s34-35). The same law to float rounding; a speed option
-            measured in ``benchmarks/bench_mlp.py``. Evaluation runs torch's.
+            measured in ``benchmarks/bench_mlp.py``. ``triton_tf32`` (one fused Triton kernel each way,
+            ``gca.laws.mlp_triton``): faster on an H200 (NOTES s37) but TF32 products, so not the same numbers: off
+            by default, to be decided on the calibration scenes, and recorded in a grid's state. Evaluation runs
+            torch's.
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.

@@ -1,0 +1,204 @@
+"""The neural laws' MLP as one fused Triton kernel each way: ``mlp_kernel: triton_tf32`` (``NeuralElasticity.mlp_kernel``,
+``train.mlp_kernel``), an option, off by default: its products are TF32 (a precision change, decided on the
+calibration scenes only, never on a table's result; ``benchmarks/NOTES.md``, session 37).
+
+The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, bias-free; the equations in
+:mod:`gca.laws.mlp_kernel`) runs as (:class:`FusedMLP`):
+
+- forward: one launch, a block of particles per program, the [BLOCK, 64] activations on chip, nothing stored but
+  the inputs;
+- backward: one persistent launch (4 programs per SM) that recomputes each tile's forward on chip, stores dz per
+  particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
+  in a fixed order (no atomics: deterministic).
+
+Measured (NVIDIA H200, 30k particles, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``,
+session 37): TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9; at 8
+processes under MPS 4.33x and 1.44x torch's throughput. The FP32 (``ieee``) kernels lose to torch (0.57x packed) and
+are here for the float64 interpreter twin only.
+
+The weights are the layers' effective (LoRA-merged) weights, so gradients reach the adapters through torch's autograd
+of the merge. Triton reads ``TRITON_INTERPRET`` when this module is imported (its kernels are decorated then): on a
+CPU it runs only in Triton's interpreter (``TRITON_INTERPRET=1`` before the import; the tests), where ``tf32`` dots are
+computed in float32.
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+import triton
+import triton.language as tl
+
+_WHERE = "gca/laws/mlp_triton.py"
+BLOCK = 64  # particles per program (tl.dot needs >= 16; 64 measured fastest of 32 / 64 in TF32, session 36-37)
+
+
+@triton.jit
+def _gelu(x):
+    """Exact GELU, x Phi(x) (torch's default ``nn.GELU()``)."""
+    return 0.5 * x * (1.0 + tl.math.erf(x * 0.7071067811865476))
+
+
+
+@triton.jit
+def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr, K_PAD: tl.constexpr,
+                   H: tl.constexpr, N_OUT: tl.constexpr, OUT_PAD: tl.constexpr, BLOCK: tl.constexpr,
+                   PRECISION: tl.constexpr):
+    """One program: BLOCK particles' rows of out = W3 gelu(W2 gelu(W1 x)) (torch's weight layouts [out, in]); the
+    inputs padded K_IN -> K_PAD and the outputs N_OUT -> OUT_PAD with zeros (tl.dot needs 16)."""
+    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = rows < n
+    k = tl.arange(0, K_PAD)
+    h = tl.arange(0, H)
+    o = tl.arange(0, OUT_PAD)
+    x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
+    w1t = tl.load(w1_ptr + h[None, :] * K_IN + k[:, None], mask=k[:, None] < K_IN, other=0.0)  # [K_PAD, H]
+    a = _gelu(tl.dot(x, w1t, input_precision=PRECISION))
+    w2t = tl.load(w2_ptr + h[None, :] * H + h[:, None])  # [H, H]
+    a = _gelu(tl.dot(a, w2t, input_precision=PRECISION))
+    w3t = tl.load(w3_ptr + o[None, :] * H + h[:, None], mask=o[None, :] < N_OUT, other=0.0)  # [H, OUT_PAD]
+    y = tl.dot(a, w3t, input_precision=PRECISION)
+    tl.store(out_ptr + rows[:, None] * N_OUT + o[None, :], y, mask=live[:, None] & (o[None, :] < N_OUT))
+
+
+
+@triton.jit
+def _gelu_grad(x):
+    """d/dx of x Phi(x): Phi(x) + x phi(x)."""
+    return 0.5 * (1.0 + tl.math.erf(x * 0.7071067811865476)) + x * 0.3989422804014327 * tl.exp(-0.5 * x * x)
+
+
+
+@triton.jit
+def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, n, n_programs,
+                   K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
+                   OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
+                   PER_PROGRAM: tl.constexpr):
+    """One persistent program: for its PER_PROGRAM tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
+    recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
+    particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
+    partial (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic). PER_PROGRAM is a
+    compile-time count (Triton's interpreter cannot loop to a runtime bound); the caller sizes the grid so that fewer
+    than PER_PROGRAM iterations of all programs fall past the last tile."""
+    pid = tl.program_id(0)
+    k = tl.arange(0, K_PAD)
+    h = tl.arange(0, H)
+    o = tl.arange(0, OUT_PAD)
+    w1 = tl.load(w1_ptr + h[:, None] * K_IN + k[None, :], mask=k[None, :] < K_IN, other=0.0)  # [H, K_PAD]
+    w2 = tl.load(w2_ptr + h[:, None] * H + h[None, :])  # [H, H]
+    w3 = tl.load(w3_ptr + o[:, None] * H + h[None, :], mask=o[:, None] < N_OUT, other=0.0)  # [OUT_PAD, H]
+    dw1 = tl.zeros((H, K_PAD), dtype=w1.dtype)
+    dw2 = tl.zeros((H, H), dtype=w1.dtype)
+    dw3 = tl.zeros((OUT_PAD, H), dtype=w1.dtype)
+    for i in range(0, PER_PROGRAM):  # tile pid + i programs (past the last tile: every row masked)
+        rows = (pid + i * n_programs) * BLOCK + tl.arange(0, BLOCK)
+        live = rows < n
+        x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
+        g = tl.load(g_ptr + rows[:, None] * N_OUT + o[None, :], mask=live[:, None] & (o[None, :] < N_OUT), other=0.0)
+        h1 = tl.dot(x, tl.trans(w1), input_precision=PRECISION)  # [BLOCK, H]
+        a1 = _gelu(h1)
+        h2 = tl.dot(a1, tl.trans(w2), input_precision=PRECISION)
+        a2 = _gelu(h2)
+        dw3 += tl.dot(tl.trans(g), a2, input_precision=PRECISION)  # [OUT_PAD, H]
+        d2 = tl.dot(g, w3, input_precision=PRECISION) * _gelu_grad(h2)  # [BLOCK, H]
+        dw2 += tl.dot(tl.trans(d2), a1, input_precision=PRECISION)
+        d1 = tl.dot(d2, w2, input_precision=PRECISION) * _gelu_grad(h1)
+        dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
+        dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
+        tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
+    tl.store(dw1_ptr + pid * H * K_IN + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
+    tl.store(dw2_ptr + pid * H * H + h[:, None] * H + h[None, :], dw2)
+    tl.store(dw3_ptr + pid * N_OUT * H + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
+
+
+
+def check(net: torch.nn.Sequential) -> list[torch.nn.Module]:
+    """The three bias-free linear layers (plain or LoRA-adapted: each has ``weight`` [out, in]) of a two-hidden-layer
+    exact-GELU ``make_mlp`` network; anything else refused with one line."""
+    layers, acts = list(net[0::2]), list(net[1::2])
+    if len(layers) != 3 or len(acts) != 2 or any(not isinstance(a, torch.nn.GELU) or a.approximate != "none"
+                                                 for a in acts):
+        raise ValueError(f"{_WHERE}: fused MLP: three layers with two exact GELUs between them expected (the kernels "
+                         f"compute x Phi(x)), got {net}")
+    if any(getattr(m, "bias", None) is not None for m in layers):
+        raise ValueError(f"{_WHERE}: fused MLP: bias-free layers (make_mlp's) expected")
+    w1, w2, w3 = (m.weight for m in layers)
+    if w2.shape[0] != w2.shape[1] or w1.shape[0] != w2.shape[0] or w3.shape[1] != w2.shape[0]:
+        raise ValueError(f"{_WHERE}: fused MLP: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
+    if w2.shape[0] < 16 or w2.shape[0] & (w2.shape[0] - 1):
+        raise ValueError(f"{_WHERE}: fused MLP: a hidden width that is a power of two >= 16 expected (tl.dot), got "
+                         f"{w2.shape[0]}")
+    return layers
+
+
+def _pad(v: int) -> int:
+    """A dimension padded for tl.dot: a power of two, at least 16."""
+    return max(16, triton.next_power_of_2(v))
+
+
+
+BWD_WARPS = 8  # the backward holds three weight-gradient accumulators ([64, 64] the largest) and six [BLOCK, 64]
+# activations per program: 8 warps (256 threads) halve the registers each thread holds against Triton's default 4
+
+
+
+class FusedMLP(torch.autograd.Function):
+    """out = W3 gelu(W2 gelu(W1 x)) for x [N, K_IN] and weights [H, K_IN], [H, H], [N_OUT, H] (torch's layout): the
+    forward one launch with nothing stored but the inputs; the backward one persistent launch that recomputes the
+    forward on chip and gives dx and the three weight gradients (partials per program summed by torch). float32
+    (``precision`` ieee or tf32) or float64 (ieee: the CPU interpreter's gradcheck)."""
+
+    @staticmethod
+    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int):
+        ctx.save_for_backward(x, w1, w2, w3)
+        ctx.cfg = (block, precision, programs)
+        out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
+        _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
+                                                         K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
+                                                         OUT_PAD=_pad(w3.shape[0]), BLOCK=block, PRECISION=precision)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        x, w1, w2, w3 = ctx.saved_tensors
+        block, precision, programs = ctx.cfg
+        n, tiles = x.shape[0], triton.cdiv(x.shape[0], block)
+        per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
+        p = max(1, triton.cdiv(tiles, per))
+        dx = torch.empty_like(x)
+        parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
+        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, n, p, K_IN=x.shape[1],
+                             K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0], OUT_PAD=_pad(w3.shape[0]),
+                             BLOCK=block, PRECISION=precision, PER_PROGRAM=per,
+                             num_warps=BWD_WARPS)
+        return (dx, *(part.sum(0) for part in parts), None, None, None)
+
+
+
+def runs_here(z: torch.Tensor) -> bool:
+    """Whether the fused kernels can run on ``z``'s device: CUDA, or a CPU under Triton's interpreter."""
+    return z.is_cuda or os.environ.get("TRITON_INTERPRET") == "1"
+
+
+def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", block: int = BLOCK,
+        programs: int | None = None) -> torch.Tensor:
+    """X [N, N_OUT] = W3 gelu(W2 gelu(W1 z)) for z [N, K_IN] and ``weights`` [W1 [H, K_IN], W2 [H, H], W3 [N_OUT, H]]
+    (torch's layouts; the shape :func:`check` accepts), differentiable in z and the weights. ``precision``: ``tf32``
+    (TF32 products; float32 only) or ``ieee`` (FP32 or float64 products). ``programs``: the backward's persistent
+    programs (default 4 per SM; 8 on a CPU)."""
+    if not runs_here(z):
+        raise ValueError(f"{_WHERE}: the fused MLP runs on CUDA, or on a CPU only in Triton's interpreter "
+                         f"(TRITON_INTERPRET=1 before the import); got {z.device}")
+    if block < 16:
+        raise ValueError(f"{_WHERE}: block >= 16 (tl.dot) expected, got {block}")
+    if z.dtype not in (torch.float32, torch.float64) or any(w.dtype != z.dtype for w in weights):
+        raise ValueError(f"{_WHERE}: float32 or float64 input and weights alike expected, got {z.dtype}, "
+                         f"{[w.dtype for w in weights]}")
+    if precision == "tf32" and z.dtype != torch.float32:
+        raise ValueError(f"{_WHERE}: TF32 products take float32, got {z.dtype} (use precision='ieee')")
+    if programs is None:
+        programs = 4 * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda else 8
+    w1, w2, w3 = (w.contiguous() for w in weights)
+    return FusedMLP.apply(z.contiguous(), w1, w2, w3, block, precision, programs)

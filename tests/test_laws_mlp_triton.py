@@ -1,0 +1,101 @@
+"""gca.laws.mlp_triton (``mlp_kernel: triton_tf32``): the neural laws with the fused Triton MLP against torch's MLP, in
+Triton's CPU interpreter (the CPU twin of the CUDA path; the interpreter computes TF32 dots in float32, so the values
+agree to float32 rounding there; the GPU measures TF32's own deviation, benchmarks/NOTES.md session 37): the law's
+output and its gradients to F and to the LoRA factors, float32 and float64 (FP64 products), with a transposed weight
+caught; refused on a CPU without the interpreter, and for a network the kernels do not compute. Each case runs in a
+fresh interpreter process (Triton reads TRITON_INTERPRET when the kernels are decorated)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("triton")
+ROOT = Path(__file__).resolve().parents[1]
+
+SETUP = """
+import torch
+from gca.laws.lora import apply_lora, lora_parameters
+from gca.laws.neural import NeuralElasticity, NeuralPlasticity
+torch.manual_seed(0)
+
+def laws(dtype):
+    out = []
+    for cls in (NeuralElasticity, NeuralPlasticity):
+        net = cls()
+        apply_lora(net, 16, 16.0)
+        for name, p in net.named_parameters():
+            if name.endswith("lora_B"):
+                torch.nn.init.normal_(p, std=0.05)  # adapters that move the law
+        out.append(net.to(dtype))
+    return out
+
+def F_of(n, dtype):
+    g = torch.Generator().manual_seed(3)
+    return (torch.eye(3, dtype=dtype) + 0.2 * torch.randn(n, 3, 3, generator=g, dtype=dtype)).requires_grad_(True)
+
+def run(net, F, kernel):
+    net.mlp_kernel = kernel
+    R, X = net.fused_network(F)
+    v = torch.randn(X.shape, generator=torch.Generator().manual_seed(4), dtype=X.dtype)
+    grads = torch.autograd.grad(X, [F, *lora_parameters(net)], v)
+    return X.detach(), grads
+
+def rel(a, b):
+    return float((a - b).abs().max() / b.abs().max())
+"""
+
+
+def _run(code: str, interpret: bool = True) -> str:
+    """``SETUP`` + ``code`` in a fresh Python (under Triton's CPU interpreter unless ``interpret`` is False); it must
+    print "ok"."""
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    if interpret:
+        env["TRITON_INTERPRET"] = "1"
+    out = subprocess.run([sys.executable, "-c", SETUP + code], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
+    return out.stdout
+
+
+def test_the_laws_with_the_fused_mlp_equal_torchs_values_and_lora_gradients():
+    _run("""
+for dtype, tol in ((torch.float32, 2e-5), (torch.float64, 1e-12)):
+    for net in laws(dtype):
+        F = F_of(150, dtype)  # 150 = two blocks of 64 and a partial one
+        X, g = run(net, F, "torch")
+        X2, g2 = run(net, F, "triton_tf32")
+        assert rel(X2, X) < tol, (dtype, rel(X2, X))
+        assert len(g) == 1 + 6 and all(b.abs().max() > 0 for b in g)  # F and three layers' A and B
+        for a, b in zip(g2, g):
+            assert rel(a, b) < 10 * tol, (dtype, rel(a, b))
+# control: the kernel reads its weights' layout; a transposed W2 gives another law
+net = laws(torch.float64)[0]
+F = F_of(150, torch.float64)
+X, _ = run(net, F, "torch")
+with torch.no_grad():
+    net.mlp[2].weight.copy_(net.mlp[2].weight.T.clone())
+X2, _ = run(net, F, "triton_tf32")
+assert rel(X2, X) > 1e-3, rel(X2, X)
+print("ok")
+""")
+
+
+def test_the_fused_mlp_is_refused_where_it_cannot_compute():
+    _run("""
+import pytest
+net = laws(torch.float32)[0]
+net.mlp[1] = torch.nn.GELU(approximate="tanh")  # the kernels compute the exact GELU: refused, not computed wrongly
+with pytest.raises(ValueError, match="exact GELU|fuses two hidden layers"):
+    run(net, F_of(20, torch.float32), "triton_tf32")
+print("ok")
+""")
+    _run("""
+import pytest
+net = laws(torch.float32)[0]
+with pytest.raises(ValueError, match="interpreter"):  # a CPU without Triton's interpreter: one clear line
+    run(net, F_of(20, torch.float32), "triton_tf32")
+print("ok")
+""", interpret=False)
