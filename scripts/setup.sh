@@ -23,11 +23,15 @@ if ! python -c "import torch" 2>/dev/null; then
   echo "setup: installing torch==2.13.0 (CPU build) first"
   python -m pip install -q "torch==2.13.0"
 fi
-if [ -z "${SKIP_GSPLAT:-}" ] && python -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" 2>/dev/null; then
+cuda=0
+python -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" 2>/dev/null && cuda=1
+if [ "$cuda" = 1 ] && [ -z "${SKIP_GSPLAT:-}" ]; then
   echo "setup: CUDA device found: installing gca with the gpu extra (gsplat, the CUDA rasterizer)"
   python -m pip install -q -e ".[dev,gpu]"
   echo "setup: compiling gsplat's CUDA extension once, before the pipeline starts"
   python -m gca.render.backend --build || echo "setup: gsplat's extension did not build: render.backend=auto will use the torch rasterizer and say so" >&2
+elif [ "$cuda" = 1 ]; then
+  python -m pip install -q -e ".[dev]"  # a CUDA torch brings its own matching triton: no interp extra
 else
   python -m pip install -q -e ".[dev,interp]"  # interp: triton, whose interpreter runs the fused MLP's CPU twin
 fi

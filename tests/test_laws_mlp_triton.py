@@ -1,9 +1,10 @@
 """gca.laws.mlp_triton (``mlp_kernel: triton_tf32``): the neural laws with the fused Triton MLP against torch's MLP, in
 Triton's CPU interpreter (the CPU twin of the CUDA path; the interpreter computes TF32 dots in float32, so the values
 agree to float32 rounding there; the GPU measures TF32's own deviation, benchmarks/NOTES.md session 37): the law's
-output and its gradients to F and to the LoRA factors, float32 and float64 (FP64 products), with a transposed weight
-caught; refused on a CPU without the interpreter, and for a network the kernels do not compute. Each case runs in a
-fresh interpreter process (Triton reads TRITON_INTERPRET when the kernels are decorated)."""
+output (float32 2e-5, float64 1e-12 relative) and its gradients to F and to the LoRA factors (10x those), the fused
+kernels counted; their weight layout checked against a transposed W2; refused on a CPU without the interpreter, for
+a network they do not compute and for weights that do not fit. Each case runs in a fresh interpreter process (Triton
+reads TRITON_INTERPRET when the kernels are decorated)."""
 
 import os
 import subprocess
@@ -62,23 +63,29 @@ def _run(code: str, interpret: bool = True) -> str:
 
 def test_the_laws_with_the_fused_mlp_equal_torchs_values_and_lora_gradients():
     _run("""
+from gca.laws import mlp_triton
+calls = []
+apply = mlp_triton.FusedMLP.apply
+mlp_triton.FusedMLP.apply = lambda *a: calls.append(1) or apply(*a)  # the option really takes the fused kernels
 for dtype, tol in ((torch.float32, 2e-5), (torch.float64, 1e-12)):
     for net in laws(dtype):
         F = F_of(150, dtype)  # 150 = two blocks of 64 and a partial one
         X, g = run(net, F, "torch")
+        assert not calls
         X2, g2 = run(net, F, "triton_tf32")
+        assert len(calls) == 1, calls
+        calls.clear()
         assert rel(X2, X) < tol, (dtype, rel(X2, X))
         assert len(g) == 1 + 6 and all(b.abs().max() > 0 for b in g)  # F and three layers' A and B
         for a, b in zip(g2, g):
             assert rel(a, b) < 10 * tol, (dtype, rel(a, b))
-# control: the kernel reads its weights' layout; a transposed W2 gives another law
+# control: the kernels read torch's [out, in] layout; handed W2 transposed they compute another function
 net = laws(torch.float64)[0]
-F = F_of(150, torch.float64)
-X, _ = run(net, F, "torch")
-with torch.no_grad():
-    net.mlp[2].weight.copy_(net.mlp[2].weight.T.clone())
-X2, _ = run(net, F, "triton_tf32")
-assert rel(X2, X) > 1e-3, rel(X2, X)
+z = torch.randn(150, 13, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+W = [layer.effective_weight().detach() for layer in net.mlp[0::2]]
+ref = net.mlp(z).detach()
+assert rel(mlp_triton.mlp(z, W, "ieee").detach(), ref) < 1e-12
+assert rel(mlp_triton.mlp(z, [W[0], W[1].T, W[2]], "ieee").detach(), ref) > 1e-3
 print("ok")
 """)
 
@@ -86,10 +93,23 @@ print("ok")
 def test_the_fused_mlp_is_refused_where_it_cannot_compute():
     _run("""
 import pytest
+from gca.laws import mlp_triton
 net = laws(torch.float32)[0]
-net.mlp[1] = torch.nn.GELU(approximate="tanh")  # the kernels compute the exact GELU: refused, not computed wrongly
-with pytest.raises(ValueError, match="exact GELU|fuses two hidden layers"):
+net.mlp[1] = torch.nn.Tanh()  # a network the other kernels fuse, but these compute the exact GELU: refused
+with pytest.raises(ValueError, match="exact GELU"):
     run(net, F_of(20, torch.float32), "triton_tf32")
+net = laws(torch.float32)[0]
+net.mlp[3] = torch.nn.GELU(approximate="tanh")
+with pytest.raises(ValueError, match="exact GELU"):
+    run(net, F_of(20, torch.float32), "triton_tf32")
+z = torch.randn(20, 13)
+W = [torch.randn(64, 13), torch.randn(64, 64), torch.randn(9, 64)]
+with pytest.raises(ValueError, match="weights"):  # a weight that does not fit z: refused, never read out of bounds
+    mlp_triton.mlp(z, [W[0][:, :12], W[1], W[2]])
+with pytest.raises(ValueError, match="power of two"):
+    mlp_triton.mlp(z, W, block=48)
+with pytest.raises(ValueError, match="float32"):
+    mlp_triton.mlp(z.double(), [w.double() for w in W], "tf32")
 print("ok")
 """)
     _run("""

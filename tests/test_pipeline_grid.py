@@ -336,11 +336,20 @@ def test_a_grid_state_grows_by_methods_and_runs_only_the_new_runs(tmp_path, monk
         grid.restore_state(archive, knob)
 
 
+def test_execution_only_values_are_tuples_not_strings():
+    """``value in equal_at``: a bare string would be a substring test ("high" in "highest": TF32 taken as FP32)."""
+    from gca.train.config import EXECUTION_ONLY
+
+    assert EXECUTION_ONLY and all(v is None or (isinstance(v, tuple) and all(isinstance(x, str) for x in v))
+                                  for v in EXECUTION_ONLY.values())
+    assert "high" not in EXECUTION_ONLY["matmul_precision"] and "triton_tf32" not in EXECUTION_ONLY["mlp_kernel"]
+
+
 def test_a_grid_state_goes_on_across_execution_only_knobs(tmp_path):
     """A state made before train.reverse_sweep, matmul_precision and mlp_kernel existed (Tables 2-6's state.tgz,
     session 30) goes on under today's params, and one made under another MLP kernel or without the reverse sweep too
     (the same numbers to float rounding); TF32 products are not rounding-equal: a state made at ``highest`` is refused
-    under ``high`` (negative control), so is one under the TF32 Triton MLP, and so is a knob that changes the method.""" 
+    under ``high`` (negative control), so is one under the TF32 Triton MLP, and so is a knob that changes the method."""
     import yaml as _yaml
 
     params = grid.grid_params("ci", ["ball"], ["nclaw"], [])

@@ -11,9 +11,10 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
   in a fixed order (no atomics: deterministic).
 
-Measured (NVIDIA H200, 30k particles, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``,
-session 37): TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9; at 8
-processes under MPS 4.33x and 1.44x torch's throughput. The FP32 (``ieee``) kernels lose to torch (0.57x packed) and
+Measured (NVIDIA H200, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``, session 37): at
+30k particles TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9, at 8
+processes under MPS 4.33x and 1.44x torch's throughput; at 100k alone 26.8 / 187.1 us against 98.1 / 303.3 (there
+the backward's programs loop over two tiles or more). The FP32 (``ieee``) kernels lose to torch (0.57x packed) and
 are here for the float64 interpreter twin only.
 
 The weights are the layers' effective (LoRA-merged) weights, so gradients reach the adapters through torch's autograd
@@ -179,7 +180,7 @@ class FusedMLP(torch.autograd.Function):
 
 def runs_here(z: torch.Tensor) -> bool:
     """Whether the fused kernels can run on ``z``'s device: CUDA, or a CPU under Triton's interpreter."""
-    return z.is_cuda or os.environ.get("TRITON_INTERPRET") == "1"
+    return z.is_cuda or os.environ.get("TRITON_INTERPRET", "0").lower() in ("1", "true", "on")
 
 
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", block: int = BLOCK,
@@ -191,8 +192,16 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
     if not runs_here(z):
         raise ValueError(f"{_WHERE}: the fused MLP runs on CUDA, or on a CPU only in Triton's interpreter "
                          f"(TRITON_INTERPRET=1 before the import); got {z.device}")
-    if block < 16:
-        raise ValueError(f"{_WHERE}: block >= 16 (tl.dot) expected, got {block}")
+    if block < 16 or block & (block - 1):
+        raise ValueError(f"{_WHERE}: a block that is a power of two >= 16 (tl.dot) expected, got {block}")
+    if len(weights) != 3 or z.dim() != 2:
+        raise ValueError(f"{_WHERE}: z [N, K_IN] and three weights expected, got z {tuple(z.shape)}, "
+                         f"{len(weights)} weights")
+    w1, w2, w3 = weights
+    if w1.shape[1] != z.shape[1] or w2.shape != (w1.shape[0], w1.shape[0]) or w3.shape[1] != w2.shape[0] \
+            or w2.shape[0] < 16 or w2.shape[0] & (w2.shape[0] - 1):
+        raise ValueError(f"{_WHERE}: weights [H, K_IN], [H, H], [N_OUT, H] with H a power of two >= 16 expected for z "
+                         f"{tuple(z.shape)}, got {tuple(w1.shape)}, {tuple(w2.shape)}, {tuple(w3.shape)}")
     if z.dtype not in (torch.float32, torch.float64) or any(w.dtype != z.dtype for w in weights):
         raise ValueError(f"{_WHERE}: float32 or float64 input and weights alike expected, got {z.dtype}, "
                          f"{[w.dtype for w in weights]}")
@@ -200,5 +209,5 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
         raise ValueError(f"{_WHERE}: TF32 products take float32, got {z.dtype} (use precision='ieee')")
     if programs is None:
         programs = 4 * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda else 8
-    w1, w2, w3 = (w.contiguous() for w in weights)
-    return FusedMLP.apply(z.contiguous(), w1, w2, w3, block, precision, programs)
+    return FusedMLP.apply(z.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
+                          programs)

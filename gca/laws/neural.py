@@ -98,16 +98,18 @@ def make_mlp(cfg: NeuralLawConfig) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor:
-    """``mlp_kernel: triton_tf32``: the MLP through ``gca.laws.mlp_triton`` (TF32 products for float32; a float64 law,
-    the interpreter's gradient checks, runs FP64 products), imported here: triton is needed only by this option."""
+def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor) -> torch.Tensor:
+    """``mlp_kernel: triton_tf32``: the MLP through ``gca.laws.mlp_triton`` with the layers' effective (LoRA-merged)
+    weights (TF32 products for float32; a float64 law, the interpreter's gradient checks, runs FP64 products),
+    imported here: triton is needed only by this option."""
     try:
         from gca.laws import mlp_triton
     except ImportError as exc:
-        raise ImportError(f"gca/laws/neural.py: mlp_kernel='triton_tf32' needs triton ({exc}); the GPU image has it, "
-                          "else pip install triton") from exc
-    mlp_triton.check(mlp)
-    return mlp_triton.mlp(z, weights, "tf32" if z.dtype == torch.float32 else "ieee")
+        raise ImportError(f"gca/laws/neural.py: mlp_kernel='triton_tf32' needs triton ({exc}): a CUDA torch brings it; "
+                          "on a CPU, pip install -e .[interp]") from exc
+    layers = mlp_triton.check(mlp)
+    return mlp_triton.mlp(z, [effective_weight(layer) for layer in layers],
+                          "tf32" if z.dtype == torch.float32 else "ieee")
 
 
 class _InvariantNetwork(nn.Module):
@@ -159,13 +161,13 @@ class _InvariantNetwork(nn.Module):
                              f"of {MLP_KERNELS}")
         if self.mlp_kernel == "torch":
             return self.mlp(z)
+        if self.mlp_kernel == "triton_tf32":  # its own check: the exact GELU only (mlp_triton.check)
+            return _triton_mlp(self.mlp, z)
         shape = mlp_kernel.shape_of(self.mlp)
         if shape is None:
             raise ValueError(f"gca/laws/neural.py: mlp_kernel={self.mlp_kernel!r} fuses two hidden layers with one of "
                              f"{mlp_kernel.ACTIVATIONS}, not {self.mlp}")
         weights = [effective_weight(layer) for layer in self.mlp[0::2]]
-        if self.mlp_kernel == "triton_tf32":
-            return _triton_mlp(self.mlp, z, weights)
         if self.mlp_kernel == "simt":
             return mlp_kernel.simt_mlp(z, weights, shape, self.mlp[1])
         return mlp_kernel.mlp(z, weights, shape)
