@@ -101,11 +101,14 @@ def test_setup_installs_and_builds_gsplat_on_cuda(tmp_path):
     assert "compiling gsplat's CUDA extension once" in calls[-1]
 
 
-@pytest.mark.parametrize("cuda,env", [(False, {}), (True, {"SKIP_GSPLAT": "1"})])
-def test_setup_without_cuda_skips_gsplat(tmp_path, cuda, env):
+@pytest.mark.parametrize("cuda,env,extras", [(False, {}, "dev,interp"), (True, {"SKIP_GSPLAT": "1"}, "dev")])
+def test_setup_without_cuda_skips_gsplat(tmp_path, cuda, env, extras):
+    """No CUDA: no gsplat, and triton for the fused MLP's interpreter twin (the interp extra); CUDA with gsplat
+    skipped: no gsplat and no interp either (a CUDA torch brings its own matching triton)."""
     calls = _setup(tmp_path, cuda=cuda, **env)
-    assert 'python -m pip install -q -e .[dev]' in calls
+    assert f'python -m pip install -q -e .[{extras}]' in calls
     assert not any("gpu]" in c or "--build" in c for c in calls)
+    assert any("interp" in c for c in calls) == (not cuda)
 
 
 @pytest.mark.parametrize("with_model", [True, False])
