@@ -119,3 +119,20 @@ with pytest.raises(ValueError, match="interpreter"):  # a CPU without Triton's i
     run(net, F_of(20, torch.float32), "triton_tf32")
 print("ok")
 """, interpret=False)
+
+
+def test_the_option_bench_rolls_out_both_kinds(tmp_path):
+    """benchmarks/bench_mlp_option.py (the GPU measurement of the option) on a small block in the interpreter: a row
+    per kind, the torch row the reference (0 deviation), the fused one within float32 rounding of it here."""
+    out = tmp_path / "o.json"
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    run = subprocess.run([sys.executable, "benchmarks/bench_mlp_option.py", "--device", "cpu", "--kinds", "torch",
+                          "triton_tf32", "--particles", "500", "--n-grid", "16", "--steps", "4", "--per-frame", "2",
+                          "--repeats", "1", "--json", str(out)], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stdout + run.stderr
+    import json
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["kind"] for r in rows] == ["torch", "triton_tf32"]
+    assert rows[0]["x_dev_cells"] == 0.0 and rows[0]["grad_rel_dev"] == 0.0
+    assert rows[1]["x_dev_cells"] < 1e-3 and rows[1]["grad_rel_dev"] < 1e-4 and rows[1]["ms"] > 0
