@@ -1,5 +1,5 @@
 """``train.mlp_kernel`` on one neural rollout (a script, not a test): each kind's 200-step rollout forward + backward
-(CUDA graphs, as training runs it; ``bench_runs.one_rollout``) timed, and its final positions and launch-velocity
+(CUDA graphs, as training runs it: ``bench_runs.one_rollout``) timed, and its final positions and launch-velocity
 gradient against the first kind's (``torch``): what TF32 (``triton_tf32``) costs in the numbers it changes.
 
 Usage::
@@ -18,25 +18,15 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.bench_runs import WAVE_SPEED, _sync, runs_setup  # noqa: E402
-from gca.sim import rollout  # noqa: E402
-from gca.laws.neural import NeuralElasticity, NeuralPlasticity  # noqa: E402
+from benchmarks.bench_runs import _sync, one_rollout, runs_setup  # noqa: E402
+from gca.laws.neural import neural_networks  # noqa: E402
 
 
 def set_kind(law, kind: str) -> None:
-    """Every neural network of ``law`` runs its MLP on ``kind`` (as ``gca.train.loop.mlp_kernel`` does for a run;
-    not imported here: the training modules need packages the GPU image lacks)."""
-    for m in law.modules():
-        if isinstance(m, (NeuralElasticity, NeuralPlasticity)):
-            m.mlp_kernel = kind
-
-
-def one(solver, law, x, v0, vol, mass, steps: int, per_frame: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(final positions [N, 3], d sum(x^2) / d v0 [N, 3]) of one rollout forward and backward."""
-    v = v0.clone().requires_grad_(True)
-    out = rollout(solver, law, x, v, vol, mass, steps, per_frame, wave_speed=WAVE_SPEED)
-    (out.x[1:] ** 2).sum().backward()
-    return out.x[-1].detach(), v.grad.detach()
+    """Every neural network of ``law`` runs its MLP on ``kind``, as ``gca.train.loop.mlp_kernel`` sets it for a run
+    (not imported here: the training modules need packages the GPU image lacks)."""
+    for net in neural_networks(law):
+        net.mlp_kernel = kind
 
 
 def main(argv=None) -> list[dict]:
@@ -57,11 +47,11 @@ def main(argv=None) -> list[dict]:
           flush=True)
     for kind in args.kinds:
         set_kind(laws[0], kind)
-        xf, g = one(solver, laws[0], x, v0s[0], vol, mass, args.steps, args.per_frame)  # warm-up (compiles)
+        xf, g = one_rollout(solver, laws[0], x, v0s[0], vol, mass, args.steps, args.per_frame)  # warm-up (compiles)
         _sync(device)
         t0 = time.perf_counter()
         for _ in range(args.repeats):
-            one(solver, laws[0], x, v0s[0], vol, mass, args.steps, args.per_frame)
+            one_rollout(solver, laws[0], x, v0s[0], vol, mass, args.steps, args.per_frame)
         _sync(device)
         ms = (time.perf_counter() - t0) / args.repeats * 1e3
         ref = ref or (xf, g)

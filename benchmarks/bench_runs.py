@@ -65,11 +65,13 @@ def runs_setup(n_runs: int, n: int, n_grid: int, device, seed: int = 0):
     return solver, x, vol, mass, laws, v0s
 
 
-def one_rollout(solver, material, x, v0, vol, mass, steps: int, per_frame: int) -> None:
-    """A rollout from launch velocity v0 forward and backward (a fixed loss of the positions), as training runs it."""
+def one_rollout(solver, material, x, v0, vol, mass, steps: int, per_frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A rollout from launch velocity v0 forward and backward (a fixed loss of the positions), as training runs it:
+    (final positions [N, 3], d sum(x^2) / d v0 [N, 3])."""
     v0 = v0.clone().requires_grad_(True)
     out = rollout(solver, material, x, v0, vol, mass, steps, per_frame, wave_speed=WAVE_SPEED)
     (out.x[1:] ** 2).sum().backward()
+    return out.x[-1].detach(), v0.grad.detach()
 
 
 def as_batch(solver, x, vol, mass, laws, v0s, laws_mode: str = "batched"):

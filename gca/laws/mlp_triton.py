@@ -124,13 +124,21 @@ def check(net: torch.nn.Sequential) -> list[torch.nn.Module]:
                          f"compute x Phi(x)), got {net}")
     if any(getattr(m, "bias", None) is not None for m in layers):
         raise ValueError(f"{_WHERE}: fused MLP: bias-free layers (make_mlp's) expected")
-    w1, w2, w3 = (m.weight for m in layers)
-    if w2.shape[0] != w2.shape[1] or w1.shape[0] != w2.shape[0] or w3.shape[1] != w2.shape[0]:
-        raise ValueError(f"{_WHERE}: fused MLP: two equal hidden layers expected, got {w1.shape}, {w2.shape}, {w3.shape}")
-    if w2.shape[0] < 16 or w2.shape[0] & (w2.shape[0] - 1):
-        raise ValueError(f"{_WHERE}: fused MLP: a hidden width that is a power of two >= 16 expected (tl.dot), got "
-                         f"{w2.shape[0]}")
+    _check_weights([m.weight for m in layers], layers[0].weight.shape[1])
     return layers
+
+
+def _check_weights(weights: list[torch.Tensor], k_in: int) -> None:
+    """Three weights [H, K_IN], [H, H], [N_OUT, H] for inputs of width ``k_in``, H a power of two >= 16 (tl.dot); any
+    other shape refused with one line (the kernels would read them with the wrong strides)."""
+    if len(weights) != 3 or any(w.dim() != 2 for w in weights):
+        raise ValueError(f"{_WHERE}: fused MLP: three 2-d weights expected, got {[tuple(w.shape) for w in weights]}")
+    w1, w2, w3 = weights
+    h = w1.shape[0]
+    if w1.shape[1] != k_in or w2.shape != (h, h) or w3.shape[1] != h or h < 16 or h & (h - 1):
+        raise ValueError(f"{_WHERE}: fused MLP: weights [H, K_IN], [H, H], [N_OUT, H] with H a power of two >= 16 "
+                         f"expected for inputs of width {k_in}, got {tuple(w1.shape)}, {tuple(w2.shape)}, "
+                         f"{tuple(w3.shape)}")
 
 
 def _pad(v: int) -> int:
@@ -141,7 +149,6 @@ def _pad(v: int) -> int:
 
 BWD_WARPS = 8  # the backward holds three weight-gradient accumulators ([64, 64] the largest) and six [BLOCK, 64]
 # activations per program: 8 warps (256 threads) halve the registers each thread holds against Triton's default 4
-
 
 
 class FusedMLP(torch.autograd.Function):
@@ -177,7 +184,6 @@ class FusedMLP(torch.autograd.Function):
         return (dx, *(part.sum(0) for part in parts), None, None, None)
 
 
-
 def runs_here(z: torch.Tensor) -> bool:
     """Whether the fused kernels can run on ``z``'s device: CUDA, or a CPU under Triton's interpreter."""
     return z.is_cuda or os.environ.get("TRITON_INTERPRET", "0").lower() in ("1", "true", "on")
@@ -194,14 +200,10 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
                          f"(TRITON_INTERPRET=1 before the import); got {z.device}")
     if block < 16 or block & (block - 1):
         raise ValueError(f"{_WHERE}: a block that is a power of two >= 16 (tl.dot) expected, got {block}")
-    if len(weights) != 3 or z.dim() != 2:
-        raise ValueError(f"{_WHERE}: z [N, K_IN] and three weights expected, got z {tuple(z.shape)}, "
-                         f"{len(weights)} weights")
+    if z.dim() != 2:
+        raise ValueError(f"{_WHERE}: z [N, K_IN] expected, got {tuple(z.shape)}")
+    _check_weights(weights, z.shape[1])
     w1, w2, w3 = weights
-    if w1.shape[1] != z.shape[1] or w2.shape != (w1.shape[0], w1.shape[0]) or w3.shape[1] != w2.shape[0] \
-            or w2.shape[0] < 16 or w2.shape[0] & (w2.shape[0] - 1):
-        raise ValueError(f"{_WHERE}: weights [H, K_IN], [H, H], [N_OUT, H] with H a power of two >= 16 expected for z "
-                         f"{tuple(z.shape)}, got {tuple(w1.shape)}, {tuple(w2.shape)}, {tuple(w3.shape)}")
     if z.dtype not in (torch.float32, torch.float64) or any(w.dtype != z.dtype for w in weights):
         raise ValueError(f"{_WHERE}: float32 or float64 input and weights alike expected, got {z.dtype}, "
                          f"{[w.dtype for w in weights]}")
