@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script 
 from benchmarks.packed import (add_arguments, exit_on_sigterm, ratios, repeat_after_go, run_workers,  # noqa: E402
                                write_result)
 
-VARIANT = re.compile(r"^(torch|torch_tf32|simt|t\d+s|(ieee|tf32)_\d+|law_(torch|simt))$")
+VARIANT = re.compile(r"^(torch|torch_tf32|simt|t\d+s|(ieee|tf32)_\d+(_w\d+)?(_p\d+)?|law_(torch|simt))$")
 
 
 def passes_of(variant: str) -> tuple[str, ...]:
@@ -49,10 +49,9 @@ def call_of(variant: str, pass_: str, n: int, device):
         return law_step(variant[4:], n, device)
     run = None
     if variant.startswith(("ieee_", "tf32_")):
-        from benchmarks.bench_mlp_triton import fused_mlp
+        from benchmarks.bench_mlp_triton import variant_call
 
-        precision, block = variant.split("_")
-        run = lambda z, Ws, net: fused_mlp(net, z, int(block), precision)  # noqa: E731
+        run = lambda z, Ws, net: variant_call(variant, net)(z)  # noqa: E731
     fwd, both, *_ = mlp_calls(variant, n, device, run)
     return _no_grad(fwd) if pass_ == "fwd" else both
 

@@ -20,11 +20,14 @@ Per size and variant, per call [us] (CUDA: captured in one CUDA graph and replay
 CPU: Triton's interpreter, ``TRITON_INTERPRET=1``, a correctness smoke only): the forward (no gradient) and the
 forward + backward, and the largest deviations of the output and the gradients from float64 relative to the largest
 value. Variants: ``torch`` (nn.Sequential, FP32), ``ieee_<B>`` (fused, FP32 products, B particles per program),
-``tf32_<B>`` (fused, TF32 products: a precision change, shown for scale only).
+``tf32_<B>`` (fused, TF32 products: the option ``train.mlp_kernel: triton_tf32``). A fused variant may name its
+backward's launch: ``tf32_64_w4_p2`` = 4 warps per program, 2 programs per SM (default ``_w8_p4``, the library's);
+session 38 added these for a sweep of the TF32 backward (76 of its 87 us at 30k, H200, session 37).
 
 Usage::
 
     python benchmarks/bench_mlp_triton.py --device cuda --json out.json
+    python benchmarks/bench_mlp_triton.py --fastest out.json --particles 30000 --top 2   # the sweep's pick
     python benchmarks/bench_mlp_triton.py --device cpu --sizes 200 --variants torch ieee_32 --iters 1 --repeats 1
 """
 
@@ -48,7 +51,20 @@ from bench_mlp import timed_us  # noqa: E402
 from gca.laws import mlp_triton  # noqa: E402  (after TRITON_INTERPRET is set: read at its import)
 from gca.laws.neural import NeuralLawConfig, make_mlp  # noqa: E402
 
-VARIANT = re.compile(r"^(torch|(ieee|tf32)_(\d+))$")
+VARIANT = re.compile(r"^(torch|(ieee|tf32)_(\d+)(?:_w(\d+))?(?:_p(\d+))?)$")
+SMS = 132  # SMs of an H100 / H200: programs per SM -> the backward's persistent programs
+
+
+def fused_launch(name: str) -> tuple[str, int, int, int] | None:
+    """A fused variant's (precision, block, backward warps, backward programs) from its name, ``<ieee|tf32>_<B>``
+    with an optional ``_w<W>`` (warps per program, default the library's 8) and ``_p<P>`` (programs per SM, default
+    4); None for a name that is no fused variant (``torch``, or anything else)."""
+    m = VARIANT.match(name)
+    if m is None or m.group(2) is None:
+        return None
+    warps = int(m.group(4)) if m.group(4) else mlp_triton.BWD_WARPS
+    per_sm = int(m.group(5)) if m.group(5) else 4
+    return m.group(2), int(m.group(3)), warps, per_sm * SMS
 
 
 def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precision: str = "ieee") -> torch.Tensor:
@@ -59,11 +75,23 @@ def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precisi
 
 
 def fused_mlp(net: torch.nn.Sequential, x: torch.Tensor, block: int = 32, precision: str = "ieee",
-              programs: int = 4 * 132) -> torch.Tensor:
+              programs: int = 4 * SMS, warps: int = mlp_triton.BWD_WARPS) -> torch.Tensor:
     """``net(x)`` with gradients to x and the three weights through the library's :class:`FusedMLP`
     (``gca.laws.mlp_triton``; block >= 16; ``programs``: the backward's persistent programs, default 4 per SM of an
-    H100 / H200)."""
-    return mlp_triton.mlp(x, [m.weight for m in mlp_triton.check(net)], precision, block, programs)
+    H100 / H200; ``warps``: the backward's warps per program)."""
+    return mlp_triton.mlp(x, [m.weight for m in mlp_triton.check(net)], precision, block, programs, warps)
+
+
+def variant_call(name: str, net: torch.nn.Sequential):
+    """``name``'s MLP as a function of x: ``net`` itself for ``torch``, else the fused MLP with the name's launch."""
+    launch = fused_launch(name)
+    if name == "torch":
+        return net
+    if launch is None:
+        raise SystemExit(f"bench_mlp_triton.py: unknown variant {name!r} (torch, ieee_<B>, tf32_<B>, optionally "
+                         "_w<warps>_p<programs per SM>)")
+    precision, block, warps, programs = launch
+    return lambda x: fused_mlp(net, x, block, precision, programs, warps)
 
 
 def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int) -> list[dict]:
@@ -84,13 +112,7 @@ def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int
         ref = net64(x64)
         gref = torch.autograd.grad(ref, [x64, *W64], v64)
         for name in variants:
-            m = VARIANT.match(name)
-            if m is None:
-                raise SystemExit(f"bench_mlp_triton.py: unknown variant {name!r} (torch, ieee_<B>, tf32_<B>)")
-            if name == "torch":
-                fn = lambda: net(x)  # noqa: E731
-            else:
-                fn = lambda p=m.group(2), b=int(m.group(3)): fused_mlp(net, x, b, p)  # noqa: E731
+            fn = lambda call=variant_call(name, net): call(x)  # noqa: E731
             both = lambda: torch.autograd.grad(fn(), [x, *Ws], v64.float())  # noqa: E731
             rel = lambda a, b: float((a.double() - b).abs().max() / b.abs().max())  # noqa: E731
             with torch.no_grad():
@@ -104,8 +126,20 @@ def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int
     return out
 
 
+def fastest(rows_: list[dict], particles: int, top: int, exclude: tuple[str, ...] = ("tf32_64",)) -> list[str]:
+    """The ``top`` fused variants with the least forward + backward time at ``particles`` (torch and ``exclude``
+    left out: the library's launch is timed anyway), fastest first."""
+    timed = [r for r in rows_ if r["particles"] == particles and fused_launch(r["variant"]) is not None
+             and r["variant"] not in exclude]
+    return [r["variant"] for r in sorted(timed, key=lambda r: r["fwd_bwd_us"])[:top]]
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--fastest", type=Path, help="print the fastest fused variants of this JSON (--particles, --top) "
+                    "and exit: the sweep's pick for bench_mlp_packed.py")
+    ap.add_argument("--particles", type=int, default=30000)
+    ap.add_argument("--top", type=int, default=2)
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--sizes", type=int, nargs="+", default=[30000, 100000])
     ap.add_argument("--variants", nargs="+", default=["torch", "ieee_32", "ieee_64", "ieee_128", "tf32_64"])
@@ -113,6 +147,9 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.fastest:
+        print(" ".join(fastest(json.loads(args.fastest.read_text())["rows"], args.particles, args.top)))
+        return []
     device = torch.device(args.device)
     print("| particles | variant | fwd us | fwd+bwd us | rel dev from float64 | grad rel dev |\n"
           "| --- | --- | --- | --- | --- | --- |", flush=True)

@@ -22,6 +22,9 @@
 #   PART=mlppacked (for session 37; ~4 min, no gsplat): bench_mlp_triton.py (the fused MLP forward and forward +
 #       backward alone), then bench_mlp_packed.py, the MLP variants and one step's law calls replayed by 1 and 8
 #       processes at once under MPS: us per call at a saturated GPU                   -> triton_bwd.*, mlppacked.*
+#   PART=mlpsweep (for session 39; ~5 min, no gsplat): bench_mlp_triton.py, the TF32 backward's launch swept (block,
+#       warps, programs per SM: SWEEP), alone at 30k and 100k; then bench_mlp_packed.py at 1 and 8 processes under MPS:
+#       torch, the library's launch (tf32_64) and the two fastest of the sweep at 30k      -> mlpsweep.*, mlpsweep_packed.*
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
@@ -116,6 +119,22 @@ if [ "$PART" = mlppacked ]; then  # for session 37: which MLP is cheapest when t
       --variants torch torch_tf32 simt ieee_64 tf32_64 law_torch law_simt --json "$OUT/mlppacked.json" \
       > "$OUT/mlppacked.txt" 2>&1
   echo "mlppacked rc=$?"; grep -E "^\||MPS" "$OUT/mlppacked.txt"
+fi
+
+if [ "$PART" = mlpsweep ]; then  # for session 39: the TF32 backward's launch (76 of its 87 us at 30k, H200, s37)
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "bench_mlp_triton: the TF32 backward's launch swept, alone"
+  timeout "${LIMIT:-200}" python3 benchmarks/bench_mlp_triton.py --device cuda --sizes 30000 100000 --variants torch \
+      ${SWEEP:-tf32_64 tf32_64_w8_p2 tf32_64_w8_p1 tf32_64_w4_p4 tf32_64_w4_p2 tf32_64_w4_p1 tf32_128_w8_p2 \
+      tf32_128_w8_p1 tf32_128_w4_p2 tf32_128_w4_p1 tf32_32_w4_p8 tf32_32_w4_p4 tf32_32_w8_p4} \
+      --json "$OUT/mlpsweep.json" > "$OUT/mlpsweep.txt" 2>&1
+  echo "mlpsweep rc=$?"; grep -E "^\|" "$OUT/mlpsweep.txt"
+  best=$(python3 benchmarks/bench_mlp_triton.py --fastest "$OUT/mlpsweep.json" --particles 30000 --top 2)
+  stamp "bench_mlp_packed: torch, tf32_64 and the sweep's fastest ($best) at 1 and 8 processes under MPS"
+  # shellcheck disable=SC2086
+  timeout "${MLP_LIMIT:-240}" python3 benchmarks/bench_mlp_packed.py --device cuda --mps --procs 1 8 \
+      --variants torch tf32_64 $best --json "$OUT/mlpsweep_packed.json" > "$OUT/mlpsweep_packed.txt" 2>&1
+  echo "mlpsweep_packed rc=$?"; grep -E "^\||MPS" "$OUT/mlpsweep_packed.txt"
 fi
 
 if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattice against C order (P2G only)

@@ -69,7 +69,7 @@ W1, W2, W3 = (w.detach() for w in Ws)
 wrong = torch.autograd.grad(((W3 @ tf.gelu(W2.t() @ tf.gelu(W1 @ x.t()))).t() * v).sum(), [x])[0]  # W2 transposed
 assert float((got[0] - wrong).abs().max() / wrong.abs().max()) > 1e-2  # control: the test sees a transposed weight
 xs = x.detach()[:5].clone().requires_grad_(True)
-assert torch.autograd.gradcheck(lambda z: b.mlp_triton.FusedMLP.apply(z, W1, W2, W3, 16, "ieee", 1), (xs,), eps=1e-6, atol=1e-8)
+assert torch.autograd.gradcheck(lambda z: b.mlp_triton.FusedMLP.apply(z, W1, W2, W3, 16, "ieee", 1, 8), (xs,), eps=1e-6, atol=1e-8)
 print("ok", dev)
 """)
 
@@ -88,5 +88,63 @@ assert y.shape == ref.shape == (70, 9) and d < 1e-5, d
 assert float((y - ref.flip(0)).abs().max() / ref.abs().max()) > 1e-3  # control: another row order is caught
 gs, gr = m.call_of("ieee_32", "fwdbwd", 70, dev)(), m.call_of("torch", "fwdbwd", 70, dev)()
 assert max(float((a - r).abs().max() / r.abs().max()) for a, r in zip(gs, gr)) < 1e-5
+assert m.VARIANT.match("tf32_32_w4_p1") and not m.VARIANT.match("tf32_32_p1_w4")  # a sweep's launch, in its order
+gs = m.call_of("tf32_32_w4_p1", "fwdbwd", 70, dev)()  # the interpreter computes TF32 dots in float32
+assert max(float((a - r).abs().max() / r.abs().max()) for a, r in zip(gs, gr)) < 1e-5
 print("ok", d)
 """)
+
+
+def test_a_launch_sweep_names_the_backward_and_computes_the_same_function():
+    """Session 38's sweep of the TF32 backward's launch: ``tf32_<B>_w<W>_p<P>`` sets the backward's warps and programs
+    per SM (the defaults are the library's), any launch gives the same values and gradients (the interpreter computes
+    TF32 dots in float32: 1e-5 of torch's), and a name outside the grammar is refused."""
+    _run("""
+import sys, torch
+sys.argv = ["x", "--device", "cpu"]
+sys.path.insert(0, "benchmarks")
+import bench_mlp_triton as b
+assert b.fused_launch("tf32_64") == ("tf32", 64, b.mlp_triton.BWD_WARPS, 4 * b.SMS)
+assert b.fused_launch("tf32_128_w4_p2") == ("tf32", 128, 4, 2 * b.SMS)
+assert b.fused_launch("ieee_32_p1") == ("ieee", 32, b.mlp_triton.BWD_WARPS, b.SMS)
+assert b.fused_launch("torch") is None and b.fused_launch("tf32_64_p2_w4") is None  # the order is fixed
+for bad in ("tf32", "tf32_64_w", "bf16_64", "tf32_64_p2_w4"):
+    try:
+        b.variant_call(bad, None)
+        raise AssertionError(f"{bad} was not refused")
+    except SystemExit as e:
+        assert "unknown variant" in str(e)
+from gca.laws.neural import NeuralLawConfig, make_mlp
+torch.manual_seed(2)
+net = make_mlp(NeuralLawConfig())
+x = torch.randn(70, 13).requires_grad_(True)
+v = torch.randn(70, 9)
+Ws = [m.weight for m in net if isinstance(m, torch.nn.Linear)]
+ref = torch.autograd.grad((net(x) * v).sum(), [x, *Ws])
+for name in ("tf32_16_w4_p1", "tf32_32_w1_p2", "tf32_16"):
+    call = b.variant_call(name, net)
+    got = torch.autograd.grad((call(x) * v).sum(), [x, *Ws])
+    dev = max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(got, ref))
+    assert dev < 1e-5, (name, dev)
+    bad = torch.autograd.grad((call(x) * v.flip(0)).sum(), [x, *Ws])  # control: another cotangent is seen
+    assert max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(bad, ref)) > 1e-2
+print("ok")
+""")
+
+
+def test_the_sweeps_pick_is_the_fastest_fused_launch(tmp_path):
+    """``--fastest``: the fused variants of a result file by forward + backward time at the given size, fastest
+    first, torch and the library's own launch (timed anyway) left out; rows of another size do not count."""
+    rows = [{"particles": 30000, "variant": "torch", "fwd_bwd_us": 50.0},
+            {"particles": 30000, "variant": "tf32_64", "fwd_bwd_us": 60.0},
+            {"particles": 30000, "variant": "tf32_64_w4_p2", "fwd_bwd_us": 80.0},
+            {"particles": 30000, "variant": "tf32_128_w8_p1", "fwd_bwd_us": 70.0},
+            {"particles": 30000, "variant": "tf32_32_w4_p8", "fwd_bwd_us": 90.0},
+            {"particles": 100000, "variant": "tf32_32_w4_p8", "fwd_bwd_us": 1.0}]
+    f = tmp_path / "sweep.json"
+    f.write_text(__import__("json").dumps({"device": "x", "rows": rows}))
+    out = subprocess.run([sys.executable, str(SCRIPT), "--fastest", str(f), "--particles", "30000", "--top", "2"],
+                         cwd=SCRIPT.parents[1], env={**os.environ, "TRITON_INTERPRET": "1"}, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["tf32_128_w8_p1", "tf32_64_w4_p2"]

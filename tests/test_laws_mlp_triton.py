@@ -108,6 +108,9 @@ with pytest.raises(ValueError, match="weights"):  # a weight that does not fit z
     mlp_triton.mlp(z, [W[0][:, :12], W[1], W[2]])
 with pytest.raises(ValueError, match="power of two"):
     mlp_triton.mlp(z, W, block=48)
+for warps in (0, 3, 32):  # the backward's warps per program: a power of two from 1 to 16
+    with pytest.raises(ValueError, match="warps per program"):
+        mlp_triton.mlp(z, W, warps=warps)
 with pytest.raises(ValueError, match="float32"):
     mlp_triton.mlp(z.double(), [w.double() for w in W], "tf32")
 print("ok")

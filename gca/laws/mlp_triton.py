@@ -153,14 +153,15 @@ BWD_WARPS = 8  # the backward holds three weight-gradient accumulators ([64, 64]
 
 class FusedMLP(torch.autograd.Function):
     """out = W3 gelu(W2 gelu(W1 x)) for x [N, K_IN] and weights [H, K_IN], [H, H], [N_OUT, H] (torch's layout): the
-    forward one launch with nothing stored but the inputs; the backward one persistent launch that recomputes the
-    forward on chip and gives dx and the three weight gradients (partials per program summed by torch). float32
-    (``precision`` ieee or tf32) or float64 (ieee: the CPU interpreter's gradcheck)."""
+    forward one launch with nothing stored but the inputs; the backward one persistent launch of ``programs`` programs
+    of ``warps`` warps that recomputes the forward on chip and gives dx and the three weight gradients (partials per
+    program summed by torch). float32 (``precision`` ieee or tf32) or float64 (ieee: the CPU interpreter's
+    gradcheck)."""
 
     @staticmethod
-    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int):
+    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int, warps: int):
         ctx.save_for_backward(x, w1, w2, w3)
-        ctx.cfg = (block, precision, programs)
+        ctx.cfg = (block, precision, programs, warps)
         out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
         _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
                                                          K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
@@ -171,7 +172,7 @@ class FusedMLP(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):
         x, w1, w2, w3 = ctx.saved_tensors
-        block, precision, programs = ctx.cfg
+        block, precision, programs, warps = ctx.cfg
         n, tiles = x.shape[0], triton.cdiv(x.shape[0], block)
         per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
         p = max(1, triton.cdiv(tiles, per))
@@ -180,8 +181,8 @@ class FusedMLP(torch.autograd.Function):
         _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, n, p, K_IN=x.shape[1],
                              K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0], OUT_PAD=_pad(w3.shape[0]),
                              BLOCK=block, PRECISION=precision, PER_PROGRAM=per,
-                             num_warps=BWD_WARPS)
-        return (dx, *(part.sum(0) for part in parts), None, None, None)
+                             num_warps=warps)
+        return (dx, *(part.sum(0) for part in parts), None, None, None, None)
 
 
 def runs_here(z: torch.Tensor) -> bool:
@@ -190,16 +191,20 @@ def runs_here(z: torch.Tensor) -> bool:
 
 
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", block: int = BLOCK,
-        programs: int | None = None) -> torch.Tensor:
+        programs: int | None = None, warps: int = BWD_WARPS) -> torch.Tensor:
     """X [N, N_OUT] = W3 gelu(W2 gelu(W1 z)) for z [N, K_IN] and ``weights`` [W1 [H, K_IN], W2 [H, H], W3 [N_OUT, H]]
     (torch's layouts; the shape :func:`check` accepts), differentiable in z and the weights. ``precision``: ``tf32``
     (TF32 products; float32 only) or ``ieee`` (FP32 or float64 products). ``programs``: the backward's persistent
-    programs (default 4 per SM; 8 on a CPU)."""
+    programs (default 4 per SM; 8 on a CPU); ``warps``: the backward's warps per program (a power of two, 1-16).
+    ``block``, ``programs`` and ``warps`` change the launch, not the function: the weight gradients' partials are
+    summed in another order (float rounding), nothing else."""
     if not runs_here(z):
         raise ValueError(f"{_WHERE}: the fused MLP runs on CUDA, or on a CPU only in Triton's interpreter "
                          f"(TRITON_INTERPRET=1 before the import); got {z.device}")
     if block < 16 or block & (block - 1):
         raise ValueError(f"{_WHERE}: a block that is a power of two >= 16 (tl.dot) expected, got {block}")
+    if warps < 1 or warps > 16 or warps & (warps - 1):
+        raise ValueError(f"{_WHERE}: warps per program: a power of two from 1 to 16 expected, got {warps}")
     if z.dim() != 2:
         raise ValueError(f"{_WHERE}: z [N, K_IN] expected, got {tuple(z.shape)}")
     _check_weights(weights, z.shape[1])
@@ -212,4 +217,4 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
     if programs is None:
         programs = 4 * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda else 8
     return FusedMLP.apply(z.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
-                          programs)
+                          programs, warps)
