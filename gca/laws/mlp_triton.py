@@ -65,9 +65,11 @@ def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr
 
 
 @triton.jit
-def _gelu_grad(x):
-    """d/dx of x Phi(x): Phi(x) + x phi(x)."""
-    return 0.5 * (1.0 + tl.math.erf(x * 0.7071067811865476)) + x * 0.3989422804014327 * tl.exp(-0.5 * x * x)
+def _gelu_and_grad(x):
+    """(x Phi(x), its derivative Phi(x) + x phi(x)) with one erf: the backward's recompute needs both (session 38:
+    it computed erf twice per activation, once for each; the same values)."""
+    cdf = 0.5 * (1.0 + tl.math.erf(x * 0.7071067811865476))
+    return x * cdf, cdf + x * 0.3989422804014327 * tl.exp(-0.5 * x * x)
 
 
 
@@ -97,14 +99,12 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
         live = rows < n
         x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
         g = tl.load(g_ptr + rows[:, None] * N_OUT + o[None, :], mask=live[:, None] & (o[None, :] < N_OUT), other=0.0)
-        h1 = tl.dot(x, tl.trans(w1), input_precision=PRECISION)  # [BLOCK, H]
-        a1 = _gelu(h1)
-        h2 = tl.dot(a1, tl.trans(w2), input_precision=PRECISION)
-        a2 = _gelu(h2)
+        a1, s1 = _gelu_and_grad(tl.dot(x, tl.trans(w1), input_precision=PRECISION))  # [BLOCK, H], gelu' at h1
+        a2, s2 = _gelu_and_grad(tl.dot(a1, tl.trans(w2), input_precision=PRECISION))
         dw3 += tl.dot(tl.trans(g), a2, input_precision=PRECISION)  # [OUT_PAD, H]
-        d2 = tl.dot(g, w3, input_precision=PRECISION) * _gelu_grad(h2)  # [BLOCK, H]
+        d2 = tl.dot(g, w3, input_precision=PRECISION) * s2  # [BLOCK, H]
         dw2 += tl.dot(tl.trans(d2), a1, input_precision=PRECISION)
-        d1 = tl.dot(d2, w2, input_precision=PRECISION) * _gelu_grad(h1)
+        d1 = tl.dot(d2, w2, input_precision=PRECISION) * s1
         dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
         dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
         tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
