@@ -1,0 +1,148 @@
+"""Issue 20: the precision decision for ``train.mlp_kernel: triton_tf32`` (the neural laws' MLP with TF32 products,
+session 37), on the calibration scenes only, by a rule fixed in session 38 before any of its runs.
+
+The option is the one speed lever measured over its rule's line (1.22x on a 30k rollout, H200), and it changes the
+numbers: TF32 keeps 10 of FP32's 23 mantissa bits in every product. It becomes the default only if GCA trained with it
+is as good as with FP32 on scenes that are in no table, with the same budget (science rules: tune on calibration
+scenes only). The runs are two tunings of one trial each, trial 0 being the frozen params (``gca.pipeline.tune``: the
+calibration scenes, a table scene refused; GPU, paper profile; ``tuning/README.md`` for sharding and resuming)::
+
+    python -m gca.pipeline.tune --work /tmp/prec_fp32 --profile paper --priors models/prior --methods gca \\
+        --set tuning.trials=1 --set "tuning.seeds=[0, 1, 2]" --record /tmp/prec_fp32/record.json
+    python -m gca.pipeline.tune --work /tmp/prec_tf32 --profile paper --priors models/prior --methods gca \\
+        --set tuning.trials=1 --set "tuning.seeds=[0, 1, 2]" --set train.mlp_kernel=triton_tf32 \\
+        --record /tmp/prec_tf32/record.json
+    python benchmarks/precision_decision.py --reference /tmp/prec_fp32/record.json \\
+        --candidate /tmp/prec_tf32/record.json --json /tmp/prec_decision.json
+
+(3 scenes x 3 seeds x 2 settings = 18 GCA trainings of 200 iterations; evaluation runs torch's FP32 MLP on both, so
+the CDs compare the laws, not the evaluation's arithmetic.)
+
+**The rule** (fixed before the runs): adopt the candidate as the default only if
+
+1. the two records are comparable: the same profile, benchmark version and budget, GCA's trial 0 with the same
+   (scene, seed) units, at least 2 seeds per scene, and overrides that differ by ``train.mlp_kernel`` alone;
+2. no unit of the candidate diverged or failed, and every CD is finite;
+3. on every scene, the candidate's mean CD over the seeds differs from the reference's by no more than the
+   reference's own seed spread there (the largest minus the smallest of its seeds' CDs).
+
+Otherwise ``train.mlp_kernel`` stays ``torch``. A record that is not comparable is refused (exit 2, one line), not
+decided. Tests: ``tests/test_bench_precision_decision.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+KNOB = "train.mlp_kernel"
+METHOD = "gca"
+
+
+class Refused(SystemExit):
+    """A record the rule cannot decide on: one line on stderr, exit status 2."""
+
+    def __init__(self, why: str):
+        print(f"precision_decision.py: {why}", file=sys.stderr)
+        super().__init__(2)
+
+
+def _units(record: dict, where: str) -> dict[tuple[str, int], dict]:
+    """GCA's trial-0 units of a tuning record, keyed by (scene, seed)."""
+    try:
+        trial = next(t for t in record["methods"][METHOD]["trials"] if t["trial"] == 0)
+    except (KeyError, StopIteration):
+        raise Refused(f"{where}: no trial 0 of {METHOD} in this tuning record") from None
+    return {(u["scene"], int(u["seed"])): u for u in trial["units"]}
+
+
+def _overrides(record: dict) -> dict[str, str]:
+    return dict(item.partition("=")[::2] for item in record.get("overrides", []))
+
+
+def comparable(ref: dict, cand: dict) -> str | None:
+    """Why the two records cannot be compared by the rule (its point 1), or None."""
+    for key in ("profile", "benchmark_version", "budget"):
+        if ref.get(key) != cand.get(key):
+            return f"their {key} differ ({ref.get(key)!r} vs {cand.get(key)!r})"
+    a, b = _overrides(ref), _overrides(cand)
+    changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    if changed != [KNOB]:
+        return f"their overrides must differ by {KNOB} alone, they differ by {changed or 'nothing'}"
+    if set(_units(ref, "reference")) != set(_units(cand, "candidate")):
+        return "they hold different (scene, seed) units"
+    seeds: dict[str, set[int]] = {}
+    for scene, seed in _units(ref, "reference"):
+        seeds.setdefault(scene, set()).add(seed)
+    few = sorted(s for s, k in seeds.items() if len(k) < 2)
+    if few:
+        return f"the rule needs >= 2 seeds per scene (a seed spread); {few} have fewer"
+    return None
+
+
+def decide(ref: dict, cand: dict) -> dict:
+    """The rule's verdict on two comparable tuning records: per scene the reference's mean CD and seed spread, the
+    candidate's mean CD, its move and whether it is within the spread; the candidate's units not ``ok``; ``adopt``."""
+    why = comparable(ref, cand)
+    if why is not None:
+        raise Refused(f"the records are not comparable: {why}")
+    ru, cu = _units(ref, "reference"), _units(cand, "candidate")
+    scenes = {}
+    for scene in sorted({s for s, _ in ru}):
+        keys = sorted(k for k in ru if k[0] == scene)
+        r = [ru[k].get("chamfer_mean") for k in keys]
+        c = [cu[k].get("chamfer_mean") for k in keys]
+        finite = all(v is not None and math.isfinite(v) for v in r + c)
+        row = {"seeds": [k[1] for k in keys], "reference_cd": r, "candidate_cd": c, "finite": finite}
+        if finite:
+            row.update(reference_mean=sum(r) / len(r), candidate_mean=sum(c) / len(c), spread=max(r) - min(r))
+            row["move"] = row["candidate_mean"] - row["reference_mean"]
+            row["within"] = abs(row["move"]) <= row["spread"]
+        scenes[scene] = row
+    bad = sorted(f"{s}@seed{k}: {u.get('status')}" for (s, k), u in cu.items() if u.get("status") != "ok")
+    adopt = not bad and all(r["finite"] and r["within"] for r in scenes.values())
+    return {"knob": KNOB, "candidate": _overrides(cand).get(KNOB), "reference": _overrides(ref).get(KNOB, "torch"),
+            "scenes": scenes, "candidate_not_ok": bad, "adopt": adopt}
+
+
+def table(result: dict) -> str:
+    """The verdict as markdown: a row per scene, then the decision."""
+    lines = ["| scene | seeds | reference mean CD | seed spread | candidate mean CD | move | within |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for scene, r in result["scenes"].items():
+        if r["finite"]:
+            lines.append(f"| {scene} | {len(r['seeds'])} | {r['reference_mean']:.6f} | {r['spread']:.6f} | "
+                         f"{r['candidate_mean']:.6f} | {r['move']:+.6f} | {'yes' if r['within'] else 'no'} |")
+        else:
+            lines.append(f"| {scene} | {len(r['seeds'])} | non-finite CD | | | | no |")
+    if result["candidate_not_ok"]:
+        lines.append(f"\nCandidate units not ok: {', '.join(result['candidate_not_ok'])}")
+    verdict = (f"adopt {KNOB}: {result['candidate']}" if result["adopt"] else
+               f"keep {KNOB}: {result['reference']} (the rule is not met)")
+    return "\n".join(lines) + f"\n\n**Decision: {verdict}.**"
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--reference", type=Path, required=True, help="the FP32 tuning record (train.mlp_kernel: torch)")
+    ap.add_argument("--candidate", type=Path, required=True, help="the tuning record with the candidate's knob")
+    ap.add_argument("--json", type=Path, help="write the verdict here too")
+    args = ap.parse_args(argv)
+    records = []
+    for path in (args.reference, args.candidate):
+        try:
+            records.append(json.loads(path.read_text()))
+        except (OSError, ValueError) as exc:
+            raise Refused(f"{path}: not a readable tuning record ({exc})") from None
+    result = decide(*records)
+    print(table(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
