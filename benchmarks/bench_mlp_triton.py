@@ -52,7 +52,12 @@ from gca.laws import mlp_triton  # noqa: E402  (after TRITON_INTERPRET is set: r
 from gca.laws.neural import NeuralLawConfig, make_mlp  # noqa: E402
 
 VARIANT = re.compile(r"^(torch|(ieee|tf32)_(\d+)(?:_w(\d+))?(?:_p(\d+))?)$")
-SMS = 132  # SMs of an H100 / H200: programs per SM -> the backward's persistent programs
+SMS = 132  # SMs of an H100 SXM / H200 (an H100 PCIe has 114): the CPU interpreter's count; CUDA reads the device's
+
+
+def sm_count() -> int:
+    """The SMs the backward's programs per SM multiply: the CUDA device's, else ``SMS``."""
+    return torch.cuda.get_device_properties(0).multi_processor_count if torch.cuda.is_available() else SMS
 
 
 def fused_launch(name: str) -> tuple[str, int, int, int] | None:
@@ -64,7 +69,7 @@ def fused_launch(name: str) -> tuple[str, int, int, int] | None:
         return None
     warps = int(m.group(4)) if m.group(4) else mlp_triton.BWD_WARPS
     per_sm = int(m.group(5)) if m.group(5) else 4
-    return m.group(2), int(m.group(3)), warps, per_sm * SMS
+    return m.group(2), int(m.group(3)), warps, per_sm * sm_count()
 
 
 def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precision: str = "ieee") -> torch.Tensor:
@@ -94,10 +99,12 @@ def variant_call(name: str, net: torch.nn.Sequential):
     return lambda x: fused_mlp(net, x, block, precision, programs, warps)
 
 
-def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int) -> list[dict]:
+def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int,
+         on_row=lambda out: None) -> list[dict]:
     """Per size and variant: the forward (no gradient) and the forward + backward (the gradients w.r.t. x and the
     three weights of <out, v>) per call [us], and their largest deviations from float64 relative to the largest
-    value."""
+    value. ``on_row(rows so far)`` after each row (the JSON is written then: a sweep cut by its time limit keeps
+    what it timed)."""
     torch.manual_seed(0)
     net64 = make_mlp(NeuralLawConfig()).double().to(device)
     net = make_mlp(NeuralLawConfig()).to(device)
@@ -122,15 +129,16 @@ def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int
             us_both = timed_us(both, device, iters, repeats)
             out.append({"particles": n, "variant": name, "fwd_us": us, "fwd_bwd_us": us_both, "rel_dev": dev,
                         "grad_rel_dev": gdev})
+            on_row(out)
             print(f"| {n} | {name} | {us:.1f} | {us_both:.1f} | {dev:.1e} | {gdev:.1e} |", flush=True)
     return out
 
 
-def fastest(rows_: list[dict], particles: int, top: int, exclude: tuple[str, ...] = ("tf32_64",)) -> list[str]:
-    """The ``top`` fused variants with the least forward + backward time at ``particles`` (torch and ``exclude``
-    left out: the library's launch is timed anyway), fastest first."""
+def fastest(rows_: list[dict], particles: int, top: int, exclude: str = "tf32_64") -> list[str]:
+    """The ``top`` fused variants with the least forward + backward time at ``particles`` (torch and the launch of
+    ``exclude``, under any of its names, left out: the library's launch is timed anyway), fastest first."""
     timed = [r for r in rows_ if r["particles"] == particles and fused_launch(r["variant"]) is not None
-             and r["variant"] not in exclude]
+             and fused_launch(r["variant"]) != fused_launch(exclude)]
     return [r["variant"] for r in sorted(timed, key=lambda r: r["fwd_bwd_us"])[:top]]
 
 
@@ -148,15 +156,23 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if args.fastest:
-        print(" ".join(fastest(json.loads(args.fastest.read_text())["rows"], args.particles, args.top)))
+        try:
+            timed = json.loads(args.fastest.read_text())["rows"]
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"bench_mlp_triton.py: {args.fastest}: no sweep to pick from ({exc})", file=sys.stderr)
+            return []
+        print(" ".join(fastest(timed, args.particles, args.top)))
         return []
     device = torch.device(args.device)
     print("| particles | variant | fwd us | fwd+bwd us | rel dev from float64 | grad rel dev |\n"
           "| --- | --- | --- | --- | --- | --- |", flush=True)
-    res = rows(device, args.sizes, args.variants, args.iters, args.repeats)
-    if args.json:
-        name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
-        args.json.write_text(json.dumps({"device": name, "rows": res}, indent=1))
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+
+    def write(res: list[dict]) -> None:
+        if args.json:
+            args.json.write_text(json.dumps({"device": name, "rows": res}, indent=1))
+    res = rows(device, args.sizes, args.variants, args.iters, args.repeats, write)
+    write(res)
     return res
 
 

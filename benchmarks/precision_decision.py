@@ -20,9 +20,11 @@ the CDs compare the laws, not the evaluation's arithmetic.)
 
 **The rule** (fixed before the runs): adopt the candidate as the default only if
 
-1. the two records are comparable: the same profile, benchmark version and budget, GCA's trial 0 with the same
-   (scene, seed) units, at least 2 seeds per scene, and overrides that differ by ``train.mlp_kernel`` alone;
-2. no unit of the candidate diverged or failed, and every CD is finite;
+1. the two records are comparable: the same profile, benchmark version and budget, each complete (GCA's trial 0
+   with a unit for every (scene, seed) of the budget), at least 2 seeds per scene, and overrides that differ by
+   ``train.mlp_kernel`` alone, ``triton_tf32`` in the candidate, ``torch`` (or unset) in the reference;
+2. no unit of either record diverged or failed (a diverged FP32 seed would widen the spread the candidate is held
+   to), and every CD is finite;
 3. on every scene, the candidate's mean CD over the seeds differs from the reference's by no more than the
    reference's own seed spread there (the largest minus the smallest of its seeds' CDs).
 
@@ -33,12 +35,16 @@ decided. Tests: ``tests/test_bench_precision_decision.py``.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
 from pathlib import Path
 
+import yaml
+
 KNOB = "train.mlp_kernel"
+CANDIDATE, REFERENCE = "triton_tf32", "torch"
 METHOD = "gca"
 
 
@@ -59,8 +65,14 @@ def _units(record: dict, where: str) -> dict[tuple[str, int], dict]:
     return {(u["scene"], int(u["seed"])): u for u in trial["units"]}
 
 
-def _overrides(record: dict) -> dict[str, str]:
-    return dict(item.partition("=")[::2] for item in record.get("overrides", []))
+def _overrides(record: dict) -> dict:
+    """A record's ``--set`` overrides as {key: value}, the values read as YAML (as ``grid.apply_overrides`` reads
+    them: ``[0,1]`` and ``[0, 1]`` are one value)."""
+    out = {}
+    for item in record.get("overrides", []):
+        key, _, value = item.partition("=")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
 
 
 def comparable(ref: dict, cand: dict) -> str | None:
@@ -72,6 +84,15 @@ def comparable(ref: dict, cand: dict) -> str | None:
     changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
     if changed != [KNOB]:
         return f"their overrides must differ by {KNOB} alone, they differ by {changed or 'nothing'}"
+    if b.get(KNOB) != CANDIDATE or a.get(KNOB, REFERENCE) != REFERENCE:
+        return (f"the rule compares {KNOB}: {CANDIDATE} (candidate) with {REFERENCE} (reference), got "
+                f"{b.get(KNOB)!r} and {a.get(KNOB, REFERENCE)!r}")
+    budget = ref.get("budget") or {}
+    expected = set(itertools.product(budget.get("scenes", []), [int(k) for k in budget.get("seeds", [])]))
+    for name, record in (("reference", ref), ("candidate", cand)):
+        missing = sorted(f"{s}@seed{k}" for s, k in expected - set(_units(record, name)))
+        if not expected or missing:
+            return f"the {name} is not complete: its budget's units {missing or '(none listed)'} are missing"
     if set(_units(ref, "reference")) != set(_units(cand, "candidate")):
         return "they hold different (scene, seed) units"
     seeds: dict[str, set[int]] = {}
@@ -85,7 +106,7 @@ def comparable(ref: dict, cand: dict) -> str | None:
 
 def decide(ref: dict, cand: dict) -> dict:
     """The rule's verdict on two comparable tuning records: per scene the reference's mean CD and seed spread, the
-    candidate's mean CD, its move and whether it is within the spread; the candidate's units not ``ok``; ``adopt``."""
+    candidate's mean CD, its move and whether it is within the spread; the units of either not ``ok``; ``adopt``."""
     why = comparable(ref, cand)
     if why is not None:
         raise Refused(f"the records are not comparable: {why}")
@@ -102,10 +123,11 @@ def decide(ref: dict, cand: dict) -> dict:
             row["move"] = row["candidate_mean"] - row["reference_mean"]
             row["within"] = abs(row["move"]) <= row["spread"]
         scenes[scene] = row
-    bad = sorted(f"{s}@seed{k}: {u.get('status')}" for (s, k), u in cu.items() if u.get("status") != "ok")
+    bad = sorted(f"{name} {s}@seed{k}: {u.get('status')}" for name, units in (("candidate", cu), ("reference", ru))
+                 for (s, k), u in units.items() if u.get("status") != "ok")
     adopt = not bad and all(r["finite"] and r["within"] for r in scenes.values())
     return {"knob": KNOB, "candidate": _overrides(cand).get(KNOB), "reference": _overrides(ref).get(KNOB, "torch"),
-            "scenes": scenes, "candidate_not_ok": bad, "adopt": adopt}
+            "scenes": scenes, "not_ok": bad, "adopt": adopt}
 
 
 def table(result: dict) -> str:
@@ -118,8 +140,8 @@ def table(result: dict) -> str:
                          f"{r['candidate_mean']:.6f} | {r['move']:+.6f} | {'yes' if r['within'] else 'no'} |")
         else:
             lines.append(f"| {scene} | {len(r['seeds'])} | non-finite CD | | | | no |")
-    if result["candidate_not_ok"]:
-        lines.append(f"\nCandidate units not ok: {', '.join(result['candidate_not_ok'])}")
+    if result["not_ok"]:
+        lines.append(f"\nUnits not ok: {', '.join(result['not_ok'])}")
     verdict = (f"adopt {KNOB}: {result['candidate']}" if result["adopt"] else
                f"keep {KNOB}: {result['reference']} (the rule is not met)")
     return "\n".join(lines) + f"\n\n**Decision: {verdict}.**"

@@ -104,9 +104,10 @@ import sys, torch
 sys.argv = ["x", "--device", "cpu"]
 sys.path.insert(0, "benchmarks")
 import bench_mlp_triton as b
-assert b.fused_launch("tf32_64") == ("tf32", 64, b.mlp_triton.BWD_WARPS, 4 * b.SMS)
-assert b.fused_launch("tf32_128_w4_p2") == ("tf32", 128, 4, 2 * b.SMS)
-assert b.fused_launch("ieee_32_p1") == ("ieee", 32, b.mlp_triton.BWD_WARPS, b.SMS)
+b.SMS = 1  # one "SM": programs per SM are then the programs themselves (the interpreter's count, patched)
+assert b.fused_launch("tf32_64") == ("tf32", 64, b.mlp_triton.BWD_WARPS, 4)
+assert b.fused_launch("tf32_128_w4_p2") == ("tf32", 128, 4, 2)
+assert b.fused_launch("ieee_32_p1") == ("ieee", 32, b.mlp_triton.BWD_WARPS, 1)
 assert b.fused_launch("torch") is None and b.fused_launch("tf32_64_p2_w4") is None  # the order is fixed
 for bad in ("tf32", "tf32_64_w", "bf16_64", "tf32_64_p2_w4"):
     try:
@@ -121,12 +122,25 @@ x = torch.randn(70, 13).requires_grad_(True)
 v = torch.randn(70, 9)
 Ws = [m.weight for m in net if isinstance(m, torch.nn.Linear)]
 ref = torch.autograd.grad((net(x) * v).sum(), [x, *Ws])
-for name in ("tf32_16_w4_p1", "tf32_32_w1_p2", "tf32_16"):
+launches = []  # the backward's launches as the kernel receives them: (programs, warps)
+kernel = b.mlp_triton._fused_mlp_bwd
+class Recording:
+    def __getitem__(self, grid):
+        def launch(*args, **kw):
+            launches.append((grid[0], kw["num_warps"]))
+            return kernel[grid](*args, **kw)
+        return launch
+b.mlp_triton._fused_mlp_bwd = Recording()
+for name, launch in (("tf32_16_w4_p1", (1, 4)), ("tf32_32_w1_p2", (2, 1)), ("tf32_16", (3, 8)), ("tf32_64_w2", (2, 2))):
+    # 70 rows: 5 tiles of 16 (p1: one program loops over all 5; p4: 2 tiles each, so 3 programs), 3 tiles of 32 (p2:
+    # 2 programs), 2 of 64 (p4: 2 programs, one tile each)
     call = b.variant_call(name, net)
     got = torch.autograd.grad((call(x) * v).sum(), [x, *Ws])
+    assert launches[-1] == launch, (name, launches[-1])
     dev = max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(got, ref))
     assert dev < 1e-5, (name, dev)
     bad = torch.autograd.grad((call(x) * v.flip(0)).sum(), [x, *Ws])  # control: another cotangent is seen
+    launches.pop()
     assert max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(bad, ref)) > 1e-2
 print("ok")
 """)
@@ -140,6 +154,7 @@ def test_the_sweeps_pick_is_the_fastest_fused_launch(tmp_path):
             {"particles": 30000, "variant": "tf32_64_w4_p2", "fwd_bwd_us": 80.0},
             {"particles": 30000, "variant": "tf32_128_w8_p1", "fwd_bwd_us": 70.0},
             {"particles": 30000, "variant": "tf32_32_w4_p8", "fwd_bwd_us": 90.0},
+            {"particles": 30000, "variant": "tf32_64_w8_p4", "fwd_bwd_us": 55.0},  # the library's launch, named out
             {"particles": 100000, "variant": "tf32_32_w4_p8", "fwd_bwd_us": 1.0}]
     f = tmp_path / "sweep.json"
     f.write_text(__import__("json").dumps({"device": "x", "rows": rows}))
@@ -148,3 +163,6 @@ def test_the_sweeps_pick_is_the_fastest_fused_launch(tmp_path):
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["tf32_128_w8_p1", "tf32_64_w4_p2"]
+    missing = subprocess.run([sys.executable, str(SCRIPT), "--fastest", str(tmp_path / "none.json")],
+                             cwd=SCRIPT.parents[1], capture_output=True, text=True, timeout=300)
+    assert missing.returncode == 0 and missing.stdout.strip() == "" and "no sweep to pick from" in missing.stderr

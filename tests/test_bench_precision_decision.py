@@ -56,9 +56,25 @@ def test_one_scene_moving_past_its_spread_keeps_torch(scene):
         assert "keep train.mlp_kernel: torch" in pd.table(result)
 
 
-def test_a_diverged_or_non_finite_candidate_keeps_torch():
+def test_the_spread_is_the_references_not_the_candidates():
+    """A candidate whose own seeds scatter widely (0.02 apart) does not widen what it is held to (the FP32 seeds'
+    0.002): its mean moved by 0.005 keeps torch; the same move is adopted where the reference's spread is wider."""
+    wide = {s: [v[0] - 0.01, v[1] + 0.005 + 0.01, v[2] + 0.005 + 0.005] for s, v in BASE.items()}
+    result = pd.decide(record(BASE), record(wide, TF32))
+    assert not result["adopt"] and all(not r["within"] for r in result["scenes"].values())
+    swapped = pd.decide(record(wide), record(BASE, TF32))
+    assert swapped["adopt"]
+
+
+def test_a_diverged_run_of_either_record_or_a_non_finite_cd_keeps_torch():
     result = pd.decide(record(BASE), record(BASE, TF32, status={("calib_star", 1): "diverged"}))
-    assert not result["adopt"] and result["candidate_not_ok"] == ["calib_star@seed1: diverged"]
+    assert not result["adopt"] and result["not_ok"] == ["candidate calib_star@seed1: diverged"]
+    wide = shifted({})
+    wide["calib_torus"][2] = 0.5  # a diverged FP32 seed with a finite CD would widen the torus's spread to ~0.48
+    result = pd.decide(record(wide, status={("calib_torus", 2): "diverged"}), record(shifted({"calib_torus": 0.1}),
+                                                                                      TF32))
+    assert result["scenes"]["calib_torus"]["within"] and not result["adopt"]
+    assert result["not_ok"] == ["reference calib_torus@seed2: diverged"]
     cds = shifted({})
     cds["calib_mushroom"][2] = float("nan")
     result = pd.decide(record(BASE), record(cds, TF32))
@@ -71,7 +87,16 @@ def test_a_diverged_or_non_finite_candidate_keeps_torch():
     (lambda r, c: c["budget"].update(iterations=100), "budget differ"),
     (lambda r, c: c["overrides"].append("align.rdga.lambda1=1"), "differ by ['align.rdga.lambda1', 'train.mlp_kernel']"),
     (lambda r, c: c["overrides"].remove(TF32[0]), "differ by nothing"),
-    (lambda r, c: c["methods"]["gca"]["trials"][0]["units"].pop(), "different (scene, seed) units"),
+    (lambda r, c: c["methods"]["gca"]["trials"][0]["units"].pop(), "candidate is not complete"),
+    (lambda r, c: [x["methods"]["gca"]["trials"][0].update(units=[u for u in x["methods"]["gca"]["trials"][0]["units"]
+                                                                  if u["scene"] != "calib_star"]) for x in (r, c)],
+     "reference is not complete"),
+    (lambda r, c: [x["methods"]["gca"]["trials"][0]["units"].append(
+        {"scene": "calib_extra", "seed": 0, "chamfer_mean": 0.1, "status": "ok"}) for x in (c,)],
+     "different (scene, seed) units"),
+    (lambda r, c: c.update(overrides=[o.replace("triton_tf32", "torch") for o in c["overrides"]]),
+     "got 'torch' and 'torch'"),
+    (lambda r, c: r["overrides"].append("train.mlp_kernel=simt"), "got 'triton_tf32' and 'simt'"),
     (lambda r, c: c["methods"]["gca"]["trials"][0].update(trial=1), "no trial 0"),
 ])
 def test_records_the_rule_cannot_compare_are_refused(change, why, capsys):
@@ -80,6 +105,14 @@ def test_records_the_rule_cannot_compare_are_refused(change, why, capsys):
     with pytest.raises(SystemExit) as exc:
         pd.decide(ref, cand)
     assert exc.value.code == 2 and why in capsys.readouterr().err
+
+
+def test_overrides_compare_as_values_not_as_text():
+    """``tuning.seeds=[0,1,2]`` and ``tuning.seeds=[0, 1, 2]`` are one value (YAML, as the tuning reads them)."""
+    cand = record(BASE, TF32)
+    cand["overrides"] = [o.replace("[0, 1, 2]", "[0,1,2]") for o in cand["overrides"]]
+    assert cand["overrides"] != record(BASE)["overrides"][:2] + list(TF32)
+    assert pd.decide(record(BASE), cand)["adopt"]
 
 
 def test_one_seed_has_no_spread_and_is_refused(capsys):

@@ -78,6 +78,13 @@ exit 0
 """
 
 
+STUB_DF = """#!/usr/bin/env bash
+[ "${STUB_DF_RC:-0}" = 0 ] || exit "$STUB_DF_RC"
+echo "Filesystem 1048576-blocks Used Available Capacity Mounted"
+echo "/dev/vda 258000 20000 ${STUB_FREE_MB:-80000} 10% /"
+"""
+
+
 def _setup(tmp_path: Path, cuda: bool, **env) -> list[str]:
     repo = tmp_path / "repo"
     (repo / "scripts").mkdir(parents=True)
@@ -86,8 +93,7 @@ def _setup(tmp_path: Path, cuda: bool, **env) -> list[str]:
     bin_.mkdir(parents=True)
     (bin_ / "python").write_text(STUB_PY)
     (bin_ / "python").chmod(0o755)
-    (bin_ / "df").write_text('#!/usr/bin/env bash\necho "Filesystem 1048576-blocks Used Available Capacity Mounted"\n'
-                             'echo "/dev/vda 258000 20000 ${STUB_FREE_MB:-80000} 10% /"\n')
+    (bin_ / "df").write_text(STUB_DF)
     (bin_ / "df").chmod(0o755)
     (bin_ / "activate").write_text(f'export PATH="{bin_}:$PATH"\n')
     log = tmp_path / "calls.log"
@@ -127,12 +133,45 @@ def test_setup_leaves_triton_out_when_the_disk_is_short(tmp_path):
     short = _setup(tmp_path / "short", cuda=False, STUB_FREE_MB=str(limit - 1))
     assert 'python -m pip install -q -e .[dev]' in short and not any("[interp]" in c for c in short)
     assert f"only {limit - 1} MB free" in short[-1] and "tests will be skipped" in short[-1]
-    assert "a CPU install takes about" not in short[-1]  # the venv existed: no first-install warning
     room = _setup(tmp_path / "room", cuda=False, STUB_FREE_MB=str(limit))
     assert 'python -m pip install -q -e .[interp]' in room and "skipped" not in room[-1]
     failed = _setup(tmp_path / "failed", cuda=False, STUB_INTERP_RC="1")
     assert failed.index('python -m pip install -q -e .[interp]') < failed.index("python -m pip uninstall -q -y triton")
     assert "did not install" in failed[-1]
+    broken = _setup(tmp_path / "broken", cuda=False, STUB_DF_RC="1")  # a df that fails: no triton, never fatal
+    assert 'python -m pip install -q -e .[dev]' in broken and not any("[interp]" in c for c in broken)
+
+
+SYSTEM_PY = """#!/usr/bin/env bash
+echo "system-python $*" >> "$STUB_LOG"
+case "$*" in
+  "-m venv .venv") mkdir -p .venv/bin && cp "$STUB_VENV_PY" .venv/bin/python && cp "$(dirname "$0")/df" .venv/bin/df &&
+                   echo "export PATH=\"$PWD/.venv/bin:\$PATH\"" > .venv/bin/activate ;;
+  *) exit 1 ;;  # no torch on the system python
+esac
+"""
+
+
+@pytest.mark.parametrize("free_mb, warned", [(2999, True), (3000, False)])
+def test_a_first_install_says_when_the_disk_is_short(tmp_path, free_mb, warned):
+    """No venv yet: below 3000 MB free the first install says how much it needs (one line) and goes on; at 3000 it
+    says nothing (the control)."""
+    repo = tmp_path / "repo"
+    (repo / "scripts").mkdir(parents=True)
+    shutil.copy2(ROOT / "scripts/setup.sh", repo / "scripts/setup.sh")
+    stub = tmp_path / "stub"
+    stub.mkdir()
+    for name, text in (("python3", SYSTEM_PY), ("venv_python", STUB_PY), ("df", STUB_DF)):
+        (stub / name).write_text(text)
+        (stub / name).chmod(0o755)
+    out = subprocess.run(["bash", "scripts/setup.sh"], cwd=repo, capture_output=True, text=True,
+                         env={**os.environ, "PATH": f"{stub}:{os.environ['PATH']}", "PYTHON": str(stub / "python3"),
+                              "STUB_VENV_PY": str(stub / "venv_python"), "STUB_LOG": str(tmp_path / "calls.log"),
+                              "STUB_CUDA": "1", "STUB_FREE_MB": str(free_mb)})
+    assert out.returncode == 0, out.stderr
+    assert "system-python -m venv .venv" in (tmp_path / "calls.log").read_text()
+    assert ("a CPU install takes about 2.5 GB" in out.stderr) == warned
+    assert f"only {free_mb} MB free" in out.stderr if warned else "MB free" not in out.stderr
 
 
 @pytest.mark.parametrize("with_model", [True, False])

@@ -66,8 +66,9 @@ def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr
 
 @triton.jit
 def _gelu_and_grad(x):
-    """(x Phi(x), its derivative Phi(x) + x phi(x)) with one erf: the backward's recompute needs both (session 38:
-    it computed erf twice per activation, once for each; the same values)."""
+    """(x Phi(x), its derivative Phi(x) + x phi(x)) with one erf written: the backward's recompute needs both
+    (session 38; before, the source took erf twice per activation, which the compiler may already have merged; the
+    same values)."""
     cdf = 0.5 * (1.0 + tl.math.erf(x * 0.7071067811865476))
     return x * cdf, cdf + x * 0.3989422804014327 * tl.exp(-0.5 * x * x)
 
@@ -196,8 +197,8 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
     (torch's layouts; the shape :func:`check` accepts), differentiable in z and the weights. ``precision``: ``tf32``
     (TF32 products; float32 only) or ``ieee`` (FP32 or float64 products). ``programs``: the backward's persistent
     programs (default 4 per SM; 8 on a CPU); ``warps``: the backward's warps per program (a power of two, 1-16).
-    ``block``, ``programs`` and ``warps`` change the launch, not the function: the weight gradients' partials are
-    summed in another order (float rounding), nothing else."""
+    ``block``, ``programs`` and ``warps`` change the launch, not the function: the products' tiles and the order in
+    which the weight gradients' partials are summed change (float rounding only)."""
     if not runs_here(z):
         raise ValueError(f"{_WHERE}: the fused MLP runs on CUDA, or on a CPU only in Triton's interpreter "
                          f"(TRITON_INTERPRET=1 before the import); got {z.device}")
