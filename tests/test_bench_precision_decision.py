@@ -146,9 +146,10 @@ def test_the_documented_overrides_load_on_the_calibration_scenes():
 
     for extra in ([], list(TF32)):
         raw, resolved, cfg = tune.load_config(ROOT / "params.yaml", "paper",
-                                              ["tuning.trials=1", "tuning.seeds=[0, 1, 2]", *extra])
+                                              ["tuning.trials=1", "tuning.seeds=[0,1,2]", *extra])
         assert cfg.trials == 1 and cfg.seeds == (0, 1, 2) and set(cfg.scenes) == set(SCENES)
         assert all(resolved["scenes"][s].get("calibration") for s in cfg.scenes)
         train = build(TrainConfig, section(resolved, "train"), "train")
         assert train.mlp_kernel == ("triton_tf32" if extra else "torch")
-    assert "tuning.trials=1" in pd.__doc__.replace("\\\n", "") and TF32[0] in pd.__doc__
+    doc = pd.__doc__
+    assert "--set tuning.trials=1 --set tuning.seeds=[0,1,2]" in doc and f"--set {TF32[0]}" in doc
