@@ -1,11 +1,16 @@
-"""One GPU per stage process when several DVC queue workers share a machine.
+"""GPU slots for stage processes when several DVC queue workers share a machine.
 
 `dvc queue start -j N` starts N workers that all inherit one environment, so they cannot be pinned to
 GPUs from outside, and every stage would land on GPU 0. With ``GCA_GPU_PER_PROCESS=1`` in that
-environment, importing :mod:`gca` makes each stage process claim a GPU that no other gca process
-holds (an exclusive lock on one file per GPU, released when the process exits) and narrow
-``CUDA_VISIBLE_DEVICES`` to it before CUDA starts; while every GPU is held, it waits for one. A process
-whose ``CUDA_VISIBLE_DEVICES`` is already set (``gca/pipeline/grid.py`` pins its jobs) is left alone.
+environment, importing :mod:`gca` makes each stage process claim a slot that no other gca process
+holds (an exclusive lock on one file per slot, released when the process exits) and narrow
+``CUDA_VISIBLE_DEVICES`` to the slot's GPU before CUDA starts; while every slot is held, it waits for one.
+``GCA_RUNS_PER_GPU=K`` (default 1) gives each GPU K slots, so that K queue workers share a GPU, the
+packing the grid's ``--slots`` gives its jobs (issue 20 item 3: under CUDA MPS, eight ball trainings on one H100
+gave 2.4x the throughput of one; the daemon is started around the queue by whoever starts the queue, README).
+Slots are taken GPU by GPU at each depth (slot 0 of every GPU before any slot 1), so the runs spread over the GPUs.
+The same variable is the runs' record of their packing (``gca.pipeline.train``: ``runs_per_gpu``), as under the grid.
+A process whose ``CUDA_VISIBLE_DEVICES`` is already set (``gca/pipeline/grid.py`` pins its jobs) is left alone.
 
 Standard library only: this runs at ``import gca``, before torch or warp touch CUDA.
 """
@@ -22,6 +27,7 @@ from pathlib import Path
 from typing import IO
 
 ENV = "GCA_GPU_PER_PROCESS"
+RUNS_ENV = "GCA_RUNS_PER_GPU"  # slots per GPU (also read by gca.pipeline.train as the runs' packing)
 LOCK_DIR_ENV = "GCA_GPU_LOCK_DIR"
 _held: IO | None = None  # the open lock file of the claimed GPU, kept for the life of the process
 
@@ -39,20 +45,44 @@ def default_lock_dir() -> Path:
     return Path(os.environ.get(LOCK_DIR_ENV) or Path(tempfile.gettempdir()) / f"gca-gpu-{os.getuid()}")
 
 
-def claim(n_gpus: int, lock_dir: Path, poll_s: float = 2.0, timeout_s: float | None = None) -> int:
-    """Index in ``0 .. n_gpus - 1`` of a GPU this process now holds alone (until it exits).
+def runs_per_gpu() -> int:
+    """``GCA_RUNS_PER_GPU``: slots per GPU [count], default 1; anything but an integer >= 1 is refused in one line."""
+    value = os.environ.get(RUNS_ENV) or "1"
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"gca.gpu_slot: {RUNS_ENV}={value!r}: the runs per GPU must be an integer >= 1")
+    return int(value)
 
-    Tries the GPUs in order; while all are held, polls every ``poll_s`` seconds. Raises ``TimeoutError``
-    after ``timeout_s`` seconds (None: waits as long as it takes).
+
+MPS_ENV = "GCA_MPS"  # whether the runs shared their GPU under CUDA MPS ("1"/"0"; read by gca.pipeline.train)
+
+
+def mps_running() -> bool:
+    """Whether a CUDA MPS control daemon serves this process: its control pipe exists in ``CUDA_MPS_PIPE_DIRECTORY``
+    (default ``/tmp/nvidia-mps``, where ``nvidia-cuda-mps-control -d`` makes it)."""
+    return (Path(os.environ.get("CUDA_MPS_PIPE_DIRECTORY") or "/tmp/nvidia-mps") / "control").exists()
+
+
+def _lock_name(gpu: int, slot: int) -> str:
+    """Slot 0 keeps the one-slot name (``gpu<k>.lock``), so one-slot and K-slot processes exclude each other there."""
+    return f"gpu{gpu}.lock" if slot == 0 else f"gpu{gpu}.slot{slot}.lock"
+
+
+def claim(n_gpus: int, lock_dir: Path, poll_s: float = 2.0, timeout_s: float | None = None, per_gpu: int = 1) -> int:
+    """Index in ``0 .. n_gpus - 1`` of the GPU of a slot this process now holds alone (until it exits).
+
+    Tries slot 0 of every GPU in order, then slot 1, ... up to ``per_gpu`` slots per GPU; while all are held, polls
+    every ``poll_s`` seconds. Raises ``TimeoutError`` after ``timeout_s`` seconds (None: waits as long as it takes).
     """
     global _held
     if n_gpus < 1:
         raise ValueError(f"gca.gpu_slot: no GPU to claim (n_gpus={n_gpus})")
+    if per_gpu < 1:
+        raise ValueError(f"gca.gpu_slot: no slot to claim (per_gpu={per_gpu})")
     lock_dir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     while True:
-        for k in range(n_gpus):
-            handle = open(lock_dir / f"gpu{k}.lock", "a")
+        for j, k in ((j, k) for j in range(per_gpu) for k in range(n_gpus)):
+            handle = open(lock_dir / _lock_name(k, j), "a")
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -61,13 +91,15 @@ def claim(n_gpus: int, lock_dir: Path, poll_s: float = 2.0, timeout_s: float | N
             _held = handle
             return k
         if timeout_s is not None and time.monotonic() - start >= timeout_s:
-            raise TimeoutError(f"gca.gpu_slot: all {n_gpus} GPUs held by other gca processes for {timeout_s} s "
+            slots = f" x {per_gpu} slots" if per_gpu > 1 else ""
+            raise TimeoutError(f"gca.gpu_slot: all {n_gpus} GPUs{slots} held by other gca processes for {timeout_s} s "
                                f"(locks in {lock_dir})")
         time.sleep(poll_s)
 
 
 def pin_from_env(n_gpus: int | None = None) -> int | None:
-    """Apply ``GCA_GPU_PER_PROCESS=1``: claim a GPU and make it the only one this process sees.
+    """Apply ``GCA_GPU_PER_PROCESS=1``: claim a slot (``GCA_RUNS_PER_GPU`` per GPU) and make its GPU the only one
+    this process sees.
 
     Returns the claimed index, or None when the variable is not ``1``, ``CUDA_VISIBLE_DEVICES`` is
     already set, or the machine has no GPU (``n_gpus``: the count, default :func:`gpu_count`).
@@ -77,8 +109,16 @@ def pin_from_env(n_gpus: int | None = None) -> int | None:
     n = gpu_count() if n_gpus is None else n_gpus
     if n == 0:
         return None
-    k = claim(n, default_lock_dir())
+    try:
+        per_gpu = runs_per_gpu()
+    except ValueError as exc:  # at `import gca`, before any stage's own error handling: one line, exit status 2
+        print(exc, file=sys.stderr)
+        raise SystemExit(2) from None
+    k = claim(n, default_lock_dir(), per_gpu=per_gpu)
     os.environ["CUDA_DEVICE_ORDER"] = "PCI_BUS_ID"  # CUDA's order = nvidia-smi's, which the index counts in
     os.environ["CUDA_VISIBLE_DEVICES"] = str(k)
-    print(f"gca: {ENV}=1: this process uses GPU {k} of {n}", file=sys.stderr)
+    os.environ.setdefault(MPS_ENV, "1" if mps_running() else "0")  # the run's record (a launcher's own value kept)
+    shared = f", shared by up to {per_gpu} runs ({RUNS_ENV}, CUDA MPS {'on' if os.environ[MPS_ENV] == '1' else 'off'})" \
+        if per_gpu > 1 else ""
+    print(f"gca: {ENV}=1: this process uses GPU {k} of {n}{shared}", file=sys.stderr)
     return k

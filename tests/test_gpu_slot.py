@@ -1,4 +1,5 @@
-"""gca.gpu_slot: one GPU per stage process for DVC queue workers (lock files; no GPU needed to test)."""
+"""gca.gpu_slot: GPU slots per stage process for DVC queue workers, one per GPU or ``GCA_RUNS_PER_GPU`` (lock files;
+no GPU needed to test)."""
 
 import os
 import subprocess
@@ -13,13 +14,13 @@ HOLDER = """
 import sys
 from pathlib import Path
 from gca.gpu_slot import claim
-print(claim({n}, Path({lock_dir!r}), poll_s=0.05, timeout_s={timeout}), flush=True)
+print(claim({n}, Path({lock_dir!r}), poll_s=0.05, timeout_s={timeout}, per_gpu={per_gpu}), flush=True)
 sys.stdin.read()  # hold the GPU until the test closes stdin
 """
 
 
-def _holder(lock_dir, n=2, timeout=None):
-    code = HOLDER.format(n=n, lock_dir=str(lock_dir), timeout=timeout)
+def _holder(lock_dir, n=2, timeout=None, per_gpu=1):
+    code = HOLDER.format(n=n, lock_dir=str(lock_dir), timeout=timeout, per_gpu=per_gpu)
     env = {k: v for k, v in os.environ.items() if k != gpu_slot.ENV}
     return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
@@ -66,3 +67,60 @@ def test_pin_narrows_cuda_visible_devices(tmp_path, monkeypatch):
 def test_no_gpu_to_claim_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="no GPU to claim"):
         gpu_slot.claim(0, tmp_path)
+
+
+def test_runs_per_gpu_share_each_gpu_and_spread_over_them(tmp_path):
+    """Two slots on each of two GPUs: four processes take slot 0 of GPU 0 and 1, then slot 1 of each (spread, not
+    GPU 0 filled first); a fifth waits and gives up with the slots named; a freed slot is taken again. A one-slot
+    process (GCA_RUNS_PER_GPU unset) excludes a two-slot one only from slot 0 (the same lock file there)."""
+    holders, got = [], []
+    for _ in range(4):  # one after the other: each has its slot before the next starts
+        holders.append(_holder(tmp_path, per_gpu=2))
+        got.append(int(holders[-1].stdout.readline()))
+    assert got == [0, 1, 0, 1]
+    late = _holder(tmp_path, timeout=0.5, per_gpu=2)
+    assert late.wait(timeout=30) != 0 and "all 2 GPUs x 2 slots held" in late.stderr.read()
+    single = _holder(tmp_path, timeout=0.5)  # one slot per GPU: both slot-0 locks are held
+    assert single.wait(timeout=30) != 0 and "all 2 GPUs held" in single.stderr.read()
+    _release(holders[3])  # GPU 1's slot 1 frees
+    again = _holder(tmp_path, per_gpu=2)
+    assert int(again.stdout.readline()) == 1
+    for h in (*holders[:3], again):
+        _release(h)
+    with pytest.raises(ValueError, match="no slot to claim"):
+        gpu_slot.claim(2, tmp_path, per_gpu=0)
+
+
+def _pin(tmp_path, **env):
+    """``pin_from_env`` in a fresh process (it runs at `import gca`) with ``env``: (exit status, stdout, stderr)."""
+    code = "from gca import gpu_slot; import os; print(gpu_slot.pin_from_env(n_gpus=2), os.environ.get('GCA_MPS'))"
+    base = {k: v for k, v in os.environ.items() if k not in ("CUDA_VISIBLE_DEVICES", "GCA_MPS", gpu_slot.RUNS_ENV,
+                                                            gpu_slot.ENV)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**base, gpu_slot.LOCK_DIR_ENV: str(tmp_path / "locks"), **env})
+    return out.returncode, out.stdout.strip(), out.stderr.strip()
+
+
+@pytest.mark.parametrize("bad", ["0", "-1", "two", "1.5"])
+def test_a_bad_runs_per_gpu_is_one_line_and_exit_2(tmp_path, bad):
+    rc, _, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU=bad)
+    assert rc == 2 and err.splitlines() == [f"gca.gpu_slot: GCA_RUNS_PER_GPU={bad!r}: the runs per GPU must be an "
+                                            "integer >= 1"]
+
+
+def test_pin_says_the_sharing_and_records_whether_mps_runs(tmp_path):
+    """With K slots the pinned process says it shares its GPU and whether an MPS daemon's control pipe is there
+    (GCA_MPS, the run's record); a launcher's own GCA_MPS is kept; one slot says nothing of sharing."""
+    pipe = tmp_path / "mps"
+    pipe.mkdir()
+    rc, out, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3", CUDA_MPS_PIPE_DIRECTORY=str(pipe))
+    assert rc == 0 and out == "0 0" and "shared by up to 3 runs (GCA_RUNS_PER_GPU, CUDA MPS off)" in err
+    (pipe / "control").write_text("")
+    rc, out, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3", CUDA_MPS_PIPE_DIRECTORY=str(pipe))
+    assert rc == 0 and out == "0 1" and "CUDA MPS on" in err
+    rc, out, _ = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3", CUDA_MPS_PIPE_DIRECTORY=str(pipe),
+                      GCA_MPS="0")
+    assert out == "0 0"
+    rc, out, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1")
+    assert rc == 0 and out.startswith("0 ") and "shared" not in err and "uses GPU 0 of 2" in err
+

@@ -53,6 +53,7 @@ from typing import Callable
 
 import yaml
 
+from gca import gpu_slot
 from gca.pipeline import dispatch
 from gca.stamp import fingerprint
 from gca.pipeline.dispatch import critical_path, gpu_ids  # noqa: F401 (this module's API before the engine)
@@ -933,9 +934,9 @@ def main(argv=None) -> dict[str, str]:
     log(f"{len(jobs)} jobs ({todo} to run) through {args.engine} on {where}"
         + (f", profile {args.profile}" if args.repo is None else f", in place in {work}"))
     t0 = time.monotonic()
-    env["GCA_RUNS_PER_GPU"] = str(args.slots if engine.places else 1)  # provenance of the runs' times (Table 4)
+    env[gpu_slot.RUNS_ENV] = str(args.slots if engine.places else 1)  # provenance of the runs' times (Table 4)
     with mps_daemon(args.mps, log) as mps_on:
-        env["GCA_MPS"] = "1" if mps_on else "0"
+        env[gpu_slot.MPS_ENV] = "1" if mps_on else "0"
         state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp,
                              launch_until=args.machine_left,
                              expected_s=_expected_in(work, args.expected_train_s,

@@ -25,7 +25,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from gca import config
+from gca import config, gpu_slot
 from gca.efficiency import measure
 from gca.eval.evaluate import device_name
 from gca.io import atomic_path, read_json, save_torch, write_json
@@ -240,9 +240,10 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
 
 def gpu_sharing() -> dict:
     """How the run shared its GPU, from the launcher (``gca.pipeline.grid`` sets ``GCA_RUNS_PER_GPU``, its slots per
-    GPU, and ``GCA_MPS``): ``runs_per_gpu`` [count] and ``mps`` [bool]. A time measured with 8 runs on one GPU is not a
-    solo time (Table 4 says so); a run started otherwise (dvc repro, by hand) counts as alone."""
-    return {"runs_per_gpu": int(os.environ.get("GCA_RUNS_PER_GPU") or 1), "mps": os.environ.get("GCA_MPS") == "1"}
+    GPU, and ``GCA_MPS``; DVC queue workers set the first, and ``gca.gpu_slot`` the second from the MPS daemon it
+    finds): ``runs_per_gpu`` [count] and ``mps`` [bool]. A time measured with 8 runs on one GPU is not a solo time
+    (Table 4 says so); a run started otherwise (dvc repro, by hand) counts as alone."""
+    return {"runs_per_gpu": gpu_slot.runs_per_gpu(), "mps": os.environ.get(gpu_slot.MPS_ENV) == "1"}
 
 
 def mean_term_shares(history: list[dict]) -> dict[str, float]:
