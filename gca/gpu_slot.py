@@ -104,16 +104,16 @@ def pin_from_env(n_gpus: int | None = None) -> int | None:
     Returns the claimed index, or None when the variable is not ``1``, ``CUDA_VISIBLE_DEVICES`` is
     already set, or the machine has no GPU (``n_gpus``: the count, default :func:`gpu_count`).
     """
+    try:  # checked whether or not this process pins itself: the runs record it (train.json), after their training
+        per_gpu = runs_per_gpu()
+    except ValueError as exc:  # at `import gca`, before any stage's own error handling: one line, exit status 2
+        print(exc, file=sys.stderr)
+        raise SystemExit(2) from None
     if os.environ.get(ENV) != "1" or "CUDA_VISIBLE_DEVICES" in os.environ:
         return None
     n = gpu_count() if n_gpus is None else n_gpus
     if n == 0:
         return None
-    try:
-        per_gpu = runs_per_gpu()
-    except ValueError as exc:  # at `import gca`, before any stage's own error handling: one line, exit status 2
-        print(exc, file=sys.stderr)
-        raise SystemExit(2) from None
     k = claim(n, default_lock_dir(), per_gpu=per_gpu)
     os.environ["CUDA_DEVICE_ORDER"] = "PCI_BUS_ID"  # CUDA's order = nvidia-smi's, which the index counts in
     os.environ["CUDA_VISIBLE_DEVICES"] = str(k)

@@ -102,10 +102,15 @@ def _pin(tmp_path, **env):
 
 
 @pytest.mark.parametrize("bad", ["0", "-1", "two", "1.5"])
-def test_a_bad_runs_per_gpu_is_one_line_and_exit_2(tmp_path, bad):
-    rc, _, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU=bad)
+@pytest.mark.parametrize("pinned", ["1", "0"])
+def test_a_bad_runs_per_gpu_is_one_line_and_exit_2(tmp_path, bad, pinned):
+    """Refused at `import gca` whether or not the process pins itself (the run would record it only after its
+    training)."""
+    rc, _, err = _pin(tmp_path, GCA_GPU_PER_PROCESS=pinned, GCA_RUNS_PER_GPU=bad)
     assert rc == 2 and err.splitlines() == [f"gca.gpu_slot: GCA_RUNS_PER_GPU={bad!r}: the runs per GPU must be an "
                                             "integer >= 1"]
+    rc, out, _ = _pin(tmp_path, GCA_GPU_PER_PROCESS=pinned, GCA_RUNS_PER_GPU="2")  # the control: a good value
+    assert rc == 0 and out.split()[0] == ("0" if pinned == "1" else "None")
 
 
 def test_pin_says_the_sharing_and_records_whether_mps_runs(tmp_path):
