@@ -8,7 +8,7 @@ holds (an exclusive lock on one file per slot, released when the process exits) 
 ``GCA_RUNS_PER_GPU=K`` (default 1) gives each GPU K slots, so that K queue workers share a GPU, the
 packing the grid's ``--slots`` gives its jobs (issue 20 item 3: under CUDA MPS, eight ball trainings on one H100
 gave 2.4x the throughput of one; the daemon is started around the queue by whoever starts the queue, README).
-Slots are taken GPU by GPU at each depth (slot 0 of every GPU before any slot 1), so the runs spread over the GPUs.
+A process takes a slot on the GPU with the most free slots, so the runs spread over the GPUs.
 The same variable is the runs' record of their packing (``gca.pipeline.train``: ``runs_per_gpu``), as under the grid.
 A process whose ``CUDA_VISIBLE_DEVICES`` is already set (``gca/pipeline/grid.py`` pins its jobs) is left alone.
 
@@ -48,7 +48,7 @@ def default_lock_dir() -> Path:
 def runs_per_gpu() -> int:
     """``GCA_RUNS_PER_GPU``: slots per GPU [count], default 1; anything but an integer >= 1 is refused in one line."""
     value = os.environ.get(RUNS_ENV) or "1"
-    if not value.isdigit() or int(value) < 1:
+    if not (value.isascii() and value.isdigit()) or int(value) < 1:
         raise ValueError(f"gca.gpu_slot: {RUNS_ENV}={value!r}: the runs per GPU must be an integer >= 1")
     return int(value)
 
@@ -57,9 +57,20 @@ MPS_ENV = "GCA_MPS"  # whether the runs shared their GPU under CUDA MPS ("1"/"0"
 
 
 def mps_running() -> bool:
-    """Whether a CUDA MPS control daemon serves this process: its control pipe exists in ``CUDA_MPS_PIPE_DIRECTORY``
-    (default ``/tmp/nvidia-mps``, where ``nvidia-cuda-mps-control -d`` makes it)."""
-    return (Path(os.environ.get("CUDA_MPS_PIPE_DIRECTORY") or "/tmp/nvidia-mps") / "control").exists()
+    """Whether a CUDA MPS control daemon serves this process: its ``control`` entry exists in
+    ``CUDA_MPS_PIPE_DIRECTORY`` (default ``/tmp/nvidia-mps``, where ``nvidia-cuda-mps-control -d`` makes its pipes and
+    sockets), and, where it is a named pipe, something reads it (a write-only open without blocking fails with ENXIO
+    when no daemon does: one killed without its cleanup). Any other entry is taken at its word (a stale socket reads
+    as on); an unreadable directory as off."""
+    control = Path(os.environ.get("CUDA_MPS_PIPE_DIRECTORY") or "/tmp/nvidia-mps") / "control"
+    try:
+        if not control.exists():
+            return False
+        if control.is_fifo():
+            os.close(os.open(control, os.O_WRONLY | os.O_NONBLOCK))
+        return True
+    except OSError:
+        return False
 
 
 def _lock_name(gpu: int, slot: int) -> str:
@@ -67,10 +78,23 @@ def _lock_name(gpu: int, slot: int) -> str:
     return f"gpu{gpu}.lock" if slot == 0 else f"gpu{gpu}.slot{slot}.lock"
 
 
+def _free(path: Path) -> bool:
+    """Whether nobody holds the lock at ``path`` now (taken and let go at once: a hint, another process may take it
+    next)."""
+    with open(path, "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        return True
+
+
 def claim(n_gpus: int, lock_dir: Path, poll_s: float = 2.0, timeout_s: float | None = None, per_gpu: int = 1) -> int:
     """Index in ``0 .. n_gpus - 1`` of the GPU of a slot this process now holds alone (until it exits).
 
-    Tries slot 0 of every GPU in order, then slot 1, ... up to ``per_gpu`` slots per GPU; while all are held, polls
+    Tries the GPUs with the most free slots first (ties in index order), each GPU's slots in order, ``per_gpu`` slots
+    per GPU, so the runs spread over the GPUs whatever order the others freed theirs in; while all are held, polls
     every ``poll_s`` seconds. Raises ``TimeoutError`` after ``timeout_s`` seconds (None: waits as long as it takes).
     """
     global _held
@@ -81,7 +105,9 @@ def claim(n_gpus: int, lock_dir: Path, poll_s: float = 2.0, timeout_s: float | N
     lock_dir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     while True:
-        for j, k in ((j, k) for j in range(per_gpu) for k in range(n_gpus)):
+        free = {k: sum(_free(lock_dir / _lock_name(k, j)) for j in range(per_gpu)) if per_gpu > 1 else 1
+                for k in range(n_gpus)}
+        for k, j in ((k, j) for k in sorted(range(n_gpus), key=lambda g: -free[g]) for j in range(per_gpu)):
             handle = open(lock_dir / _lock_name(k, j), "a")
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)

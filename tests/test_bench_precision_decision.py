@@ -152,4 +152,4 @@ def test_the_documented_overrides_load_on_the_calibration_scenes():
         train = build(TrainConfig, section(resolved, "train"), "train")
         assert train.mlp_kernel == ("triton_tf32" if extra else "torch")
     doc = pd.__doc__
-    assert "--set tuning.trials=1 --set tuning.seeds=[0,1,2]" in doc and f"--set {TF32[0]}" in doc
+    assert '--set tuning.trials=1 --set "tuning.seeds=[0,1,2]"' in doc and f"--set {TF32[0]}" in doc

@@ -91,17 +91,42 @@ def test_runs_per_gpu_share_each_gpu_and_spread_over_them(tmp_path):
         gpu_slot.claim(2, tmp_path, per_gpu=0)
 
 
+def test_a_process_takes_the_gpu_with_the_most_free_slots(tmp_path):
+    """Three slots on each of two GPUs, freed out of order: GPU 0's slots 1 and 2 and GPU 1's slot 0 held (GPU 0 has
+    one free, GPU 1 two): the next process goes to GPU 1, not to GPU 0's free slot 0 (which the first-free order took).
+    """
+    import fcntl
+
+    held = []
+    for name in ("gpu0.slot1.lock", "gpu0.slot2.lock", "gpu1.lock"):
+        handle = open(tmp_path / name, "a")
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        held.append(handle)
+    nxt = _holder(tmp_path, per_gpu=3)
+    assert int(nxt.stdout.readline()) == 1
+    for handle in held:
+        handle.close()
+    _release(nxt)
+
+
 def _pin(tmp_path, **env):
-    """``pin_from_env`` in a fresh process (it runs at `import gca`) with ``env``: (exit status, stdout, stderr)."""
+    """``pin_from_env`` in a fresh process (it runs at `import gca`) with ``env``: (exit status, stdout, stderr). An
+    ``nvidia-smi`` that lists no GPU comes first on PATH, so the import's own pin leaves the process alone on a GPU
+    machine too; the explicit call then counts 2."""
     code = "from gca import gpu_slot; import os; print(gpu_slot.pin_from_env(n_gpus=2), os.environ.get('GCA_MPS'))"
+    stub = tmp_path / "bin"
+    stub.mkdir(exist_ok=True)
+    (stub / "nvidia-smi").write_text("#!/bin/sh\nexit 0\n")
+    (stub / "nvidia-smi").chmod(0o755)
     base = {k: v for k, v in os.environ.items() if k not in ("CUDA_VISIBLE_DEVICES", "GCA_MPS", gpu_slot.RUNS_ENV,
                                                             gpu_slot.ENV)}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         env={**base, gpu_slot.LOCK_DIR_ENV: str(tmp_path / "locks"), **env})
+                         env={**base, "PATH": f"{stub}:{os.environ['PATH']}",
+                              gpu_slot.LOCK_DIR_ENV: str(tmp_path / "locks"), **env})
     return out.returncode, out.stdout.strip(), out.stderr.strip()
 
 
-@pytest.mark.parametrize("bad", ["0", "-1", "two", "1.5"])
+@pytest.mark.parametrize("bad", ["0", "-1", "two", "1.5", "\u00b2"])
 @pytest.mark.parametrize("pinned", ["1", "0"])
 def test_a_bad_runs_per_gpu_is_one_line_and_exit_2(tmp_path, bad, pinned):
     """Refused at `import gca` whether or not the process pins itself (the run would record it only after its
@@ -123,6 +148,17 @@ def test_pin_says_the_sharing_and_records_whether_mps_runs(tmp_path):
     (pipe / "control").write_text("")
     rc, out, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3", CUDA_MPS_PIPE_DIRECTORY=str(pipe))
     assert rc == 0 and out == "0 1" and "CUDA MPS on" in err
+    (pipe / "control").unlink()
+    os.mkfifo(pipe / "control")  # a named pipe nobody reads: a daemon killed without its cleanup, so off
+    rc, out, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3", CUDA_MPS_PIPE_DIRECTORY=str(pipe))
+    assert rc == 0 and out == "0 0" and "CUDA MPS off" in err
+    reader = os.open(pipe / "control", os.O_RDONLY | os.O_NONBLOCK)  # the daemon reading its pipe: on
+    try:
+        rc, out, err = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3",
+                            CUDA_MPS_PIPE_DIRECTORY=str(pipe))
+        assert rc == 0 and out == "0 1"
+    finally:
+        os.close(reader)
     rc, out, _ = _pin(tmp_path, GCA_GPU_PER_PROCESS="1", GCA_RUNS_PER_GPU="3", CUDA_MPS_PIPE_DIRECTORY=str(pipe),
                       GCA_MPS="0")
     assert out == "0 0"

@@ -712,3 +712,17 @@ def test_no_slot_waits_for_runs_that_could_not_finish_after_their_inputs(tmp_pat
                  expected_s=lambda n: times[n.split("@")[1].split(":")[0]])
     started = [ln.split()[1] for ln in lines if ln.startswith("start train@")]
     assert started[:2] == ["train@slow:a", "train@slow:b"], started
+
+
+@pytest.mark.parametrize("slots", ["0", "-2", "two"])
+def test_slots_below_one_are_refused_at_the_command_line(slots, capsys):
+    """``--slots 0`` would start no job (and tell each run GCA_RUNS_PER_GPU=0, which every stage refuses at import):
+    refused by the parser, naming the option; 3 is taken (the control)."""
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    dispatch.add_engine_args(ap, slots=2)
+    with pytest.raises(SystemExit) as exc:
+        ap.parse_args(["--slots", slots])
+    assert exc.value.code == 2 and "--slots" in capsys.readouterr().err
+    assert ap.parse_args(["--slots", "3"]).slots == 3 and ap.parse_args([]).slots == 2

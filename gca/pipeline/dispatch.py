@@ -829,13 +829,24 @@ def gpu_ids(text: str) -> int | list[int]:
         raise argparse.ArgumentTypeError(f"--gpus {text!r}: a count or comma-separated GPU ids") from None
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (``--slots``: 0 would start no job and tell each ``GCA_RUNS_PER_GPU=0``)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: an integer >= 1 expected")
+    return value
+
+
 def add_engine_args(ap: argparse.ArgumentParser, slots: int = 1) -> None:
     """The engine's options: ``--engine``, ``--gpus``/``--slots`` (local), the time limit and requeues,
     ``--partition``/``--cpus-per-task``/``--sbatch`` (SLURM), ``--deadline``."""
     ap.add_argument("--engine", choices=("local", "slurm"), default="local",
                     help="local: submitit's local executor on this machine; slurm: one SLURM job per stage command")
     ap.add_argument("--gpus", type=gpu_ids, default=1, help="local: a count (GPUs 0 .. N-1; 0: CPU) or ids 0,1,2")
-    ap.add_argument("--slots", type=int, default=slots, help="local: concurrent jobs per GPU (per machine without GPU)")
+    ap.add_argument("--slots", type=positive_int, default=slots, help="local: concurrent jobs per GPU (per machine without GPU)")
     ap.add_argument("--timeout-min", type=float, default=24 * 60.0,
                     help="a job's time limit [min]: then it is checkpointed and requeued")
     ap.add_argument("--max-requeue", type=int, default=20, help="requeues at the time limit per job (preemptions: no limit)")
