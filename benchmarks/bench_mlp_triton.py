@@ -99,6 +99,30 @@ def variant_call(name: str, net: torch.nn.Sequential):
     return lambda x: fused_mlp(net, x, block, precision, programs, warps)
 
 
+def backward_kernel(both) -> dict:
+    """What the fused backward compiled to, from one call of ``both`` (a forward + backward through
+    :class:`FusedMLP`): registers per thread (``bwd_regs``), spilled registers (``bwd_spills``; Triton's count from
+    the loaded binary) and shared memory per program [bytes] (``bwd_shared_bytes``), read off the kernel its launch
+    returns. {} where no compiled kernel comes back (torch's MLP; the CPU interpreter)."""
+    launch, seen = mlp_triton._fused_mlp_bwd, []
+
+    class Recording:
+        def __getitem__(self, grid):
+            def run(*args, **kwargs):
+                seen.append(launch[grid](*args, **kwargs))
+                return seen[-1]
+            return run
+    mlp_triton._fused_mlp_bwd = Recording()
+    try:
+        both()
+    finally:
+        mlp_triton._fused_mlp_bwd = launch
+    kernel = seen[-1] if seen else None
+    out = {key: getattr(kernel, attr, None) for key, attr in (("bwd_regs", "n_regs"), ("bwd_spills", "n_spills"))}
+    out["bwd_shared_bytes"] = getattr(getattr(kernel, "metadata", None), "shared", None)
+    return {k: v for k, v in out.items() if isinstance(v, int)}
+
+
 def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int, repeats: int,
          on_row=lambda out: None) -> list[dict]:
     """Per size and variant: the forward (no gradient) and the forward + backward (the gradients w.r.t. x and the
@@ -126,11 +150,13 @@ def rows(device: torch.device, sizes: list[int], variants: list[str], iters: int
                 dev = rel(fn(), ref.detach())
                 us = timed_us(fn, device, iters, repeats)
             gdev = max(rel(a, b) for a, b in zip(both(), gref))
+            compiled = backward_kernel(both)
             us_both = timed_us(both, device, iters, repeats)
             out.append({"particles": n, "variant": name, "fwd_us": us, "fwd_bwd_us": us_both, "rel_dev": dev,
-                        "grad_rel_dev": gdev})
+                        "grad_rel_dev": gdev, **compiled})
             on_row(out)
-            print(f"| {n} | {name} | {us:.1f} | {us_both:.1f} | {dev:.1e} | {gdev:.1e} |", flush=True)
+            regs = f"{compiled['bwd_regs']} / {compiled.get('bwd_spills', '?')}" if "bwd_regs" in compiled else "-"
+            print(f"| {n} | {name} | {us:.1f} | {us_both:.1f} | {dev:.1e} | {gdev:.1e} | {regs} |", flush=True)
     return out
 
 
@@ -164,8 +190,8 @@ def main(argv=None) -> list[dict]:
         print(" ".join(fastest(timed, args.particles, args.top)))
         return []
     device = torch.device(args.device)
-    print("| particles | variant | fwd us | fwd+bwd us | rel dev from float64 | grad rel dev |\n"
-          "| --- | --- | --- | --- | --- | --- |", flush=True)
+    print("| particles | variant | fwd us | fwd+bwd us | rel dev from float64 | grad rel dev | bwd regs / spills |\n"
+          "| --- | --- | --- | --- | --- | --- | --- |", flush=True)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
 
     def write(res: list[dict]) -> None:

@@ -166,3 +166,33 @@ def test_the_sweeps_pick_is_the_fastest_fused_launch(tmp_path):
     missing = subprocess.run([sys.executable, str(SCRIPT), "--fastest", str(tmp_path / "none.json")],
                              cwd=SCRIPT.parents[1], capture_output=True, text=True, timeout=300)
     assert missing.returncode == 0 and missing.stdout.strip() == "" and "no sweep to pick from" in missing.stderr
+
+
+def test_the_backwards_compiled_resources_are_read_off_its_launch():
+    """``backward_kernel``: the registers, spills and shared memory of the kernel the backward's launch returns (a
+    stand-in for CUDA's compiled kernel here: the interpreter returns none, so its rows carry no such fields)."""
+    _run("""
+import sys, types, torch
+sys.argv = ["x", "--device", "cpu"]
+sys.path.insert(0, "benchmarks")
+import bench_mlp_triton as b
+from gca.laws.neural import NeuralLawConfig, make_mlp
+torch.manual_seed(3)
+net = make_mlp(NeuralLawConfig())
+x = torch.randn(40, 13).requires_grad_(True)
+call = b.variant_call("tf32_16", net)
+both = lambda: torch.autograd.grad(call(x), [x], torch.ones(40, 9))
+assert b.backward_kernel(both) == {}  # the interpreter: no compiled kernel comes back
+real = b.mlp_triton._fused_mlp_bwd
+class Fake:  # a launch that returns what CUDA's does: a kernel with its resources
+    def __getitem__(self, grid):
+        def run(*args, **kwargs):
+            real[grid](*args, **kwargs)
+            return types.SimpleNamespace(n_regs=168, n_spills=24, metadata=types.SimpleNamespace(shared=33792))
+        return run
+b.mlp_triton._fused_mlp_bwd = Fake()
+assert b.backward_kernel(both) == {"bwd_regs": 168, "bwd_spills": 24, "bwd_shared_bytes": 33792}
+assert isinstance(b.mlp_triton._fused_mlp_bwd, Fake)  # put back as found
+assert b.backward_kernel(lambda: torch.autograd.grad(net(x), [x], torch.ones(40, 9))) == {}  # torch: no launch
+print("ok")
+""")
