@@ -34,6 +34,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -63,12 +64,12 @@ def sm_count() -> int:
 def fused_launch(name: str) -> tuple[str, int, int, int] | None:
     """A fused variant's (precision, block, backward warps, backward programs) from its name, ``<ieee|tf32>_<B>``
     with an optional ``_w<W>`` (warps per program, default the library's 8) and ``_p<P>`` (programs per SM, default
-    4); None for a name that is no fused variant (``torch``, or anything else)."""
+    the library's 4); None for a name that is no fused variant (``torch``, or anything else)."""
     m = VARIANT.match(name)
     if m is None or m.group(2) is None:
         return None
     warps = int(m.group(4)) if m.group(4) else mlp_triton.BWD_WARPS
-    per_sm = int(m.group(5)) if m.group(5) else 4
+    per_sm = int(m.group(5)) if m.group(5) else mlp_triton.BWD_PROGRAMS_PER_SM
     return m.group(2), int(m.group(3)), warps, per_sm * sm_count()
 
 
@@ -80,10 +81,10 @@ def fused_forward(net: torch.nn.Sequential, x: torch.Tensor, block: int, precisi
 
 
 def fused_mlp(net: torch.nn.Sequential, x: torch.Tensor, block: int = 32, precision: str = "ieee",
-              programs: int = 4 * SMS, warps: int = mlp_triton.BWD_WARPS) -> torch.Tensor:
+              programs: int | None = None, warps: int = mlp_triton.BWD_WARPS) -> torch.Tensor:
     """``net(x)`` with gradients to x and the three weights through the library's :class:`FusedMLP`
-    (``gca.laws.mlp_triton``; block >= 16; ``programs``: the backward's persistent programs, default 4 per SM of an
-    H100 / H200; ``warps``: the backward's warps per program)."""
+    (``gca.laws.mlp_triton``; block >= 16; ``programs``: the backward's persistent programs, default the library's,
+    ``BWD_PROGRAMS_PER_SM`` per SM; ``warps``: the backward's warps per program)."""
     return mlp_triton.mlp(x, [m.weight for m in mlp_triton.check(net)], precision, block, programs, warps)
 
 
@@ -99,25 +100,35 @@ def variant_call(name: str, net: torch.nn.Sequential):
     return lambda x: fused_mlp(net, x, block, precision, programs, warps)
 
 
-def backward_kernel(both) -> dict:
-    """What the fused backward compiled to, from one call of ``both`` (a forward + backward through
-    :class:`FusedMLP`): registers per thread (``bwd_regs``), spilled registers (``bwd_spills``; Triton's count from
-    the loaded binary) and shared memory per program [bytes] (``bwd_shared_bytes``), read off the kernel its launch
-    returns. {} where no compiled kernel comes back (torch's MLP; the CPU interpreter)."""
+@contextlib.contextmanager
+def backward_launches():
+    """Within the block, every launch of the fused backward (``mlp_triton._fused_mlp_bwd``, looked up by
+    :class:`FusedMLP` at each call) is recorded as (grid, launch options such as ``num_warps``, the kernel the launch
+    returns: CUDA's compiled kernel, or whatever the interpreter returns) in the list yielded; the kernel is put back
+    as found after it."""
     launch, seen = mlp_triton._fused_mlp_bwd, []
 
     class Recording:
         def __getitem__(self, grid):
             def run(*args, **kwargs):
-                seen.append(launch[grid](*args, **kwargs))
-                return seen[-1]
+                seen.append((grid, kwargs, launch[grid](*args, **kwargs)))
+                return seen[-1][2]
             return run
     mlp_triton._fused_mlp_bwd = Recording()
     try:
-        both()
+        yield seen
     finally:
         mlp_triton._fused_mlp_bwd = launch
-    kernel = seen[-1] if seen else None
+
+
+def backward_kernel(both) -> dict:
+    """What the fused backward compiled to, from one call of ``both`` (a forward + backward through
+    :class:`FusedMLP`): registers per thread (``bwd_regs``), spilled registers (``bwd_spills``; Triton's count from
+    the loaded binary) and shared memory per program [bytes] (``bwd_shared_bytes``), read off the kernel its launch
+    returns. {} where no compiled kernel comes back (torch's MLP; the CPU interpreter)."""
+    with backward_launches() as seen:
+        both()
+    kernel = seen[-1][2] if seen else None
     out = {key: getattr(kernel, attr, None) for key, attr in (("bwd_regs", "n_regs"), ("bwd_spills", "n_spills"))}
     out["bwd_shared_bytes"] = getattr(getattr(kernel, "metadata", None), "shared", None)
     return {k: v for k, v in out.items() if isinstance(v, int)}

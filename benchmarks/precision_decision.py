@@ -89,14 +89,15 @@ def comparable(ref: dict, cand: dict) -> str | None:
                 f"{b.get(KNOB)!r} and {a.get(KNOB, REFERENCE)!r}")
     budget = ref.get("budget") or {}
     expected = set(itertools.product(budget.get("scenes", []), [int(k) for k in budget.get("seeds", [])]))
-    for name, record in (("reference", ref), ("candidate", cand)):
-        missing = sorted(f"{s}@seed{k}" for s, k in expected - set(_units(record, name)))
+    units = {name: set(_units(record, name)) for name, record in (("reference", ref), ("candidate", cand))}
+    for name, held in units.items():
+        missing = sorted(f"{s}@seed{k}" for s, k in expected - held)
         if not expected or missing:
             return f"the {name} is not complete: its budget's units {missing or '(none listed)'} are missing"
-    if set(_units(ref, "reference")) != set(_units(cand, "candidate")):
+    if units["reference"] != units["candidate"]:
         return "they hold different (scene, seed) units"
     seeds: dict[str, set[int]] = {}
-    for scene, seed in _units(ref, "reference"):
+    for scene, seed in units["reference"]:
         seeds.setdefault(scene, set()).add(seed)
     few = sorted(s for s, k in seeds.items() if len(k) < 2)
     if few:

@@ -10,8 +10,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 INTERP_MIN_FREE_MB=1500  # free disk (MB) below which the optional triton install is left out: its ~650 MB + the tests' files
+free_here_mb() { df -Pm . | awk 'NR==2 {print $4}' || true; }  # MB free here; nothing when df fails (never fatal)
 if [ ! -x .venv/bin/python ]; then
-  free_mb=$(df -Pm . | awk 'NR==2 {print $4}') || true  # a df that fails says nothing: never fatal
+  free_mb=$(free_here_mb)
   [ "${free_mb:-0}" -ge 3000 ] 2>/dev/null || echo "setup: only ${free_mb:-?} MB free on $(pwd): a CPU install takes about 2.5 GB (3.1 GB with triton)" >&2
   if "$PY" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" 2>/dev/null; then
     echo "setup: CUDA torch found on the system python: the venv reuses it (left alone)"
@@ -40,7 +41,7 @@ else
   # interp: triton (~650 MB installed), whose interpreter runs the fused MLP's CPU twin (tests/test_laws_mlp_triton.py).
   # Installed only where the disk has room for it and the tests after it: a CI machine once ran out of disk here
   # (ENOSPC in pip, session 37's commits never landed). Without it those tests skip, and pytest -ra says so.
-  free_mb=$(df -Pm . | awk 'NR==2 {print $4}') || true
+  free_mb=$(free_here_mb)
   if [ "${free_mb:-0}" -ge "$INTERP_MIN_FREE_MB" ] 2>/dev/null; then
     python -m pip install -q -e ".[interp]" || {
       echo "setup: triton (the interp extra) did not install: the fused MLP's CPU-twin tests will be skipped" >&2

@@ -122,25 +122,16 @@ x = torch.randn(70, 13).requires_grad_(True)
 v = torch.randn(70, 9)
 Ws = [m.weight for m in net if isinstance(m, torch.nn.Linear)]
 ref = torch.autograd.grad((net(x) * v).sum(), [x, *Ws])
-launches = []  # the backward's launches as the kernel receives them: (programs, warps)
-kernel = b.mlp_triton._fused_mlp_bwd
-class Recording:
-    def __getitem__(self, grid):
-        def launch(*args, **kw):
-            launches.append((grid[0], kw["num_warps"]))
-            return kernel[grid](*args, **kw)
-        return launch
-b.mlp_triton._fused_mlp_bwd = Recording()
 for name, launch in (("tf32_16_w4_p1", (1, 4)), ("tf32_32_w1_p2", (2, 1)), ("tf32_16", (3, 8)), ("tf32_64_w2", (2, 2))):
     # 70 rows: 5 tiles of 16 (p1: one program loops over all 5; p4: 2 tiles each, so 3 programs), 3 tiles of 32 (p2:
     # 2 programs), 2 of 64 (p4: 2 programs, one tile each)
     call = b.variant_call(name, net)
-    got = torch.autograd.grad((call(x) * v).sum(), [x, *Ws])
-    assert launches[-1] == launch, (name, launches[-1])
+    with b.backward_launches() as seen:  # the backward's launch as the kernel receives it: (programs, warps)
+        got = torch.autograd.grad((call(x) * v).sum(), [x, *Ws])
+    assert [(grid[0], kw["num_warps"]) for grid, kw, _ in seen] == [launch], (name, seen)
     dev = max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(got, ref))
     assert dev < 1e-5, (name, dev)
     bad = torch.autograd.grad((call(x) * v.flip(0)).sum(), [x, *Ws])  # control: another cotangent is seen
-    launches.pop()
     assert max(float((g - r).abs().max() / r.abs().max()) for g, r in zip(bad, ref)) > 1e-2
 print("ok")
 """)

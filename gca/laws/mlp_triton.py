@@ -148,6 +148,7 @@ def _pad(v: int) -> int:
 
 
 
+BWD_PROGRAMS_PER_SM = 4  # the backward's persistent programs per SM (on a CPU: 8 programs in all)
 BWD_WARPS = 8  # the backward holds three weight-gradient accumulators ([64, 64] the largest) and six [BLOCK, 64]
 # activations per program: 8 warps (256 threads) halve the registers each thread holds against Triton's default 4
 
@@ -216,6 +217,7 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
     if precision == "tf32" and z.dtype != torch.float32:
         raise ValueError(f"{_WHERE}: TF32 products take float32, got {z.dtype} (use precision='ieee')")
     if programs is None:
-        programs = 4 * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda else 8
+        programs = (BWD_PROGRAMS_PER_SM * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda
+                    else 8)
     return FusedMLP.apply(z.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
                           programs, warps)
