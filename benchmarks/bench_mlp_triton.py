@@ -21,8 +21,8 @@ CPU: Triton's interpreter, ``TRITON_INTERPRET=1``, a correctness smoke only): th
 forward + backward, and the largest deviations of the output and the gradients from float64 relative to the largest
 value. Variants: ``torch`` (nn.Sequential, FP32), ``ieee_<B>`` (fused, FP32 products, B particles per program),
 ``tf32_<B>`` (fused, TF32 products: the option ``train.mlp_kernel: triton_tf32``). A fused variant may name its
-backward's launch: ``tf32_64_w4_p2`` = 4 warps per program, 2 programs per SM (default ``_w8_p4``, the library's);
-session 38 added these for a sweep of the TF32 backward (76 of its 87 us at 30k, H200, session 37).
+backward's launch: ``tf32_128_w8_p1`` = 8 warps per program, 1 program per SM (default the library's, ``_w4_p2`` since
+session 39's sweep of the TF32 backward; ``_w8_p4`` before, 76 of its 87 us at 30k, H200, session 37).
 
 Usage::
 
@@ -63,8 +63,8 @@ def sm_count() -> int:
 
 def fused_launch(name: str) -> tuple[str, int, int, int] | None:
     """A fused variant's (precision, block, backward warps, backward programs) from its name, ``<ieee|tf32>_<B>``
-    with an optional ``_w<W>`` (warps per program, default the library's 8) and ``_p<P>`` (programs per SM, default
-    the library's 4); None for a name that is no fused variant (``torch``, or anything else)."""
+    with an optional ``_w<W>`` (warps per program, default the library's ``BWD_WARPS``) and ``_p<P>`` (programs per
+    SM, default the library's ``BWD_PROGRAMS_PER_SM``); None for a name that is no fused variant (``torch``, or anything else)."""
     m = VARIANT.match(name)
     if m is None or m.group(2) is None:
         return None

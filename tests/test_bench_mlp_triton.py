@@ -105,7 +105,8 @@ sys.argv = ["x", "--device", "cpu"]
 sys.path.insert(0, "benchmarks")
 import bench_mlp_triton as b
 b.SMS = 1  # one "SM": programs per SM are then the programs themselves (the interpreter's count, patched)
-assert b.fused_launch("tf32_64") == ("tf32", 64, b.mlp_triton.BWD_WARPS, 4)
+W, P = b.mlp_triton.BWD_WARPS, b.mlp_triton.BWD_PROGRAMS_PER_SM  # the library's launch (session 39: 4 warps, 2 per SM)
+assert b.fused_launch("tf32_64") == ("tf32", 64, W, P)
 assert b.fused_launch("tf32_128_w4_p2") == ("tf32", 128, 4, 2)
 assert b.fused_launch("ieee_32_p1") == ("ieee", 32, b.mlp_triton.BWD_WARPS, 1)
 assert b.fused_launch("torch") is None and b.fused_launch("tf32_64_p2_w4") is None  # the order is fixed
@@ -122,9 +123,11 @@ x = torch.randn(70, 13).requires_grad_(True)
 v = torch.randn(70, 9)
 Ws = [m.weight for m in net if isinstance(m, torch.nn.Linear)]
 ref = torch.autograd.grad((net(x) * v).sum(), [x, *Ws])
-for name, launch in (("tf32_16_w4_p1", (1, 4)), ("tf32_32_w1_p2", (2, 1)), ("tf32_16", (3, 8)), ("tf32_64_w2", (2, 2))):
-    # 70 rows: 5 tiles of 16 (p1: one program loops over all 5; p4: 2 tiles each, so 3 programs), 3 tiles of 32 (p2:
-    # 2 programs), 2 of 64 (p4: 2 programs, one tile each)
+per = -(-5 // P)  # the library's P programs over 5 tiles of 16: per tiles each, so ceil(5 / per) programs
+for name, launch in (("tf32_16_w4_p1", (1, 4)), ("tf32_32_w1_p2", (2, 1)), ("tf32_16", (-(-5 // per), W)),
+                     ("tf32_64_w2", (min(2, P), 2))):
+    # 70 rows: 5 tiles of 16 (p1: one program loops over all 5; p4: 2 tiles each, so 3 programs; p2: 3 tiles each, 2
+    # programs), 3 tiles of 32 (p2: 2 programs), 2 of 64 (p >= 2: 2 programs, one tile each)
     call = b.variant_call(name, net)
     with b.backward_launches() as seen:  # the backward's launch as the kernel receives it: (programs, warps)
         got = torch.autograd.grad((call(x) * v).sum(), [x, *Ws])
@@ -140,12 +143,15 @@ print("ok")
 def test_the_sweeps_pick_is_the_fastest_fused_launch(tmp_path):
     """``--fastest``: the fused variants of a result file by forward + backward time at the given size, fastest
     first, torch and the library's own launch (timed anyway) left out; rows of another size do not count."""
+    from gca.laws.mlp_triton import BWD_PROGRAMS_PER_SM, BWD_WARPS
+    library = f"tf32_64_w{BWD_WARPS}_p{BWD_PROGRAMS_PER_SM}"  # the library's launch by its full name
+    other = "tf32_64_w8_p4" if library != "tf32_64_w8_p4" else "tf32_64_w4_p2"  # session 38's launch, 39's
     rows = [{"particles": 30000, "variant": "torch", "fwd_bwd_us": 50.0},
             {"particles": 30000, "variant": "tf32_64", "fwd_bwd_us": 60.0},
-            {"particles": 30000, "variant": "tf32_64_w4_p2", "fwd_bwd_us": 80.0},
+            {"particles": 30000, "variant": other, "fwd_bwd_us": 80.0},
             {"particles": 30000, "variant": "tf32_128_w8_p1", "fwd_bwd_us": 70.0},
             {"particles": 30000, "variant": "tf32_32_w4_p8", "fwd_bwd_us": 90.0},
-            {"particles": 30000, "variant": "tf32_64_w8_p4", "fwd_bwd_us": 55.0},  # the library's launch, named out
+            {"particles": 30000, "variant": library, "fwd_bwd_us": 55.0},  # the library's launch, named out
             {"particles": 100000, "variant": "tf32_32_w4_p8", "fwd_bwd_us": 1.0}]
     f = tmp_path / "sweep.json"
     f.write_text(__import__("json").dumps({"device": "x", "rows": rows}))
@@ -153,7 +159,7 @@ def test_the_sweeps_pick_is_the_fastest_fused_launch(tmp_path):
                          cwd=SCRIPT.parents[1], env={**os.environ, "TRITON_INTERPRET": "1"}, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["tf32_128_w8_p1", "tf32_64_w4_p2"]
+    assert out.stdout.split() == ["tf32_128_w8_p1", other]
     missing = subprocess.run([sys.executable, str(SCRIPT), "--fastest", str(tmp_path / "none.json")],
                              cwd=SCRIPT.parents[1], capture_output=True, text=True, timeout=300)
     assert missing.returncode == 0 and missing.stdout.strip() == "" and "no sweep to pick from" in missing.stderr
