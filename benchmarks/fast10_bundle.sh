@@ -38,6 +38,7 @@ T0=$(date +%s)
 stamp() { python3 -c "import sys, time; print(f'[fast10 {int(time.time()) - $T0:>4} s] {sys.argv[1]}', flush=True)" "$1"; }
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine (and build_gsplat)
 . benchmarks/harness_runs.sh  # run, summary
+stamp "host: $(grep -m1 '^model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//'), $(nproc) cores"  # solo runs are host-bound (s39)
 
 if [ "$PART" = a ] || [ "$PART" = ab ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader

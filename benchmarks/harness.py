@@ -52,6 +52,18 @@ def versions() -> dict:
             "numpy": numpy.__version__, "cuda": torch.version.cuda}
 
 
+def host_cpu(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The host's CPU model and core count ("<model>, <n> cores"): a solo training's render + losses phase is host-bound
+    (NOTES session 39: the same code 24 % slower on the ball on another lease of the same GPU kind), so a row names its
+    host. ``platform.processor()`` where ``cpuinfo`` is unreadable or names no model."""
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
+                      if line.lower().startswith("model name") and ":" in line), "")
+    except OSError:
+        model = ""
+    return f"{model or platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+
+
 STAGES = ("assets", "particles", "prior", "ground_truth", "preprocess", "train", "evaluate")
 
 
@@ -124,7 +136,7 @@ def collect(raw: dict, scene: str, work: Path, device: str, stage_seconds: dict,
                     phases[k[5:]] = phases.get(k[5:], 0.0) + v
         rows.append({
             "device": torch.cuda.get_device_name(0) if device == "cuda" else platform.processor() or "cpu",
-            "versions": versions(), "profile": raw["profile"], "overrides": overrides, "scene": scene,
+            "host": host_cpu(), "versions": versions(), "profile": raw["profile"], "overrides": overrides, "scene": scene,
             "method": name, "seed": seed, "n_particles": gt["n_particles"], "n_gaussians": gt["n_gaussians"],
             "iterations": train["iterations"], "status": metrics["status"], "message": train.get("message", ""),
             "train_seconds": train["train_seconds"], "rollout_seconds": metrics.get("rollout_seconds"),

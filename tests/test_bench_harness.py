@@ -66,3 +66,19 @@ def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one
         harness.set_solver_switches(["n_grid=4"])
     with pytest.raises(SystemExit, match="=true|false|null"):  # Python's spelling is a string here, and a true one
         harness.set_solver_switches(["block_p2g=None"])
+
+
+def test_a_harness_row_names_its_host_cpu(tmp_path):
+    """``host_cpu``: the model from a cpuinfo file and the core count (a solo training's host-bound phase moves with
+    it, NOTES session 39); a file without a model line, or none, falls back to the platform's name, never empty."""
+    import os
+    harness = _load("harness")
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R) Platinum 8480C\n"
+                    "processor\t: 1\nmodel name\t: Intel(R) Xeon(R) Platinum 8480C\n")
+    assert harness.host_cpu(info) == f"Intel(R) Xeon(R) Platinum 8480C, {os.cpu_count()} cores"
+    info.write_text("processor\t: 0\nvendor_id\t: GenuineIntel\n")
+    for path in (info, tmp_path / "none"):
+        got = harness.host_cpu(path)
+        assert got.endswith(f", {os.cpu_count()} cores") and "Platinum" not in got
+        assert got.split(",")[0].strip()
