@@ -726,3 +726,63 @@ def test_methods_declare_their_terms():
         Method("bad", terms=("silhouette",), cpr_remove_target=True)
     with pytest.raises(KeyError):
         get_method("gca").uses("mask")
+
+
+class _NaNBackward(torch.autograd.Function):
+    """Identity forward; the backward poisons one entry: a broken stage."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        g = g.clone()
+        g.view(-1)[0] = float("nan")
+        return g
+
+
+@pytest.mark.parametrize("sweep", [False, True])
+def test_a_nonfinite_gradient_is_traced_by_a_probed_replay(scene, sweep, monkeypatch):
+    """A healthy iteration attaches no gradient probe (its hooks were a large share of a host-bound iteration, NOTES
+    s39); a non-finite gradient is raised as a divergence whose message names where it entered, from the same
+    iteration replayed with the probe (here the particles-to-Gaussians map, broken on purpose), in either gradient
+    pass. A break that does not come back in the replay is said to be not reproduced, no stage named."""
+    import gca.train.objective as objective_module
+    from gca.train import loop
+    from gca.train.probe import GradProbe
+
+    method = get_method("gca")
+    data = _data(scene, method)
+    probes = []
+    monkeypatch.setattr(loop, "GradProbe", lambda: probes.append(GradProbe()) or probes[-1])
+
+    def gradient():
+        cfg = TrainConfig(iterations=1, curriculum_start=1.0, term_shares_every=0, reverse_sweep=sweep)
+        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2, seed=0)
+        objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
+                              MatchConfig())
+        return law, objective, lambda: loop._gradient(tiny_solver(), law, data, objective, cfg,
+                                                      len(data.video_frames))
+
+    law, objective, run = gradient()
+    assert math.isfinite(run()["grad_norm"]) and probes == [] and objective.probe is None  # healthy: no probe
+    real, calls = objective_module.gaussians_at, []
+
+    def broken_map(body, x, F, every_call=True):
+        calls.append(1)
+        means, covs = real(body, x, F)
+        return (_NaNBackward.apply(means) if every_call or len(calls) <= len(data.video_frames) else means), covs
+
+    monkeypatch.setattr(objective_module, "gaussians_at", broken_map)
+    law, objective, run = gradient()
+    with pytest.raises(FloatingPointError, match="non-finite gradients after backward .*provenance: .*"
+                       "first broken at 'particles': made by the particles-to-Gaussians map's backward"):
+        run()
+    assert len(probes) == 1 and objective.probe is None  # one probed replay, detached after it
+    monkeypatch.setattr(objective_module, "gaussians_at", lambda *a: broken_map(*a, every_call=False))
+    calls.clear()
+    law, objective, run = gradient()
+    with pytest.raises(FloatingPointError, match="replay of the iteration had finite gradients \\(not reproduced"):
+        run()
+    assert len(calls) == 2 * len(data.video_frames)  # the iteration and its replay rendered every frame

@@ -238,26 +238,15 @@ def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) 
     """Rollout, losses, backward and clipping: the law's ``.grad`` is ready for the update.
 
     Returns the iteration's record (loss, gradient norm before clipping, horizon, stats, phase times).
-    Raises one of ``DIVERGENCE_ERRORS`` when the rollout, the loss or a gradient is not usable.
+    Raises one of ``DIVERGENCE_ERRORS`` when the rollout, the loss or a gradient is not usable; a non-finite
+    gradient's message says where it entered (:func:`_provenance`: the iteration once more, probed).
     """
     swept = cfg.reverse_sweep and not shares and objective.can_sweep()
     timer = PhaseTimer(data.body.x0.device, synced={"backward"} if swept else None)
     timer.start()
-    for p in law.trainable():
-        p.grad = None
-    traj = simulate(solver, law, data, n_video, sweep=swept)
-    probe = objective.probe = GradProbe()
-    probe.watch("particles", "x", -1, traj.x)
-    probe.watch("particles", "F", -1, traj.F)
-    timer.lap("simulate")
-    if swept:  # the rollout's checks are read once its frames are rendered (the GPU simulates meanwhile)
-        loss, stats = objective.gradient(traj, n_video, law, timer.lap,
-                                         on_rendered=lambda: _check_drift(traj, data, n_video, cfg))
-    else:
-        _check_drift(traj, data, n_video, cfg)
-        loss, stats = objective.gradient(traj, n_video, law, timer.lap, shares=shares) if shares else \
-            objective.gradient(traj, n_video, law, timer.lap)
-    _check_gradients(law, probe)
+    objective.probe = None
+    loss, stats, traj = _losses_backward(solver, law, data, objective, cfg, n_video, shares, swept, timer.lap)
+    _check_gradients(law, lambda: _provenance(solver, law, data, objective, cfg, n_video, shares, swept))
     params = law.trainable()
     grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
     return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine,
@@ -265,16 +254,63 @@ def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) 
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
-def _check_gradients(law: LearnedLaw, probe: GradProbe | None = None) -> None:
-    """Raise FloatingPointError naming the parameter groups whose gradients are non-finite (never zeroed)
-    and, with a probe, where along the loss -> render -> Gaussians -> particles chain they broke."""
+def _losses_backward(solver, law, data, objective, cfg, n_video: int, shares: bool, swept: bool,
+                     lap: Callable[[str], None]) -> tuple[torch.Tensor, dict, Rollout]:
+    """One rollout of ``n_video`` frames, its losses and their backward (swept frame by frame or one autograd pass):
+    the law's ``.grad`` filled from None; (loss, stats, rollout). With ``objective.probe`` set, the rollout's x and F
+    are watched too."""
+    for p in law.trainable():
+        p.grad = None
+    traj = simulate(solver, law, data, n_video, sweep=swept)
+    if objective.probe is not None:
+        objective.probe.watch("particles", "x", -1, traj.x)
+        objective.probe.watch("particles", "F", -1, traj.F)
+    lap("simulate")
+    if swept:  # the rollout's checks are read once its frames are rendered (the GPU simulates meanwhile)
+        loss, stats = objective.gradient(traj, n_video, law, lap,
+                                         on_rendered=lambda: _check_drift(traj, data, n_video, cfg))
+    else:
+        _check_drift(traj, data, n_video, cfg)
+        loss, stats = objective.gradient(traj, n_video, law, lap, shares=shares) if shares else \
+            objective.gradient(traj, n_video, law, lap)
+    return loss, stats, traj
+
+
+def _provenance(solver, law, data, objective, cfg, n_video: int, shares: bool, swept: bool) -> str:
+    """Where a non-finite gradient entered the loss -> render -> Gaussians -> particles chain: the same iteration
+    once more (the law has not moved: a non-finite gradient is never applied) with a :class:`GradProbe` on the
+    tensors between the stages, and its report. The probe costs ~280 autograd hooks and ~840 launches an iteration
+    on the ball (a large share of its host time, NOTES session 39), so it runs only here, after the fact. A replay that
+    raises, or whose gradients come out finite (GPU float atomics sum in another order each run), says so."""
+    probe = objective.probe = GradProbe()
+    try:
+        _losses_backward(solver, law, data, objective, cfg, n_video, shares, swept, lambda phase: None)
+    except DIVERGENCE_ERRORS as exc:
+        return f"the probed replay of the iteration raised {type(exc).__name__}: {exc}"
+    finally:
+        objective.probe = None
+    if not _nonfinite_gradients(law):
+        return "the probed replay of the iteration had finite gradients (not reproduced: no stage named)"
+    return probe.report()
+
+
+def _nonfinite_gradients(law: LearnedLaw) -> list[str]:
+    """Per parameter group with non-finite gradient entries: "<group>: <n> non-finite gradient entries"."""
     bad = []
     for group in law.groups:
         n_bad = sum(int((~torch.isfinite(p.grad)).sum()) for p in group["params"] if p.grad is not None)
         if n_bad:
             bad.append(f"{group['name']}: {n_bad} non-finite gradient entries")
+    return bad
+
+
+def _check_gradients(law: LearnedLaw, provenance: Callable[[], str] | None = None) -> None:
+    """Raise FloatingPointError naming the parameter groups whose gradients are non-finite (never zeroed)
+    and, with ``provenance`` (called only then), where along the loss -> render -> Gaussians -> particles chain
+    they broke."""
+    bad = _nonfinite_gradients(law)
     if bad:
-        where = f"; provenance: {probe.report()}" if probe is not None else ""
+        where = f"; provenance: {provenance()}" if provenance is not None else ""
         raise FloatingPointError("non-finite gradients after backward (" + "; ".join(bad) + ")" + where)
 
 

@@ -83,7 +83,7 @@ class Objective:
     def __init__(self, method: Method, data: TrainData, cfg: TrainConfig, rdga: RDGAConfig,
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
-        self.probe: GradProbe | None = None  # set per iteration by _gradient (gradient provenance)
+        self.probe: GradProbe | None = None  # set by loop._provenance only (a replay after a non-finite gradient)
         self._term_weight = 1.0  # the current frame's weight in the loss, applied to the terms collected for shares
         self.frame_weights: list[float] | None = None  # per video frame, set per iteration by the loop (NeuMA's rollout weighting)
         self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares

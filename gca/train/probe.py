@@ -3,9 +3,11 @@
 A non-finite gradient on the law's parameters says nothing about its origin: the losses, the
 rasterizer's backward, the Gaussians-from-particles map or the simulator (law included). A
 :class:`GradProbe` hooks the tensors between those stages and counts non-finite entries of the
-gradient reaching each one, as device tensors (no host sync during backward); only when a
-divergence is reported are the counts read, and the message then names the furthest-downstream
-stage whose gradient was already broken.
+gradient reaching each one, as device tensors (no host sync during backward); the counts are read
+once, and the message then names the furthest-downstream stage whose gradient was already broken.
+Training attaches it only to a replay of an iteration whose gradient came out non-finite
+(``gca.train.loop._provenance``): on every iteration its hooks cost a large share of a host-bound
+iteration (NOTES session 39).
 """
 
 from __future__ import annotations
