@@ -62,3 +62,26 @@ def test_look_at_rejects_degenerate_input():
         look_at([0, 0, 0], [0, 0, 0], [0, 1, 0], 40, 8, 8)
     with pytest.raises(CameraError, match="missing|exactly"):
         Camera.from_dict({"K": np.eye(3).tolist()})
+
+
+def test_a_cameras_tensors_are_made_once_per_dtype_and_device():
+    """``Camera.tensors``: K and w2c as tensors, the same ones on every call for a (dtype, device) (on CUDA a new one is
+    a host copy that waits for the GPU, four per rendered frame: NOTES s39), other ones for another dtype; equal to
+    the camera's arrays; a pickled or copied camera carries none of them."""
+    import copy
+    import pickle
+
+    cam = Camera(K=[[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]], w2c=np.eye(4), width=64, height=48)
+    K, w2c = cam.tensors(torch.float32, "cpu")
+    assert cam.tensors(torch.float32, torch.device("cpu"))[0] is K and cam.tensors()[1] is w2c
+    K64, _ = cam.tensors(torch.float64, "cpu")
+    assert K64 is not K and K64.dtype == torch.float64
+    np.testing.assert_array_equal(K64.numpy(), cam.K)
+    np.testing.assert_array_equal(w2c.numpy(), cam.w2c.astype(np.float32))
+    for other in (pickle.loads(pickle.dumps(cam)), copy.deepcopy(cam)):
+        assert other._tensors == {} and other.tensors()[0] is not K
+        np.testing.assert_array_equal(other.tensors()[0].numpy(), K.numpy())
+    assert len(cam._tensors) == 2  # the original keeps its own
+    centre = cam.center_tensor(torch.float64, "cpu")
+    assert cam.center_tensor(torch.float64, "cpu") is centre and len(cam._tensors) == 3
+    np.testing.assert_allclose(centre.numpy(), cam.center)

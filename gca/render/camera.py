@@ -65,6 +65,9 @@ class Camera:
     w2c: np.ndarray
     width: int
     height: int
+    # (dtype, device) -> (K, w2c), ("center", dtype, device) -> centre, made once: a tensor made from host data on CUDA is a copy that synchronises the
+    # stream, and a training renders every frame through this camera (NOTES session 39)
+    _tensors: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", _as_matrix(self.K, (3, 3), "K"))
@@ -76,6 +79,10 @@ class Camera:
             object.__setattr__(self, name, int(value))
         _check_K(self.K)
         _check_w2c(self.w2c)
+
+    def __getstate__(self) -> dict:
+        """Pickled without the tensors kept by :meth:`tensors` (a CUDA tensor would not load where CUDA is absent)."""
+        return {**self.__dict__, "_tensors": {}}
 
     @property
     def c2w(self) -> np.ndarray:
@@ -89,9 +96,21 @@ class Camera:
 
     def tensors(self, dtype: torch.dtype = torch.float32,
                 device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-        """Return ``(K [3, 3], w2c [4, 4])`` as torch tensors of the given dtype/device."""
-        return (torch.tensor(self.K.tolist(), dtype=dtype, device=device),
-                torch.tensor(self.w2c.tolist(), dtype=dtype, device=device))
+        """Return ``(K [3, 3], w2c [4, 4])`` as torch tensors of the given dtype/device, made on the first call for that
+        dtype and device and the same tensors after (not to be written to): on CUDA each new one would be a host copy
+        that waits for the GPU, four a rendered frame (NOTES session 39)."""
+        key = (dtype, torch.device(device))
+        if key not in self._tensors:
+            self._tensors[key] = (torch.tensor(self.K.tolist(), dtype=dtype, device=device),
+                                  torch.tensor(self.w2c.tolist(), dtype=dtype, device=device))
+        return self._tensors[key]
+
+    def center_tensor(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
+        """The camera centre in world coordinates [3] as a tensor, made once per dtype and device like :meth:`tensors`."""
+        key = ("center", dtype, torch.device(device))
+        if key not in self._tensors:
+            self._tensors[key] = torch.tensor(self.center.tolist(), dtype=dtype, device=device)
+        return self._tensors[key]
 
     def to_camera(self, points: torch.Tensor) -> torch.Tensor:
         """World points [N, 3] -> camera-frame points [N, 3] (OpenCV axes, z forward) [m]."""

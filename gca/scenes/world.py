@@ -124,7 +124,7 @@ def body_colors(body: Body, means: torch.Tensor, camera: Camera) -> torch.Tensor
     SH bands 1-3, their view-dependent term along camera centre -> mean (:mod:`gca.sh`)."""
     if body.sh_rest is None:
         return body.colors
-    centre = torch.as_tensor(camera.center, dtype=means.dtype, device=means.device)
+    centre = camera.center_tensor(means.dtype, means.device)  # made once (a host copy per frame would wait for the GPU)
     return (body.colors + view_term(body.sh_rest, means, centre)).clamp(0.0, 1.0)
 
 
