@@ -8,6 +8,7 @@
 #       gsplat's build; the ball's data; 10 GCA iterations at HEAD, at 1593090 (ab_old/gca first on PYTHONPATH), at
 #       HEAD again (same data); profile_train.py of one full-horizon swept iteration  -> {rdga,rdga_old,rdga2}/, profile*
 #   or PART=ab: only gsplat's build, the ball's data, HEAD then 1593090 (before table1_one.sh's grid on the same machine)
+#       (session 39: any commit, `git archive REV gca | tar -x -C ab_old && echo REV > ab_old/REV`; the log names it)
 #   PART=levers (no gsplat needed; ~2 min): the next levers measured before anything is built on them
 #       bench_p2g.py: the ball's particles in meshgrid order, by sub-lattice, shuffled (and the 8-per-cell lattice);
 #           each also through an index array, identity and cell-interleaved (p2g_indirect, p2g_interleaved)
@@ -43,10 +44,11 @@ stamp "host: $(grep -m1 '^model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//
 if [ "$PART" = a ] || [ "$PART" = ab ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   [ -f ab_old/gca/align/rdga.py ] || { echo "ab_old/gca missing: git archive 1593090 gca | tar -x -C ab_old"; exit 2; }
+  stamp "ab_old holds the gca of $(cat ab_old/REV 2> /dev/null || echo 1593090)"
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   W=/tmp/fast10_ball
   stamp "rdga (HEAD): data + 10 iterations"; run rdga ball $W 10 240
-  stamp "rdga_old (the gca of 1593090): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+  stamp "rdga_old (the gca in ab_old): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
   (cd /tmp && PYTHONPATH=$OLDPWD/ab_old:$PYTHONPATH python3 -c "import gca.align.rdga as r; print('rdga_old reads', r.__file__)")
   PYTHONPATH=$PWD/ab_old:$PYTHONPATH run rdga_old ball $W 10 150 --reuse-data --stages train evaluate
   [ "$PART" = ab ] && { summary rdga rdga_old; stamp done; exit 0; }
