@@ -124,11 +124,12 @@ if [ "$PART" = mlppacked ]; then  # for session 37: which MLP is cheapest when t
   echo "mlppacked rc=$?"; grep -E "^\||MPS" "$OUT/mlppacked.txt"
 fi
 
-if [ "$PART" = mlpsweep ]; then  # for session 39: the TF32 backward's launch (76 of its 87 us at 30k, H200, s37)
+if [ "$PART" = mlpsweep ]; then  # for session 39: the TF32 backward's launch (76 of its 87 us at 30k, H200, s37); since
+  # s39 tf32_64 is _w4_p2 and the sweep names s38's default, _w8_p4, instead
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   stamp "bench_mlp_triton: the TF32 backward's launch swept, alone"
   timeout "${LIMIT:-200}" python3 benchmarks/bench_mlp_triton.py --device cuda --sizes 30000 100000 --variants torch \
-      ${SWEEP:-tf32_64 tf32_64_w8_p2 tf32_64_w8_p1 tf32_64_w4_p4 tf32_64_w4_p2 tf32_64_w4_p1 tf32_128_w8_p2 \
+      ${SWEEP:-tf32_64 tf32_64_w8_p4 tf32_64_w8_p2 tf32_64_w8_p1 tf32_64_w4_p4 tf32_64_w4_p1 tf32_128_w8_p2 \
       tf32_128_w8_p1 tf32_128_w4_p2 tf32_128_w4_p1 tf32_32_w4_p8 tf32_32_w4_p4 tf32_32_w8_p4} \
       --json "$OUT/mlpsweep.json" > "$OUT/mlpsweep.txt" 2>&1
   echo "mlpsweep rc=$?"; grep -E "^\|" "$OUT/mlpsweep.txt"

@@ -53,7 +53,7 @@ def versions() -> dict:
 
 
 def host_cpu(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The host's CPU model and core count ("<model>, <n> cores"): a solo training's render + losses phase is host-bound
+    """The host's CPU model and the cores this process may use ("<model>, <n> cores", as ``nproc``): a solo training's render + losses phase is host-bound
     (NOTES session 39: the same code 24 % slower on the ball on another lease of the same GPU kind), so a row names its
     host. ``platform.processor()`` where ``cpuinfo`` is unreadable or names no model."""
     try:
@@ -61,7 +61,8 @@ def host_cpu(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
                       if line.lower().startswith("model name") and ":" in line), "")
     except OSError:
         model = ""
-    return f"{model or platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()  # nproc's count
+    return f"{model or platform.processor() or platform.machine()}, {cores} cores"
 
 
 STAGES = ("assets", "particles", "prior", "ground_truth", "preprocess", "train", "evaluate")

@@ -107,7 +107,7 @@ import bench_mlp_triton as b
 b.SMS = 1  # one "SM": programs per SM are then the programs themselves (the interpreter's count, patched)
 W, P = b.mlp_triton.BWD_WARPS, b.mlp_triton.BWD_PROGRAMS_PER_SM  # the library's launch (session 39: 4 warps, 2 per SM)
 assert b.fused_launch("tf32_64") == ("tf32", 64, W, P)
-assert b.fused_launch("tf32_128_w4_p2") == ("tf32", 128, 4, 2)
+assert b.fused_launch("tf32_128_w8_p1") == ("tf32", 128, 8, 1)
 assert b.fused_launch("ieee_32_p1") == ("ieee", 32, b.mlp_triton.BWD_WARPS, 1)
 assert b.fused_launch("torch") is None and b.fused_launch("tf32_64_p2_w4") is None  # the order is fixed
 for bad in ("tf32", "tf32_64_w", "bf16_64", "tf32_64_p2_w4"):
@@ -124,10 +124,11 @@ v = torch.randn(70, 9)
 Ws = [m.weight for m in net if isinstance(m, torch.nn.Linear)]
 ref = torch.autograd.grad((net(x) * v).sum(), [x, *Ws])
 per = -(-5 // P)  # the library's P programs over 5 tiles of 16: per tiles each, so ceil(5 / per) programs
-for name, launch in (("tf32_16_w4_p1", (1, 4)), ("tf32_32_w1_p2", (2, 1)), ("tf32_16", (-(-5 // per), W)),
+for name, launch in (("tf32_16_w8_p1", (1, 8)), ("tf32_32_w1_p4", (3, 1)), ("tf32_16", (-(-5 // per), W)),
                      ("tf32_64_w2", (min(2, P), 2))):
     # 70 rows: 5 tiles of 16 (p1: one program loops over all 5; p4: 2 tiles each, so 3 programs; p2: 3 tiles each, 2
-    # programs), 3 tiles of 32 (p2: 2 programs), 2 of 64 (p >= 2: 2 programs, one tile each)
+    # programs), 3 tiles of 32 (p4: 3 programs, one tile each), 2 of 64 (p >= 2: 2 programs, one tile each); the
+    # named warps and programs differ from the library's (4, 2), so a parser that dropped them would fail
     call = b.variant_call(name, net)
     with b.backward_launches() as seen:  # the backward's launch as the kernel receives it: (programs, warps)
         got = torch.autograd.grad((call(x) * v).sum(), [x, *Ws])

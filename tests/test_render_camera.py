@@ -69,6 +69,7 @@ def test_a_cameras_tensors_are_made_once_per_dtype_and_device():
     a host copy that waits for the GPU, four per rendered frame: NOTES s39), other ones for another dtype; equal to
     the camera's arrays; a pickled or copied camera carries none of them."""
     import copy
+    import dataclasses
     import pickle
 
     cam = Camera(K=[[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]], w2c=np.eye(4), width=64, height=48)
@@ -78,10 +79,16 @@ def test_a_cameras_tensors_are_made_once_per_dtype_and_device():
     assert K64 is not K and K64.dtype == torch.float64
     np.testing.assert_array_equal(K64.numpy(), cam.K)
     np.testing.assert_array_equal(w2c.numpy(), cam.w2c.astype(np.float32))
-    for other in (pickle.loads(pickle.dumps(cam)), copy.deepcopy(cam)):
+    for other in (pickle.loads(pickle.dumps(cam)), copy.deepcopy(cam), copy.copy(cam), dataclasses.replace(cam)):
         assert other._tensors == {} and other.tensors()[0] is not K
         np.testing.assert_array_equal(other.tensors()[0].numpy(), K.numpy())
     assert len(cam._tensors) == 2  # the original keeps its own
     centre = cam.center_tensor(torch.float64, "cpu")
     assert cam.center_tensor(torch.float64, "cpu") is centre and len(cam._tensors) == 3
     np.testing.assert_allclose(centre.numpy(), cam.center)
+    fresh = Camera(K=cam.K, w2c=cam.w2c, width=64, height=48)
+    with torch.inference_mode():  # first made under inference mode (an evaluation), then used in training
+        fresh.tensors()
+    w = torch.ones(3, requires_grad=True)
+    (fresh.tensors()[1][:3, :3] @ w).sum().backward()  # inference tensors could not be saved for backward
+    assert torch.equal(w.grad, fresh.tensors()[1][:3, :3].sum(0))

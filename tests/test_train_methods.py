@@ -767,6 +767,8 @@ def test_a_nonfinite_gradient_is_traced_by_a_probed_replay(scene, sweep, monkeyp
 
     law, objective, run = gradient()
     assert math.isfinite(run()["grad_norm"]) and probes == [] and objective.probe is None  # healthy: no probe
+    advance = objective.state()["cpr"]["calls"]  # CPR's calls in one iteration (from a fresh objective)
+    assert advance > 0
     real, calls = objective_module.gaussians_at, []
 
     def broken_map(body, x, F, every_call=True):
@@ -780,9 +782,47 @@ def test_a_nonfinite_gradient_is_traced_by_a_probed_replay(scene, sweep, monkeyp
                        "first broken at 'particles': made by the particles-to-Gaussians map's backward"):
         run()
     assert len(probes) == 1 and objective.probe is None  # one probed replay, detached after it
+    assert objective.state()["cpr"]["calls"] == advance  # the replay's CPR calls taken back
     monkeypatch.setattr(objective_module, "gaussians_at", lambda *a: broken_map(*a, every_call=False))
     calls.clear()
     law, objective, run = gradient()
     with pytest.raises(FloatingPointError, match="replay of the iteration had finite gradients \\(not reproduced"):
         run()
     assert len(calls) == 2 * len(data.video_frames)  # the iteration and its replay rendered every frame
+
+
+def test_a_probed_replay_leaves_cpr_where_the_iteration_did_and_its_own_failure_is_said(scene, monkeypatch):
+    """The replay runs from the objective's state before the iteration (CPR's call count and fits: with
+    ``refit_every`` > 1 a second advance would shift every later refit) and leaves it where the iteration left it;
+    a replay that fails in any way (here a RuntimeError, which is no divergence) is said in the divergence's
+    message, which stays a FloatingPointError (the loop rejects the update instead of crashing)."""
+    import gca.train.objective as objective_module
+    from gca.train import loop
+
+    method = get_method("gca")
+    data = _data(scene, method)
+    cfg = TrainConfig(iterations=1, curriculum_start=1.0, term_shares_every=0)
+    law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2, seed=0)
+    objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2, refit_every=3),
+                          MatchConfig())
+    calls = lambda: objective.state()["cpr"]["calls"]  # noqa: E731
+    run = lambda: loop._gradient(tiny_solver(), law, data, objective, cfg, len(data.video_frames))  # noqa: E731
+    c0 = calls()
+    run()
+    advance = calls() - c0
+    assert advance > 0
+    real, renders = objective_module.gaussians_at, []
+
+    def broken_map(body, x, F):
+        renders.append(1)
+        if len(renders) > len(data.video_frames):  # the replay's renders
+            raise RuntimeError("planted: the replay fails")
+        means, covs = real(body, x, F)
+        return _NaNBackward.apply(means), covs
+
+    monkeypatch.setattr(objective_module, "gaussians_at", broken_map)
+    c1 = calls()
+    with pytest.raises(FloatingPointError, match="non-finite gradients after backward .*provenance: the probed replay "
+                       "of the iteration failed \\(RuntimeError: planted: the replay fails\\)"):
+        run()
+    assert calls() - c1 == advance and objective.probe is None

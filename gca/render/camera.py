@@ -50,6 +50,12 @@ def _check_w2c(w2c: np.ndarray) -> None:
         raise CameraError(f"{_WHERE}: w2c rotation block is not a proper rotation (R R^T != I or det < 0)")
 
 
+def _indexed(device: torch.device | str) -> torch.device:
+    """``device`` with its index: a bare "cuda" is the current CUDA device (a kept tensor must not follow another)."""
+    device = torch.device(device)
+    return torch.device("cuda", torch.cuda.current_device()) if device.type == "cuda" and device.index is None else device
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera.
@@ -99,17 +105,19 @@ class Camera:
         """Return ``(K [3, 3], w2c [4, 4])`` as torch tensors of the given dtype/device, made on the first call for that
         dtype and device and the same tensors after (not to be written to): on CUDA each new one would be a host copy
         that waits for the GPU, four a rendered frame (NOTES session 39)."""
-        key = (dtype, torch.device(device))
+        key = (dtype, _indexed(device))
         if key not in self._tensors:
-            self._tensors[key] = (torch.tensor(self.K.tolist(), dtype=dtype, device=device),
-                                  torch.tensor(self.w2c.tolist(), dtype=dtype, device=device))
+            with torch.inference_mode(False):  # made under inference mode they could never enter a training graph
+                self._tensors[key] = (torch.tensor(self.K.tolist(), dtype=dtype, device=key[1]),
+                                      torch.tensor(self.w2c.tolist(), dtype=dtype, device=key[1]))
         return self._tensors[key]
 
     def center_tensor(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
         """The camera centre in world coordinates [3] as a tensor, made once per dtype and device like :meth:`tensors`."""
-        key = ("center", dtype, torch.device(device))
+        key = ("center", dtype, _indexed(device))
         if key not in self._tensors:
-            self._tensors[key] = torch.tensor(self.center.tolist(), dtype=dtype, device=device)
+            with torch.inference_mode(False):
+                self._tensors[key] = torch.tensor(self.center.tolist(), dtype=dtype, device=key[2])
         return self._tensors[key]
 
     def to_camera(self, points: torch.Tensor) -> torch.Tensor:

@@ -191,7 +191,7 @@ def _select(best: BestLaw, undo, solver, law, data, objective, cfg, n_video: int
     one's loss is lower or the final rollout diverges (with no earlier full-video loss to compare with,
     a diverging final law is replaced by the law before the last update)."""
     try:
-        final = _gradient(solver, law, data, objective, cfg, n_video)["loss"]
+        final = _gradient(solver, law, data, objective, cfg, n_video, provenance=False)["loss"]  # its message unused
     except DIVERGENCE_ERRORS:
         final = math.inf
     if best.params is not None and best.loss < final:
@@ -234,23 +234,27 @@ class PhaseTimer:
         self._t = t
 
 
-def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False) -> dict:
+def _gradient(solver, law, data, objective, cfg, n_video, shares: bool = False, provenance: bool = True) -> dict:
     """Rollout, losses, backward and clipping: the law's ``.grad`` is ready for the update.
 
     Returns the iteration's record (loss, gradient norm before clipping, horizon, stats, phase times).
-    Raises one of ``DIVERGENCE_ERRORS`` when the rollout, the loss or a gradient is not usable; a non-finite
-    gradient's message says where it entered (:func:`_provenance`: the iteration once more, probed).
+    Raises one of ``DIVERGENCE_ERRORS`` when the rollout, the loss or a gradient is not usable; with ``provenance``,
+    a non-finite gradient's message says where it entered (:func:`_provenance`: the iteration once more, probed).
     """
     swept = cfg.reverse_sweep and not shares and objective.can_sweep()
     timer = PhaseTimer(data.body.x0.device, synced={"backward"} if swept else None)
     timer.start()
     objective.probe = None
+    before = objective.state()  # what the iteration advances (CPR's calls and fits): a replay starts from it
     loss, stats, traj = _losses_backward(solver, law, data, objective, cfg, n_video, shares, swept, timer.lap)
-    _check_gradients(law, lambda: _provenance(solver, law, data, objective, cfg, n_video, shares, swept))
+    refine, wave_speed = traj.refine, traj.wave_speed
+    del traj  # a replay's rollout should not sit beside this one
+    _check_gradients(law, (lambda: _provenance(solver, law, data, objective, cfg, n_video, swept, before))
+                     if provenance else None)
     params = law.trainable()
     grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": traj.refine,
-            "wave_speed": traj.wave_speed, **stats,
+    return {"loss": float(loss), "grad_norm": float(grad_norm), "horizon": n_video, "sim_refine": refine,
+            "wave_speed": wave_speed, **stats,
             **{f"time/{k}": v for k, v in timer.seconds.items()}}
 
 
@@ -276,19 +280,25 @@ def _losses_backward(solver, law, data, objective, cfg, n_video: int, shares: bo
     return loss, stats, traj
 
 
-def _provenance(solver, law, data, objective, cfg, n_video: int, shares: bool, swept: bool) -> str:
+def _provenance(solver, law, data, objective, cfg, n_video: int, swept: bool, before: dict) -> str:
     """Where a non-finite gradient entered the loss -> render -> Gaussians -> particles chain: the same iteration
-    once more (the law has not moved: a non-finite gradient is never applied) with a :class:`GradProbe` on the
-    tensors between the stages, and its report. The probe costs ~280 autograd hooks and ~840 launches an iteration
-    on the ball (a large share of its host time, NOTES session 39), so it runs only here, after the fact. A replay that
-    raises, or whose gradients come out finite (GPU float atomics sum in another order each run), says so."""
+    once more (the law has not moved: a non-finite gradient is never applied; the objective's state, CPR's calls and
+    fits, put back to ``before`` for it and to where the iteration left it after) with a :class:`GradProbe` on the
+    tensors between the stages, and its report; the same gradient pass (swept or not), without the term-share
+    passes. The probe costs ~280 autograd hooks and ~840 launches an iteration on the ball (a large share of its host
+    time, NOTES session 39), so it runs only here, after the fact. A replay that fails (any error: it must not replace
+    the divergence being reported), or whose gradients come out finite (GPU float atomics sum in another order each
+    run), says so. The law's ``.grad`` then holds the replay's gradient (the caller raises; nothing applies it)."""
+    after = objective.state()
+    objective.load_state(before)
     probe = objective.probe = GradProbe()
     try:
-        _losses_backward(solver, law, data, objective, cfg, n_video, shares, swept, lambda phase: None)
-    except DIVERGENCE_ERRORS as exc:
-        return f"the probed replay of the iteration raised {type(exc).__name__}: {exc}"
+        _losses_backward(solver, law, data, objective, cfg, n_video, False, swept, lambda phase: None)
+    except Exception as exc:  # noqa: BLE001 (a report, not a recovery: the caller raises the divergence)
+        return f"the probed replay of the iteration failed ({type(exc).__name__}: {exc})"
     finally:
         objective.probe = None
+        objective.load_state(after)
     if not _nonfinite_gradients(law):
         return "the probed replay of the iteration had finite gradients (not reproduced: no stage named)"
     return probe.report()
@@ -305,9 +315,9 @@ def _nonfinite_gradients(law: LearnedLaw) -> list[str]:
 
 
 def _check_gradients(law: LearnedLaw, provenance: Callable[[], str] | None = None) -> None:
-    """Raise FloatingPointError naming the parameter groups whose gradients are non-finite (never zeroed)
-    and, with ``provenance`` (called only then), where along the loss -> render -> Gaussians -> particles chain
-    they broke."""
+    """Raise FloatingPointError naming the parameter groups whose gradients are non-finite (never zeroed; a
+    ``provenance`` replay leaves its own in ``.grad``, which the loop's undo or the next iteration clears) and, with
+    ``provenance`` (called only then), where along the loss -> render -> Gaussians -> particles chain they broke."""
     bad = _nonfinite_gradients(law)
     if bad:
         where = f"; provenance: {provenance()}" if provenance is not None else ""
