@@ -2,13 +2,15 @@
 # Issue 20, session 33: RDGA without host reads mid-frame (ce94340: 0/1 selection weights, tensor stats, checks judged
 # once per iteration) against the code just before it (1593090), then where a swept iteration goes now; then solo runs.
 #
-#   before: mkdir -p ab_old && git archive 1593090 gca | tar -x -C ab_old   (untracked: it travels with the tree)
+#   before: mkdir -p ab_old && git archive 1593090 gca params.yaml | tar -x -C ab_old   (untracked: it travels with the
+#   tree)
 #   call 1 carry [".wpa"]:                                  sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:           . .wpb/activate.sh && PART=a OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       gsplat's build; the ball's data; 10 GCA iterations at HEAD, at 1593090 (ab_old/gca first on PYTHONPATH), at
 #       HEAD again (same data); profile_train.py of one full-horizon swept iteration  -> {rdga,rdga_old,rdga2}/, profile*
 #   or PART=ab: only gsplat's build, the ball's data, HEAD then 1593090 (before table1_one.sh's grid on the same machine)
-#       (session 39: any commit, `git archive REV gca | tar -x -C ab_old && echo REV > ab_old/REV`; the log names it)
+#       (session 39: any commit, `git archive REV gca params.yaml | tar -x -C ab_old && echo REV > ab_old/REV`; the log
+#       names it)
 #   PART=levers (no gsplat needed; ~2 min): the next levers measured before anything is built on them
 #       bench_p2g.py: the ball's particles in meshgrid order, by sub-lattice, shuffled (and the 8-per-cell lattice);
 #           each also through an index array, identity and cell-interleaved (p2g_indirect, p2g_interleaved)
@@ -43,7 +45,8 @@ stamp "host: $(grep -m1 '^model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//
 
 if [ "$PART" = a ] || [ "$PART" = ab ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-  [ -f ab_old/gca/align/rdga.py ] || { echo "ab_old/gca missing: git archive 1593090 gca | tar -x -C ab_old"; exit 2; }
+  [ -f ab_old/gca/align/rdga.py ] && [ -f ab_old/params.yaml ] || {  # the old gca reads the params beside itself (s39)
+    echo "ab_old/gca or ab_old/params.yaml missing: git archive 1593090 gca params.yaml | tar -x -C ab_old"; exit 2; }
   stamp "ab_old holds the gca of $(cat ab_old/REV 2> /dev/null || echo 1593090)"
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   W=/tmp/fast10_ball
