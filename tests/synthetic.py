@@ -74,3 +74,18 @@ def observations(view: ViewData, seed: int = 0):
         (view.rgb * 255).astype(np.uint8), view.depth, view.mask)
     keypoints = [detect_keypoints((f * 255).astype(np.uint8)) for f in view.rgb]
     return est, keypoints
+
+
+class NaNBackward(torch.autograd.Function):
+    """Identity forward; the backward poisons one entry of the gradient: a broken stage, for the tests of where a
+    non-finite gradient entered (``gca.train.probe``, ``gca.train.loop._provenance``)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        g = g.clone()
+        g.view(-1)[0] = float("nan")
+        return g

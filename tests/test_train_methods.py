@@ -11,7 +11,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from synthetic import JELLY, ground_truth_views, observations, tiny_body, tiny_solver  # noqa: E402
+from synthetic import JELLY, NaNBackward, ground_truth_views, observations, tiny_body, tiny_solver  # noqa: E402
 
 from gca.align import cpr as _cpr, rdga as _rdga  # noqa: E402
 
@@ -728,20 +728,6 @@ def test_methods_declare_their_terms():
         get_method("gca").uses("mask")
 
 
-class _NaNBackward(torch.autograd.Function):
-    """Identity forward; the backward poisons one entry: a broken stage."""
-
-    @staticmethod
-    def forward(ctx, x):
-        return x.clone()
-
-    @staticmethod
-    def backward(ctx, g):
-        g = g.clone()
-        g.view(-1)[0] = float("nan")
-        return g
-
-
 @pytest.mark.parametrize("sweep", [False, True])
 def test_a_nonfinite_gradient_is_traced_by_a_probed_replay(scene, sweep, monkeypatch):
     """A healthy iteration attaches no gradient probe (its hooks were a large share of a host-bound iteration, NOTES
@@ -774,7 +760,7 @@ def test_a_nonfinite_gradient_is_traced_by_a_probed_replay(scene, sweep, monkeyp
     def broken_map(body, x, F, every_call=True):
         calls.append(1)
         means, covs = real(body, x, F)
-        return (_NaNBackward.apply(means) if every_call or len(calls) <= len(data.video_frames) else means), covs
+        return (NaNBackward.apply(means) if every_call or len(calls) <= len(data.video_frames) else means), covs
 
     monkeypatch.setattr(objective_module, "gaussians_at", broken_map)
     law, objective, run = gradient()
@@ -818,7 +804,7 @@ def test_a_probed_replay_leaves_cpr_where_the_iteration_did_and_its_own_failure_
         if len(renders) > len(data.video_frames):  # the replay's renders
             raise RuntimeError("planted: the replay fails")
         means, covs = real(body, x, F)
-        return _NaNBackward.apply(means), covs
+        return NaNBackward.apply(means), covs
 
     monkeypatch.setattr(objective_module, "gaussians_at", broken_map)
     c1 = calls()

@@ -4,20 +4,7 @@ import pytest
 import torch
 
 from gca.train.probe import GradProbe
-
-
-class _NaNBackward(torch.autograd.Function):
-    """Identity forward; backward poisons one entry (a broken stage)."""
-
-    @staticmethod
-    def forward(ctx, x):
-        return x.clone()
-
-    @staticmethod
-    def backward(ctx, g):
-        g = g.clone()
-        g.view(-1)[0] = float("nan")
-        return g
+from synthetic import NaNBackward
 
 
 def _chain(broken: str):
@@ -25,13 +12,13 @@ def _chain(broken: str):
     theta = torch.ones(4, requires_grad=True)
     probe = GradProbe()
     x = theta * 2.0
-    x = _NaNBackward.apply(x) if broken == "law" else x
+    x = NaNBackward.apply(x) if broken == "law" else x
     probe.watch("particles", "x", -1, x)
     means = x * 3.0
-    means = _NaNBackward.apply(means) if broken == "map" else means
+    means = NaNBackward.apply(means) if broken == "map" else means
     probe.watch("gaussians", "means", 0, means)
     rgb = means.sin()
-    rgb = _NaNBackward.apply(rgb) if broken == "raster" else rgb
+    rgb = NaNBackward.apply(rgb) if broken == "raster" else rgb
     probe.watch("render outputs", "train0/rgb", 0, rgb)
     loss = rgb.sum() if broken != "loss" else (rgb * torch.tensor([float("inf"), 1, 1, 1]) * 0).sum()
     loss.backward()
