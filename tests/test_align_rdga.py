@@ -383,3 +383,25 @@ def test_global_term_over_a_selection_equals_the_selected_sets():
             (selected + 0.0).backward() if selected.requires_grad else None
             assert float(masked.detach()) == pytest.approx(float(selected.detach()), rel=1e-12, abs=0.0)
             torch.testing.assert_close(a.grad, b.grad if b.grad is not None else torch.zeros_like(P))
+
+
+@pytest.mark.parametrize("r", [2, 3, 4, 9])
+@pytest.mark.parametrize("mode", ["eroded", "paper_literal"])
+def test_stable_region_equals_kornias_morphology(r, mode):
+    """The max-pooling stable region equals kornia.morphology's (geodesic border, flat r x r kernel, its origin for
+    even r too) on random masks that touch the image border, thin strokes included; a border that erodes (constant
+    0 outside) differs, the control."""
+    import kornia.morphology as morph
+
+    g = torch.Generator().manual_seed(r)
+    for _ in range(3):
+        mask = torch.rand(37, 29, generator=g) > 0.35
+        mask[:, 0] = True  # touches the border
+        m = mask.float()[None, None]
+        kernel = torch.ones(r, r)
+        ref = morph.erosion(m, kernel) if mode == "eroded" else m - morph.opening(m, kernel)
+        assert torch.equal(stable_region(mask, r, mode), ref[0, 0] > 0.5)
+    full = torch.ones(37, 29, dtype=torch.bool)  # the control: a border that erodes (0 outside) eats a band of it
+    eroding = morph.erosion(full.float()[None, None], torch.ones(r, r), border_type="constant", border_value=0.0)
+    if mode == "eroded":
+        assert stable_region(full, r, mode).all() and not torch.equal(stable_region(full, r, mode), eroding[0, 0] > 0.5)
