@@ -385,23 +385,34 @@ def test_global_term_over_a_selection_equals_the_selected_sets():
             torch.testing.assert_close(a.grad, b.grad if b.grad is not None else torch.zeros_like(P))
 
 
-@pytest.mark.parametrize("r", [2, 3, 4, 9])
+@pytest.mark.parametrize("r", [1, 2, 3, 4, 9, 41])
 @pytest.mark.parametrize("mode", ["eroded", "paper_literal"])
-def test_stable_region_equals_kornias_morphology(r, mode):
-    """The max-pooling stable region equals kornia.morphology's (geodesic border, flat r x r kernel, its origin for
-    even r too) on random masks that touch the image border, thin strokes included; a border that erodes (constant
-    0 outside) differs, the control."""
+def test_stable_region_equals_a_geodesic_morphology(r, mode):
+    """The max-pooling stable region equals a geodesic erosion and opening by a flat r x r square (outside pixels
+    ignored) from scipy.ndimage for every r (even r: the dilation's window reflected, Minkowski's convention, which
+    kornia >= 0.9 shares) and kornia.morphology's for odd r (the default 9 among them), on masks with a solid block,
+    1-px strokes and noise, touching the image border, r = 41 larger than the image; a border that erodes (0
+    outside), the control, differs from it on a full mask."""
     import kornia.morphology as morph
+    from scipy import ndimage
 
-    g = torch.Generator().manual_seed(r)
+    rng = np.random.default_rng(r)
     for _ in range(3):
-        mask = torch.rand(37, 29, generator=g) > 0.35
-        mask[:, 0] = True  # touches the border
-        m = mask.float()[None, None]
-        kernel = torch.ones(r, r)
-        ref = morph.erosion(m, kernel) if mode == "eroded" else m - morph.opening(m, kernel)
-        assert torch.equal(stable_region(mask, r, mode), ref[0, 0] > 0.5)
-    full = torch.ones(37, 29, dtype=torch.bool)  # the control: a border that erodes (0 outside) eats a band of it
-    eroding = morph.erosion(full.float()[None, None], torch.ones(r, r), border_type="constant", border_value=0.0)
-    if mode == "eroded":
-        assert stable_region(full, r, mode).all() and not torch.equal(stable_region(full, r, mode), eroding[0, 0] > 0.5)
+        mask = rng.random((37, 29)) > 0.4
+        mask[5:30, 3:20] = True  # a solid block (the default r = 9 leaves its interior)
+        mask[:, 0] = True  # a 1-px stroke along the border
+        mask[10, :] = True  # and one across the image
+        eroded = ndimage.grey_erosion(mask.astype(float), size=(r, r), mode="constant", cval=np.inf)
+        opened = ndimage.grey_dilation(eroded, size=(r, r), mode="constant", cval=-np.inf)
+        ref = eroded > 0.5 if mode == "eroded" else (mask.astype(float) - opened) > 0.5
+        got = stable_region(torch.from_numpy(mask), r, mode)
+        assert np.array_equal(got.numpy(), ref)
+        if r % 2:
+            m = torch.from_numpy(mask).float()[None, None]
+            kernel = torch.ones(r, r)
+            k_ref = morph.erosion(m, kernel) if mode == "eroded" else m - morph.opening(m, kernel)
+            assert torch.equal(got, k_ref[0, 0] > 0.5)
+    if mode == "eroded" and r > 1:  # the control: a border that erodes eats a band of a full mask; this one does not
+        full = torch.ones(37, 29, dtype=torch.bool)
+        eroding = ndimage.grey_erosion(np.ones((37, 29)), size=(r, r), mode="constant", cval=0.0) > 0.5
+        assert stable_region(full, r).all() and not eroding.all()

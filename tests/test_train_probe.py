@@ -1,10 +1,15 @@
 """gca.train.probe: non-finite gradients are traced to the stage whose backward made them."""
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
-from gca.train.probe import GradProbe
-from synthetic import NaNBackward
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import NaNBackward  # noqa: E402
+
+from gca.train.probe import GradProbe  # noqa: E402
 
 
 def _chain(broken: str):

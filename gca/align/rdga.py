@@ -27,8 +27,8 @@ Choices made where the paper is silent or ambiguous (each a switch in :class:`RD
   regions", "mitigate depth estimation errors near object boundaries"). The default
   ``stable_region="eroded"`` therefore takes ``M_stable = M erode K_rxr``: the mask minus a
   boundary band of width (r - 1) / 2 px. ``"paper_literal"`` gives ``M - opening(M, K_rxr)``.
-  Both are flat r x r max-poolings (:func:`_window_max`; kornia.morphology's geodesic border, equal to it: the image
-  border does not erode the mask).
+  Both are flat r x r max-poolings (:func:`_window_max`, a geodesic border: the image border does not erode the
+  mask).
 - ``P_render``/``P_gt`` (global term). The matcher's p_i are constants, so ``||p - q||`` has no
   gradient. We define ``P_render_i`` as the pixel at which the surface point seen at p_i
   projects: ``pi(X(p_i))`` where ``X`` is a rendered *position image* (Gaussian/particle positions
@@ -196,10 +196,10 @@ def stable_region(mask: torch.Tensor, r: int, mode: str = "eroded") -> torch.Ten
 
 def _window_max(x: torch.Tensor, r: int, reflected: bool = False) -> torch.Tensor:
     """Max of ``x`` [1, 1, H, W] over the r x r window that puts its cell (r // 2, r // 2) on each pixel (``reflected``:
-    the window reflected through that pixel, as a dilation's; the same window for odd r), the pixels outside the image
-    left out: kornia.morphology's erosion and dilation with a flat square kernel and ``geodesic`` border, origin
-    included (equal, tested), in one pooling where kornia's ``unfold`` engine takes ~40 launches and its CPU ``shift``
-    engine ~1500, for every training frame (NOTES session 39)."""
+    the window reflected through that pixel, as a dilation's in Minkowski's convention; the same window for odd r), the
+    pixels outside the image left out: a geodesic erosion or dilation by a flat r x r square (equal to scipy.ndimage's
+    for every r and to kornia.morphology's, which it replaces here, for odd r; tested), in one pooling where kornia's
+    ``unfold`` engine takes ~40 launches and its CPU ``shift`` engine ~1500, for every training frame (NOTES s39)."""
     a, b = r // 2, r - 1 - r // 2  # the window's reach before and after the pixel, per axis
     if reflected:
         a, b = b, a
