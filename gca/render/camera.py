@@ -53,7 +53,9 @@ def _check_w2c(w2c: np.ndarray) -> None:
 def _indexed(device: torch.device | str) -> torch.device:
     """``device`` with its index: a bare "cuda" is the current CUDA device (a kept tensor must not follow another)."""
     device = torch.device(device)
-    return torch.device("cuda", torch.cuda.current_device()) if device.type == "cuda" and device.index is None else device
+    if device.type == "cuda" and device.index is None:
+        return torch.device("cuda", torch.cuda.current_device())
+    return device
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -71,8 +73,8 @@ class Camera:
     w2c: np.ndarray
     width: int
     height: int
-    # (dtype, device) -> (K, w2c), ("center", dtype, device) -> centre, made once: a tensor made from host data on CUDA is a copy that synchronises the
-    # stream, and a training renders every frame through this camera (NOTES session 39)
+    # ("K, w2c" | "center", dtype, device) -> the tensors, made once (:meth:`_kept`): a tensor made from host data on
+    # CUDA is a copy that synchronises the stream, and a training renders every frame through this camera (NOTES s39)
     _tensors: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -105,19 +107,20 @@ class Camera:
         """Return ``(K [3, 3], w2c [4, 4])`` as torch tensors of the given dtype/device, made on the first call for that
         dtype and device and the same tensors after (not to be written to): on CUDA each new one would be a host copy
         that waits for the GPU, four a rendered frame (NOTES session 39)."""
-        key = (dtype, _indexed(device))
-        if key not in self._tensors:
-            with torch.inference_mode(False):  # made under inference mode they could never enter a training graph
-                self._tensors[key] = (torch.tensor(self.K.tolist(), dtype=dtype, device=key[1]),
-                                      torch.tensor(self.w2c.tolist(), dtype=dtype, device=key[1]))
-        return self._tensors[key]
+        return self._kept("K, w2c", dtype, device, lambda: (self.K, self.w2c))
 
     def center_tensor(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
-        """The camera centre in world coordinates [3] as a tensor, made once per dtype and device like :meth:`tensors`."""
-        key = ("center", dtype, _indexed(device))
+        """The camera centre in world coordinates [3] as a tensor, made once per dtype and device (:meth:`tensors`)."""
+        return self._kept("center", dtype, device, lambda: (self.center,))[0]
+
+    def _kept(self, name: str, dtype: torch.dtype, device: torch.device | str, arrays) -> tuple[torch.Tensor, ...]:
+        """The tensors of the arrays ``arrays()`` gives (a tuple) on ``device`` in ``dtype``, made on the first call for
+        ``name`` there and kept: outside inference mode (made under it they could never enter a training graph), on
+        an indexed device (a bare "cuda" kept must not follow another current device)."""
+        key = (name, dtype, _indexed(device))
         if key not in self._tensors:
             with torch.inference_mode(False):
-                self._tensors[key] = torch.tensor(self.center.tolist(), dtype=dtype, device=key[2])
+                self._tensors[key] = tuple(torch.tensor(a.tolist(), dtype=dtype, device=key[2]) for a in arrays())
         return self._tensors[key]
 
     def to_camera(self, points: torch.Tensor) -> torch.Tensor:
