@@ -53,9 +53,9 @@ def versions() -> dict:
 
 
 def host_cpu(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The host's CPU model and the cores this process may use ("<model>, <n> cores", as ``nproc``): a solo training's render + losses phase is host-bound
-    (NOTES session 39: the same code 24 % slower on the ball on another lease of the same GPU kind), so a row names its
-    host. ``platform.processor()`` where ``cpuinfo`` is unreadable or names no model."""
+    """The host's CPU model and the cores this process may use ("<model>, <n> cores", as ``nproc``): a solo
+    training's render + losses phase is host-bound (NOTES session 39: the same code 24 % slower on the ball on another
+    lease of the same GPU kind), so a row names its host. ``platform.processor()`` where ``cpuinfo`` is unreadable or names no model."""
     try:
         model = next((line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
                       if line.lower().startswith("model name") and ":" in line), "")

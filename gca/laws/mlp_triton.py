@@ -7,7 +7,8 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
 
 - forward: one launch, a block of particles per program, the [BLOCK, 64] activations on chip, nothing stored but
   the inputs;
-- backward: one persistent launch (``BWD_PROGRAMS_PER_SM`` programs of ``BWD_WARPS`` warps) that recomputes each tile's forward on chip, stores dz per
+- backward: one persistent launch (``BWD_PROGRAMS_PER_SM`` programs of ``BWD_WARPS`` warps) that recomputes each
+  tile's forward on chip, stores dz per
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
   in a fixed order (no atomics: deterministic).
 
@@ -16,7 +17,8 @@ Measured (NVIDIA H200, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``
 processes under MPS 4.33x and 1.44x torch's throughput; at 100k alone 26.8 / 187.1 us against 98.1 / 303.3 (there
 the backward's programs loop over two tiles or more). Session 39 swept the backward's launch (13 launches, H200):
 4 warps x 2 programs per SM (the defaults since) took forward + backward to 58.2 us at 30k, 117.2 at 100k, and 2.28x
-torch's throughput at 8 processes (43.3 against 98.5 us per call). The FP32 (``ieee``) kernels lose to torch (0.57x packed) and
+torch's throughput at 8 processes (43.3 against 98.5 us per call), although it spills 68 registers. The FP32
+(``ieee``) kernels lose to torch (0.57x packed) and
 are here for the float64 interpreter twin only.
 
 The weights are the layers' effective (LoRA-merged) weights, so gradients reach the adapters through torch's autograd
@@ -151,10 +153,7 @@ def _pad(v: int) -> int:
 
 
 BWD_PROGRAMS_PER_SM = 2  # the backward's persistent programs per SM (on a CPU: 8 programs in all)
-BWD_WARPS = 4  # the backward's warps per program. Both from session 39's sweep (NVIDIA H200, fast10_bundle.sh
-# PART=mlpsweep; benchmarks/NOTES.md): 4 warps x 2 programs per SM, block 64, took forward + backward 87.3 -> 58.2 us
-# at 30k particles, 189 -> 117 us at 100k, and 68.7 -> 43.3 us per call at 8 processes under MPS, although it spills
-# (68 registers) where 8 warps x 4 did not
+BWD_WARPS = 4  # the backward's warps per program; both from session 39's sweep (the module docstring)
 
 
 class FusedMLP(torch.autograd.Function):
@@ -201,7 +200,8 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
     """X [N, N_OUT] = W3 gelu(W2 gelu(W1 z)) for z [N, K_IN] and ``weights`` [W1 [H, K_IN], W2 [H, H], W3 [N_OUT, H]]
     (torch's layouts; the shape :func:`check` accepts), differentiable in z and the weights. ``precision``: ``tf32``
     (TF32 products; float32 only) or ``ieee`` (FP32 or float64 products). ``programs``: the backward's persistent
-    programs (default ``BWD_PROGRAMS_PER_SM`` per SM; 8 on a CPU); ``warps``: the backward's warps per program (a power of two, 1-16).
+    programs (default ``BWD_PROGRAMS_PER_SM`` per SM; 8 on a CPU); ``warps``: the backward's warps per program (a
+    power of two, 1-16).
     ``block``, ``programs`` and ``warps`` change the launch, not the function: the products' tiles and the order in
     which the weight gradients' partials are summed change (float rounding only)."""
     if not runs_here(z):
