@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from gca.align import rdga as _rdga
-from gca.align.rdga import global_term, mask_loss, rdga_loss, render_points, stable_region
+from gca.align.rdga import global_term, mask_loss, rdga_frames, rdga_loss, render_points, stable_region
 
 # these tests were written for the mean silhouette (the default is params.yaml's sum since issue 24)
 RDGAConfig = functools.partial(_rdga.RDGAConfig, mask_reduction="mean")
@@ -416,3 +416,60 @@ def test_stable_region_equals_a_geodesic_morphology(r, mode):
         full = torch.ones(37, 29, dtype=torch.bool)
         eroding = ndimage.grey_erosion(np.ones((37, 29)), size=(r, r), mode="constant", cval=0.0) > 0.5
         assert stable_region(full, r).all() and not eroding.all()
+
+
+@pytest.mark.parametrize("depth_term", ["rank", "l1"])
+@pytest.mark.parametrize("reduction", ["norm", "mean_sq"])
+def test_frames_at_once_equal_each_frame_alone(depth_term, reduction):
+    """rdga_frames (session 40: a training iteration's frames in one call, each frame's matches padded to the
+    longest with ``valid`` rows) equals rdga_loss frame by frame: each frame's loss, its gradient to the depth and
+    to the positions, its terms and its stats (float64). Three frames of different objects and match counts, one
+    with none; the padded rows sit where a real match would count (on the object, in the stable region), so a
+    padding that leaked into the sums would change them. Control: the same call without ``valid`` differs."""
+    alpha0, depth0, p0, uv = _scene()
+    K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]], dtype=torch.float64)
+    cfg = RDGAConfig(r=7, k=5, lambda_mask=2.0, lambda1=0.7, lambda2=0.3, global_reduction=reduction, tau=0.3,
+                     depth_term=depth_term)
+    g = torch.Generator().manual_seed(0)
+    frames = []
+    for t, (n, shift) in enumerate([(len(p0), 0.0), (17, 1.5), (0, -2.0)]):
+        alpha = _disk(18 - 2 * t, centre=(H - 1) / 2 + shift).to(torch.float64)
+        depth = depth0.roll(t, 1) * alpha + 0.02 * t
+        p = p0[torch.randperm(len(p0), generator=g)[:n]] + 0.3 * t
+        q = p + 0.4 * torch.randn(p.shape, generator=g, dtype=torch.float64)
+        est = 1.5 * depth + 0.05 * torch.sin(torch.arange(H * W, dtype=torch.float64).reshape(H, W) + t)
+        frames.append((alpha, depth, p, q, est, _disk(17 - t) > 0.5))
+    depth = torch.stack([f[1] for f in frames]).requires_grad_(True)
+    pos = torch.stack([_positions(uv, f[0], K) for f in frames]).requires_grad_(True)
+    M = max(len(f[2]) for f in frames)
+    pad = torch.tensor([24.0, 24.0], dtype=torch.float64)  # the centre: a stable, on-object place
+    P = torch.stack([torch.cat([f[2], pad.expand(M - len(f[2]), 2)]) for f in frames])
+    Q = torch.stack([torch.cat([f[3], pad.expand(M - len(f[3]), 2)]) for f in frames])
+    valid = torch.stack([torch.arange(M) < len(f[2]) for f in frames])
+    maps = dict(alpha=torch.stack([f[0] for f in frames]), gt_mask=torch.stack([f[5] for f in frames]),
+                est_depth=torch.stack([f[4] for f in frames]))
+    terms, checks = {}, []
+    loss, stats = rdga_frames(depth=depth, p=P, q=Q, cfg=cfg, pos_image=pos, K=K, valid=valid, terms=terms,
+                              checks=checks, **maps)
+    _rdga.judge(checks)
+    assert loss.shape == (3,) and set(terms) == {"silhouette", "global", "anchor_l1" if depth_term == "l1" else "anchor"}
+    torch.testing.assert_close(sum(terms.values()), loss)
+    g_depth, g_pos = torch.autograd.grad(loss @ torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64), (depth, pos))
+    anchors = 0
+    for t, (alpha, d, p, q, est, gt) in enumerate(frames):
+        d1, pos1 = d.clone().requires_grad_(True), _positions(uv, alpha, K).requires_grad_(True)
+        terms1 = {}
+        ref, ref_stats = rdga_loss({"alpha": alpha, "depth": d1}, gt, est, p, q, cfg, pos1, K, terms=terms1)
+        assert float(loss[t].detach()) == pytest.approx(float(ref.detach()), rel=1e-12)
+        for key, value in terms1.items():
+            assert float(terms[key][t].detach()) == pytest.approx(float(value.detach()), rel=1e-12, abs=1e-15)
+        got_stats = {k: (float(v[t]) if isinstance(v, torch.Tensor) else v) for k, v in stats.items()}
+        assert got_stats == pytest.approx(ref_stats, rel=1e-12, abs=1e-15)
+        r_depth, r_pos = torch.autograd.grad(ref, (d1, pos1))
+        weight = (1.0, -2.0, 3.0)[t]
+        torch.testing.assert_close(g_depth[t], weight * r_depth, rtol=1e-10, atol=1e-14)
+        torch.testing.assert_close(g_pos[t], weight * r_pos, rtol=1e-10, atol=1e-14)
+        anchors += ref_stats["n_anchors"]
+    assert anchors > 0 and stats["n_global"][1] > 0 and float(stats["n_matches"][2]) == 0  # not vacuous
+    unpadded, _ = rdga_frames(depth=depth, p=P, q=Q, cfg=cfg, pos_image=pos, K=K, **maps)
+    assert not torch.allclose(unpadded[1:], loss[1:])  # control: the padded rows, counted, change frames 1 and 2

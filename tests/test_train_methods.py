@@ -244,12 +244,13 @@ def textured_scene(tmp_path_factory):
     return body, view, frames, est, keypoints, prior
 
 
-@pytest.mark.parametrize("backend", ["sift", "flow"])
-def test_batched_objective_equals_frame_by_frame(textured_scene, backend):
-    """Objective.loss (all renders first, pooled matching, CPR's frames in one batched call, one stats
-    read-back) equals the serial reference: each frame rendered, matched on the calling thread (SIFT against
-    the cached keypoints, or flow against the video frame inside both masks), scored and given its own CPR
-    call in turn."""
+@pytest.mark.parametrize("backend,weighted", [("sift", False), ("flow", False), ("flow", True)])
+def test_batched_objective_equals_frame_by_frame(textured_scene, backend, weighted):
+    """Objective.loss (all renders first, pooled matching, CPR's frames in one batched call, every frame's losses
+    in one call on [T, ...] stacks with the matches padded (session 40), one stats read-back) equals the serial
+    reference: each frame rendered, matched on the calling thread (SIFT against the cached keypoints, or flow against
+    the video frame inside both masks), scored alone and given its own CPR call in turn; ``weighted``: with NeuMA's
+    per-frame weights (``frame_weights``) on the image terms, the serial sum weighted frame by frame."""
     from gca.sim.rollout import rollout
     from gca.train.objective import _MeanStats
     from gca.vision.matching import match_frame
@@ -268,7 +269,10 @@ def test_batched_objective_equals_frame_by_frame(textured_scene, backend):
     n_video = len(data.video_frames)
     traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
                    n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
-    batched, stats = objective().loss(traj, n_video, law)
+    weights = [0.5 ** j for j in range(n_video)] if weighted else [1.0] * n_video
+    batched_obj = objective()
+    batched_obj.frame_weights = weights if weighted else None
+    batched, stats = batched_obj.loss(traj, n_video, law)
     serial_obj, ref_stats, serial = objective(), _MeanStats(n_video), 0.0
     for j in range(n_video):
         outs = serial_obj._render_frame(traj, j)
@@ -276,7 +280,7 @@ def test_batched_objective_equals_frame_by_frame(textured_scene, backend):
         video = (data.views["train0"].rgb[j].clip(0, 1) * 255 + 0.5).astype("uint8")
         inside = outs["train0"]["alpha"].detach().numpy() >= serial_obj.train0_rdga.alpha_threshold
         pq = match_frame(rgb, video, *data.keypoints[j], serial_obj.match, inside, data.views["train0"].mask[j])
-        serial = serial + serial_obj._frame_loss(traj, j, outs, pq, ref_stats)
+        serial = serial + weights[j] * serial_obj._frame_loss(traj, j, outs, pq, ref_stats)
         if j % cfg.cpr_every == 0:  # CPR frame by frame (the objective batches its frames in one call)
             f = data.video_frames[j]
             R_e, R_p, _ = serial_obj.cpr.residuals(law.material.elasticity, law.material.plasticity, traj.F[f],
@@ -294,6 +298,41 @@ def test_batched_objective_equals_frame_by_frame(textured_scene, backend):
         assert (a is None) == (c is None)
         if a is not None:
             torch.testing.assert_close(a, c)
+
+
+@pytest.mark.parametrize("name", ["gca", "pacnerf_depth", "pacnerf_depth_aligned", "neuma_multiview"])
+def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
+    """Every frame's losses in one call (Objective._frames_loss, session 40) queue their work without one read of
+    the device (the CPU sync detector, a CUDA twin): the matches go over in one copy, RDGA's checks are deferred, and
+    the depth L1 terms no longer ask whether a mask is empty (``bool(mask.any())`` per frame before). Control: the
+    deferred checks, judged, do read."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from host_sync import HostSync, no_host_sync
+    from gca.align.rdga import judge
+    from gca.sim.rollout import rollout
+    from gca.train.objective import _MeanStats
+
+    scene, method = textured_scene, get_method(name)
+    data = _data(scene, method)
+    law = build_law(get_method("gca"), scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    objective = Objective(method, data, TrainConfig(curriculum_start=1.0), RDGAConfig(r=5, k=5),
+                          CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    b, n_video = data.body, len(data.video_frames)
+    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
+                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+    renders = objective._render_frames(traj, n_video)
+    matching = objective._start_matching(renders)
+    pqs = [f.result() for f in matching] if matching is not None else None
+    assert (pqs is not None) == (name == "gca")
+    objective.frame_weights = [1.0 - 0.1 * j for j in range(n_video)]
+    checks = []
+    with no_host_sync():
+        losses = objective._frames_loss(traj, range(n_video), renders, pqs, _MeanStats(n_video), checks)
+    assert losses.shape == (n_video,) and bool(torch.isfinite(losses).all()) and float(losses.detach().sum()) != 0
+    if checks:
+        with pytest.raises(HostSync):
+            with no_host_sync():
+                judge(checks)
 
 
 def _diverging_simulate(monkeypatch, fail_calls, error=None):

@@ -155,47 +155,47 @@ class RDGAConfig:
 
 
 def mask_loss(alpha: torch.Tensor, gt_mask: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
-    """Silhouette loss ``(M_render - M_gt)^2`` over pixels.
+    """Silhouette loss ``(M_render - M_gt)^2`` over pixels, per frame.
 
     Args:
-        alpha: rendered soft silhouette M_render [H, W] in [0, 1].
-        gt_mask: GT mask M_gt [H, W] (bool or {0, 1}).
+        alpha: rendered soft silhouette M_render [..., H, W] in [0, 1] (leading dims: frames).
+        gt_mask: GT mask M_gt, alpha's shape (bool or {0, 1}).
         reduction: "mean" (default; resolution independent) or "sum" (the paper's ||.||_2^2).
 
     Returns:
-        scalar loss, differentiable w.r.t. ``alpha``.
+        the loss [...] (a scalar for one [H, W] frame), differentiable w.r.t. ``alpha``.
     """
-    if alpha.ndim != 2 or alpha.shape != gt_mask.shape:
-        raise ValueError(f"{_WHERE}: mask_loss needs alpha and gt_mask of equal shape [H, W], got "
+    if alpha.ndim < 2 or alpha.shape != gt_mask.shape:
+        raise ValueError(f"{_WHERE}: mask_loss needs alpha and gt_mask of equal shape [..., H, W], got "
                          f"{tuple(alpha.shape)} and {tuple(gt_mask.shape)}")
     sq = (alpha - gt_mask.to(alpha.dtype)) ** 2
-    return sq.mean() if reduction == "mean" else sq.sum()
+    return sq.mean((-2, -1)) if reduction == "mean" else sq.sum((-2, -1))
 
 
 def stable_region(mask: torch.Tensor, r: int, mode: str = "eroded") -> torch.Tensor:
     """The stable interior region M_stable of a binary mask (see the module docstring).
 
     Args:
-        mask: object mask M [H, W] (bool or {0, 1}).
+        mask: object mask M [..., H, W] (bool or {0, 1}; leading dims: frames, each its own mask).
         r: side of the square structuring element K_rxr [px].
         mode: "eroded" (M erode K: the mask minus a (r-1)/2 px boundary band) or
             "paper_literal" (M minus opening(M, K): the white top-hat, thin protrusions only).
 
     Returns:
-        M_stable [H, W] bool.
+        M_stable, mask's shape, bool.
     """
-    if mask.ndim != 2:
-        raise ValueError(f"{_WHERE}: stable_region needs a [H, W] mask, got shape {tuple(mask.shape)}")
+    if mask.ndim < 2:
+        raise ValueError(f"{_WHERE}: stable_region needs a [..., H, W] mask, got shape {tuple(mask.shape)}")
     if mode not in STABLE_MODES:
         raise ValueError(f"{_WHERE}: stable_region mode={mode!r} not in {STABLE_MODES}")
-    m = (mask > 0.5).to(torch.float32)[None, None]
+    m = (mask > 0.5).to(torch.float32).reshape(-1, 1, *mask.shape[-2:])
     eroded = _window_max(-m, r).neg()  # erosion: the window's min
     out = eroded if mode == "eroded" else m - _window_max(eroded, r, reflected=True)  # opening: erosion, dilation
-    return out[0, 0] > 0.5
+    return out.reshape(mask.shape) > 0.5
 
 
 def _window_max(x: torch.Tensor, r: int, reflected: bool = False) -> torch.Tensor:
-    """Max of ``x`` [1, 1, H, W] over the r x r window that puts its cell (r // 2, r // 2) on each pixel (``reflected``:
+    """Max of ``x`` [B, 1, H, W] over the r x r window that puts its cell (r // 2, r // 2) on each pixel (``reflected``:
     the window reflected through that pixel, as a dilation's in Minkowski's convention; the same window for odd r), the
     pixels outside the image left out: a geodesic erosion or dilation by a flat r x r square (equal to scipy.ndimage's
     for every r and to kornia.morphology's, which it replaces here, for odd r; tested), in one pooling where kornia's
@@ -207,59 +207,78 @@ def _window_max(x: torch.Tensor, r: int, reflected: bool = False) -> torch.Tenso
 
 
 def _pixel_indices(points: torch.Tensor, H: int, W: int, half: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest pixel (col, row) of each point and whether its (2 half + 1)^2 patch is in bounds."""
-    cols = torch.round(points[:, 0].detach()).long()
-    rows = torch.round(points[:, 1].detach()).long()
+    """Nearest pixel (col, row) [..., M, 2] of each point [..., M, 2] and whether its (2 half + 1)^2 patch is in bounds
+    [..., M]."""
+    cols = torch.round(points[..., 0].detach()).long()
+    rows = torch.round(points[..., 1].detach()).long()
     inside = (cols >= half) & (cols < W - half) & (rows >= half) & (rows < H - half)
     return torch.stack([cols, rows], -1), inside
 
 
+def _frames(image: torch.Tensor, points: torch.Tensor, trailing: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``image`` [..., H, W, (C)] (``trailing`` = 2 or 3 dims per frame) and ``points`` [..., M, 2] with the same
+    leading (frame) dims as [B, H, W, (C)] and [B, M, 2] (B = 1 for none)."""
+    lead = image.shape[:image.ndim - trailing]
+    if points.shape[:-2] != lead:
+        raise ValueError(f"{_WHERE}: points {tuple(points.shape)} and image {tuple(image.shape)} must have the same "
+                         f"leading (frame) dims")
+    frames = image.reshape(-1, *image.shape[len(lead):])
+    return frames, points.reshape(len(frames), *points.shape[-2:])
+
+
 def gather_patches(image: torch.Tensor, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The k x k patches of ``image`` centred at the nearest pixel of each point.
+    """The k x k patches of ``image`` centred at the nearest pixel of each point, frame by frame.
 
     Args:
-        image: [H, W] (gradients flow to it).
-        points: [M, 2] pixel coordinates (x, y), array-index convention.
+        image: [..., H, W] (gradients flow to it; leading dims: frames).
+        points: [..., M, 2] pixel coordinates (x, y), array-index convention, in the frame of the same leading index.
         k: odd patch side [px].
 
     Returns:
-        patches [M, k*k] (row-major; zeros for out-of-bounds points) and inside [M] bool.
+        patches [..., M, k*k] (row-major; clamped into the image for out-of-bounds points) and inside [..., M] bool.
     """
-    H, W = image.shape
+    H, W = image.shape[-2:]
+    frames, pts = _frames(image, points, 2)
     half = k // 2
-    pix, inside = _pixel_indices(points, H, W, half)
+    pix, inside = _pixel_indices(pts, H, W, half)  # [B, M, 2], [B, M]
     offsets = torch.arange(-half, half + 1, device=image.device)
-    cols = (pix[:, 0].clamp(half, W - 1 - half)[:, None, None] + offsets[None, None, :])
-    rows = (pix[:, 1].clamp(half, H - 1 - half)[:, None, None] + offsets[None, :, None])
-    patches = image[rows.expand(-1, k, k), cols.expand(-1, k, k)].reshape(len(points), k * k)
-    return patches, inside
+    cols = pix[..., 0].clamp(half, W - 1 - half)[..., None, None] + offsets  # [B, M, 1, k]
+    rows = pix[..., 1].clamp(half, H - 1 - half)[..., None, None] + offsets[:, None]  # [B, M, k, 1]
+    b = torch.arange(frames.shape[0], device=image.device)[:, None, None, None]
+    patches = frames[b, rows, cols]  # [B, M, k, k]
+    return patches.reshape(*points.shape[:-1], k * k), inside.reshape(points.shape[:-1])
 
 
 def _lookup(mask: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Value of a bool mask [H, W] at the nearest pixel of each point [M, 2]; False outside."""
-    H, W = mask.shape
-    pix, inside = _pixel_indices(points, H, W, 0)
-    vals = mask[pix[:, 1].clamp(0, H - 1), pix[:, 0].clamp(0, W - 1)]
-    return vals & inside
+    """Value of a bool mask [..., H, W] at the nearest pixel of each point [..., M, 2] (same leading dims) [..., M];
+    False outside."""
+    H, W = mask.shape[-2:]
+    frames, pts = _frames(mask, points, 2)
+    pix, inside = _pixel_indices(pts, H, W, 0)
+    b = torch.arange(frames.shape[0], device=mask.device)[:, None]
+    vals = frames[b, pix[..., 1].clamp(0, H - 1), pix[..., 0].clamp(0, W - 1)]
+    return (vals & inside).reshape(points.shape[:-1])
 
 
 def bilinear_sample(image: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples of a [H, W, C] image at points [M, 2] (x, y), array-index convention."""
-    H, W, C = image.shape
-    gx = 2.0 * points[:, 0] / max(W - 1, 1) - 1.0
-    gy = 2.0 * points[:, 1] / max(H - 1, 1) - 1.0
-    grid = torch.stack([gx, gy], -1).to(image.dtype)[None, None]  # [1, 1, M, 2]
-    out = F_nn.grid_sample(image.permute(2, 0, 1)[None], grid, mode="bilinear", align_corners=True)
-    return out[0, :, 0, :].T  # [M, C]
+    """Bilinear samples [..., M, C] of [..., H, W, C] images at points [..., M, 2] (x, y), array-index convention
+    (leading dims: frames, each sampled at its own points)."""
+    H, W, C = image.shape[-3:]
+    frames, pts = _frames(image, points, 3)
+    gx = 2.0 * pts[..., 0] / max(W - 1, 1) - 1.0
+    gy = 2.0 * pts[..., 1] / max(H - 1, 1) - 1.0
+    grid = torch.stack([gx, gy], -1).to(image.dtype)[:, None]  # [B, 1, M, 2]
+    out = F_nn.grid_sample(frames.permute(0, 3, 1, 2), grid, mode="bilinear", align_corners=True)  # [B, C, 1, M]
+    return out[:, :, 0, :].transpose(1, 2).reshape(*points.shape[:-1], C)
 
 
 def sample_unpremultiplied(image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """An alpha-premultiplied image [H, W, C] (zero background) bilinearly sampled at points [M, 2] (array-index
-    convention) and divided by the alpha [H, W] sampled there: the composited value [M, C] (a position image: the
-    surface point seen at p)."""
+    """An alpha-premultiplied image [..., H, W, C] (zero background) bilinearly sampled at points [..., M, 2]
+    (array-index convention) and divided by the alpha [..., H, W] sampled there: the composited value [..., M, C] (a
+    position image: the surface point seen at p)."""
     C = image.shape[-1]
     sampled = bilinear_sample(torch.cat([image, alpha[..., None]], -1), p)
-    return sampled[:, :C] / sampled[:, C:].clamp_min(1e-6)
+    return sampled[..., :C] / sampled[..., C:].clamp_min(1e-6)
 
 
 def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
@@ -267,19 +286,20 @@ def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
     """P_render: where the surface seen at p projects, from a premultiplied position image.
 
     Args:
-        pos_image: alpha-premultiplied rendered positions (zero background) [H, W, C]: C = 2 holds
+        pos_image: alpha-premultiplied rendered positions (zero background) [..., H, W, C]: C = 2 holds
             the projected Gaussian centres (u, v) in the renderer's image convention (pixel
             centres at i + 0.5); C = 3 holds camera-frame 3D centres (x, y, z) and needs ``K``.
-        alpha: rendered alpha [H, W].
-        p: [M, 2] matched points in the rendered image (array-index convention).
+            Leading dims: frames (each with its own alpha and points).
+        alpha: rendered alpha [..., H, W].
+        p: [..., M, 2] matched points in the rendered image (array-index convention).
         K: intrinsics [3, 3] [px], required when C = 3.
 
     Returns:
-        P_render [M, 2] in the array-index convention, differentiable w.r.t. ``pos_image``/``alpha``.
+        P_render [..., M, 2] in the array-index convention, differentiable w.r.t. ``pos_image``/``alpha``.
     """
     C = pos_image.shape[-1]
-    if pos_image.ndim != 3 or pos_image.shape[:2] != alpha.shape or C not in (2, 3):
-        raise ValueError(f"{_WHERE}: pos_image must be [H, W, 2|3] matching alpha {tuple(alpha.shape)}, "
+    if pos_image.ndim < 3 or pos_image.shape[:-1] != alpha.shape or C not in (2, 3):
+        raise ValueError(f"{_WHERE}: pos_image must be [..., H, W, 2|3] matching alpha {tuple(alpha.shape)}, "
                          f"got {tuple(pos_image.shape)}")
     X = sample_unpremultiplied(pos_image, alpha, p)
     if C == 3:
@@ -287,52 +307,60 @@ def render_points(pos_image: torch.Tensor, alpha: torch.Tensor, p: torch.Tensor,
             raise ValueError(f"{_WHERE}: a 3-channel (camera-frame xyz) pos_image needs the intrinsics K")
         K = K.to(X)
         uv = (X @ K.T)
-        X = uv[:, :2] / uv[:, 2:].clamp_min(1e-9)
+        X = uv[..., :2] / uv[..., 2:].clamp_min(1e-9)
     return X - 0.5  # renderer convention (centre i + 0.5) -> array-index convention (centre i)
 
 
 def global_term(P_render: torch.Tensor, P_gt: torch.Tensor, reduction: str = "norm",
                 use: torch.Tensor | None = None) -> torch.Tensor:
-    """Global alignment ``||P_render - P_gt||_2`` [px] of matched point sets [M, 2].
+    """Global alignment ``||P_render - P_gt||_2`` [px] of matched point sets [..., M, 2], per set [...] (leading
+    dims: frames).
 
     ``reduction="norm"`` is the paper's norm of the whole [M, 2] difference; ``"mean"`` the mean
     per-match Euclidean distance; ``"mean_sq"`` the mean squared one [px^2]. Zero (with grad) when M = 0.
-    ``use`` [M] bool: only those matches count (the others' residuals are held at zero, no gradient), as if the
+    ``use`` [..., M] bool: only those matches count (the others' residuals are held at zero, no gradient), as if the
     sets were ``P_render[use], P_gt[use]``, without reading the device (equal to rounding; tested).
     """
     P_gt = P_gt.to(P_render)  # itself when dtype and device match already
     if use is None:
-        use = torch.ones(len(P_render), dtype=torch.bool, device=P_render.device)
-    diff = torch.where(use[:, None], P_render, P_gt) - P_gt  # zero where unused
-    n = use.sum()
+        use = torch.ones(P_render.shape[:-1], dtype=torch.bool, device=P_render.device)
+    diff = torch.where(use[..., None], P_render, P_gt) - P_gt  # zero where unused
+    n = use.sum(-1)
+    sq = (diff ** 2).sum(-1)  # [..., M]
     if reduction == "norm":
-        value = torch.sqrt((diff ** 2).sum() + 1e-12)
+        value = torch.sqrt(sq.sum(-1) + 1e-12)
     elif reduction == "mean_sq":
-        value = (diff ** 2).sum(-1).sum() / n.clamp_min(1)
+        value = sq.sum(-1) / n.clamp_min(1)
     else:
-        value = torch.where(use, torch.sqrt((diff ** 2).sum(-1) + 1e-12), 0.0).sum() / n.clamp_min(1)
-    return torch.where(n > 0, value, diff.sum() * 0.0)
+        value = torch.where(use, torch.sqrt(sq + 1e-12), 0.0).sum(-1) / n.clamp_min(1)
+    return torch.where(n > 0, value, diff.sum((-2, -1)) * 0.0)
 
 
-def _check_inputs(depth, alpha, gt_mask, est_depth, p, q) -> None:
+def _check_inputs(depth, alpha, gt_mask, est_depth, p, q, valid=None) -> None:
     shapes = {"render depth": depth.shape, "render alpha": alpha.shape,
               "gt_mask": gt_mask.shape, "est_depth": est_depth.shape}
-    if depth.ndim != 2 or len(set(shapes.values())) != 1:
-        raise ValueError(f"{_WHERE}: all maps must be [H, W] of one size, got "
+    if depth.ndim != 3 or len(set(shapes.values())) != 1:
+        raise ValueError(f"{_WHERE}: all maps must be [T, H, W] ([H, W] for one frame) of one size, got "
                          + ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items()))
-    if p.ndim != 2 or p.shape[-1] != 2 or p.shape != q.shape:
-        raise ValueError(f"{_WHERE}: p and q must both be [M, 2], got {tuple(p.shape)} and {tuple(q.shape)}")
+    if p.ndim != 3 or p.shape[-1] != 2 or p.shape != q.shape or len(p) != len(depth):
+        raise ValueError(f"{_WHERE}: p and q must both be [T, M, 2] ([M, 2] for one frame) with the maps' T = "
+                         f"{len(depth)}, got {tuple(p.shape)} and {tuple(q.shape)}")
+    if valid is not None and valid.shape != p.shape[:-1]:
+        raise ValueError(f"{_WHERE}: valid must be [T, M] = {tuple(p.shape[:-1])}, got {tuple(valid.shape)}")
 
 
 def stable_matches(alpha: torch.Tensor, gt_mask: torch.Tensor, p: torch.Tensor, q: torch.Tensor,
                    cfg: RDGAConfig) -> torch.Tensor:
     """Which matches lie in M_stable (per ``cfg.stable_on``) with both k x k patches in bounds.
 
+    Args:
+        alpha, gt_mask: [..., H, W] (leading dims: frames); p, q: [..., M, 2].
+
     Returns:
-        stable [M] bool.
+        stable [..., M] bool.
     """
-    H, W = alpha.shape
-    keep = torch.ones(len(p), dtype=torch.bool, device=p.device)
+    H, W = alpha.shape[-2:]
+    keep = torch.ones(p.shape[:-1], dtype=torch.bool, device=p.device)
     if cfg.stable_on in ("render", "both"):
         keep &= _lookup(stable_region(alpha.detach() > cfg.alpha_threshold, cfg.r, cfg.stable_region), p)
     if cfg.stable_on in ("gt", "both"):
@@ -342,22 +370,28 @@ def stable_matches(alpha: torch.Tensor, gt_mask: torch.Tensor, p: torch.Tensor, 
     return keep
 
 
+def _per_row(fn, *patches: torch.Tensor) -> torch.Tensor:
+    """``fn`` of [R, n] patch rows applied to patches [..., M, n]: [..., M] (the softrank functions take rows)."""
+    n = patches[0].shape[-1]
+    return fn(*(x.reshape(-1, n) for x in patches)).reshape(patches[0].shape[:-1])
+
+
 def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q: torch.Tensor,
                 stable: torch.Tensor, cfg: RDGAConfig, checks: list | None = None) -> tuple[torch.Tensor, dict]:
-    """Anchor-level supervision ``sum_{i in A} (-gamma_i)`` (or its L1 ablation).
+    """Anchor-level supervision ``sum_{i in A} (-gamma_i)`` (or its L1 ablation), per frame.
 
     Args:
-        depth: rendered depth D_render [H, W] (gradients flow to it).
-        est_depth: estimated relative depth D_gt [H, W] (a fixed target).
-        p: [M, 2] points in the render; q: [M, 2] points in the GT frame.
-        stable: [M] bool, from :func:`stable_matches`.
+        depth: rendered depth D_render [..., H, W] (gradients flow to it; leading dims: frames).
+        est_depth: estimated relative depth D_gt [..., H, W] (a fixed target).
+        p: [..., M, 2] points in the render; q: [..., M, 2] points in the GT frame.
+        stable: [..., M] bool, from :func:`stable_matches`.
         cfg: the RDGA config.
         checks: None: the patches' finiteness is checked here (one read of the device) and the stats are floats;
             a list: the checks are appended to it for the caller to :func:`judge` once (a training iteration, all
             its frames) and the stats stay tensors, so nothing here waits for the device.
 
     Returns:
-        (term, stats) with stats n_stable, n_anchors, mean_gamma (exact, over stable matches with
+        (term [...], stats) with stats [...] n_stable, n_anchors, mean_gamma (exact, over stable matches with
         non-constant patches) and mean_gamma_anchor.
 
     Every match is carried with 0/1 weights (its patches gathered, its gamma computed, the sums over the selected
@@ -365,29 +399,30 @@ def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q
     computation to rounding (tested).
     """
     deferred = [] if checks is None else checks
-    N_p, _ = gather_patches(depth, p, cfg.k)
+    N_p, _ = gather_patches(depth, p, cfg.k)  # [..., M, k^2]
     N_q, _ = gather_patches(est_depth, q, cfg.k)
-    rows = stable[:, None]
-    n_stable = stable.sum()
+    rows = stable[..., None]
+    n_stable = stable.sum(-1)
     deferred.append((FloatingPointError, "rendered depth is non-finite in {} of {} anchor patches",
-                     ((~torch.isfinite(N_p)) & rows).any(-1).sum(), n_stable))
+                     ((~torch.isfinite(N_p)) & rows).any(-1).sum(), n_stable.sum()))
     deferred.append((ValueError, "est_depth is non-finite in {} of {} patches",
-                     ((~torch.isfinite(N_q)) & rows).any(-1).sum(), n_stable))
-    varied = stable & (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0) if len(N_p) else stable  # gamma undefined
-    # on constant patches (no match: no std to take, and torch warns on an empty one)
-    gamma = torch.where(varied, spearman_exact(N_p, N_q), 0.0) if len(N_p) else N_p.new_zeros(0)
+                     ((~torch.isfinite(N_q)) & rows).any(-1).sum(), n_stable.sum()))
+    matches = N_p.numel() > 0  # gamma undefined on constant patches (no match: no std to take; torch warns on none)
+    varied = stable & (N_p.detach().std(-1) > 0) & (N_q.std(-1) > 0) if matches else stable
+    gamma = torch.where(varied, _per_row(spearman_exact, N_p, N_q), 0.0) if matches else N_p.new_zeros(stable.shape)
     anchors = varied & (gamma > cfg.tau)
-    n_anchors = anchors.sum()
+    n_anchors = anchors.sum(-1)
     stats = {"n_stable": n_stable, "n_anchors": n_anchors,
-             "mean_gamma": gamma.sum() / varied.sum().clamp_min(1),
-             "mean_gamma_anchor": torch.where(anchors, gamma, 0.0).sum() / n_anchors.clamp_min(1)}
-    sel = anchors[:, None]  # the other rows: constant zeros (no gradient, finite whatever the render holds there)
+             "mean_gamma": gamma.sum(-1) / varied.sum(-1).clamp_min(1),
+             "mean_gamma_anchor": torch.where(anchors, gamma, 0.0).sum(-1) / n_anchors.clamp_min(1)}
+    sel = anchors[..., None]  # the other rows: constant zeros (no gradient, finite whatever the render holds there)
     X_p, X_q = torch.where(sel, N_p, 0.0), torch.where(sel, N_q, 0.0)
     if cfg.depth_term == "rank":
-        per_anchor = -spearman_soft(X_p, X_q, cfg.temperature) if len(N_p) else N_p.new_zeros(0)
+        per_anchor = -_per_row(lambda x, y: spearman_soft(x, y, cfg.temperature), X_p, X_q) if matches \
+            else N_p.new_zeros(stable.shape)
     else:
         per_anchor = (X_p - X_q).abs().mean(-1)
-    total = torch.where(anchors, per_anchor, 0.0).sum()
+    total = torch.where(anchors, per_anchor, 0.0).sum(-1)
     term = total if cfg.anchor_reduction == "sum" else total / n_anchors.clamp_min(1)
     if checks is None:
         judge(deferred)
@@ -407,10 +442,14 @@ def judge(checks: list) -> None:
 
 
 def _floats(stats: dict) -> dict:
-    """The stats' tensors as floats, read in one transfer."""
+    """The stats' tensors (all of one shape: [] or [T] per frame) as floats (lists of T), read in one transfer."""
     keys = [k for k, v in stats.items() if isinstance(v, torch.Tensor)]
-    read = dict(zip(keys, torch.stack([stats[k].detach().double().reshape(()) for k in keys]).tolist())) if keys else {}
-    return {k: (v if k not in read else read[k] if v.is_floating_point() else int(read[k])) for k, v in stats.items()}
+    read = dict(zip(keys, torch.stack([stats[k].detach().double().reshape(-1) for k in keys]).tolist())) if keys else {}
+
+    def value(v, got):
+        got = got if v.is_floating_point() else [int(x) for x in got]
+        return got if v.ndim else got[0]
+    return {k: (v if k not in read else value(v, read[k])) for k, v in stats.items()}
 
 
 def position_colors(xyz: torch.Tensor, gradient: str = "material") -> torch.Tensor:
@@ -433,18 +472,21 @@ def position_image(channels: torch.Tensor, gradient: str = "material") -> torch.
     return pos - pos_weights + pos_weights.detach()
 
 
-def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K) -> tuple[torch.Tensor, torch.Tensor]:
-    """Global term over matches on the object in both frames (and within ``global_max_px`` of their render point):
-    (term, number of matches used []), every match carried with a 0/1 weight (no read of the device)."""
+def _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K, valid) -> tuple[torch.Tensor, torch.Tensor]:
+    """Global term over matches on the object in both frames (and within ``global_max_px`` of their render point),
+    per frame: (term [T], number of matches used [T]), every match carried with a 0/1 weight (no read of the
+    device); [T, H, W] maps, [T, M, 2] points, ``valid`` [T, M] or None."""
     if pos_image is None:
         raise ValueError(f"{_WHERE}: use_global=True needs pos_image (rendered positions, see render_points)")
     use = _lookup(alpha.detach() > cfg.alpha_threshold, p) & _lookup(gt_mask, q)  # on the object in both frames
+    if valid is not None:
+        use = use & valid
     held = alpha.detach() if cfg.global_gradient == "material" else alpha  # the un-premultiplying weights
     P_render = render_points(pos_image, held, p, K)
     P_gt = q.to(dtype=P_render.dtype)  # q is on the render's device already
     if cfg.global_max_px > 0:  # truncated: a wrong match's residual would set the norm's direction
         use = use & ((P_render.detach() - P_gt).norm(dim=-1) <= cfg.global_max_px)
-    return global_term(P_render, P_gt, cfg.global_reduction, use=use), use.sum()
+    return global_term(P_render, P_gt, cfg.global_reduction, use=use), use.sum(-1)
 
 
 def _as_tensor(x: Any, like: torch.Tensor) -> torch.Tensor:
@@ -458,7 +500,8 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
               p: torch.Tensor, q: torch.Tensor, cfg: RDGAConfig, pos_image: torch.Tensor | None = None,
               K: torch.Tensor | None = None, terms: dict | None = None, checks: list | None = None
               ) -> tuple[torch.Tensor, dict]:
-    """RDGA loss of one frame: ``lambda_mask * L_mask + lambda_geo * L_geo`` (module docstring).
+    """RDGA loss of one frame: ``lambda_mask * L_mask + lambda_geo * L_geo`` (module docstring): :func:`rdga_frames`
+    of a one-frame batch.
 
     Args:
         render_out: renderer output with "alpha" [H, W] and "depth" [H, W].
@@ -466,37 +509,71 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
         est_depth: estimated relative depth of the GT frame [H, W]; numpy accepted.
         p: matched points in the render [M, 2] (x, y), array-index convention; numpy accepted.
         q: their matches in the GT frame [M, 2].
-        cfg: RDGA config (ablation switches included).
-        pos_image: premultiplied position image [H, W, 2|3] (see :func:`render_points`); needed
-            when the global term is on.
-        K: intrinsics [3, 3] [px] for a 3-channel ``pos_image``.
-        terms: when given, filled with each weighted term's tensor (with its graph), keyed as
-            ``gca.train.methods.TERMS``: ``silhouette`` (lambda_m L_mask), ``global`` (lambda_g lambda_1 L_global),
-            ``anchor`` or ``anchor_l1`` (lambda_g lambda_2 L_anchor); they sum to the loss.
-        checks: None: the frame's finiteness checks (the anchor patches, the loss) are read here and raise at once,
-            and the stats are floats (one read of the device); a list: the checks are appended for the caller to
-            :func:`judge` once per iteration and the stats stay tensors (a training frame, whose host work then
-            never waits for the device: NOTES session 32).
+        cfg, pos_image ([H, W, 2|3]), K, terms, checks: as :func:`rdga_frames`.
 
     Returns:
         (loss scalar, stats) with stats n_matches, n_global, n_stable, n_anchors, mean_gamma,
         mean_gamma_anchor, l_mask, l_global, l_anchor (for logging: floats, or tensors [] with ``checks``).
     """
     alpha, depth = render_out["alpha"], render_out["depth"]
-    gt_mask, est_depth = _as_tensor(gt_mask, alpha) > 0.5, _as_tensor(est_depth, depth)
     p, q = _as_tensor(p, depth).reshape(-1, 2), _as_tensor(q, depth).reshape(-1, 2)
-    _check_inputs(depth, alpha, gt_mask, est_depth, p, q)
+    frame_terms = None if terms is None else {}
+    loss, stats = rdga_frames(alpha[None], depth[None], _as_tensor(gt_mask, alpha)[None],
+                              _as_tensor(est_depth, depth)[None], p[None], q[None], cfg,
+                              pos_image=None if pos_image is None else pos_image[None], K=K, terms=frame_terms,
+                              checks=checks)
+    for key, value in (frame_terms or {}).items():
+        terms[key] = value[0]
+    stats = {k: v[0] if isinstance(v, torch.Tensor) else v for k, v in stats.items()}
+    stats["n_matches"] = len(p)
+    return loss[0], (stats if checks is not None else _floats(stats))
+
+
+def rdga_frames(alpha: torch.Tensor, depth: torch.Tensor, gt_mask: torch.Tensor, est_depth: torch.Tensor,
+                p: torch.Tensor, q: torch.Tensor, cfg: RDGAConfig, pos_image: torch.Tensor | None = None,
+                K: torch.Tensor | None = None, valid: torch.Tensor | None = None, terms: dict | None = None,
+                checks: list | None = None) -> tuple[torch.Tensor, dict]:
+    """RDGA losses of T frames at once, ``lambda_mask * L_mask + lambda_geo * L_geo`` per frame (module docstring):
+    one call's launches for all the frames of a training iteration where frame by frame took T times as many (the
+    host's time per iteration, NOTES session 40). Equal to :func:`rdga_loss` frame by frame, to rounding (tested).
+
+    Args:
+        alpha, depth: the renders' alpha M_render and depth [T, H, W].
+        gt_mask: M_gt [T, H, W] (bool or {0, 1}); est_depth: the frames' estimated relative depth [T, H, W].
+        p: matched points in the renders [T, M, 2] (x, y), array-index convention; q: their matches in the frames
+            [T, M, 2]. A frame with fewer matches is padded; ``valid`` [T, M] bool says which rows are matches
+            (None: all).
+        cfg: RDGA config (ablation switches included).
+        pos_image: premultiplied position images [T, H, W, 2|3] (see :func:`render_points`); needed when the global
+            term is on.
+        K: intrinsics [3, 3] [px] (one camera) for a 3-channel ``pos_image``.
+        terms: when given, filled with each weighted term's per-frame tensor [T] (with its graph), keyed as
+            ``gca.train.methods.TERMS``: ``silhouette`` (lambda_m L_mask), ``global`` (lambda_g lambda_1 L_global),
+            ``anchor`` or ``anchor_l1`` (lambda_g lambda_2 L_anchor); they sum to the loss.
+        checks: None: the finiteness checks (the anchor patches, the loss) are read here and raise at once (one read
+            of the device); a list: the checks are appended for the caller to :func:`judge` once per iteration (a
+            training iteration, whose host work then never waits for the device: NOTES session 32).
+
+    Returns:
+        (loss [T], stats) with per-frame tensors [T] n_matches, n_global, n_stable, n_anchors, mean_gamma,
+        mean_gamma_anchor, l_mask, l_global, l_anchor (floats 0 for a term that is off).
+    """
+    gt_mask = gt_mask > 0.5
+    _check_inputs(depth, alpha, gt_mask, est_depth, p, q, valid)
     deferred = [] if checks is None else checks
-    l_mask = mask_loss(alpha, gt_mask, cfg.mask_reduction)
-    stats: dict[str, Any] = {"n_matches": len(p), "n_global": 0, "n_stable": 0, "n_anchors": 0,
+    l_mask = mask_loss(alpha, gt_mask, cfg.mask_reduction)  # [T]
+    n_matches = torch.full(p.shape[:1], p.shape[1], device=p.device) if valid is None else valid.sum(-1)
+    stats: dict[str, Any] = {"n_matches": n_matches, "n_global": 0, "n_stable": 0, "n_anchors": 0,
                              "mean_gamma": 0.0, "mean_gamma_anchor": 0.0, "l_global": 0.0, "l_anchor": 0.0}
-    l_geo = depth.sum() * 0.0
+    l_geo = depth.sum((-2, -1)) * 0.0
     if cfg.enabled and cfg.use_global:
-        l_global, n_global = _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K)
+        l_global, n_global = _global_on_object(alpha, gt_mask, p, q, cfg, pos_image, K, valid)
         stats.update(n_global=n_global, l_global=l_global.detach())
         l_geo = l_geo + cfg.lambda1 * l_global
     if cfg.enabled and cfg.use_anchor:
         stable = stable_matches(alpha, gt_mask, p, q, cfg)
+        if valid is not None:
+            stable = stable & valid
         l_anchor, anchor_stats = anchor_term(depth, est_depth, p, q, stable, cfg, checks=deferred)
         stats.update(anchor_stats, l_anchor=l_anchor.detach())
         l_geo = l_geo + cfg.lambda2 * l_anchor
@@ -508,13 +585,12 @@ def rdga_loss(render_out: Mapping[str, torch.Tensor], gt_mask: torch.Tensor, est
         if cfg.enabled and cfg.use_anchor:
             terms["anchor_l1" if cfg.depth_term == "l1" else "anchor"] = cfg.lambda_geo * cfg.lambda2 * l_anchor
     deferred.append((FloatingPointError, "non-finite RDGA loss in {} of {} frames", (~torch.isfinite(loss)).sum(),
-                     loss.new_ones((), dtype=torch.long)))
+                     loss.new_full((), len(loss), dtype=torch.long)))
     stats["l_mask"] = l_mask.detach()
     if checks is None:
         judge(deferred)
-        stats = _floats(stats)
     return loss, stats
 
 
 __all__ = ["RDGAConfig", "mask_loss", "stable_region", "gather_patches", "bilinear_sample", "render_points", "judge",
-           "global_term", "stable_matches", "anchor_term", "rdga_loss"]
+           "global_term", "stable_matches", "anchor_term", "rdga_loss", "rdga_frames"]

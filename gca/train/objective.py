@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from gca.align.cpr import CPR, CPRConfig
-from gca.align.rdga import RDGAConfig, judge as judge_rdga, position_colors, position_image, rdga_loss
+from gca.align.rdga import RDGAConfig, judge as judge_rdga, position_colors, position_image, rdga_frames
 from gca.render.camera import Camera
 from gca.render.rasterize import judge_inputs
 from gca.scenes.store import ViewData
@@ -84,7 +84,7 @@ class Objective:
                  cpr_cfg: CPRConfig, match: MatchConfig, cpr_target: tuple[str, str] = ("", "")):
         self.method, self.data, self.cfg, self.match = method, data, cfg, match
         self.probe: GradProbe | None = None  # set by loop._provenance only (a replay after a non-finite gradient)
-        self._term_weight = 1.0  # the current frame's weight in the loss, applied to the terms collected for shares
+        self._weights: torch.Tensor | None = None  # the current frames' weights in the loss [T], for the shares' terms
         self.frame_weights: list[float] | None = None  # per video frame, set per iteration by the loop (NeuMA's rollout weighting)
         self._terms: dict[str, torch.Tensor] | None = None  # per-term sums, collected only for term shares
         self._checks: list | None = None  # the rasterizer's input stats of the frames being rendered (_render_frames)
@@ -285,37 +285,48 @@ class Objective:
             judge_inputs(row, f"video frame {i // views}, view {list(self.data.views)[i % views]}: ")
         return renders
 
-    def _frame_losses(self, traj, renders: list[dict], matching: list[Future] | None, sweep=None
-                      ) -> tuple[torch.Tensor, "_MeanStats"]:
+    def _frame_losses(self, traj, renders: list[dict], matching: list[Future] | None, sweep=None,
+                      batch: int | None = None) -> tuple[torch.Tensor, "_MeanStats"]:
         """The per-frame losses of ``renders`` summed over the frames (``frame_weights`` applied), with the
         train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats.
 
+        All the frames at once (:meth:`_frames_loss`: each term one call on [T, ...] tensors, the launches of one
+        frame where frame by frame took T times as many: the host bound the iteration, NOTES session 40), or
+        ``batch`` frames at a time (1: frame by frame, as tests' references do).
         With ``sweep`` (a swept rollout's :class:`gca.sim.rollout.ReverseSweep`; ``traj`` its :class:`_FrameLeaves`)
-        the frames go last first, each loss differentiated at once to its frame's (x_f, F_f) and handed to the sweep
-        (its render's graph then freed), and the sum is returned detached."""
+        the batches go last first, each one's loss differentiated at once to its frames' (x_f, F_f), handed to the
+        sweep last frame first (the renders' graphs then freed), and the sum is returned detached."""
         n_video = len(renders)
         loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
         checks: list = []  # RDGA's finiteness checks of every frame, read once after the loop (rdga.judge)
-        for j in (range(n_video) if sweep is None else reversed(range(n_video))):
-            self._term_weight = 1.0 if self.frame_weights is None else self.frame_weights[j]
-            l_j = self._frame_loss(traj, j, renders[j], matching[j].result() if matching is not None else None, stats,
-                                   checks)
-            if self.frame_weights is not None:
-                l_j = self.frame_weights[j] * l_j
+        size = batch or n_video
+        starts = range(0, n_video, size)
+        for start in (starts if sweep is None else reversed(starts)):
+            js = range(start, min(start + size, n_video))
+            self._weights = None if self.frame_weights is None else \
+                _matches_to(np.asarray(self.frame_weights[start:js.stop]), loss).to(loss.dtype)
+            per_frame = self._frames_loss(traj, js, [renders[j] for j in js],
+                                          [matching[j].result() for j in js] if matching is not None else None,
+                                          stats, checks)
+            l_js = (per_frame if self._weights is None else per_frame * self._weights).sum()
             if sweep is None:
-                loss = loss + l_j
+                loss = loss + l_js
                 continue
-            renders[j] = None
-            loss = loss + l_j.detach()
-            if l_j.requires_grad:
-                f = traj.frames[j]
-                g_x, g_F = torch.autograd.grad(l_j, [traj.x[f], traj.F[f]], allow_unused=True)
-                if self.probe is not None:
-                    for name, g in (("x", g_x), ("F", g_F)):
-                        if g is not None:
-                            self.probe.record("particles", name, j, g)
-                sweep.add(f, g_x, g_F)
-        self._term_weight = 1.0
+            for j in js:
+                renders[j] = None
+            loss = loss + l_js.detach()
+            if l_js.requires_grad:
+                frames = [traj.frames[j] for j in js]
+                grads = torch.autograd.grad(l_js, [traj.x[f] for f in frames] + [traj.F[f] for f in frames],
+                                            allow_unused=True)
+                for i in reversed(range(len(js))):
+                    g_x, g_F = grads[i], grads[len(js) + i]
+                    if self.probe is not None:
+                        for name, g in (("x", g_x), ("F", g_F)):
+                            if g is not None:
+                                self.probe.record("particles", name, js[i], g)
+                    sweep.add(frames[i], g_x, g_F)
+        self._weights = None
         judge_rdga(checks)  # a non-finite frame raises here, before any gradient is applied (a swept one: abandoned)
         return loss, stats
 
@@ -379,17 +390,26 @@ class Objective:
 
     def _frame_loss(self, traj: Rollout, j: int, outs: dict[str, dict], pq, stats: "_MeanStats",
                     checks: list | None = None) -> torch.Tensor:
-        """Loss at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None); RDGA's checks
-        appended to ``checks`` (None: read at once)."""
-        loss = self.data.body.x0.new_zeros(())
-        for name, out in outs.items():
+        """Loss [] at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None): :meth:`_frames_loss`
+        of that frame alone (a test's frame-by-frame reference)."""
+        return self._frames_loss(traj, range(j, j + 1), [outs], None if pq is None else [pq], stats, checks)[0]
+
+    def _frames_loss(self, traj: Rollout, js: range, outs: list[dict[str, dict]], pqs: list | None,
+                     stats: "_MeanStats", checks: list | None = None) -> torch.Tensor:
+        """Losses [T] at the consecutive video frames ``js`` (T of them) from their renders ``outs`` and train0 matches
+        ``pqs`` (or None), each term evaluated once on the frames' [T, ...] stack; their stats summed over the frames
+        into ``stats``; RDGA's checks appended to ``checks`` (None: read at once)."""
+        frames = slice(js.start, js.stop)
+        loss = self.data.body.x0.new_zeros(len(js))
+        for name in self.data.views:
             if self.method.uses("color"):
-                l_color = (out["rgb"] - self.rgb[name][j]).square().mean()
+                rgb = torch.stack([out[name]["rgb"] for out in outs])
+                l_color = (rgb - self.rgb[name][frames]).square().mean((-3, -2, -1))  # [T]
                 loss = loss + self.cfg.lambda_color * l_color
                 self._collect("color", self.cfg.lambda_color * l_color)
-                stats.add(f"color/{name}", l_color)
+                stats.add(f"color/{name}", l_color.sum())
             if name == "train0":
-                loss = loss + self._mono_terms(out, pq, j, stats, checks)
+                loss = loss + self._mono_terms([out[name] for out in outs], pqs, frames, stats, checks)
         return loss
 
     def _needs_positions(self) -> bool:
@@ -449,55 +469,61 @@ class Objective:
         return {**out, "rgb": out["rgb"][..., :3],
                 "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
 
-    def _mono_terms(self, out: dict, pq, j: int, stats: "_MeanStats", checks: list | None = None) -> torch.Tensor:
-        """Monocular terms of train0 at frame ``j``: L1 depth, raw or aligned (PAC-NeRF + depth), and
-        silhouette/RDGA."""
-        loss = out["alpha"].new_zeros(())
+    def _mono_terms(self, outs: list[dict], pqs: list | None, frames: slice, stats: "_MeanStats",
+                    checks: list | None = None) -> torch.Tensor:
+        """Monocular terms [T] of train0 at the video frames ``frames`` (T of them; ``outs`` their renders, ``pqs``
+        their matches or None): L1 depth, raw or aligned (PAC-NeRF + depth), and silhouette/RDGA
+        (:func:`gca.align.rdga.rdga_frames`, the frames' matches padded to the longest)."""
+        alpha, depth = (torch.stack([out[key] for out in outs]) for key in ("alpha", "depth"))
+        loss = alpha.new_zeros(len(outs))
         for term, fn in (("depth_l1", depth_l1_raw), ("depth_l1_aligned", depth_l1_aligned)):
             if self.method.uses(term):
-                l_depth = fn(out["depth"], self.est_depth[j], self.mask[j])
+                l_depth = fn(depth, self.est_depth[frames], self.mask[frames])
                 loss = loss + self.cfg.lambda_depth_l1 * l_depth
                 self._collect(term, self.cfg.lambda_depth_l1 * l_depth)
-                stats.add(term, l_depth)
+                stats.add(term, l_depth.sum())
         rdga = self.train0_rdga
         if rdga is not None:
-            p, q = (_matches_to(a, self.est_depth) for a in pq) if pq is not None else (np.zeros((0, 2), np.float32),) * 2
+            p, q, valid = _padded_matches(pqs, len(outs), depth)
             # "positions" is rendered exactly when the global term needs it (_needs_positions)
+            positions = torch.stack([out["positions"] for out in outs]) if "positions" in outs[0] else None
             terms = {} if self._terms is not None else None
-            l_rdga, s = rdga_loss(out, self.mask[j], self.est_depth[j], p, q, rdga, pos_image=out.get("positions"),
-                                  K=self.K["train0"], terms=terms, checks=checks)
+            l_rdga, s = rdga_frames(alpha, depth, self.mask[frames], self.est_depth[frames], p, q, rdga,
+                                    pos_image=positions, K=self.K["train0"], valid=valid, terms=terms, checks=checks)
             for key, value in (terms or {}).items():
                 self._collect(key, value)
             loss = loss + l_rdga
             for k, v in s.items():
-                stats.add(f"rdga/{k}", v)
+                stats.add(f"rdga/{k}", v.sum() if isinstance(v, torch.Tensor) else v * len(outs))
         return loss
 
-
     def _collect(self, term: str, value: torch.Tensor) -> None:
-        """Add one frame's weighted ``term`` to the per-term sums (only while term shares are collected), times the
-        frame's weight in the loss (``frame_weights``: NeuMA's rollout weighting), so the terms add up to the total."""
+        """Add the batch's per-frame weighted ``term`` [T] to the per-term sums (only while term shares are
+        collected), times each frame's weight in the loss (``frame_weights``: NeuMA's rollout weighting), so the terms
+        add up to the total."""
         if self._terms is not None:
-            if self._term_weight != 1.0:
-                value = self._term_weight * value
+            value = (value if self._weights is None else value * self._weights).sum()
             self._terms[term] = self._terms[term] + value if term in self._terms else value
 
 
 def depth_l1_raw(depth: torch.Tensor, est: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean L1 between the rendered metric depth ``depth`` [H, W] (camera z, m) and the estimated depth ``est``
-    [H, W] inside ``mask`` [H, W] (bool), as they come: the estimate is only defined up to an unknown per-frame
-    scale and shift (``gca.vision.depth``), so this compares numbers in two different units (the
-    ``pacnerf_depth`` row, labelled raw). A frame with an empty mask gives 0 (with the render's graph)."""
-    if not bool(mask.any()):
-        return depth.sum() * 0.0
-    return (depth - est).abs()[mask].mean()
+    """Mean L1 [...] between the rendered metric depth ``depth`` [..., H, W] (camera z, m) and the estimated depth
+    ``est`` [..., H, W] inside ``mask`` [..., H, W] (bool), per frame (leading dims), as they come: the estimate is only
+    defined up to an unknown per-frame scale and shift (``gca.vision.depth``), so this compares numbers in two
+    different units (the ``pacnerf_depth`` row, labelled raw). A frame with an empty mask gives 0 (with the render's
+    graph). Outside the mask nothing is read (no gradient, whatever the render holds there)."""
+    m = mask.bool()
+    n = m.sum((-2, -1))
+    d, e = torch.where(m, depth, 0.0), torch.where(m, est.to(depth.dtype), 0.0)
+    value = (d - e).abs().sum((-2, -1)) / n.clamp_min(1)
+    return torch.where(n > 0, value, depth.sum((-2, -1)) * 0.0)
 
 
 def depth_l1_aligned(depth: torch.Tensor, est: torch.Tensor, mask: torch.Tensor,
                      min_var: float = 1e-12) -> torch.Tensor:
-    """Mean L1 between the rendered depth ``depth`` [H, W] and the estimated depth ``est`` [H, W] mapped onto it
-    by the per-frame least-squares scale and shift inside ``mask`` [H, W] (bool): the standard MiDaS-style
-    alignment (Ranftl et al. 2020, scale-and-shift-invariant loss), the ``pacnerf_depth_aligned`` row.
+    """Mean L1 [...] between the rendered depth ``depth`` [..., H, W] and the estimated depth ``est`` [..., H, W]
+    mapped onto it by the per-frame least-squares scale and shift inside ``mask`` [..., H, W] (bool): the standard
+    MiDaS-style alignment (Ranftl et al. 2020, scale-and-shift-invariant loss), the ``pacnerf_depth_aligned`` row.
 
         (s, t) = argmin sum_mask (s est + t - depth)^2:   s = cov(est, depth) / var(est),
                                                           t = mean(depth) - s mean(est)
@@ -508,14 +534,20 @@ def depth_l1_aligned(depth: torch.Tensor, est: torch.Tensor, mask: torch.Tensor,
     render is pulled towards the estimate's *shape*, never its unknown scale or offset). Detached, the gradient
     would treat the aligned estimate as a fixed target and the reported loss would not be the one descended.
     ``var(est)`` is floored at ``min_var`` (a constant estimate: s = 0, t = mean depth). A frame with an empty
-    mask gives 0 (with the render's graph).
+    mask gives 0 (with the render's graph). Per frame (leading dims); outside the mask nothing is read.
     """
-    if not bool(mask.any()):
-        return depth.sum() * 0.0
-    d, e = depth[mask], est[mask].to(depth.dtype)
-    e_c, d_c = e - e.mean(), d - d.mean()
-    s = (e_c * d_c).mean() / (e_c * e_c).mean().clamp(min=min_var)
-    return (s * e_c - d_c).abs().mean()
+    m = mask.bool()
+    n = m.sum((-2, -1))
+    count = n.clamp_min(1)
+
+    def mean(x):  # over the mask, per frame
+        return torch.where(m, x, 0.0).sum((-2, -1)) / count
+
+    e_c = torch.where(m, est.to(depth.dtype) - mean(est.to(depth.dtype))[..., None, None], 0.0)
+    d_c = torch.where(m, depth - mean(depth)[..., None, None], 0.0)
+    s = mean(e_c * d_c) / mean(e_c * e_c).clamp(min=min_var)
+    value = mean((s[..., None, None] * e_c - d_c).abs())
+    return torch.where(n > 0, value, depth.sum((-2, -1)) * 0.0)
 
 
 def term_shares(term_grads: dict[str, list], total: list) -> dict[str, float]:
@@ -550,11 +582,27 @@ class _FrameLeaves:
 
 
 def _matches_to(points: np.ndarray, like: torch.Tensor) -> torch.Tensor:
-    """A frame's matched points [M, 2] (the matcher's numpy array) on ``like``'s device: on CUDA through pinned
-    memory without blocking (a plain copy from pageable memory synchronises the stream, i.e. the host would wait for
-    the GPU at every frame: NOTES session 32's review), elsewhere as a view."""
+    """A host array (matched points, the frames' weights) on ``like``'s device: on CUDA through pinned memory without
+    blocking (a plain copy from pageable memory synchronises the stream, i.e. the host would wait for the GPU at every
+    frame: NOTES session 32's review), elsewhere as a view."""
     t = torch.from_numpy(np.ascontiguousarray(points))
     return t.pin_memory().to(like.device, non_blocking=True) if like.is_cuda else t
+
+
+def _padded_matches(pqs: list | None, T: int, like: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """T frames' matches ``pqs`` (pairs of [M_t, 2] host arrays [px], or None: none) as (p, q) [T, M, 2] in ``like``'s
+    dtype and device, M = max M_t, and valid [T, M] bool (None when ``pqs`` is None), in one host-to-device copy; the
+    padding rows are zeros, left out by ``valid``."""
+    if pqs is None:
+        empty = like.new_zeros(T, 0, 2)
+        return empty, empty, None
+    M = max(len(p) for p, _ in pqs)
+    packed = np.zeros((T, M, 5), np.float64 if like.dtype == torch.float64 else np.float32)  # p, q, valid
+    for t, (p, q) in enumerate(pqs):
+        packed[t, :len(p), :2], packed[t, :len(p), 2:4], packed[t, :len(p), 4] = p, q, 1.0
+    packed = _matches_to(packed, like).to(like.dtype)
+    return packed[..., :2], packed[..., 2:4], packed[..., 4] > 0.5
 
 
 class _MeanStats:
