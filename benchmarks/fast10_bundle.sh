@@ -54,7 +54,13 @@ if [ "$PART" = a ] || [ "$PART" = ab ]; then
   stamp "rdga_old (the gca in ab_old): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
   (cd /tmp && PYTHONPATH=$OLDPWD/ab_old:$PYTHONPATH python3 -c "import gca.align.rdga as r; print('rdga_old reads', r.__file__)")
   PYTHONPATH=$PWD/ab_old:$PYTHONPATH run rdga_old ball $W 10 150 --reuse-data --stages train evaluate
-  [ "$PART" = ab ] && { summary rdga rdga_old; stamp done; exit 0; }
+  if [ "$PART" = ab ]; then  # session 40: and the CUDA twins of the frame batch (gsplat's frames in one call)
+    summary rdga rdga_old
+    stamp "CUDA tests of the rasterizer"
+    timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_render_raster.py tests/test_render_degenerate.py \
+        > "$OUT/gpu_tests.log" 2>&1; echo "gpu tests rc=$?"; tail -n 3 "$OUT/gpu_tests.log"
+    stamp done; exit 0
+  fi
   stamp "rdga again"; rm -rf $W/runs/ball $W/eval; run rdga2 ball $W 10 150 --reuse-data --stages train evaluate
   stamp "profile one full-horizon swept iteration"
   timeout 150 python3 benchmarks/profile_train.py --work $W --scene ball --method gca --iterations 2 --top 60 --out "$OUT" \

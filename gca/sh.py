@@ -55,18 +55,19 @@ def degree_of(K: int) -> int:
 
 
 def view_term(sh_rest: torch.Tensor, means: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
-    """The view-dependent part of the colour, sum_l,m f_rest * Y_lm(d) [G, 3].
+    """The view-dependent part of the colour, sum_l,m f_rest * Y_lm(d) [(T,) G, 3].
 
     Args:
         sh_rest: [G, K, 3] rest coefficients (frame of ``means``).
-        means: [G, 3] Gaussian centres [m]; centre: [3] camera centre [m], same frame.
+        means: [G, 3] Gaussian centres [m] (or [T, G, 3]: T frames); centre: [3] camera centre [m], same frame.
     """
     K = sh_rest.shape[1]
     if K == 0:
-        return means.new_zeros((len(means), 3))
-    d = means - centre.reshape(1, 3)
-    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    return torch.einsum("gk,gkc->gc", basis(d, degree_of(K)).to(sh_rest.dtype), sh_rest)
+        return means.new_zeros((*means.shape[:-1], 3))
+    d = means - centre.reshape(3)
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    Y = basis(d.reshape(-1, 3), degree_of(K)).reshape(*d.shape[:-1], K)
+    return torch.einsum("...gk,gkc->...gc", Y.to(sh_rest.dtype), sh_rest)
 
 
 def rotation_matrices(Q: np.ndarray, degree: int) -> np.ndarray:

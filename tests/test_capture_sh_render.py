@@ -38,3 +38,18 @@ def test_degree_zero_scan_keeps_flat_colours(tmp_path):
     body = _body(tmp_path, 0)
     cam = look_at([0.5, 0.3, 2.0], [0.5, 0.1, 0.5], [0, -1, 0], 40.0, 32, 32)
     assert body.sh_rest is None and world.body_colors(body, body.means0, cam) is body.colors
+
+
+def test_view_term_of_frames_at_once_equals_each_frame():
+    """view_term on T frames' means [T, G, 3] (a training iteration's frames rendered at once, session 40) equals
+    each frame's [G, 3] call, for every SH degree; degree 0 gives zeros of the frames' shape."""
+    g = torch.Generator().manual_seed(0)
+    means = torch.rand(4, 9, 3, generator=g, dtype=torch.float64)
+    centre = torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64)
+    for K in (3, 8, 15):
+        sh_rest = torch.randn(9, K, 3, generator=g, dtype=torch.float64)
+        frames = view_term(sh_rest, means, centre)
+        assert frames.shape == (4, 9, 3)
+        for t in range(4):
+            torch.testing.assert_close(frames[t], view_term(sh_rest, means[t], centre))
+    assert view_term(torch.zeros(9, 0, 3, dtype=torch.float64), means, centre).shape == (4, 9, 3)

@@ -96,3 +96,28 @@ def test_covariance_from_scale_rot_and_smallest_axis():
     R = quat_to_rotmat(torch.tensor([[0.8, 0.2, 0.5, -0.1]], dtype=F64)).expand(2, 3, 3)
     rotated = smallest_axis_normal(R @ covs @ R.transpose(1, 2))
     torch.testing.assert_close((rotated * (R @ normals[..., None])[..., 0]).sum(-1).abs(), torch.ones(2, dtype=F64))
+
+
+def test_frames_at_once_equal_each_frame():
+    """follow on T states at once (x [T, P, 3], F [T, P, 3, 3]: a training iteration's frames, session 40) equals
+    follow frame by frame, values and gradients to each frame's x and F; a frame count that differs between x and F
+    is refused."""
+    binding = _binding()
+    means0, covs0, x0, _, _ = _state()
+    g = torch.Generator().manual_seed(5)
+    xs = (x0 + 0.05 * torch.randn(3, *x0.shape, generator=g, dtype=F64)).requires_grad_()
+    Fs = (torch.eye(3, dtype=F64) + 0.1 * torch.randn(3, x0.shape[0], 3, 3, generator=g, dtype=F64)).requires_grad_()
+    means, covs = follow(binding, means0, covs0, x0, xs, Fs)
+    assert means.shape == (3, 5, 3) and covs.shape == (3, 5, 3, 3)
+    w_m, w_c = torch.randn(means.shape, generator=g, dtype=F64), torch.randn(covs.shape, generator=g, dtype=F64)
+    g_x, g_F = torch.autograd.grad((means * w_m).sum() + (covs * w_c).sum(), (xs, Fs))
+    for t in range(3):
+        x, F = xs[t].detach().requires_grad_(), Fs[t].detach().requires_grad_()
+        m, c = follow(binding, means0, covs0, x0, x, F)
+        torch.testing.assert_close(means[t], m)
+        torch.testing.assert_close(covs[t], c)
+        r_x, r_F = torch.autograd.grad((m * w_m[t]).sum() + (c * w_c[t]).sum(), (x, F))
+        torch.testing.assert_close(g_x[t], r_x)
+        torch.testing.assert_close(g_F[t], r_F)
+    with pytest.raises(AssertionError, match="x0/x/F"):
+        follow(binding, means0, covs0, x0, xs, Fs[:2])

@@ -276,3 +276,70 @@ def test_ewa_projection_on_axis_hand_computed():
     torch.testing.assert_close(proj.means2d[0], torch.tensor([16.0, 16.0], dtype=F64))
     assert proj.radii[0].item() == pytest.approx(3 * var**0.5)
     assert proj.depths[0].item() == pytest.approx(z)
+
+
+# ---------------------------------------------------------------- frames at once (session 40)
+
+
+def _frames(T: int, n: int, dtype=F64):
+    """T frames of the same n Gaussians moved and stretched: means [T, n, 3], covs [T, n, 3, 3], colours [T, n, 3]
+    (each frame its own, as view-dependent colours are), the shared opacities [n]."""
+    means, covs, colors, opacities = _scene(n, seed=4, dtype=dtype)
+    shift = torch.linspace(-0.05, 0.05, T, dtype=dtype)[:, None, None]
+    stretch = 1.0 + torch.linspace(0.0, 0.3, T, dtype=dtype)[:, None, None, None]
+    return means + shift, covs * stretch, colors * (1.0 - shift.abs()), opacities
+
+
+def test_frames_at_once_equal_each_frame_and_name_a_bad_frame():
+    """render with a leading frame dim (the torch backend: frame by frame inside) equals rendering each frame,
+    values and gradients; its input stats are one row per frame, and a bad frame is named by its index."""
+    means, covs, colors, opacities = (t.requires_grad_() for t in _frames(3, 40))
+    camera = _camera(24, 20)
+    checks = []
+    out = render(means, covs, colors, opacities, camera, BG, checks=checks)
+    assert out["rgb"].shape == (3, 20, 24, 3) and checks[0].shape == (3, 6)
+    loss = sum((out[k] * (1.0 + torch.arange(out[k].numel(), dtype=F64).reshape(out[k].shape).sin())).sum()
+               for k in KEYS)
+    grads = torch.autograd.grad(loss, (means, covs, colors, opacities))
+    g_opacity = torch.zeros_like(opacities)
+    for t in range(3):
+        inputs = [x[t].detach().requires_grad_() for x in (means, covs, colors)] + [opacities.detach().requires_grad_()]
+        ref = render(*inputs, camera, BG)
+        w = {k: 1.0 + torch.arange(out[k].numel(), dtype=F64).reshape(out[k].shape).sin()[t] for k in KEYS}
+        for k in KEYS:
+            torch.testing.assert_close(out[k][t], ref[k])
+        r = torch.autograd.grad(sum((ref[k] * w[k]).sum() for k in KEYS), inputs)
+        for a, b in zip(grads[:3], r[:3]):
+            torch.testing.assert_close(a[t], b)
+        g_opacity += r[3]
+    torch.testing.assert_close(grads[3], g_opacity)
+    bad = means.detach().clone()
+    bad[2, 7, 0] = float("nan")
+    with pytest.raises(RenderError, match="frame 2: means has 1 non-finite"):
+        render(bad, covs.detach(), colors.detach(), opacities.detach(), camera, BG)
+    with pytest.raises(RenderError, match=r"colors must be \[3, 40, C\]"):
+        render(means.detach(), covs.detach(), colors.detach()[0], opacities.detach(), camera, BG)
+
+
+@pytest.mark.gpu
+def test_gsplat_frames_in_one_call_equal_each_frame():
+    """gsplat's frame batch (a training iteration's frames in one call, session 40) renders what gsplat renders frame
+    by frame: images and the gradients to each frame's means, covariances and colours, and to the shared opacities."""
+    pytest.importorskip("gsplat")
+    means, covs, colors, opacities = (t.float().cuda().requires_grad_() for t in _frames(4, 300))
+    camera, bg = _camera(64, 48), BG.float().cuda()
+    out = render(means, covs, colors, opacities, camera, bg, backend="gsplat")
+    weights = {k: torch.rand(out[k].shape, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
+               for k in KEYS}
+    grads = torch.autograd.grad(sum((out[k] * weights[k]).sum() for k in KEYS), (means, covs, colors, opacities))
+    g_opacity = torch.zeros_like(opacities)
+    for t in range(4):
+        inputs = [x[t].detach().requires_grad_() for x in (means, covs, colors)] + [opacities.detach().requires_grad_()]
+        ref = render(*inputs, camera, bg, backend="gsplat")
+        for k in KEYS:
+            torch.testing.assert_close(out[k][t], ref[k], atol=1e-5, rtol=1e-5, msg=k)
+        r = torch.autograd.grad(sum((ref[k] * weights[k][t]).sum() for k in KEYS), inputs)
+        for a, b in zip(grads[:3], r[:3]):
+            torch.testing.assert_close(a[t], b, atol=1e-5 * float(b.abs().max()), rtol=1e-4)
+        g_opacity += r[3]
+    torch.testing.assert_close(grads[3], g_opacity, atol=1e-5 * float(g_opacity.abs().max()), rtol=1e-4)

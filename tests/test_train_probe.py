@@ -48,3 +48,21 @@ def test_probe_all_finite_and_unknown_stage():
     assert "no probed tensor" in probe.report()
     with pytest.raises(ValueError, match="unknown stage"):
         probe.watch("nowhere", "x", 0, t)
+
+
+def test_a_frame_batched_tensor_names_its_broken_frames():
+    """watch_frames (session 40: a training iteration's frames rendered in one call) counts each frame of a [T, ...]
+    tensor apart: the report names the frames whose gradient broke, not all of them; watch's one count for the
+    whole tensor (the control) cannot."""
+    frames = [3, 4, 5, 6]
+    probe, whole = GradProbe(), GradProbe()
+    means = (torch.ones(4, 5, 3, requires_grad=True) * 2.0)
+    probe.watch_frames("gaussians", "means", frames, means)
+    whole.watch("gaussians", "means", -1, means)
+    weight = torch.ones(4, 5, 3)
+    weight[2, 1, 0] = float("nan")  # only frame 5's gradient
+    (means * weight).sum().backward()
+    assert "gaussians: non-finite (means at frames [5])" in probe.report()
+    assert "means at frames [-1]" in whole.report()
+    with pytest.raises(ValueError, match="unknown stage"):
+        probe.watch_frames("nowhere", "x", frames, means)

@@ -93,20 +93,23 @@ def follow(binding: Binding, means0: torch.Tensor, covs0: torch.Tensor, x0: torc
         means0: initial Gaussian means [G, 3] (sim frame, m).
         covs0: initial Gaussian covariances [G, 3, 3] (sim frame, m^2).
         x0: initial particle positions [P, 3] (m).
-        x: current particle positions [P, 3] (m).
-        F: current (elastic) deformation gradients [P, 3, 3].
+        x: current particle positions [P, 3] (m), or [T, P, 3]: T states at once (e.g. a training iteration's
+            video frames).
+        F: current (elastic) deformation gradients [P, 3, 3] ([T, P, 3, 3]).
 
     Returns:
-        ``(means [G, 3], covs [G, 3, 3])``; differentiable w.r.t. ``x`` and ``F``.
+        ``(means [(T,) G, 3], covs [(T,) G, 3, 3])``; differentiable w.r.t. ``x`` and ``F``.
     """
     G, P = binding.n_gaussians, binding.n_particles
     assert means0.shape == (G, 3) and covs0.shape == (G, 3, 3), \
         f"{_WHERE}: means0/covs0 must be [{G}, 3]/[{G}, 3, 3], got {tuple(means0.shape)}/{tuple(covs0.shape)}"
-    assert x0.shape == (P, 3) and x.shape == (P, 3) and F.shape == (P, 3, 3), \
-        f"{_WHERE}: x0/x/F must be [{P}, 3]/[{P}, 3]/[{P}, 3, 3], got " \
+    lead = x.shape[:-2]
+    assert x0.shape == (P, 3) and x.shape == (*lead, P, 3) and F.shape == (*lead, P, 3, 3) and len(lead) <= 1, \
+        f"{_WHERE}: x0/x/F must be [{P}, 3]/[(T,) {P}, 3]/[(T,) {P}, 3, 3], got " \
         f"{tuple(x0.shape)}/{tuple(x.shape)}/{tuple(F.shape)}"
-    means = means0 + binding.apply(x - x0)
-    F_g = binding.apply(F)
+    # the binding maps particle rows to Gaussian rows: the frames ride along as trailing dims
+    means = means0 + binding.apply((x - x0).movedim(-2, 0)).movedim(0, -2)
+    F_g = binding.apply(F.movedim(-3, 0)).movedim(0, -3)
     covs = bmm3(bmm3(F_g, covs0), F_g.transpose(-1, -2))
     return means, covs
 

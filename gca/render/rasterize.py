@@ -60,35 +60,42 @@ class RenderError(ValueError):
 
 def _check_inputs(means, covs, colors, opacities, bg, checks: list | None = None) -> None:
     """Shapes, dtypes and devices now; the values (finite, opacities in [0, 1]) now with one host read, or, given
-    ``checks``, appended there as :func:`input_stats` for the caller to judge later (:func:`judge_inputs`)."""
-    N = means.shape[0]
-    if means.ndim != 2 or means.shape[1] != 3:
-        raise RenderError(f"{_WHERE}: means must be [N, 3], got {tuple(means.shape)}")
-    if covs.shape != (N, 3, 3):
-        raise RenderError(f"{_WHERE}: covs must be [{N}, 3, 3], got {tuple(covs.shape)}")
-    if colors.ndim != 2 or colors.shape[0] != N:
-        raise RenderError(f"{_WHERE}: colors must be [{N}, C], got {tuple(colors.shape)}")
+    ``checks``, appended there as :func:`input_stats` for the caller to judge later (:func:`judge_inputs`).
+    ``means`` [N, 3], or [T, N, 3] for T frames (covs and colors with the same leading T; opacities [N] shared)."""
+    lead, N = means.shape[:-2], means.shape[-2] if means.ndim >= 2 else -1
+    frames = f"{list(lead)[0]}, " if lead else ""
+    if means.ndim not in (2, 3) or means.shape[-1] != 3:
+        raise RenderError(f"{_WHERE}: means must be [N, 3] (or [T, N, 3] for T frames), got {tuple(means.shape)}")
+    if covs.shape != (*lead, N, 3, 3):
+        raise RenderError(f"{_WHERE}: covs must be [{frames}{N}, 3, 3], got {tuple(covs.shape)}")
+    if colors.ndim != means.ndim or colors.shape[:-1] != (*lead, N):
+        raise RenderError(f"{_WHERE}: colors must be [{frames}{N}, C], got {tuple(colors.shape)}")
     if opacities.shape != (N,):
         raise RenderError(f"{_WHERE}: opacities must be [{N}], got {tuple(opacities.shape)}")
-    if bg.shape != (colors.shape[1],):
-        raise RenderError(f"{_WHERE}: bg must be [{colors.shape[1]}], got {tuple(bg.shape)}")
+    if bg.shape != (colors.shape[-1],):
+        raise RenderError(f"{_WHERE}: bg must be [{colors.shape[-1]}], got {tuple(bg.shape)}")
     kinds = {(x.dtype, x.device) for x in (means, covs, colors, opacities, bg)}
     if len(kinds) != 1 or not means.is_floating_point():
         raise RenderError(f"{_WHERE}: means, covs, colors, opacities and bg must share one floating dtype and "
                           f"device, got {sorted(map(str, kinds))}")
     if checks is None:
-        judge_inputs(input_stats(means, covs, colors, opacities).tolist())
+        stats = input_stats(means, covs, colors, opacities).tolist()
+        for t, row in enumerate(stats if lead else [stats]):
+            judge_inputs(row, f"frame {t}: " if lead else "")
     else:
         checks.append(input_stats(means, covs, colors, opacities))
 
 
 def input_stats(means, covs, colors, opacities) -> torch.Tensor:
     """Non-finite entries of means, covs, colors, opacities and the opacities' min and max, as a device tensor [6]
-    (no host read: :func:`judge_inputs` reads them)."""
+    ([T, 6] for T frames: means [T, N, 3] etc.; the opacities' entries repeated per frame) (no host read:
+    :func:`judge_inputs` reads them)."""
     o = opacities.detach()
-    N = o.shape[0]
-    return torch.stack([(~torch.isfinite(x.detach())).sum().to(o.dtype) for x in (means, covs, colors, o)]
-                       + [o.min() if N else o.new_zeros(()), o.max() if N else o.new_zeros(())])
+    N, lead = o.shape[0], means.shape[:-2]
+    per_frame = [(~torch.isfinite(x.detach())).reshape(*lead, -1).sum(-1).to(o.dtype) for x in (means, covs, colors)]
+    shared = [(~torch.isfinite(o)).sum().to(o.dtype), o.min() if N else o.new_zeros(()),
+              o.max() if N else o.new_zeros(())]
+    return torch.stack(per_frame[:3] + [x.expand(lead) for x in shared], -1)
 
 
 def judge_inputs(stats, where: str = "") -> None:
@@ -320,7 +327,8 @@ def render_ref(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterCo
 
 
 def _render_gsplat(means, covs, colors, opacities, camera: Camera, bg, cfg: RasterConfig) -> dict:
-    """Map our inputs onto ``gsplat.rasterization`` (full covariances, OpenCV viewmat, K)."""
+    """Map our inputs onto ``gsplat.rasterization`` (full covariances, OpenCV viewmat, K); means [N, 3] or
+    [T, N, 3] (T frames in one call: gsplat's batch dims, one camera each), outputs [(T,) H, W, ...]."""
     if not means.is_cuda:
         raise RenderError(f"{_WHERE}: backend='gsplat' needs CUDA tensors (got device {means.device}); "
                           "use backend='torch' on CPU")
@@ -333,15 +341,17 @@ def _render_gsplat(means, covs, colors, opacities, camera: Camera, bg, cfg: Rast
         raise RenderError(f"{_WHERE}: backend='gsplat' needs the optional package gsplat "
                           "(pip install 'gca[gpu]')") from exc
     K, w2c = camera.tensors(means.dtype, means.device)
+    lead = means.shape[:-2]
     colors_out, alphas, _ = rasterization(
-        means=means, quats=None, scales=None, opacities=opacities, colors=colors,
-        viewmats=w2c[None], Ks=K[None], width=camera.width, height=camera.height,
+        means=means, quats=None, scales=None, opacities=opacities.expand(*lead, -1).contiguous(),
+        colors=colors.contiguous(),  # frames' expanded views (stride 0) made dense: the kernels read raw pointers
+        viewmats=w2c.expand(*lead, 1, 4, 4), Ks=K.expand(*lead, 1, 3, 3), width=camera.width, height=camera.height,
         near_plane=cfg.near, far_plane=cfg.far, eps2d=cfg.eps2d, sh_degree=None, packed=False,
-        tile_size=16, backgrounds=bg[None], render_mode="RGB+D",
+        tile_size=16, backgrounds=bg.expand(*lead, 1, -1), render_mode="RGB+D",
         rasterize_mode="classic", covars=0.5 * (covs + covs.transpose(-1, -2)))
-    alpha = alphas[0, ..., 0]
-    depth = colors_out[0, ..., -1]
-    return {"rgb": colors_out[0, ..., :-1], "alpha": alpha, "depth": depth,
+    colors_out, alpha = colors_out[..., 0, :, :, :], alphas[..., 0, :, :, 0]  # the one camera
+    depth = colors_out[..., -1]
+    return {"rgb": colors_out[..., :-1], "alpha": alpha, "depth": depth,
             "depth_expected": depth / alpha.clamp_min(1e-10)}
 
 
@@ -358,26 +368,37 @@ def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacit
     """Render Gaussians; differentiable w.r.t. means, covs, colors and opacities.
 
     Args:
-        means: Gaussian centres [N, 3] (the camera's world frame, e.g. sim frame).
-        covs: full covariances [N, 3, 3] (world units^2; e.g. F Sigma0 F^T from MPM).
-        colors: per-Gaussian colours or features [N, C] (post-activation).
-        opacities: [N] in [0, 1].
+        means: Gaussian centres [N, 3] (the camera's world frame, e.g. sim frame), or [T, N, 3]: the same Gaussians
+            at T frames (e.g. a training iteration's video frames), rendered from one camera: with gsplat in one
+            batched call (NOTES session 40), with the torch backend frame by frame.
+        covs: full covariances [(T,) N, 3, 3] (world units^2; e.g. F Sigma0 F^T from MPM).
+        colors: per-Gaussian colours or features [(T,) N, C] (post-activation).
+        opacities: [N] in [0, 1] (shared by the frames).
         camera: :class:`~gca.render.camera.Camera`.
         bg: background colour [C].
         backend: ``"torch"`` (tiled, CPU or CUDA) or ``"gsplat"`` (CUDA only; its alpha clamp 0.999
             and 3.33-sigma extents differ slightly from ours).
         cfg: :class:`RasterConfig`.
         checks: None: the inputs' values are checked now (one host read); a list: their :func:`input_stats` are
-            appended to it instead, for the caller to read with other frames' (:func:`judge_inputs`).
+            appended to it instead ([6], or [T, 6] for frames), for the caller to read with other frames' (:func:`judge_inputs`).
 
     Returns:
-        dict with ``rgb [H, W, C]``, ``alpha [H, W]``, ``depth [H, W]`` (accumulated
-        ``sum_i w_i z_i``, zero where empty) and ``depth_expected [H, W]`` (``depth / alpha``,
+        dict with ``rgb [(T,) H, W, C]``, ``alpha [(T,) H, W]``, ``depth [(T,) H, W]`` (accumulated
+        ``sum_i w_i z_i``, zero where empty) and ``depth_expected [(T,) H, W]`` (``depth / alpha``,
         the alpha-normalised camera z; meaningless where alpha ~ 0).
     """
     if backend not in _BACKENDS:
         raise RenderError(f"{_WHERE}: unknown backend {backend!r}; expected one of {sorted(_BACKENDS)}")
     _check_inputs(means, covs, colors, opacities, bg, checks)
+    if means.ndim == 3 and backend != "gsplat":  # frame by frame: the torch rasterizer has no frame batch
+        outs = [_render_checked(means[t], covs[t], colors[t], opacities, camera, bg, backend, cfg)
+                for t in range(means.shape[0])]
+        return {k: torch.stack([out[k] for out in outs]) for k in _KEYS}
+    return _render_checked(means, covs, colors, opacities, camera, bg, backend, cfg)
+
+
+def _render_checked(means, covs, colors, opacities, camera: Camera, bg, backend: str, cfg: RasterConfig) -> dict:
+    """:func:`render` after its input checks."""
     if backend == "torch" and cfg.checkpoint and torch.is_grad_enabled() \
             and any(t.requires_grad for t in (means, covs, colors, opacities, bg)):
         return _render_torch_checkpointed(means, covs, colors, opacities, camera, bg, cfg)

@@ -115,15 +115,17 @@ def initial_velocity(x0: torch.Tensor, v0: torch.Tensor, w0: torch.Tensor | None
 
 
 def gaussians_at(body: Body, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Deformed Gaussian means [G, 3] and covariances [G, 3, 3] for particle state (x [P,3], F [P,3,3])."""
+    """Deformed Gaussian means [G, 3] and covariances [G, 3, 3] for particle state (x [P,3], F [P,3,3]); with a
+    leading frame dim (x [T,P,3], F [T,P,3,3]) the T states' [T, G, ...] at once."""
     return follow(body.binding, body.means0, body.covs0, body.x0, x, F)
 
 
 def body_colors(body: Body, means: torch.Tensor, camera: Camera) -> torch.Tensor:
     """The body's colours seen from ``camera`` [G, 3] in [0, 1]: ``body.colors`` plus, when the scan has
-    SH bands 1-3, their view-dependent term along camera centre -> mean (:mod:`gca.sh`)."""
+    SH bands 1-3, their view-dependent term along camera centre -> mean (:mod:`gca.sh`); [T, G, 3] for means
+    [T, G, 3] (T frames)."""
     if body.sh_rest is None:
-        return body.colors
+        return body.colors if means.ndim == 2 else body.colors.expand(*means.shape[:-2], -1, -1)
     centre = camera.center_tensor(means.dtype, means.device)  # made once (a host copy per frame would wait for the GPU)
     return (body.colors + view_term(body.sh_rest, means, centre)).clamp(0.0, 1.0)
 
@@ -131,7 +133,8 @@ def body_colors(body: Body, means: torch.Tensor, camera: Camera) -> torch.Tensor
 def render_gaussians(body: Body, means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, camera: Camera,
                      bg: torch.Tensor, checks: list | None = None) -> dict:
     """Render the body's Gaussians at (means [G,3], covs [G,3,3]) with per-Gaussian ``colors`` [G,C]
-    through the body's rasterizer settings: ``{rgb [H,W,C], alpha [H,W], depth [H,W], ...}``.
+    through the body's rasterizer settings: ``{rgb [H,W,C], alpha [H,W], depth [H,W], ...}``; T frames at
+    once with a leading frame dim on means, covs, colors and the outputs (:func:`gca.render.rasterize.render`).
     ``colors`` given as ``body.colors`` itself means the scan's colours: view-dependent
     (:func:`body_colors`) when it has SH bands 1-3. ``checks``: as :func:`gca.render.rasterize.render`'s."""
     if colors is body.colors:

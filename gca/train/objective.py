@@ -266,26 +266,29 @@ class Objective:
         renders = self._render_frames(traj, n_video)
         return self._frame_losses(traj, renders, self._start_matching(renders))
 
-    def _render_frames(self, traj, n_video: int, first: Callable[[], None] = lambda: None) -> list[dict[str, dict]]:
-        """Every view's render outputs at video frames ``0 .. n_video - 1``, back to back (with their graphs); the
-        rasterizer's input values are checked once for all frames (one host read after the last frame is queued, so
-        the host does not wait for each frame, nor for a swept rollout, before queueing the next), after ``first``
-        (a swept rollout's own checks: a diverged rollout is named as such, not as bad renderer input)."""
+    def _render_frames(self, traj, n_video: int, first: Callable[[], None] = lambda: None) -> dict[str, dict]:
+        """Every view's render outputs at video frames ``0 .. n_video - 1`` (with their graphs), ``{view: {key:
+        [T, ...]}}``: each view's frames in one call (:meth:`_render_at`); the rasterizer's input values are checked
+        once for all frames (one host read after the last frame is queued, so the host does not wait for a swept
+        rollout before queueing the frames), after ``first`` (a swept rollout's own checks: a diverged rollout is
+        named as such, not as bad renderer input)."""
         self._checks = []
         try:
-            renders = [self._render_frame(traj, j) for j in range(n_video)]
-            checks, views = self._checks, len(self.data.views)
+            renders = self._render_at(traj, range(n_video))
+            checks = self._checks
         except Exception:  # a swept rollout renders before it is judged: a broken one is named as such (first)
             first()
             raise
         finally:
             self._checks = None
         first()
-        for i, row in enumerate(torch.stack(checks).tolist() if checks else []):
-            judge_inputs(row, f"video frame {i // views}, view {list(self.data.views)[i % views]}: ")
+        names = list(self.data.views)
+        for v, rows in enumerate(torch.stack(checks).tolist() if checks else []):  # [views, T, 6]
+            for j, row in enumerate(rows):
+                judge_inputs(row, f"video frame {j}, view {names[v]}: ")
         return renders
 
-    def _frame_losses(self, traj, renders: list[dict], matching: list[Future] | None, sweep=None,
+    def _frame_losses(self, traj, renders: dict[str, dict], matching: list[Future] | None, sweep=None,
                       batch: int | None = None) -> tuple[torch.Tensor, "_MeanStats"]:
         """The per-frame losses of ``renders`` summed over the frames (``frame_weights`` applied), with the
         train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats.
@@ -295,8 +298,8 @@ class Objective:
         ``batch`` frames at a time (1: frame by frame, as tests' references do).
         With ``sweep`` (a swept rollout's :class:`gca.sim.rollout.ReverseSweep`; ``traj`` its :class:`_FrameLeaves`)
         the batches go last first, each one's loss differentiated at once to its frames' (x_f, F_f), handed to the
-        sweep last frame first (the renders' graphs then freed), and the sum is returned detached."""
-        n_video = len(renders)
+        sweep last frame first, and the sum is returned detached (the renders then dropped: ``renders`` is emptied)."""
+        n_video = len(renders["train0"]["alpha"])
         loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
         checks: list = []  # RDGA's finiteness checks of every frame, read once after the loop (rdga.judge)
         size = batch or n_video
@@ -305,15 +308,14 @@ class Objective:
             js = range(start, min(start + size, n_video))
             self._weights = None if self.frame_weights is None else \
                 _matches_to(np.asarray(self.frame_weights[start:js.stop]), loss).to(loss.dtype)
-            per_frame = self._frames_loss(traj, js, [renders[j] for j in js],
+            outs = {name: {key: v[start:js.stop] for key, v in out.items()} for name, out in renders.items()}
+            per_frame = self._frames_loss(traj, js, outs,
                                           [matching[j].result() for j in js] if matching is not None else None,
                                           stats, checks)
             l_js = (per_frame if self._weights is None else per_frame * self._weights).sum()
             if sweep is None:
                 loss = loss + l_js
                 continue
-            for j in js:
-                renders[j] = None
             loss = loss + l_js.detach()
             if l_js.requires_grad:
                 frames = [traj.frames[j] for j in js]
@@ -327,6 +329,8 @@ class Objective:
                                 self.probe.record("particles", name, js[i], g)
                     sweep.add(frames[i], g_x, g_F)
         self._weights = None
+        if sweep is not None:  # their graphs are spent: nothing keeps the images through CPR's gradient
+            renders.clear()
         judge_rdga(checks)  # a non-finite frame raises here, before any gradient is applied (a swept one: abandoned)
         return loss, stats
 
@@ -374,42 +378,51 @@ class Objective:
         return total_e + total_p, grads, {"R_e": R_e / n_video, "R_p": R_p / n_video}
 
     def _render_frame(self, traj: Rollout, j: int) -> dict[str, dict]:
-        """Every view's render outputs at video frame ``j`` (0-based)."""
-        f = self.data.video_frames[j]
-        means, covs = gaussians_at(self.data.body, traj.x[f], traj.F[f])
+        """Every view's render outputs [H, W, ...] at video frame ``j`` (0-based): :meth:`_render_at` of that frame
+        alone (a test's frame-by-frame reference)."""
+        return {name: {key: v[0] for key, v in out.items()} for name, out in self._render_at(traj, range(j, j + 1)).items()}
+
+    def _render_at(self, traj: Rollout, js: range) -> dict[str, dict]:
+        """Every view's render outputs ``{view: {key: [T, ...]}}`` at the video frames ``js`` (T of them): their
+        Gaussians in one call (:func:`gaussians_at` on the frames' stacked x and F), each view's frames in one render
+        (gsplat's frame batch; the torch rasterizer frame by frame): a frame's launches once where frame by frame
+        took T times as many (NOTES session 40)."""
+        frames = [self.data.video_frames[j] for j in js]
+        x, F = (torch.stack([states[f] for f in frames]) for states in (traj.x, traj.F))
+        means, covs = gaussians_at(self.data.body, x, F)
         if self.probe is not None:
-            self.probe.watch("gaussians", "means", j, means)
-            self.probe.watch("gaussians", "covariances", j, covs)
+            self.probe.watch_frames("gaussians", "means", list(js), means)
+            self.probe.watch_frames("gaussians", "covariances", list(js), covs)
         outs = {}
         for name, view in self.data.views.items():
             outs[name] = self._render(means, covs, view, with_positions=name == "train0" and self._needs_positions())
             if self.probe is not None:
                 for key, image in outs[name].items():
-                    self.probe.watch("render outputs", f"{name}/{key}", j, image)
+                    self.probe.watch_frames("render outputs", f"{name}/{key}", list(js), image)
         return outs
 
     def _frame_loss(self, traj: Rollout, j: int, outs: dict[str, dict], pq, stats: "_MeanStats",
                     checks: list | None = None) -> torch.Tensor:
         """Loss [] at video frame ``j`` from its renders ``outs`` and train0 matches ``pq`` (or None): :meth:`_frames_loss`
         of that frame alone (a test's frame-by-frame reference)."""
-        return self._frames_loss(traj, range(j, j + 1), [outs], None if pq is None else [pq], stats, checks)[0]
+        outs = {name: {key: v[None] for key, v in out.items()} for name, out in outs.items()}
+        return self._frames_loss(traj, range(j, j + 1), outs, None if pq is None else [pq], stats, checks)[0]
 
-    def _frames_loss(self, traj: Rollout, js: range, outs: list[dict[str, dict]], pqs: list | None,
+    def _frames_loss(self, traj: Rollout, js: range, outs: dict[str, dict], pqs: list | None,
                      stats: "_MeanStats", checks: list | None = None) -> torch.Tensor:
-        """Losses [T] at the consecutive video frames ``js`` (T of them) from their renders ``outs`` and train0 matches
-        ``pqs`` (or None), each term evaluated once on the frames' [T, ...] stack; their stats summed over the frames
-        into ``stats``; RDGA's checks appended to ``checks`` (None: read at once)."""
+        """Losses [T] at the consecutive video frames ``js`` (T of them) from their renders ``outs`` (``{view: {key:
+        [T, ...]}}``) and train0 matches ``pqs`` (or None), each term evaluated once on the frames' [T, ...] tensors;
+        their stats summed over the frames into ``stats``; RDGA's checks appended to ``checks`` (None: read at once)."""
         frames = slice(js.start, js.stop)
         loss = self.data.body.x0.new_zeros(len(js))
         for name in self.data.views:
             if self.method.uses("color"):
-                rgb = torch.stack([out[name]["rgb"] for out in outs])
-                l_color = (rgb - self.rgb[name][frames]).square().mean((-3, -2, -1))  # [T]
+                l_color = (outs[name]["rgb"] - self.rgb[name][frames]).square().mean((-3, -2, -1))  # [T]
                 loss = loss + self.cfg.lambda_color * l_color
                 self._collect("color", self.cfg.lambda_color * l_color)
                 stats.add(f"color/{name}", l_color.sum())
             if name == "train0":
-                loss = loss + self._mono_terms([out[name] for out in outs], pqs, frames, stats, checks)
+                loss = loss + self._mono_terms(outs[name], pqs, frames, stats, checks)
         return loss
 
     def _needs_positions(self) -> bool:
@@ -420,7 +433,7 @@ class Objective:
         rdga = self.train0_rdga
         return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
 
-    def _start_matching(self, renders: list[dict], last_first: bool = False) -> list[Future] | None:
+    def _start_matching(self, renders: dict[str, dict], last_first: bool = False) -> list[Future] | None:
         """Start matching every frame's train0 render with its video frame (``vision.matching.backend``: SIFT
         against the frame's cached keypoints, or dense flow against the frame itself, inside the rendered
         mask ``alpha >= align.rdga.alpha_threshold`` and the frame's mask); None when the method's terms need
@@ -433,8 +446,8 @@ class Objective:
         """
         if not self._needs_matches():
             return None
-        rgb = torch.stack([r["train0"]["rgb"] for r in renders])
-        inside = torch.stack([r["train0"]["alpha"] for r in renders]).detach() >= self.train0_rdga.alpha_threshold
+        rgb = renders["train0"]["rgb"]
+        inside = renders["train0"]["alpha"].detach() >= self.train0_rdga.alpha_threshold
         u8 = torch.cat([to_uint8(rgb), inside.to(torch.uint8)[..., None]], -1)  # [T, H, W, 4]
         ready = None
         if u8.is_cuda:
@@ -452,30 +465,32 @@ class Objective:
             return match_frame(frames[j, ..., :3], self._gt_u8[j], *keypoints[j], self.match,
                                render_mask=frames[j, ..., 3] > 0, gt_mask=self._gt_mask[j])
 
-        order = range(len(renders) - 1, -1, -1) if last_first else range(len(renders))
+        n_video = len(u8)
+        order = range(n_video - 1, -1, -1) if last_first else range(n_video)
         futures = {j: _match_pool().submit(work, j) for j in order}
-        return [futures[j] for j in range(len(renders))]
+        return [futures[j] for j in range(n_video)]
 
     def _render(self, means, covs, view: ViewData, with_positions: bool) -> dict:
-        """RGB/alpha/depth; with ``with_positions`` also the premultiplied camera-frame positions
-        [H, W, 3] of RDGA's global term, composited in the same pass as 3 extra colour channels
+        """RGB/alpha/depth [(T,) H, W, ...] (means [(T,) G, 3]: T frames at once); with ``with_positions`` also the
+        premultiplied camera-frame positions [(T,) H, W, 3] of RDGA's global term, composited in the same pass as 3 extra colour channels
         (background 0), so the frame is rasterized once."""
         body = self.data.body
         if not with_positions:
             return render_gaussians(body, means, covs, body.colors, view.camera, self.bg, checks=self._checks)
         extra = position_colors(view.camera.to_camera(means), self.train0_rdga.global_gradient)
-        out = render_gaussians(body, means, covs, torch.cat([body_colors(body, means, view.camera), extra], 1), view.camera,
-                               torch.cat([self.bg, self.bg.new_zeros(extra.shape[1])]), checks=self._checks)
+        out = render_gaussians(body, means, covs, torch.cat([body_colors(body, means, view.camera), extra], -1),
+                               view.camera, torch.cat([self.bg, self.bg.new_zeros(extra.shape[-1])]), checks=self._checks)
         return {**out, "rgb": out["rgb"][..., :3],
                 "positions": position_image(out["rgb"][..., 3:], self.train0_rdga.global_gradient)}
 
-    def _mono_terms(self, outs: list[dict], pqs: list | None, frames: slice, stats: "_MeanStats",
+    def _mono_terms(self, out: dict, pqs: list | None, frames: slice, stats: "_MeanStats",
                     checks: list | None = None) -> torch.Tensor:
-        """Monocular terms [T] of train0 at the video frames ``frames`` (T of them; ``outs`` their renders, ``pqs``
-        their matches or None): L1 depth, raw or aligned (PAC-NeRF + depth), and silhouette/RDGA
+        """Monocular terms [T] of train0 at the video frames ``frames`` (T of them; ``out`` their renders ``{key:
+        [T, ...]}``, ``pqs`` their matches or None): L1 depth, raw or aligned (PAC-NeRF + depth), and silhouette/RDGA
         (:func:`gca.align.rdga.rdga_frames`, the frames' matches padded to the longest)."""
-        alpha, depth = (torch.stack([out[key] for out in outs]) for key in ("alpha", "depth"))
-        loss = alpha.new_zeros(len(outs))
+        alpha, depth = out["alpha"], out["depth"]
+        T = len(alpha)
+        loss = alpha.new_zeros(T)
         for term, fn in (("depth_l1", depth_l1_raw), ("depth_l1_aligned", depth_l1_aligned)):
             if self.method.uses(term):
                 l_depth = fn(depth, self.est_depth[frames], self.mask[frames])
@@ -484,9 +499,8 @@ class Objective:
                 stats.add(term, l_depth.sum())
         rdga = self.train0_rdga
         if rdga is not None:
-            p, q, valid = _padded_matches(pqs, len(outs), depth)
-            # "positions" is rendered exactly when the global term needs it (_needs_positions)
-            positions = torch.stack([out["positions"] for out in outs]) if "positions" in outs[0] else None
+            p, q, valid = _padded_matches(pqs, T, depth)
+            positions = out.get("positions")  # rendered exactly when the global term needs it (_needs_positions)
             terms = {} if self._terms is not None else None
             l_rdga, s = rdga_frames(alpha, depth, self.mask[frames], self.est_depth[frames], p, q, rdga,
                                     pos_image=positions, K=self.K["train0"], valid=valid, terms=terms, checks=checks)
@@ -494,7 +508,7 @@ class Objective:
                 self._collect(key, value)
             loss = loss + l_rdga
             for k, v in s.items():
-                stats.add(f"rdga/{k}", v.sum() if isinstance(v, torch.Tensor) else v * len(outs))
+                stats.add(f"rdga/{k}", v.sum() if isinstance(v, torch.Tensor) else v * T)
         return loss
 
     def _collect(self, term: str, value: torch.Tensor) -> None:

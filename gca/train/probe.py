@@ -34,6 +34,18 @@ class GradProbe:
         if isinstance(t, torch.Tensor) and t.requires_grad:
             t.register_hook(lambda g: self.record(stage, name, frame, g))
 
+    def watch_frames(self, stage: str, name: str, frames: list[int], t: torch.Tensor) -> None:
+        """:meth:`watch` for ``t`` [T, ...] holding the frames ``frames`` (T of them) along its first dim: each
+        frame's non-finite entries counted apart."""
+        if stage not in STAGES:
+            raise ValueError(f"gca/train/probe.py: unknown stage {stage!r}; one of {STAGES}")
+        if isinstance(t, torch.Tensor) and t.requires_grad:
+            t.register_hook(lambda g: self._record_frames(stage, name, frames, g))
+
+    def _record_frames(self, stage: str, name: str, frames: list[int], g: torch.Tensor) -> None:
+        counts = (~torch.isfinite(g)).reshape(len(frames), -1).sum(-1)
+        self.counts.extend((stage, name, frame, counts[i]) for i, frame in enumerate(frames))
+
     def record(self, stage: str, name: str, frame: int, g: torch.Tensor) -> None:
         """Count the non-finite entries of ``g``, a gradient that reached ``stage``'s tensor ``name`` at ``frame``
         (what :meth:`watch`'s hook does; called directly where the gradient is taken by hand)."""
