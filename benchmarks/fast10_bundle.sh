@@ -28,6 +28,9 @@
 #   PART=mlpsweep (for session 39; ~5 min, no gsplat): bench_mlp_triton.py, the TF32 backward's launch swept (block,
 #       warps, programs per SM: SWEEP), alone at 30k and 100k; then bench_mlp_packed.py at 1 and 8 processes under MPS:
 #       torch, the library's launch (tf32_64) and the two fastest of the sweep at 30k      -> mlpsweep.*, mlpsweep_packed.*
+#   PART=chunks (session 40; ~5 min): gsplat's build, the ball's data, 10 GCA iterations with the frames' losses in one
+#       call (train.loss_chunk_frames 0), in chunks of 8 and of 4, then train.mlp_kernel=triton_tf32 (same data)
+#                                                                             -> {chunk0,chunk8,chunk4,tf32}/
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
@@ -157,6 +160,19 @@ if [ "$PART" = order ]; then  # session 34: the paper density ball by sub-lattic
       --json "$OUT/p2g_order.json" > "$OUT/p2g_order.txt" 2>&1
   echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g_order.txt"
   # (at 19135e8 this part went on to a ball A/B with particles.order_stride 1 / 4: the sampler's order, reverted)
+fi
+
+if [ "$PART" = chunks ]; then  # session 40: the frames' losses in chunks, and the TF32 MLP, on the same data
+  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
+  W=/tmp/fast10_ball
+  stamp "chunk0 (every frame in one call): data + 10 iterations"; run chunk0 ball $W 10 200
+  for c in 8 4; do
+    stamp "chunk$c: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+    run "chunk$c" ball $W 10 120 --reuse-data --stages train evaluate --set "train.loss_chunk_frames=$c"
+  done
+  stamp "tf32 (train.mlp_kernel=triton_tf32, chunk0): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
+  run tf32 ball $W 10 120 --reuse-data --stages train evaluate --set train.mlp_kernel=triton_tf32
+  summary chunk0 chunk8 chunk4 tf32
 fi
 
 if [ "$PART" = b ]; then

@@ -322,6 +322,7 @@ def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
                    n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
     renders = objective._render_frames(traj, n_video)
     matching = objective._start_matching(renders)
+    (_, renders), = renders  # one chunk (train.loss_chunk_frames 0)
     pqs = [f.result() for f in matching] if matching is not None else None
     assert (pqs is not None) == (name == "gca")
     objective.frame_weights = [1.0 - 0.1 * j for j in range(n_video)]
@@ -333,6 +334,34 @@ def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
         with pytest.raises(HostSync):
             with no_host_sync():
                 judge(checks)
+
+
+@pytest.mark.parametrize("chunk", [0, 3])
+def test_bad_renderer_input_names_its_frame_and_view_in_any_chunking(textured_scene, chunk):
+    """The frames' renders are checked once for all (one read, the rows chunk by chunk, view by view, frame by frame):
+    a non-finite particle at one video frame is named with that frame and the first view, whether the frames are
+    rendered in one call or in chunks of 3 (session 40), and the frames' renders are chunked as the losses are."""
+    from types import SimpleNamespace
+    from gca.render.rasterize import RenderError
+    from gca.sim.rollout import rollout
+
+    scene, method = textured_scene, get_method("neuma_multiview")
+    data = _data(scene, method)
+    law = build_law(get_method("gca"), scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+    objective = Objective(method, data, TrainConfig(curriculum_start=1.0, loss_chunk_frames=chunk), RDGAConfig(r=5, k=5),
+                          CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+    b, n_video = data.body, len(data.video_frames)
+    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
+                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+    renders = objective._render_frames(traj, n_video)
+    assert [list(js) for js, _ in renders] == ([list(range(n_video))] if chunk == 0 else
+                                               [list(range(a, min(a + 3, n_video))) for a in range(0, n_video, 3)])
+    bad = n_video - 1  # the last chunk's (a chunk of its own when chunked by 3)
+    assert n_video % 3 == 1
+    x = traj.x.clone()
+    x[data.video_frames[bad], 7, 1] = float("nan")
+    with pytest.raises(RenderError, match=f"video frame {bad}, view train0: means has 1 non-finite"):
+        objective._render_frames(SimpleNamespace(x=x, F=traj.F), n_video)
 
 
 def _diverging_simulate(monkeypatch, fail_calls, error=None):
@@ -652,17 +681,18 @@ def test_lora_init_is_seeded(scene):
 
 
 @pytest.mark.parametrize("sweep", [False, True])
-@pytest.mark.parametrize("name", ["gca", "neuma", "no_rdga"])
-def test_objective_gradient_equals_its_reference_loss(textured_scene, name, sweep):
+@pytest.mark.parametrize("name,chunk", [("gca", 0), ("gca", 3), ("neuma", 0), ("no_rdga", 0)])
+def test_objective_gradient_equals_its_reference_loss(textured_scene, name, chunk, sweep):
     """Objective.gradient (what training differentiates: CPR chunked, image terms backward separately) =
     the autograd gradient of Objective.loss (every term with its graph, one call) when CPR's gradient is not
     rescaled (max_grad_ratio = 0: eq. 8 as written), same loss value; with a ratio the CPR share is scaled.
     ``sweep``: on a swept rollout (train.reverse_sweep: each frame's loss differentiated last frame first into
-    the rollout's ReverseSweep) the same, to float rounding."""
+    the rollout's ReverseSweep) the same, to float rounding; ``chunk``: the frames' losses ``train.loss_chunk_frames``
+    at a time (chunks of 3, the last one shorter, last first) instead of all in one call, the same."""
     from gca.sim.rollout import rollout
 
     scene, method = textured_scene, get_method(name)
-    cfg = TrainConfig(curriculum_start=1.0, cpr_every=1)
+    cfg = TrainConfig(curriculum_start=1.0, cpr_every=1, loss_chunk_frames=chunk)
     data = _data(scene, method)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     params = law.trainable()
@@ -716,8 +746,9 @@ def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
 
     def start_spy(renders):
         events.append("match")
-        seen["frames"] = list(objective_module.to_uint8(renders["train0"]["rgb"]).numpy())
-        seen["inside"] = list(renders["train0"]["alpha"].detach().numpy() >= objective.train0_rdga.alpha_threshold)
+        (_, out), = renders  # one chunk (train.loss_chunk_frames 0)
+        seen["frames"] = list(objective_module.to_uint8(out["train0"]["rgb"]).numpy())
+        seen["inside"] = list(out["train0"]["alpha"].detach().numpy() >= objective.train0_rdga.alpha_threshold)
         seen["futures"] = start(renders)
         return seen["futures"]
 

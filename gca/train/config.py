@@ -18,7 +18,8 @@ MATMUL_PRECISIONS = ("highest", "high")
 #: before a knob existed, or under another of these values, goes on under this one, as one made on another machine
 #: does (float32 noise). ``matmul_precision: high`` and ``mlp_kernel: triton_tf32`` (TF32) are not rounding-equal,
 #: so they are recorded.
-EXECUTION_ONLY = {"reverse_sweep": None, "mlp_kernel": ("torch", "warp", "simt"), "matmul_precision": ("highest",)}
+EXECUTION_ONLY = {"reverse_sweep": None, "loss_chunk_frames": None, "mlp_kernel": ("torch", "warp", "simt"),
+                  "matmul_precision": ("highest",)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +65,11 @@ class TrainConfig:
             (``gca.sim.rollout.ReverseSweep``; on CUDA the simulator's backward then overlaps the losses' host work)
             instead of one autograd pass after all of them; the same gradient up to float rounding. Term-share
             iterations take the autograd pass (each term is differentiated through the whole rollout there).
+        loss_chunk_frames: supervised video frames whose losses are evaluated and differentiated in one call, the
+            chunks last first (0: the whole horizon in one; ``gca.train.objective.Objective._frame_losses``): each
+            chunk's terms are one call on [T, ...] tensors, the launches of one frame (NOTES session 40); a chunk keeps
+            its frames' loss graphs (RDGA's soft ranks of every match) until its backward, and a swept rollout's
+            adjoints start once the first chunk's are queued. The same loss and gradient to float rounding.
         matmul_precision: torch's float32 matrix-product precision while training
             (``torch.set_float32_matmul_precision``, restored after): ``highest`` (default: FP32 products) or
             ``high`` (TF32 tensor cores on CUDA: 10 mantissa bits in the neural law's products; on a CPU torch may
@@ -108,6 +114,7 @@ class TrainConfig:
     neuma_lr_scale: float = 1.7511264560616377
     optimizer: str = "radam"
     reverse_sweep: bool = True
+    loss_chunk_frames: int = 0
     matmul_precision: str = "highest"
     mlp_kernel: str = "torch"
     frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
@@ -134,6 +141,9 @@ class TrainConfig:
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"train.matmul_precision must be one of {list(MATMUL_PRECISIONS)}, got "
                              f"{self.matmul_precision!r}")
+        if not (isinstance(self.loss_chunk_frames, int) and self.loss_chunk_frames >= 0):
+            raise ValueError(f"train.loss_chunk_frames must be an integer >= 0 (0 = every frame in one call), got "
+                             f"{self.loss_chunk_frames!r}")
         if self.mlp_kernel not in MLP_KERNELS:
             raise ValueError(f"train.mlp_kernel must be one of {list(MLP_KERNELS)}, got {self.mlp_kernel!r}")
         if self.keep not in ("best", "last"):

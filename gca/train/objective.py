@@ -266,15 +266,19 @@ class Objective:
         renders = self._render_frames(traj, n_video)
         return self._frame_losses(traj, renders, self._start_matching(renders))
 
-    def _render_frames(self, traj, n_video: int, first: Callable[[], None] = lambda: None) -> dict[str, dict]:
-        """Every view's render outputs at video frames ``0 .. n_video - 1`` (with their graphs), ``{view: {key:
-        [T, ...]}}``: each view's frames in one call (:meth:`_render_at`); the rasterizer's input values are checked
-        once for all frames (one host read after the last frame is queued, so the host does not wait for a swept
-        rollout before queueing the frames), after ``first`` (a swept rollout's own checks: a diverged rollout is
-        named as such, not as bad renderer input)."""
+    def _render_frames(self, traj, n_video: int, first: Callable[[], None] = lambda: None
+                       ) -> list[tuple[range, dict[str, dict]]]:
+        """Every view's render outputs at video frames ``0 .. n_video - 1`` (with their graphs), in chunks of
+        ``train.loss_chunk_frames`` frames (0: one chunk), each ``(its frames js, {view: {key: [T, ...]}})``: each
+        view's frames of a chunk in one call (:meth:`_render_at`), so a chunk's graph is its own (a chunk's backward
+        leaves the others'); the rasterizer's input values are checked once for all frames (one host read after the
+        last frame is queued, so the host does not wait for a swept rollout before queueing the frames), after
+        ``first`` (a swept rollout's own checks: a diverged rollout is named as such, not as bad renderer input)."""
+        size = self.cfg.loss_chunk_frames or n_video
         self._checks = []
         try:
-            renders = self._render_at(traj, range(n_video))
+            renders = [(js, self._render_at(traj, js))
+                       for js in (range(a, min(a + size, n_video)) for a in range(0, n_video, size))]
             checks = self._checks
         except Exception:  # a swept rollout renders before it is judged: a broken one is named as such (first)
             first()
@@ -282,33 +286,30 @@ class Objective:
         finally:
             self._checks = None
         first()
-        names = list(self.data.views)
-        for v, rows in enumerate(torch.stack(checks).tolist() if checks else []):  # [views, T, 6]
-            for j, row in enumerate(rows):
-                judge_inputs(row, f"video frame {j}, view {names[v]}: ")
+        rows, names = iter(torch.cat(checks).tolist() if checks else []), list(self.data.views)  # chunk, view, frame
+        for js, _ in (renders if checks else []):
+            for name in names:
+                for j in js:
+                    judge_inputs(next(rows), f"video frame {j}, view {name}: ")
         return renders
 
-    def _frame_losses(self, traj, renders: dict[str, dict], matching: list[Future] | None, sweep=None,
-                      batch: int | None = None) -> tuple[torch.Tensor, "_MeanStats"]:
+    def _frame_losses(self, traj, renders: list[tuple[range, dict]], matching: list[Future] | None, sweep=None
+                      ) -> tuple[torch.Tensor, "_MeanStats"]:
         """The per-frame losses of ``renders`` summed over the frames (``frame_weights`` applied), with the
         train0 matches that ``matching`` (from :meth:`_start_matching`) delivers, and their stats.
 
-        All the frames at once (:meth:`_frames_loss`: each term one call on [T, ...] tensors, the launches of one
-        frame where frame by frame took T times as many: the host bound the iteration, NOTES session 40), or
-        ``batch`` frames at a time (1: frame by frame, as tests' references do).
+        ``train.loss_chunk_frames`` frames at a time, or all at once (0) (:meth:`_frames_loss`: each term one call on
+        [T, ...] tensors, the launches of one frame where frame by frame took T times as many: the host bound the
+        iteration, NOTES session 40).
         With ``sweep`` (a swept rollout's :class:`gca.sim.rollout.ReverseSweep`; ``traj`` its :class:`_FrameLeaves`)
-        the batches go last first, each one's loss differentiated at once to its frames' (x_f, F_f), handed to the
+        the chunks go last first, each one's loss differentiated at once to its frames' (x_f, F_f), handed to the
         sweep last frame first, and the sum is returned detached (the renders then dropped: ``renders`` is emptied)."""
-        n_video = len(renders["train0"]["alpha"])
+        n_video = renders[-1][0].stop
         loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
         checks: list = []  # RDGA's finiteness checks of every frame, read once after the loop (rdga.judge)
-        size = batch or n_video
-        starts = range(0, n_video, size)
-        for start in (starts if sweep is None else reversed(starts)):
-            js = range(start, min(start + size, n_video))
+        for js, outs in (renders if sweep is None else reversed(renders)):
             self._weights = None if self.frame_weights is None else \
-                _matches_to(np.asarray(self.frame_weights[start:js.stop]), loss).to(loss.dtype)
-            outs = {name: {key: v[start:js.stop] for key, v in out.items()} for name, out in renders.items()}
+                _matches_to(np.asarray(self.frame_weights[js.start:js.stop]), loss).to(loss.dtype)
             per_frame = self._frames_loss(traj, js, outs,
                                           [matching[j].result() for j in js] if matching is not None else None,
                                           stats, checks)
@@ -328,6 +329,7 @@ class Objective:
                             if g is not None:
                                 self.probe.record("particles", name, js[i], g)
                     sweep.add(frames[i], g_x, g_F)
+            outs.clear()  # the chunk's graph is spent: its images need not wait for the others'
         self._weights = None
         if sweep is not None:  # their graphs are spent: nothing keeps the images through CPR's gradient
             renders.clear()
@@ -433,7 +435,7 @@ class Objective:
         rdga = self.train0_rdga
         return rdga is not None and rdga.enabled and (rdga.use_global or rdga.use_anchor)
 
-    def _start_matching(self, renders: dict[str, dict], last_first: bool = False) -> list[Future] | None:
+    def _start_matching(self, renders: list[tuple[range, dict]], last_first: bool = False) -> list[Future] | None:
         """Start matching every frame's train0 render with its video frame (``vision.matching.backend``: SIFT
         against the frame's cached keypoints, or dense flow against the frame itself, inside the rendered
         mask ``alpha >= align.rdga.alpha_threshold`` and the frame's mask); None when the method's terms need
@@ -446,8 +448,8 @@ class Objective:
         """
         if not self._needs_matches():
             return None
-        rgb = renders["train0"]["rgb"]
-        inside = renders["train0"]["alpha"].detach() >= self.train0_rdga.alpha_threshold
+        rgb, alpha = (torch.cat([out["train0"][key].detach() for _, out in renders]) for key in ("rgb", "alpha"))
+        inside = alpha >= self.train0_rdga.alpha_threshold
         u8 = torch.cat([to_uint8(rgb), inside.to(torch.uint8)[..., None]], -1)  # [T, H, W, 4]
         ready = None
         if u8.is_cuda:
