@@ -322,7 +322,7 @@ def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
                    n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
     renders = objective._render_frames(traj, n_video)
     matching = objective._start_matching(renders)
-    (_, renders), = renders  # one chunk (train.loss_chunk_frames 0)
+    (_, renders), = renders  # one chunk (4 frames, train.loss_chunk_frames 8)
     pqs = [f.result() for f in matching] if matching is not None else None
     assert (pqs is not None) == (name == "gca")
     objective.frame_weights = [1.0 - 0.1 * j for j in range(n_video)]
@@ -746,7 +746,7 @@ def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
 
     def start_spy(renders):
         events.append("match")
-        (_, out), = renders  # one chunk (train.loss_chunk_frames 0)
+        (_, out), = renders  # one chunk (4 frames, train.loss_chunk_frames 8)
         seen["frames"] = list(objective_module.to_uint8(out["train0"]["rgb"]).numpy())
         seen["inside"] = list(out["train0"]["alpha"].detach().numpy() >= objective.train0_rdga.alpha_threshold)
         seen["futures"] = start(renders)

@@ -114,7 +114,7 @@ class TrainConfig:
     neuma_lr_scale: float = 1.7511264560616377
     optimizer: str = "radam"
     reverse_sweep: bool = True
-    loss_chunk_frames: int = 0
+    loss_chunk_frames: int = 8
     matmul_precision: str = "highest"
     mlp_kernel: str = "torch"
     frame_decay_start: float = dataclasses.field(default=1.0, metadata=NOT_A_PARAM)  # set by the method's recipe
