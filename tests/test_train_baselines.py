@@ -54,6 +54,45 @@ def test_a_zero_mask_frame_contributes_zero_with_a_finite_gradient(fn):
     assert torch.equal(depth.grad, torch.zeros_like(depth))
 
 
+def _selected(fn_name, depth, est, mask):
+    """The terms as written for one frame with boolean selection (session 39's code): the reference of the masked,
+    batched forms."""
+    if not bool(mask.any()):
+        return depth.sum() * 0.0
+    d, e = depth[mask], est[mask]
+    if fn_name == "depth_l1_raw":
+        return (d - e).abs().mean()
+    e_c, d_c = e - e.mean(), d - d.mean()
+    s = (e_c * d_c).mean() / (e_c * e_c).mean().clamp(min=1e-12)
+    return (s * e_c - d_c).abs().mean()
+
+
+@pytest.mark.parametrize("fn", [depth_l1_aligned, depth_l1_raw])
+def test_frames_at_once_equal_the_selected_formula_per_frame(fn):
+    """[T, H, W] depth terms (a training chunk's frames in one call, session 40; masked sums, no boolean selection,
+    no host read) equal the boolean-selection formula frame by frame, values and gradients, with a frame whose mask is
+    empty (0, no gradient) and a render that is non-finite outside the mask (not read: the gradient stays finite)."""
+    frames = [_frame(seed=t) for t in range(3)]
+    depth = torch.stack([f[0] for f in frames])
+    depth[0, 0, 0] = float("inf")  # outside frame 0's mask
+    depth.requires_grad_(True)
+    est = torch.stack([f[1] for f in frames])
+    mask = torch.stack([f[2] for f in frames])
+    mask[1] = False  # an empty frame
+    values = fn(depth, est, mask)
+    assert values.shape == (3,) and float(values[1].detach()) == 0.0
+    weights = torch.tensor([1.0, 2.0, -0.5], dtype=depth.dtype)
+    (grad,) = torch.autograd.grad(values @ weights, depth)
+    assert bool(torch.isfinite(grad).all())
+    for t in range(3):
+        d = depth[t].detach().clone().requires_grad_(True)
+        ref = _selected(fn.__name__, d, est[t], mask[t])
+        torch.testing.assert_close(values[t].detach(), ref.detach(), rtol=1e-12, atol=1e-15)
+        if ref.requires_grad:
+            (r,) = torch.autograd.grad(ref, d)
+            torch.testing.assert_close(grad[t], weights[t] * r, rtol=1e-10, atol=1e-14)
+
+
 def test_aligned_depth_gradient_is_finite_even_for_a_constant_estimate():
     depth, _, mask = _frame()
     depth.requires_grad_(True)

@@ -325,7 +325,6 @@ def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
     (_, renders), = renders  # one chunk (4 frames, train.loss_chunk_frames 8)
     pqs = [f.result() for f in matching] if matching is not None else None
     assert (pqs is not None) == (name == "gca")
-    objective.frame_weights = [1.0 - 0.1 * j for j in range(n_video)]
     checks = []
     with no_host_sync():
         losses = objective._frames_loss(traj, range(n_video), renders, pqs, _MeanStats(n_video), checks)
@@ -445,6 +444,10 @@ def test_matmul_precision_is_validated():
         TrainConfig(matmul_precision="medium")
     with pytest.raises(ValueError, match="train.mlp_kernel must be one of"):
         TrainConfig(mlp_kernel="fast")
+    for bad in (-1, 2.5, True):  # True would read as chunks of 1
+        with pytest.raises(ValueError, match="train.loss_chunk_frames must be an integer >= 0"):
+            TrainConfig(loss_chunk_frames=bad)
+    assert TrainConfig(loss_chunk_frames=0).loss_chunk_frames == 0  # control: 0 (every frame in one call) is valid
 
 
 def test_keep_best_returns_the_law_of_lowest_training_loss(scene):
@@ -681,32 +684,45 @@ def test_lora_init_is_seeded(scene):
 
 
 @pytest.mark.parametrize("sweep", [False, True])
-@pytest.mark.parametrize("name,chunk", [("gca", 0), ("gca", 3), ("neuma", 0), ("no_rdga", 0)])
-def test_objective_gradient_equals_its_reference_loss(textured_scene, name, chunk, sweep):
+@pytest.mark.parametrize("name,chunk,weighted", [("gca", 0, False), ("gca", 3, False), ("neuma", 0, False),
+                                                 ("neuma", 3, True), ("no_rdga", 0, False)])
+def test_objective_gradient_equals_its_reference_loss(textured_scene, name, chunk, weighted, sweep):
     """Objective.gradient (what training differentiates: CPR chunked, image terms backward separately) =
     the autograd gradient of Objective.loss (every term with its graph, one call) when CPR's gradient is not
     rescaled (max_grad_ratio = 0: eq. 8 as written), same loss value; with a ratio the CPR share is scaled.
     ``sweep``: on a swept rollout (train.reverse_sweep: each frame's loss differentiated last frame first into
     the rollout's ReverseSweep) the same, to float rounding; ``chunk``: the frames' losses ``train.loss_chunk_frames``
-    at a time (chunks of 3, the last one shorter, last first) instead of all in one call, the same."""
+    at a time (chunks of 3, the last one shorter, last first) against the reference's one call, the same;
+    ``weighted``: with NeuMA's per-frame weights, which each chunk must take for its own frames."""
     from gca.sim.rollout import rollout
 
     scene, method = textured_scene, get_method(name)
     cfg = TrainConfig(curriculum_start=1.0, cpr_every=1, loss_chunk_frames=chunk)
+    whole_cfg = dataclasses.replace(cfg, loss_chunk_frames=0)  # the reference: every frame in one call
     data = _data(scene, method)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     params = law.trainable()
     b, n_video = data.body, len(data.video_frames)
-    objective = lambda ratio: Objective(method, data, cfg, RDGAConfig(r=5, k=5),  # noqa: E731
-                                        CPRConfig(subset_size=16, n_groups=2, chunk_frames=1, max_grad_ratio=ratio),
-                                        MatchConfig())
+    weights = [1.0, 0.5, 0.25, 2.0, 0.75][:n_video] if weighted else None
+    assert not weighted or (len(weights) == n_video and n_video > chunk)
+
+    def objective(ratio, config=cfg):
+        made = Objective(method, data, config, RDGAConfig(r=5, k=5),
+                         CPRConfig(subset_size=16, n_groups=2, chunk_frames=1, max_grad_ratio=ratio), MatchConfig())
+        made.frame_weights = weights
+        return made
 
     def traj(swept=sweep):
         return rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
                        n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, sweep=swept)
 
-    whole, _ = objective(0.0).loss(traj(False), n_video, law)
+    whole, _ = objective(0.0, whole_cfg).loss(traj(False), n_video, law)
     g_ref = torch.autograd.grad(whole, params, allow_unused=True)
+    if weighted:  # control: the same frames unweighted are another loss
+        unweighted = objective(0.0, whole_cfg)
+        unweighted.frame_weights = None
+        assert abs(float(unweighted.loss(traj(False), n_video, law)[0].detach()) - float(whole.detach())) > \
+            1e-3 * abs(float(whole.detach()))
     phases = []
     value, stats = objective(0.0).gradient(traj(), n_video, law, phases.append)
     # finite and nonzero; not positive: the anchor term (eq. 7, a sum of -gamma) under the tuned lambda_2 may lead

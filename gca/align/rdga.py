@@ -432,7 +432,9 @@ def anchor_term(depth: torch.Tensor, est_depth: torch.Tensor, p: torch.Tensor, q
 
 def judge(checks: list) -> None:
     """Raise the first failed check of ``checks`` (entries ``(error type, message with two {}, bad count [],
-    total []`` as tensors, from :func:`rdga_loss` / :func:`anchor_term`), reading all their counts in one transfer."""
+    total []`` as tensors, from :func:`rdga_frames` / :func:`anchor_term`), reading all their counts in one transfer.
+    The counts are over a call's frames (a training chunk), the anchor patches' checks before the loss's: a chunk with
+    a non-finite estimate in one frame and a non-finite loss in another raises the estimate's error."""
     if not checks:
         return
     counts = torch.stack([torch.stack([bad.double(), total.double()]) for _, _, bad, total in checks]).tolist()
@@ -453,15 +455,15 @@ def _floats(stats: dict) -> dict:
 
 
 def position_colors(xyz: torch.Tensor, gradient: str = "material") -> torch.Tensor:
-    """Extra colour channels to composite for the position image: [G, 3] positions -> [G, 3] ("full")
-    or [G, 6] ("material": the positions and a detached copy, see :func:`position_image`)."""
+    """Extra colour channels to composite for the position image: [(T,) G, 3] positions -> [(T,) G, 3] ("full")
+    or [(T,) G, 6] ("material": the positions and a detached copy, see :func:`position_image`)."""
     if gradient not in GLOBAL_GRADIENTS:
         raise ValueError(f"{_WHERE}: global_gradient={gradient!r} not in {GLOBAL_GRADIENTS}")
     return xyz if gradient == "full" else torch.cat([xyz, xyz.detach()], -1)
 
 
 def position_image(channels: torch.Tensor, gradient: str = "material") -> torch.Tensor:
-    """The premultiplied position image [H, W, 3] from the channels of :func:`position_colors` [H, W, 3|6].
+    """The premultiplied position image [(T,) H, W, 3] from the channels of :func:`position_colors` [(T,) H, W, 3|6].
 
     "material": ``sum w x`` minus ``sum w x.detach()`` (the weights' part of the derivative) plus its
     value: the value is ``sum w x``, the gradient ``sum w dx`` (compositing weights held).

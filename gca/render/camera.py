@@ -124,7 +124,7 @@ class Camera:
         return self._tensors[key]
 
     def to_camera(self, points: torch.Tensor) -> torch.Tensor:
-        """World points [N, 3] -> camera-frame points [N, 3] (OpenCV axes, z forward) [m]."""
+        """World points [..., N, 3] -> camera-frame points [..., N, 3] (OpenCV axes, z forward) [m]."""
         _, w2c = self.tensors(points.dtype, points.device)
         return points @ w2c[:3, :3].T + w2c[:3, 3]
 

@@ -141,7 +141,8 @@ class TrainConfig:
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"train.matmul_precision must be one of {list(MATMUL_PRECISIONS)}, got "
                              f"{self.matmul_precision!r}")
-        if not (isinstance(self.loss_chunk_frames, int) and self.loss_chunk_frames >= 0):
+        if isinstance(self.loss_chunk_frames, bool) or not (isinstance(self.loss_chunk_frames, int)
+                                                             and self.loss_chunk_frames >= 0):
             raise ValueError(f"train.loss_chunk_frames must be an integer >= 0 (0 = every frame in one call), got "
                              f"{self.loss_chunk_frames!r}")
         if self.mlp_kernel not in MLP_KERNELS:

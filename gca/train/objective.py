@@ -209,12 +209,13 @@ class Objective:
         """:meth:`gradient` on a swept rollout: the same loss and, up to float rounding, the same gradient.
 
         The frames are rendered from autograd leaves of (x_f, F_f) (:class:`_FrameLeaves`) while the GPU still
-        simulates (their checks, the rollout's and ``on_rendered`` are read after the last one is queued); their
-        train0 matching starts, last frame first; then the frames' losses are evaluated **last frame first**, each
-        one's gradient with respect to its (x_f, F_f) handed to the rollout's :class:`gca.sim.rollout.ReverseSweep`,
-        which runs the adjoints of the later frames meanwhile (on CUDA on a side stream: the losses' host work,
-        host reads included, overlaps the simulator's backward instead of preceding it); CPR's gradient is taken
-        last, as in :meth:`gradient`, while the sweep finishes. The "render_losses" phase ends when CPR's gradient is
+        simulates, ``train.loss_chunk_frames`` at a time (their checks, the rollout's and ``on_rendered`` are read
+        after the last one is queued); their train0 matching starts, last frame first; then the chunks' losses are
+        evaluated **last chunk first**, each chunk's gradient with respect to its frames' (x_f, F_f) handed, last frame
+        first, to the rollout's :class:`gca.sim.rollout.ReverseSweep`, which runs the adjoints of the later frames
+        while the next chunk's losses are queued (on CUDA on a side stream: the losses' host work overlaps the
+        simulator's backward instead of preceding it; with one chunk the adjoints follow all the losses); CPR's
+        gradient is taken last, as in :meth:`gradient`, while the sweep finishes. The "render_losses" phase ends when CPR's gradient is
         queued, "backward" when the sweep is done and CPR's gradient added.
         """
         params = law.trainable()
@@ -274,6 +275,8 @@ class Objective:
         leaves the others'); the rasterizer's input values are checked once for all frames (one host read after the
         last frame is queued, so the host does not wait for a swept rollout before queueing the frames), after
         ``first`` (a swept rollout's own checks: a diverged rollout is named as such, not as bad renderer input)."""
+        if n_video < 1:
+            raise ValueError(f"gca/train/objective.py: no video frame to render (n_video={n_video})")
         size = self.cfg.loss_chunk_frames or n_video
         self._checks = []
         try:
