@@ -259,9 +259,9 @@ class Objective:
     def _image_terms(self, traj: Rollout, n_video: int) -> tuple[torch.Tensor, "_MeanStats"]:
         """The image terms summed over video frames ``0 .. n_video - 1`` and their per-frame stats.
 
-        Three passes, so the GPU is never waited on frame by frame: render every frame (all views)
-        back to back; copy the frames that need feature matching to the host at once and match them
-        in a thread pool (OpenCV releases the GIL); then the per-frame losses. The stats are read
+        Three passes, so the GPU is never waited on frame by frame: render every frame (all views),
+        a chunk of frames per call; copy the frames that need feature matching to the host at once and match them
+        in a thread pool (OpenCV releases the GIL); then the frames' losses, a chunk per call. The stats are read
         back in one transfer at the end. (:meth:`gradient` runs CPR between the second and the third.)
         """
         renders = self._render_frames(traj, n_video)
