@@ -310,9 +310,10 @@ class Objective:
         n_video = renders[-1][0].stop
         loss, stats = self.data.body.x0.new_zeros(()), _MeanStats(n_video)
         checks: list = []  # RDGA's finiteness checks of every frame, read once after the loop (rdga.judge)
+        weights = None if self.frame_weights is None else \
+            _host_to(np.asarray(self.frame_weights[:n_video]), loss).to(loss.dtype)  # one copy for every chunk
         for js, outs in (renders if sweep is None else reversed(renders)):
-            self._weights = None if self.frame_weights is None else \
-                _matches_to(np.asarray(self.frame_weights[js.start:js.stop]), loss).to(loss.dtype)
+            self._weights = None if weights is None else weights[js.start:js.stop]
             per_frame = self._frames_loss(traj, js, outs,
                                           [matching[j].result() for j in js] if matching is not None else None,
                                           stats, checks)
@@ -600,11 +601,11 @@ class _FrameLeaves:
         self.F = {f: traj.F[f].detach().requires_grad_(True) for f in self.frames}
 
 
-def _matches_to(points: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+def _host_to(array: np.ndarray, like: torch.Tensor) -> torch.Tensor:
     """A host array (matched points, the frames' weights) on ``like``'s device: on CUDA through pinned memory without
     blocking (a plain copy from pageable memory synchronises the stream, i.e. the host would wait for the GPU at every
     frame: NOTES session 32's review), elsewhere as a view."""
-    t = torch.from_numpy(np.ascontiguousarray(points))
+    t = torch.from_numpy(np.ascontiguousarray(array))
     return t.pin_memory().to(like.device, non_blocking=True) if like.is_cuda else t
 
 
@@ -620,7 +621,7 @@ def _padded_matches(pqs: list | None, T: int, like: torch.Tensor
     packed = np.zeros((T, M, 5), np.float64 if like.dtype == torch.float64 else np.float32)  # p, q, valid
     for t, (p, q) in enumerate(pqs):
         packed[t, :len(p), :2], packed[t, :len(p), 2:4], packed[t, :len(p), 4] = p, q, 1.0
-    packed = _matches_to(packed, like).to(like.dtype)
+    packed = _host_to(packed, like).to(like.dtype)
     return packed[..., :2], packed[..., 2:4], packed[..., 4] > 0.5
 
 

@@ -29,22 +29,23 @@ class GradProbe:
 
     def watch(self, stage: str, name: str, frame: int, t: torch.Tensor) -> None:
         """Count the non-finite entries of the gradient that will reach ``t`` [any shape]."""
-        if stage not in STAGES:
-            raise ValueError(f"gca/train/probe.py: unknown stage {stage!r}; one of {STAGES}")
-        if isinstance(t, torch.Tensor) and t.requires_grad:
-            t.register_hook(lambda g: self.record(stage, name, frame, g))
+        self._hook(stage, t, lambda g: self.record(stage, name, frame, g))
 
     def watch_frames(self, stage: str, name: str, frames: list[int], t: torch.Tensor) -> None:
         """:meth:`watch` for ``t`` [T, ...] holding the frames ``frames`` (T of them) along its first dim: each
         frame's non-finite entries counted apart."""
+        def record_frames(g: torch.Tensor) -> None:
+            counts = (~torch.isfinite(g)).reshape(len(frames), -1).sum(-1)
+            self.counts.extend((stage, name, frame, counts[i]) for i, frame in enumerate(frames))
+        self._hook(stage, t, record_frames)
+
+    @staticmethod
+    def _hook(stage: str, t, record) -> None:
+        """``record`` the gradient that will reach ``t`` (a tensor that requires it; anything else: nothing)."""
         if stage not in STAGES:
             raise ValueError(f"gca/train/probe.py: unknown stage {stage!r}; one of {STAGES}")
         if isinstance(t, torch.Tensor) and t.requires_grad:
-            t.register_hook(lambda g: self._record_frames(stage, name, frames, g))
-
-    def _record_frames(self, stage: str, name: str, frames: list[int], g: torch.Tensor) -> None:
-        counts = (~torch.isfinite(g)).reshape(len(frames), -1).sum(-1)
-        self.counts.extend((stage, name, frame, counts[i]) for i, frame in enumerate(frames))
+            t.register_hook(record)
 
     def record(self, stage: str, name: str, frame: int, g: torch.Tensor) -> None:
         """Count the non-finite entries of ``g``, a gradient that reached ``stage``'s tensor ``name`` at ``frame``
