@@ -70,6 +70,14 @@ def _data(scene, method) -> TrainData:
                      v_init=v, background=(1.0, 1.0, 1.0))
 
 
+def _rollout(law, data: TrainData, **kwargs):
+    """The law's rollout over every video frame of ``data`` on the tiny solver (``kwargs``: rollout's, e.g. sweep)."""
+    from gca.sim.rollout import rollout
+    b = data.body
+    return rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
+                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, **kwargs)
+
+
 @pytest.mark.parametrize("name", sorted(METHODS))
 def test_every_method_runs_one_iteration(scene, name):
     method = get_method(name)
@@ -251,7 +259,6 @@ def test_batched_objective_equals_frame_by_frame(textured_scene, backend, weight
     reference: each frame rendered, matched on the calling thread (SIFT against the cached keypoints, or flow against
     the video frame inside both masks), scored alone and given its own CPR call in turn; ``weighted``: with NeuMA's
     per-frame weights (``frame_weights``) on the image terms, the serial sum weighted frame by frame."""
-    from gca.sim.rollout import rollout
     from gca.train.objective import _MeanStats
     from gca.vision.matching import match_frame
 
@@ -265,10 +272,8 @@ def test_batched_objective_equals_frame_by_frame(textured_scene, backend, weight
         return Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
                          MatchConfig(backend=backend, geometry="none"), cpr_target=("corotated", "identity"))
 
-    b = data.body
     n_video = len(data.video_frames)
-    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
+    traj = _rollout(law, data, checkpoint=True)
     weights = [0.5 ** j for j in range(n_video)] if weighted else [1.0] * n_video
     batched_obj = objective()
     batched_obj.frame_weights = weights if weighted else None
@@ -309,7 +314,6 @@ def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
     sys.path.insert(0, str(Path(__file__).parent))
     from host_sync import HostSync, no_host_sync
     from gca.align.rdga import judge
-    from gca.sim.rollout import rollout
     from gca.train.objective import _MeanStats
 
     scene, method = textured_scene, get_method(name)
@@ -317,9 +321,8 @@ def test_the_frames_losses_read_nothing_from_the_device(textured_scene, name):
     law = build_law(get_method("gca"), scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, data, TrainConfig(curriculum_start=1.0), RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())
-    b, n_video = data.body, len(data.video_frames)
-    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+    n_video = len(data.video_frames)
+    traj = _rollout(law, data)
     renders = objective._render_frames(traj, n_video)
     matching = objective._start_matching(renders)
     (_, renders), = renders  # one chunk (4 frames, train.loss_chunk_frames 8)
@@ -342,16 +345,14 @@ def test_bad_renderer_input_names_its_frame_and_view_in_any_chunking(textured_sc
     rendered in one call or in chunks of 3 (session 40), and the frames' renders are chunked as the losses are."""
     from types import SimpleNamespace
     from gca.render.rasterize import RenderError
-    from gca.sim.rollout import rollout
 
     scene, method = textured_scene, get_method("neuma_multiview")
     data = _data(scene, method)
     law = build_law(get_method("gca"), scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, data, TrainConfig(curriculum_start=1.0, loss_chunk_frames=chunk), RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())
-    b, n_video = data.body, len(data.video_frames)
-    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+    n_video = len(data.video_frames)
+    traj = _rollout(law, data)
     renders = objective._render_frames(traj, n_video)
     assert [list(js) for js, _ in renders] == ([list(range(n_video))] if chunk == 0 else
                                                [list(range(a, min(a + 3, n_video))) for a in range(0, n_video, 3)])
@@ -642,7 +643,6 @@ def test_capped_cpr_gradient_in_a_training_step(scene):
 def test_chunked_prior_gradient_equals_the_whole_graph(textured_scene, chunk):
     """Objective.prior_gradient (CPR chunk by chunk, each graph freed) = the gradient of the one-call
     R_e + R_p of :meth:`Objective.loss` (the reference), and the same R_e, R_p stats."""
-    from gca.sim.rollout import rollout
 
     scene = textured_scene
     method = get_method("no_rdga")  # CPR only: the loss is R_e + R_p
@@ -650,9 +650,7 @@ def test_chunked_prior_gradient_equals_the_whole_graph(textured_scene, chunk):
     data = _data(scene, method)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     params = law.trainable()
-    b = data.body
-    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, checkpoint=True)
+    traj = _rollout(law, data, checkpoint=True)
     n_video = len(data.video_frames)
     objective = lambda: Objective(method, data, cfg, RDGAConfig(r=5, k=5),  # noqa: E731
                                   CPRConfig(subset_size=16, n_groups=2, chunk_frames=chunk), MatchConfig())
@@ -694,7 +692,6 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name, chun
     the rollout's ReverseSweep) the same, to float rounding; ``chunk``: the frames' losses ``train.loss_chunk_frames``
     at a time (chunks of 3, the last one shorter, last first) against the reference's one call, the same;
     ``weighted``: with NeuMA's per-frame weights, which each chunk must take for its own frames."""
-    from gca.sim.rollout import rollout
 
     scene, method = textured_scene, get_method(name)
     cfg = TrainConfig(curriculum_start=1.0, cpr_every=1, loss_chunk_frames=chunk)
@@ -702,7 +699,7 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name, chun
     data = _data(scene, method)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     params = law.trainable()
-    b, n_video = data.body, len(data.video_frames)
+    n_video = len(data.video_frames)
     weights = [1.0, 0.5, 0.25, 2.0, 0.75][:n_video] if weighted else None
     assert not weighted or (len(weights) == n_video and n_video > chunk)
 
@@ -713,8 +710,7 @@ def test_objective_gradient_equals_its_reference_loss(textured_scene, name, chun
         return made
 
     def traj(swept=sweep):
-        return rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                       n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps, sweep=swept)
+        return _rollout(law, data, sweep=swept)
 
     whole, _ = objective(0.0, whole_cfg).loss(traj(False), n_video, law)
     g_ref = torch.autograd.grad(whole, params, allow_unused=True)
@@ -745,16 +741,14 @@ def test_train0_matching_runs_while_cpr_computes(textured_scene, monkeypatch):
     gradient (the host threads overlap CPR's work) and feeds the losses the same matches as matching each rendered
     frame with its video frame on its own."""
     import gca.train.objective as objective_module
-    from gca.sim.rollout import rollout
     from gca.vision.matching import match_frame
 
     scene, method = textured_scene, get_method("gca")
     cfg = TrainConfig(curriculum_start=1.0, cpr_every=1)
     data = _data(scene, method)
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
-    b, n_video = data.body, len(data.video_frames)
-    traj = rollout(tiny_solver(), law.material, b.x0, data.v_init, b.vol, b.mass,
-                   n_steps=data.video_frames[-1] * data.substeps, steps_per_frame=data.substeps)
+    n_video = len(data.video_frames)
+    traj = _rollout(law, data)
     objective = Objective(method, data, cfg, RDGAConfig(r=5, k=5), CPRConfig(subset_size=16, n_groups=2),
                           MatchConfig())
     events, seen = [], {}
