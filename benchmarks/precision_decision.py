@@ -8,9 +8,9 @@ scenes only). The runs are two tunings of one trial each, trial 0 being the froz
 calibration scenes, a table scene refused; GPU, paper profile; ``tuning/README.md`` for sharding and resuming)::
 
     python -m gca.pipeline.tune --work /tmp/prec_fp32 --profile paper --priors models/prior --methods gca \\
-        --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --record /tmp/prec_fp32/record.json
+        --set "tuning.record=''" --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --record /tmp/prec_fp32/record.json
     python -m gca.pipeline.tune --work /tmp/prec_tf32 --profile paper --priors models/prior --methods gca \\
-        --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --set train.mlp_kernel=triton_tf32 \\
+        --set "tuning.record=''" --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --set train.mlp_kernel=triton_tf32 \\
         --record /tmp/prec_tf32/record.json
     python benchmarks/precision_decision.py --reference /tmp/prec_fp32/record.json \\
         --candidate /tmp/prec_tf32/record.json --json /tmp/prec_decision.json

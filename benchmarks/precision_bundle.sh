@@ -1,0 +1,42 @@
+#!/bin/sh
+# Issue 20: the precision decision's two tunings (benchmarks/precision_decision.py: GCA's trial 0 on the calibration
+# scenes, 3 seeds, FP32 MLP vs `train.mlp_kernel=triton_tf32`) side by side on ONE GPU under CUDA MPS: two
+# tune_bundle.sh at once, SHARDS processes each, so both share one call's inputs time and gsplat build. Each tuning
+# keeps its own work folder and state (committed between sessions as benchmarks/results/precision_s41/{fp32,tf32}_state.tgz);
+# when both records are complete the decision is computed here too ($OUT/decision.json, its table in $OUT/decision.txt).
+#
+#   (once per checkout: sh benchmarks/pack_gpu.sh)
+#   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
+#   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/precision_bundle.sh
+#   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command, until decision.json returns
+#   SHARDS  processes per tuning (default 4: 8 on the GPU, the tuning's measured best packing); LIMIT seconds (570)
+#   BASE    the options both tunings share; CAND the candidate's own ones. A CPU smoke of the plumbing:
+#           PROFILE=ci PRIORS= BASE="--set tuning.record='' --set tuning.trials=1 --set tuning.seeds=[0,1] --device cpu" CAND="" (the rule then
+#           refuses the pair: their overrides do not differ by the knob).
+# Returns (<= 8 files): fp32/{all.tgz,state.tgz}, tf32/{all.tgz,state.tgz}, fp32.log, tf32.log, decision.{json,txt}.
+set -u
+OUT=${OUT:-/tmp/prec_out}; SHARDS=${SHARDS:-4}; LIMIT=${LIMIT:-570}
+BASE=${BASE:-"--set tuning.record='' --set tuning.trials=1 --set tuning.seeds=[0,1,2]"}  # trial 0 = params.yaml's values
+CAND=${CAND-"--set train.mlp_kernel=triton_tf32"}
+STATES=${STATES:-benchmarks/results/precision_s41}
+WF=${WF:-/tmp/prec_fp32}; WT=${WT:-/tmp/prec_tf32}
+mkdir -p "$OUT/fp32" "$OUT/tf32"
+export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-}
+. benchmarks/gpu_wheels.sh
+if command -v nvidia-smi > /dev/null; then  # once here, not twice at once in the two bundles (pip's target would race)
+  need_commit precision_bundle.sh
+  install_wheels
+  pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && echo "[precision] MPS daemon started"; }
+fi
+export METHODS=gca SHARDS LIMIT
+W=$WF STATE=$STATES/fp32_state.tgz EXTRA="$BASE" OUT=$OUT/fp32 sh benchmarks/tune_bundle.sh > "$OUT/fp32.log" 2>&1 &
+W=$WT STATE=$STATES/tf32_state.tgz EXTRA="$BASE $CAND" OUT=$OUT/tf32 sh benchmarks/tune_bundle.sh > "$OUT/tf32.log" 2>&1 &
+wait
+tail -n 4 "$OUT/fp32.log" "$OUT/tf32.log"
+if [ -f "$WF/record.json" ] && [ -f "$WT/record.json" ]; then
+  python3 benchmarks/precision_decision.py --reference "$WF/record.json" --candidate "$WT/record.json" \
+      --json "$OUT/decision.json" > "$OUT/decision.txt" 2>&1
+  echo "[precision] decision rc=$?"; cat "$OUT/decision.txt"
+else
+  echo "[precision] not every unit done yet: run the same command again (the states are in fp32/ and tf32/)"
+fi
