@@ -9,13 +9,15 @@
 #   call 1 carry [".wpa"]:                           sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:    . .wpb/activate.sh && GCA_COMMIT=<sha> OUT=$OUT sh benchmarks/precision_bundle.sh
 #   calls 3.. (no carry, each at once: the machine goes after 30 s idle): the same command, until decision.json returns
-#   SHARDS  processes per tuning (default 4: 8 on the GPU, the tuning's measured best packing); LIMIT seconds (570)
+#   SHARDS  processes per tuning (default 4: 8 on the GPU, the tuning's measured best packing); LIMIT seconds for the
+#           whole call, counted from this script's start (default 560 of the device's 600: session 41's first call gave
+#           each tuning 570 s after the wheels' install, and the second was cut off while packing its state)
 #   BASE    the options both tunings share; CAND the candidate's own ones. A CPU smoke of the plumbing:
 #           PROFILE=ci PRIORS= BASE="--set tuning.record='' --set tuning.trials=1 --set tuning.seeds=[0,1] --device cpu" CAND="" (the rule then
 #           refuses the pair: their overrides do not differ by the knob).
 # Returns (<= 8 files): fp32/{all.tgz,state.tgz}, tf32/{all.tgz,state.tgz}, fp32.log, tf32.log, decision.{json,txt}.
 set -u
-OUT=${OUT:-/tmp/prec_out}; SHARDS=${SHARDS:-4}; LIMIT=${LIMIT:-570}
+T0=$(date +%s); OUT=${OUT:-/tmp/prec_out}; SHARDS=${SHARDS:-4}; LIMIT=${LIMIT:-560}
 BASE=${BASE:-"--set tuning.record='' --set tuning.trials=1 --set tuning.seeds=[0,1,2]"}  # trial 0 = params.yaml's values
 CAND=${CAND-"--set train.mlp_kernel=triton_tf32"}
 STATES=${STATES:-benchmarks/results/precision_s41}
@@ -28,6 +30,7 @@ if command -v nvidia-smi > /dev/null; then  # once here, not twice at once in th
   install_wheels
   pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && echo "[precision] MPS daemon started"; }
 fi
+LIMIT=$((LIMIT - $(date +%s) + T0 - 10))  # what is left for the tunings, 10 s kept for the decision
 export METHODS=gca SHARDS LIMIT
 W=$WF STATE=$STATES/fp32_state.tgz EXTRA="$BASE" OUT=$OUT/fp32 sh benchmarks/tune_bundle.sh > "$OUT/fp32.log" 2>&1 &
 W=$WT STATE=$STATES/tf32_state.tgz EXTRA="$BASE $CAND" OUT=$OUT/tf32 sh benchmarks/tune_bundle.sh > "$OUT/tf32.log" 2>&1 &
