@@ -32,6 +32,9 @@
 #       call (train.loss_chunk_frames 0), in chunks of 8 and of 4, then train.mlp_kernel=triton_tf32 (same data)
 #                                                                             -> {chunk0,chunk8,chunk4,tf32}/
 #   PART=order (session 34; ~1 min): bench_p2g on the paper density ball (C order, sub-lattice order) -> p2g_order.*
+#   PART=fault (session 41; ~9 min): the packed tunings' CUDA error 700: versions and compute-sanitizer's presence; gsplat's
+#       build; calib_torus's data; 3 iterations under TORCH_CUDA_SANITIZER=1; then PROCS (8) trainings at once, half
+#       with the TF32 MLP, without MPS (MPS=1: with), each its own data copy; which met a CUDA error  -> all.tgz
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 #       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair;
@@ -173,6 +176,34 @@ if [ "$PART" = chunks ]; then  # session 40: the frames' losses in chunks, and t
   stamp "tf32 (train.mlp_kernel=triton_tf32, chunk0): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
   run tf32 ball $W 10 120 --reuse-data --stages train evaluate --set train.mlp_kernel=triton_tf32
   summary chunk0 chunk8 chunk4 tf32
+fi
+
+if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (NOTES s41), found by attribution
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+  python3 -c "import torch, triton; print('torch', torch.__version__, 'CUDA', torch.version.cuda, 'triton', triton.__version__)"
+  command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2> /dev/null || echo "no compute-sanitizer here"
+  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
+  SC=${FAULT_SCENE:-calib_torus}; W=/tmp/fault_$SC
+  stamp "$SC: data"; run data "$SC" $W 1 200 --stages assets particles ground_truth preprocess
+  stamp "3 iterations under torch's CUDA stream sanitizer (CSAN: races between streams on torch's tensors)"
+  TORCH_CUDA_SANITIZER=1 run csan "$SC" $W 3 "${CSAN_LIMIT:-120}" --reuse-data --stages train
+  grep -m3 -B2 -A30 "CSAN\|data race" "$OUT/csan.log" | head -80
+  # then the incident's load: P processes (half FP32, half TF32 MLP) training at once, each on its own copy of the
+  # data, without MPS unless MPS=1 (a fault then stays in its own process: the faulting one is named)
+  [ "${MPS:-0}" = 1 ] && { nvidia-cuda-mps-control -d && stamp "MPS daemon started"; }
+  P=${PROCS:-8}; k=0
+  stamp "$P trainings at once (MPS=${MPS:-0}), ${FAULT_LIMIT:-330} s"
+  while [ "$k" -lt "$P" ]; do
+    rm -rf "/tmp/fault_$k"; cp -r $W "/tmp/fault_$k"; rm -rf "/tmp/fault_$k/runs" "/tmp/fault_$k/eval"
+    mlp=torch; [ $((k % 2)) = 1 ] && mlp=triton_tf32
+    run "p$k" "$SC" "/tmp/fault_$k" 200 "${FAULT_LIMIT:-330}" --reuse-data --stages train --set train.mlp_kernel=$mlp &
+    k=$((k + 1))
+  done
+  wait
+  stamp "which processes met a CUDA error (first lines, with the log's last iteration)"
+  for f in "$OUT"/p*.log; do
+    e=$(grep -m1 -n "illegal memory\|CUDA error\|error 700" "$f"); echo "$(basename "$f"): ${e:-no CUDA error}"; done
+  pack_out "$OUT"  # one all.tgz: the device returns 8 files
 fi
 
 if [ "$PART" = b ]; then

@@ -12,6 +12,7 @@
 #   SHARDS  processes per tuning (default 4: 8 on the GPU, the tuning's measured best packing); LIMIT seconds for the
 #           whole call, counted from this script's start (default 560 of the device's 600: session 41's first call gave
 #           each tuning 570 s after the wheels' install, and the second was cut off while packing its state)
+#   MPS     1 (default) or 0: CUDA MPS for the 8 processes or not (tune_bundle.sh; session 41's call faulted under MPS)
 #   BASE    the options both tunings share; CAND the candidate's own ones. A CPU smoke of the plumbing:
 #           PROFILE=ci PRIORS= BASE="--set tuning.record='' --set tuning.trials=1 --set tuning.seeds=[0,1] --device cpu" CAND="" (the rule then
 #           refuses the pair: their overrides do not differ by the knob).
@@ -28,7 +29,7 @@ export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-}
 if command -v nvidia-smi > /dev/null; then  # once here, not twice at once in the two bundles (pip's target would race)
   need_commit precision_bundle.sh
   install_wheels
-  pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && echo "[precision] MPS daemon started"; }
+  [ "${MPS:-1}" = 0 ] || pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && echo "[precision] MPS daemon started"; }
 fi
 LIMIT=$((LIMIT - $(date +%s) + T0 - 10))  # what is left for the tunings, 10 s kept for the decision
 export METHODS=gca SHARDS LIMIT

@@ -13,6 +13,8 @@
 #   GCA_COMMIT  required on the GPU machine: the commit sent (`git rev-parse --short HEAD` here, written into the
 #            command), which each unit records (the copy there carries a stale .git of its own)
 #   SHARDS   processes on the GPU at once, each taking units as it frees up (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
+#   MPS      1 (default): start CUDA MPS for the shards; 0: not (session 41: under MPS one process's fatal fault ends
+#            every process on the GPU, and the packed precision tunings met one; without it a fault stays in its process)
 #   METHODS  the tuned methods (default: every one of tuning.methods); LIMIT seconds for this call (default 570)
 #   PROFILE  paper (default); EXTRA more tune options; PRIORS the priors' folder (default the paper ones; "" pretrains).
 #            A CPU smoke: PROFILE=ci PRIORS= EXTRA="--set tuning.trials=2 --device cpu". PROFILE and EXTRA enter the
@@ -34,7 +36,7 @@ if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside
   need_commit tune_bundle.sh
   install_wheels
   build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
-  pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
+  [ "${MPS:-1}" = 0 ] || pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
 fi
 R=$(restore_once "$STATE" "$W")
 # shellcheck disable=SC2086
