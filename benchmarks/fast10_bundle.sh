@@ -181,7 +181,14 @@ fi
 if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (NOTES s41), found by attribution
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
   python3 -c "import torch, triton; print('torch', torch.__version__, 'CUDA', torch.version.cuda, 'triton', triton.__version__)"
-  command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2> /dev/null || echo "no compute-sanitizer here"
+  CS=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2> /dev/null | head -n 1)
+  echo "compute-sanitizer: ${CS:-none here}"
+  if [ -n "$CS" ]; then  # the TF32 MLP's kernels at particle counts off the block (the review's first suspect)
+    stamp "memcheck: bench_mlp_triton at 29999 and 30001 particles"
+    timeout 150 "$CS" --tool memcheck --print-limit 5 python3 benchmarks/bench_mlp_triton.py --device cuda \
+        --sizes 29999 30001 --variants tf32_64 --iters 2 --repeats 1 > "$OUT/memcheck_mlp.txt" 2>&1
+    echo "memcheck rc=$?"; grep -m5 "ERROR SUMMARY\|Invalid" "$OUT/memcheck_mlp.txt"
+  fi
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   SC=${FAULT_SCENE:-calib_torus}; W=/tmp/fault_$SC
   stamp "$SC: data"; run data "$SC" $W 1 200 --stages assets particles ground_truth preprocess
@@ -203,6 +210,8 @@ if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (
   stamp "which processes met a CUDA error (first lines, with the log's last iteration)"
   for f in "$OUT"/p*.log; do
     e=$(grep -m1 -n "illegal memory\|CUDA error\|error 700" "$f"); echo "$(basename "$f"): ${e:-no CUDA error}"; done
+  dmesg 2> /dev/null | grep -i "xid" | tail -n 5 > "$OUT/xid.txt"; cat "$OUT/xid.txt"  # the faulting PID and address
+  [ "${MPS:-0}" = 1 ] && tail -n 40 "${CUDA_MPS_LOG_DIRECTORY:-/var/log/nvidia-mps}/server.log" > "$OUT/mps_server.log" 2>&1
   pack_out "$OUT"  # one all.tgz: the device returns 8 files
 fi
 
