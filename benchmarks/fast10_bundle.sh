@@ -35,6 +35,8 @@
 #   PART=fault (session 41; ~9 min): the packed tunings' CUDA error 700: versions and compute-sanitizer's presence; gsplat's
 #       build; calib_torus's data; 3 iterations under TORCH_CUDA_SANITIZER=1; then PROCS (8) trainings at once, half
 #       with the TF32 MLP, without MPS (MPS=1: with), each its own data copy; which met a CUDA error  -> all.tgz
+#       (the bisection's knobs: FAULT_MLP="torch" or "triton_tf32", the kernels taken in turn; FAULT_EXTRA="--set
+#       train.loss_chunk_frames=0" or "--set train.reverse_sweep=false"; PROCS, FAULT_LIMIT, FAULT_SCENE)
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 #       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair;
@@ -202,8 +204,10 @@ if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (
   stamp "$P trainings at once (MPS=${MPS:-0}), ${FAULT_LIMIT:-330} s"
   while [ "$k" -lt "$P" ]; do
     rm -rf "/tmp/fault_$k"; cp -r $W "/tmp/fault_$k"; rm -rf "/tmp/fault_$k/runs" "/tmp/fault_$k/eval"
-    mlp=torch; [ $((k % 2)) = 1 ] && mlp=triton_tf32
-    run "p$k" "$SC" "/tmp/fault_$k" 200 "${FAULT_LIMIT:-330}" --reuse-data --stages train --set train.mlp_kernel=$mlp &
+    set -- ${FAULT_MLP:-torch triton_tf32}; shift $((k % $#)); mlp=$1  # the kernels taken in turn
+    # shellcheck disable=SC2086
+    run "p$k" "$SC" "/tmp/fault_$k" 200 "${FAULT_LIMIT:-330}" --reuse-data --stages train --set train.mlp_kernel=$mlp \
+        ${FAULT_EXTRA:-} &
     k=$((k + 1))
   done
   wait
