@@ -2,7 +2,7 @@
 # Issue 20: the precision decision's two tunings (benchmarks/precision_decision.py: GCA's trial 0 on the calibration
 # scenes, 3 seeds, FP32 MLP vs `train.mlp_kernel=triton_tf32`) side by side on ONE GPU under CUDA MPS: two
 # tune_bundle.sh at once, SHARDS processes each, so both share one call's inputs time and gsplat build. Each tuning
-# keeps its own work folder and state (committed between sessions as benchmarks/results/precision_s41/{fp32,tf32}_state.tgz);
+# keeps its own work folder and state (committed between sessions as tuning/precision_s41/{fp32,tf32}_state.tgz);
 # when both records are complete the decision is computed here too ($OUT/decision.json, its table in $OUT/decision.txt).
 #
 #   (once per checkout: sh benchmarks/pack_gpu.sh)
@@ -21,7 +21,7 @@ set -u
 T0=$(date +%s); OUT=${OUT:-/tmp/prec_out}; SHARDS=${SHARDS:-4}; LIMIT=${LIMIT:-560}
 BASE=${BASE:-"--set tuning.record='' --set tuning.trials=1 --set tuning.seeds=[0,1,2]"}  # trial 0 = params.yaml's values
 CAND=${CAND-"--set train.mlp_kernel=triton_tf32"}
-STATES=${STATES:-benchmarks/results/precision_s41}
+STATES=${STATES:-tuning/precision_s41}  # not under benchmarks/results: carry_aside.sh moves that aside
 WF=${WF:-/tmp/prec_fp32}; WT=${WT:-/tmp/prec_tf32}
 mkdir -p "$OUT/fp32" "$OUT/tf32"
 export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-}
