@@ -199,7 +199,7 @@ if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (
   grep -m3 -B2 -A30 "CSAN\|data race" "$OUT/csan.log" | head -80
   # then the incident's load: P processes (half FP32, half TF32 MLP) training at once, each on its own copy of the
   # data, without MPS unless MPS=1 (a fault then stays in its own process: the faulting one is named)
-  [ "${MPS:-0}" = 1 ] && { nvidia-cuda-mps-control -d && stamp "MPS daemon started"; }
+  [ "${MPS:-0}" = 1 ] && start_mps  # off unless asked, here
   P=${PROCS:-8}; k=0
   stamp "$P trainings at once (MPS=${MPS:-0}), ${FAULT_LIMIT:-330} s"
   while [ "$k" -lt "$P" ]; do

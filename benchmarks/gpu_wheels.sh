@@ -17,6 +17,11 @@ build_gsplat() {
   timeout 200 python3 -m gca.render.backend --build > "$2" 2>&1 && touch "$1/gsplat.done"
   echo "[gsplat] build rc=$? ($(tail -n 1 "$2"))"
 }
+# start_mps: start the CUDA MPS daemon unless one runs or MPS=0 (default 1; session 41: under MPS one process's fatal
+# fault ends every process on the GPU, without it a fault stays in its own process).
+start_mps() {
+  [ "${MPS:-1}" = 0 ] || pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && echo "MPS daemon started"; }
+}
 # need_commit NAME: on the GPU machine, stop unless GCA_COMMIT names the commit sent (the copy there carries a stale
 # .git of its own; what the bundle makes records the commit).
 need_commit() {

@@ -44,7 +44,7 @@ harness() {  # work scene method tag stages...
       $C $EXTRA --work "$w" --reuse-prior --reuse-data --out "$OUT/res" --tag "$tag" --stages "$@" >> "$OUT/$tag.log" 2>&1
   say "$tag ($*) rc=$?"
 }
-pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
+start_mps
 # 0. the priors: taken from PRIOR_DIR, resumed from its checkpoint, or trained here (to the end of the call)
 FAMS=""; for r in $RUNS; do FAMS=$(add_once "$FAMS" "$(family "${r%%:*}")"); done
 PRIORS=${PRIORS:-$FAMS}

@@ -29,7 +29,7 @@ export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-}
 if command -v nvidia-smi > /dev/null; then  # once here, not twice at once in the two bundles (pip's target would race)
   need_commit precision_bundle.sh
   install_wheels
-  [ "${MPS:-1}" = 0 ] || pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && echo "[precision] MPS daemon started"; }
+  start_mps
 fi
 LIMIT=$((LIMIT - $(date +%s) + T0 - 10))  # what is left for the tunings, 10 s kept for the decision
 export METHODS=gca SHARDS LIMIT

@@ -36,7 +36,7 @@ if command -v nvidia-smi > /dev/null; then  # the GPU machine: the wheels beside
   need_commit tune_bundle.sh
   install_wheels
   build_gsplat "$W" "$OUT/gsplat_build.log" &  # beside the inputs' stages (their renders wait for it)
-  [ "${MPS:-1}" = 0 ] || pgrep -f nvidia-cuda-mps-control > /dev/null || { nvidia-cuda-mps-control -d && say "MPS daemon started"; }
+  start_mps
 fi
 R=$(restore_once "$STATE" "$W")
 # shellcheck disable=SC2086
