@@ -36,6 +36,8 @@
 #       build; calib_torus's data; 3 iterations under TORCH_CUDA_SANITIZER=1; then PROCS (8) trainings at once, half
 #       with the TF32 MLP, without MPS (MPS=1: with), each its own data copy; which met a CUDA error  -> all.tgz
 #       (SKIP_CHECKS=1: no memcheck or CSAN; the data are made once per machine; MEMCHECK_LIMIT, CSAN_LIMIT)
+#       (session 42: the fault was `timeout`'s SIGTERM reaching MPS clients mid-work; each run now stops itself at
+#        GCA_STOP_AT 20 s before its timeout, SIGNAL_STOP=1 signals them as before: the negative control)
 #       (the bisection's knobs: FAULT_MLP="torch" or "triton_tf32", the kernels taken in turn; FAULT_EXTRA="--set
 #       train.loss_chunk_frames=0" or "--set train.reverse_sweep=false"; PROCS, FAULT_LIMIT, FAULT_SCENE)
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh

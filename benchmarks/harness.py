@@ -211,11 +211,13 @@ def main(argv=None) -> list[dict]:
     raw = make_params(args.scene, args.methods, args.profile, args.overrides, params)
     from gca import stop
 
-    stop.install()  # SIGTERM (`timeout`, the device tool's limit): training checkpoints, then what ran is kept
+    stop.install()  # SIGTERM (`timeout`, the device tool's limit), GCA_STOP_AT or GCA_STOP_FILE: training
+    # checkpoints, then what ran is kept (packed under MPS, bundles stop it with GCA_STOP_AT: no signal, NOTES s42)
     try:
         stage_seconds = run_stages(raw, args.scene, args.work, params, args.device, args.reuse_prior, args.reuse_data,
                                    tuple(args.stages))
     except stop.Terminated:
+        stop.quiesce()
         keep_stopped(args.work, args.out, args.tag)
         raise
     if "evaluate" not in args.stages:

@@ -1,7 +1,8 @@
 #!/bin/sh
 # Shell functions the device bundles share (sourced: `. benchmarks/harness_runs.sh`, with OUT set):
 #   run TAG SCENE WORK ITERATIONS TIMEOUT [harness args...]   one GCA harness run (paper profile, gsplat, the committed
-#       prior, the velocity fit shortened to 20 iterations) -> $OUT/TAG/, $OUT/TAG.log
+#       prior, the velocity fit shortened to 20 iterations) -> $OUT/TAG/, $OUT/TAG.log; training stops itself 20 s
+#       before TIMEOUT (GCA_STOP_AT), `timeout` is the backstop
 #   summary TAG...   a table of those runs: s/it, the full-horizon iteration's phases (medians), peak memory, CD
 prior_of() { python3 -c "import yaml; print(yaml.safe_load(open('params.yaml'))['scenes']['$1']['prior'])"; }
 run() {  # tag scene work iterations timeout [extra harness args...]
@@ -9,7 +10,11 @@ run() {  # tag scene work iterations timeout [extra harness args...]
   mkdir -p "$OUT/$tag" "$w/prior"
   cp "benchmarks/results/priors_paper/$(prior_of "$scene").pt" "$w/prior/"
   # shellcheck disable=SC2068
-  timeout "$limit" python3 benchmarks/harness.py --scene "$scene" --methods gca --profile paper --work "$w" --reuse-prior \
+  # the run stops itself (GCA_STOP_AT, checkpointed, no signal) 20 s before `timeout`'s SIGTERM, the backstop: under
+  # CUDA MPS a SIGTERM to a process with GPU work in flight ended every process on the GPU (NOTES session 42)
+  # (SIGNAL_STOP=1: no GCA_STOP_AT, `timeout`'s SIGTERM stops it: session 42's trigger, for a negative control)
+  stop_at="GCA_STOP_AT=$(($(date +%s) + limit - 20))"; [ "${SIGNAL_STOP:-0}" = 1 ] && stop_at="GCA_STOP_AT="
+  env "$stop_at" timeout "$limit" python3 benchmarks/harness.py --scene "$scene" --methods gca --profile paper --work "$w" --reuse-prior \
       --set velocity.iterations=20 --set render.backend=gsplat --set train.iterations="$its" --out "$OUT/$tag" \
       --tag "$tag" $@ > "$OUT/$tag.log" 2>&1
   echo "$tag rc=$?"; tail -n 2 "$OUT/$tag.log"

@@ -13,8 +13,8 @@
 #   GCA_COMMIT  required on the GPU machine: the commit sent (`git rev-parse --short HEAD` here, written into the
 #            command), which each unit records (the copy there carries a stale .git of its own)
 #   SHARDS   processes on the GPU at once, each taking units as it frees up (default 8: 2.87x the throughput of one, benchmarks/NOTES.md s16)
-#   MPS      1 (default): start CUDA MPS for the shards; 0: not (session 41: under MPS one process's fatal fault ends
-#            every process on the GPU, and the packed precision tunings met one; without it a fault stays in its process)
+#   MPS      1 (default): start CUDA MPS for the shards; 0: not (under MPS one process's fatal fault ends every process
+#            on the GPU; sessions 41-42: the `timeout` SIGTERMs were the trigger, so the shards now stop at GCA_STOP_AT)
 #   METHODS  the tuned methods (default: every one of tuning.methods); LIMIT seconds for this call (default 570)
 #   PROFILE  paper (default); EXTRA more tune options; PRIORS the priors' folder (default the paper ones; "" pretrains).
 #            A CPU smoke: PROFILE=ci PRIORS= EXTRA="--set tuning.trials=2 --device cpu". PROFILE and EXTRA enter the
@@ -47,8 +47,10 @@ wait  # the gsplat build
 rm -rf "$W/claims"; k=0
 while [ "$k" -lt "$SHARDS" ]; do  # SHARDS processes on the one GPU, each taking the next unclaimed unit (those cut off
   # mid-training first: they resume their checkpoints) until the deadline
+  # (each stops itself 25 s before its `timeout`, GCA_STOP_AT: a unit in training checkpoints and no signal reaches
+  # a process under MPS, where a SIGTERM with GPU work in flight ended every process on the GPU: NOTES session 42)
   # shellcheck disable=SC2086
-  timeout "$(($(left) - 15))" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M \
+  GCA_STOP_AT=$(($(date +%s) + $(left) - 40)) timeout "$(($(left) - 15))" python3 -m gca.pipeline.tune --work "$W" --profile "$PROFILE" $EXTRA $M \
       --no-prepare --record "$W/record.json" --claim "$W/claims" --deadline "$(($(left) - 60))" > "$OUT/shard$k.log" 2>&1 &
   k=$((k + 1))
 done

@@ -1,24 +1,43 @@
-"""SIGTERM as a clean stop: the signal becomes :class:`Terminated`, an exception every ``finally`` and
-atomic write (``gca.io.atomic_path``) unwinds through, so no temporary is left behind.
+"""Stopping a stage cleanly: SIGTERM, a stop file or a deadline.
 
-Inside :func:`deferred` (training) the signal only sets a flag: the training loop saves its checkpoint at
-the end of the iteration in progress (:func:`requested`) and then stops (:func:`check`), so a stopped run
-resumes where it was. ``benchmarks/grid.py`` sends SIGKILL 20 s after SIGTERM; the periodic checkpoints
-bound what a SIGKILL loses.
+SIGTERM becomes :class:`Terminated`, an exception every ``finally`` and atomic write (``gca.io.atomic_path``) unwinds
+through, so no temporary is left behind. Inside :func:`deferred` (training) the signal only sets a flag: the training
+loop saves its checkpoint at the end of the iteration in progress (:func:`requested`) and then stops (:func:`check`),
+so a stopped run resumes where it was. ``benchmarks/grid.py`` sends SIGKILL 20 s after SIGTERM; the periodic
+checkpoints bound what a SIGKILL loses.
+
+**A stop without a signal** (session 42): under CUDA MPS, a SIGTERM that reaches a process with GPU work in flight
+ended every process on the GPU (an MMU fault, Xid 31, then CUDA error 700 in all MPS clients; NOTES session 42),
+while the same stops without MPS were clean. So a packed process is asked to stop without a signal:
+
+- ``GCA_STOP_FILE`` (a path): the stop is requested once that file exists (the grid's deadline stop writes
+  ``.grid/<job>.stop`` and sends SIGTERM only to a job that has not ended ``STOP_REQUEST_S`` later);
+- ``GCA_STOP_AT`` (Unix time [s]): the stop is requested once the clock passes it (the device bundles set it some
+  seconds before their ``timeout``, which stays the backstop).
+
+Both are read where the flag is (:func:`requested`, latched: once seen, the stop stands), i.e. at a training
+iteration's end and between stages' runs, and end the stage like a SIGTERM (exit 143). :func:`quiesce` waits for the
+GPU's queued work before a stopped process exits.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
+import time
 from typing import Iterator
 
-_state = {"requested": False, "deferring": 0}
+_state = {"requested": False, "deferring": 0, "reason": "stopped by SIGTERM"}
+
+
+STOP_FILE_ENV, STOP_AT_ENV = "GCA_STOP_FILE", "GCA_STOP_AT"
 
 
 class Terminated(SystemExit):
-    """The process received SIGTERM (exit status 143, as the signal's default)."""
+    """The process received SIGTERM or found its stop file or deadline (exit status 143, as the signal's default)."""
 
     def __init__(self, message: str = "stopped by SIGTERM"):
         super().__init__(143)
@@ -29,7 +48,7 @@ class Terminated(SystemExit):
 
 
 def _handler(signum, frame) -> None:
-    _state["requested"] = True
+    _state["requested"], _state["reason"] = True, "stopped by SIGTERM"
     if not _state["deferring"]:
         raise Terminated()
 
@@ -40,15 +59,49 @@ def install() -> None:
         signal.signal(signal.SIGTERM, _handler)
 
 
+def _asked() -> str:
+    """Why a stop is asked without a signal: the stop file exists or the deadline passed ("" if neither)."""
+    path = os.environ.get(STOP_FILE_ENV)
+    if path and os.path.exists(path):
+        return f"stopped by the stop file {path}"
+    at = os.environ.get(STOP_AT_ENV)
+    if at:
+        try:
+            deadline = float(at)
+        except ValueError:
+            raise ValueError(f"gca/stop.py: {STOP_AT_ENV}={at!r} is not a Unix time in seconds") from None
+        if time.time() >= deadline:
+            return f"stopped at the deadline {STOP_AT_ENV}={at}"
+    return ""
+
+
 def requested() -> bool:
-    """Whether SIGTERM arrived (inside :func:`deferred`: save what must be saved, then :func:`check`)."""
+    """Whether a stop was asked: SIGTERM arrived, the stop file exists or the deadline passed (latched; inside
+    :func:`deferred`: save what must be saved, then :func:`check`)."""
+    if not _state["requested"]:
+        reason = _asked()
+        if reason:
+            _state["requested"], _state["reason"] = True, reason
     return _state["requested"]
 
 
 def check() -> None:
-    """Raise :class:`Terminated` if SIGTERM arrived."""
-    if _state["requested"]:
-        raise Terminated()
+    """Raise :class:`Terminated` if a stop was asked (:func:`requested`)."""
+    if requested():
+        raise Terminated(_state["reason"])
+
+
+def quiesce() -> None:
+    """Wait for the GPU work this process queued (when torch has initialised CUDA), before a stopped process exits:
+    no kernel of it is still running while it tears down. An error here (a GPU already faulted) is left to the
+    stop's own message."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_initialized():
+        return
+    try:
+        torch.cuda.synchronize()
+    except RuntimeError:
+        pass
 
 
 @contextlib.contextmanager
@@ -67,5 +120,5 @@ def deferred(stop_at_end: bool = True) -> Iterator[None]:
 
 
 def reset() -> None:
-    """Forget an earlier SIGTERM (tests)."""
-    _state["requested"] = False
+    """Forget an earlier stop (tests)."""
+    _state["requested"], _state["reason"] = False, "stopped by SIGTERM"

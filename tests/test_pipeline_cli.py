@@ -266,6 +266,65 @@ def test_sigterm_after_the_last_check_keeps_the_finished_work():
         signal.signal(signal.SIGTERM, previous)
         stop.reset()
 
+def test_a_stop_file_stops_like_sigterm_without_a_signal(tmp_path, monkeypatch):
+    """NOTES session 42: under CUDA MPS a SIGTERM to a process with GPU work in flight ended every process on the GPU;
+    a stop file (GCA_STOP_FILE) asks for the same stop with no signal: not before the file exists (negative control),
+    then latched (the file removed, the stop stands), with the file named in the stop's message."""
+    path = tmp_path / "job.stop"
+    monkeypatch.setenv(stop.STOP_FILE_ENV, str(path))
+    monkeypatch.delenv(stop.STOP_AT_ENV, raising=False)
+    try:
+        assert not stop.requested()  # no file yet: no stop (negative control)
+        stop.check()
+        path.write_text("now\n")
+        assert stop.requested()
+        path.unlink()
+        assert stop.requested(), "a stop once asked stands"
+        with pytest.raises(stop.Terminated, match=f"stopped by the stop file {path}"):
+            stop.check()
+    finally:
+        stop.reset()
+    assert not stop.requested()
+
+
+def test_a_deadline_stops_once_it_has_passed(monkeypatch):
+    monkeypatch.delenv(stop.STOP_FILE_ENV, raising=False)
+    try:
+        monkeypatch.setenv(stop.STOP_AT_ENV, f"{time.time() + 3600:.0f}")
+        stop.check()  # an hour ahead: no stop (negative control)
+        monkeypatch.setenv(stop.STOP_AT_ENV, f"{time.time() - 1:.3f}")
+        with pytest.raises(stop.Terminated, match="stopped at the deadline GCA_STOP_AT="):
+            stop.check()
+        stop.reset()
+        monkeypatch.setenv(stop.STOP_AT_ENV, "soon")
+        with pytest.raises(ValueError, match="GCA_STOP_AT='soon' is not a Unix time"):
+            stop.requested()
+    finally:
+        stop.reset()
+
+
+def test_a_stage_stopped_at_its_stop_file_ends_143_with_the_reason(tmp_path, monkeypatch, capsys):
+    path = tmp_path / "job.stop"
+    monkeypatch.setenv(stop.STOP_FILE_ENV, str(path))
+    waited = []
+    monkeypatch.setattr(stop, "quiesce", lambda: waited.append(True))  # the GPU's queued work, before the exit
+
+    def main(argv):
+        with io.atomic_path(tmp_path / "out", is_dir=True) as tmp:
+            (tmp / "half").write_text("x")
+            path.write_text("1\n")
+            stop.check()
+
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        assert cli.run(main, [], name="train") == 143
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        stop.reset()
+    assert capsys.readouterr().err == f"train: stopped by the stop file {path}\n"
+    assert waited == [True] and [p.name for p in tmp_path.iterdir()] == ["job.stop"]
+
+
 def _parser(stage: str, monkeypatch) -> argparse.ArgumentParser:
     """The argument parser a stage's main builds (caught at parse_args)."""
     sys.path.insert(0, str(ROOT / "stages"))

@@ -192,6 +192,35 @@ def test_training_resumes_from_its_checkpoint(scene, tmp_path):
     assert any(moved), "the resumed run should have taken one more optimiser step"
 
 
+def test_a_stop_file_checkpoints_the_iteration_in_progress_and_stops(scene, tmp_path, monkeypatch):
+    """NOTES session 42 (packed runs under CUDA MPS are stopped with a file, not a signal): the file written during
+    iteration 1 of 3 stops the run after that iteration, checkpointed there though ``checkpoint_every`` is far; the
+    same run without the file trains its 3 iterations (negative control)."""
+    from gca import stop
+
+    flag, ckpt = tmp_path / "job.stop", tmp_path / "checkpoint.pt"
+    monkeypatch.setenv(stop.STOP_FILE_ENV, str(flag))
+    method = get_method("neuma")
+    cfg = TrainConfig(curriculum_start=1.0, keep="last", iterations=3, checkpoint_every=100)
+
+    def run(on_iteration):
+        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+        objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
+                              CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+        return train(tiny_solver(), law, _data(scene, method), objective, cfg, checkpoint_path=ckpt,
+                     on_iteration=on_iteration)
+
+    try:
+        with pytest.raises(stop.Terminated, match="stop file"):
+            run(lambda it, record: flag.write_text("1\n") if it == 1 else None)
+    finally:
+        stop.reset()
+    assert torch.load(ckpt, weights_only=False)["iteration"] == 2
+    flag.unlink()
+    ckpt.unlink()
+    assert [h["iteration"] for h in run(None).history] == [0, 1, 2]
+
+
 def test_a_resumed_gca_run_ends_with_the_uninterrupted_law(scene, tmp_path):
     """Issue 24 item 7 (found by tests/test_fault_injection.py): a run stopped after iteration 1 and resumed
     from its checkpoint ends with the uninterrupted run's law, bit for bit, and the same losses. CPR reuses

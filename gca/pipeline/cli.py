@@ -4,8 +4,8 @@
   classes in :data:`USER_ERRORS`) prints one line, ``<stage>: error: <message>``, and exits 2; ``--debug``
   shows the traceback. Anything else is an internal error: its traceback is printed and the exit status
   is 1.
-- **SIGTERM** ends the stage cleanly (``gca.stop``: temporaries removed, training checkpointed first),
-  exit status 143.
+- **SIGTERM**, the stop file ``GCA_STOP_FILE`` or the deadline ``GCA_STOP_AT`` ends the stage cleanly (``gca.stop``:
+  temporaries removed, training checkpointed first, the GPU's queued work waited for), exit status 143.
 - At start, the stale temporaries a killed run left beside this stage's outputs are swept
   (``gca.io.sweep`` on the folders of its path arguments).
 - Progress bars (tqdm) are quiet under CI (``CI=true``) or when stderr is not a terminal.
@@ -109,6 +109,7 @@ def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, 
     # (inside third-party code: GitPython's config parser under MLflow, session 18) complains from its __del__ here,
     # visibly, and not after the stop line at interpreter exit. The stop line stays the last (a job log's reason).
     gc.collect()
+    stop.quiesce()
     print(stopped, file=sys.stderr)
     return 143
 

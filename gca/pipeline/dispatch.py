@@ -39,6 +39,7 @@ from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
+STOP_REQUEST_S = STOP_GRACE_S / 2  # before the SIGTERM, this long for the stage to stop at its stop file [s]
 RESUMABLE_MIN_S = 120.0  # --deadline: a training job is submitted while this much of the deadline remains [s]
 DONE, FAILED, RUNNING = "done", "failed", "running"
 JOB_START_S = 60.0  # a training job's process start, data and launch-velocity estimate (~30-60 s, session 20), also
@@ -107,8 +108,16 @@ class StageCommand:
             argv[0] = sys.executable  # the job's interpreter: the one the engine started
         return argv
 
+    def stop_file(self) -> Path:
+        """``<work>/.grid/<job>.stop``: its existence asks the stage to stop (``gca.stop``: a training stage
+        checkpoints at its iteration's end and exits 143, with no signal; NOTES session 42: a SIGTERM to a process
+        packed under CUDA MPS ended every process on the GPU)."""
+        return marker(Path(self.work), self.name, ".stop")
+
     def environment(self) -> dict[str, str]:
-        env = {**os.environ, **self.env, "PYTHONUNBUFFERED": "1"}
+        from gca.stop import STOP_FILE_ENV
+
+        env = {**os.environ, **self.env, "PYTHONUNBUFFERED": "1", STOP_FILE_ENV: str(self.stop_file())}
         # the work directory's own gca first (a checkout, or a grid work directory linking this one's)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (self.work, str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
         return env
@@ -117,6 +126,7 @@ class StageCommand:
         t0 = time.monotonic()
         print(f"[gca job {self.name}] {self.cmd}  (cwd {self.work}, CUDA_VISIBLE_DEVICES="
               f"{os.environ.get('CUDA_VISIBLE_DEVICES', '')!r})", flush=True)
+        self.stop_file().unlink(missing_ok=True)  # an earlier stop's request is not this run's
         self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment(), preexec_fn=_ignore_usr_signal)
         pid_file = marker(Path(self.work), self.name, ".pid")  # what a deadline stop waits on (_wait_stopped)
         pid_file.parent.mkdir(parents=True, exist_ok=True)
@@ -126,6 +136,7 @@ class StageCommand:
         finally:
             self.stop()  # an exception (a requeue's SystemExit, Ctrl-C) never leaves the stage running
             pid_file.unlink(missing_ok=True)
+            self.stop_file().unlink(missing_ok=True)
         if rc != 0:
             raise StageFailed(f"{self.name}: exit {rc}")
         took = time.monotonic() - t0
@@ -135,26 +146,34 @@ class StageCommand:
         return took
 
     def stop(self) -> None:
-        """Stop the stage process (SIGTERM, SIGKILL after ``STOP_GRACE_S``) if it still runs.
+        """Stop the stage process if it still runs: its stop file first (unless a deadline stop wrote it and waited
+        already), ``STOP_REQUEST_S`` for it to end, then SIGTERM, then SIGKILL after ``STOP_GRACE_S``.
 
         Reaps it with ``os.waitpid`` itself: called from submitit's signal handler, it interrupts
         ``Popen.wait`` in ``__call__``, which holds the lock that another ``Popen.wait`` would wait for."""
         proc = self._proc
         if proc is None or proc.returncode is not None:
             return
+        if not self.stop_file().exists() and _request_stop(self.stop_file()) and self._reaped(STOP_REQUEST_S):
+            return
         proc.terminate()
-        t_end = time.monotonic() + STOP_GRACE_S
+        if not self._reaped(STOP_GRACE_S):
+            proc.kill()
+            self._reaped(float("inf"))
+
+    def _reaped(self, seconds: float) -> bool:
+        """Wait up to ``seconds`` for the stage process to end (reaped here); whether it did."""
+        proc, t_end = self._proc, time.monotonic() + seconds
         while True:
             try:
                 pid, status = os.waitpid(proc.pid, os.WNOHANG)
             except ChildProcessError:  # reaped already
-                return
+                return True
             if pid:
                 proc.returncode = os.waitstatus_to_exitcode(status)
-                return
+                return True
             if time.monotonic() > t_end:
-                proc.kill()
-                t_end = float("inf")
+                return False
             time.sleep(0.05)
 
     def checkpoint(self, *args, **kwargs):
@@ -294,19 +313,25 @@ class SubmititEngine(Engine):
             pass
 
     def stop_jobs(self, handles: dict, work: Path, log, poll_s: float) -> None:
-        """Local jobs: SIGTERM to each stage process first (``.grid/<job>.pid``: submitit's cancel is a SIGINT to its
-        controller, which did not always stop the stage: in fresh-clone CI runs a job ran on to its end after the
+        """Local jobs: each running stage's stop file first (``.grid/<job>.stop``: a training checkpoints at its
+        iteration's end and exits, with no signal: under CUDA MPS a SIGTERM to a process with GPU work in flight ended
+        every process on the GPU, NOTES session 42), up to ``STOP_REQUEST_S`` for them to end on their own (a training
+        that finished as the request came exits 0 and its job writes the ``.done`` marker: session 25, the cancel
+        killed the job first and a finished 441-s run trained again); then SIGTERM to each stage process still running
+        (``.grid/<job>.pid``: a data stage or an evaluation does not read the file; submitit's cancel is a SIGINT to
+        its controller, which did not always stop the stage: in fresh-clone CI runs a job ran on to its end after the
         deadline stop), then the cancel, then wait for them to end (at most ``STOP_GRACE_S`` + 10 s), so that the next
         call never starts a job whose stopped process still writes its outputs. SLURM jobs: the cancel (their end is
-        SLURM's to see). Between the SIGTERM and the cancel, up to ``STOP_GRACE_S / 2`` for the jobs to end on their
-        own: a training that finished as the signal came exits 0 and its job writes the ``.done`` marker (session 25:
-        the cancel killed the job first, and a finished 441-s run trained again)."""
+        SLURM's to see)."""
         if not self.slurm:
-            for name in handles:
-                _terminate(marker(work, name, ".pid"))
-            t_end = time.monotonic() + STOP_GRACE_S / 2
+            for name in handles:  # the stop files first: a packed training stops without a signal (NOTES s42)
+                if _running_pid(marker(work, name, ".pid")) is not None:
+                    _request_stop(marker(work, name, ".stop"))
+            t_end = time.monotonic() + STOP_REQUEST_S
             while time.monotonic() < t_end and any(self.running(h) for h in handles.values()):
                 time.sleep(min(poll_s, 0.2))
+            for name in handles:  # what did not stop at its file (a data stage, an evaluation): SIGTERM
+                _terminate(marker(work, name, ".pid"))
         super().stop_jobs(handles, work, log, poll_s)
         if not self.slurm:
             _wait_stopped(self, handles, log, poll_s, work)
@@ -775,6 +800,16 @@ def _running_pid(pid_file: Path) -> int | None:
     except (OSError, ValueError):
         pid_file.unlink(missing_ok=True)
         return None
+
+
+def _request_stop(stop_file: Path) -> bool:
+    """Write ``stop_file`` (a stage's request to stop: ``gca.stop``); whether it could be written."""
+    try:
+        stop_file.parent.mkdir(parents=True, exist_ok=True)
+        stop_file.write_text(f"{time.time():.0f}\n")
+        return True
+    except OSError:
+        return False
 
 
 def _terminate(pid_file: Path) -> None:

@@ -25,8 +25,9 @@ Resumable: a finished job leaves ``<work>/.grid/<job>.done`` and is not run agai
 its checkpoint (also after the engine's requeue at a time limit or a preemption). ``--deadline`` [s]
 bounds the command: it submits no job that its estimated cost would not finish in time, except training
 jobs (resumable: submitted while ``dispatch.RESUMABLE_MIN_S`` remain), and at the deadline stops the jobs
-still running (a training job loses at most ``train.checkpoint_every`` iterations; on this machine the command
-then waits for them to end, at most ``dispatch.STOP_GRACE_S`` + 10 s past the deadline), so a long grid runs
+still running (on this machine by its stop file first, a signal only if it has not ended ``dispatch.STOP_REQUEST_S``
+later: a training job checkpoints at its iteration's end; the command then waits for them to end, at most
+1.5 x ``dispatch.STOP_GRACE_S`` + 10 s past the deadline), so a long grid runs
 as a few commands of bounded length (repeat the command until it reports every job done). A failed job
 is logged with its log path, its dependents are skipped, the others go on. ``--priors DIR`` takes
 ``<family>.pt`` from an earlier run instead of pretraining. ``--save-state``/``--restore-state`` carry a

@@ -174,10 +174,12 @@ def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objec
             on_iteration(it, record)
         it += 1
         bar.update(1)
-        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stop.requested()):
+        stopping = stop.requested()  # read once: a stop asked between two reads would go uncheckpointed
+        if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stopping):
             save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
                              seconds_before + time.perf_counter() - start, objective)
-        stop.check()  # SIGTERM under gca.stop.deferred: stop here, checkpointed
+        if stopping:  # SIGTERM under gca.stop.deferred, the stop file or the deadline: stop here, checkpointed
+            stop.check()
     bar.close()
     objective.frame_weights = None  # after training the objective is the whole video, every frame at weight 1
     selected = (_select(best, undo, solver, law, data, objective, cfg, n_video, history, opt) if cfg.keep == "best"

@@ -208,9 +208,11 @@ def train_teacher_forced(material: Material, solver: MPMSolver, trajectories: Se
         history.append((it, loss.item()))
         if on_step is not None:
             on_step(it, loss.item())
-        if save is not None and ((it + 1) % checkpoint_every == 0 or stop.requested()):
+        stopping = stop.requested()  # read once (gca.train.loop's reason)
+        if save is not None and ((it + 1) % checkpoint_every == 0 or stopping):
             save({"iteration": it + 1, "opt": opt.state_dict(), "generator": g.get_state(), "history": history})
-        stop.check()
+        if stopping:
+            stop.check()
     return history
 
 
