@@ -36,6 +36,10 @@
 #       build; calib_torus's data; 3 iterations under TORCH_CUDA_SANITIZER=1; then PROCS (8) trainings at once, half
 #       with the TF32 MLP, without MPS (MPS=1: with), each its own data copy; which met a CUDA error  -> all.tgz
 #       (SKIP_CHECKS=1: no memcheck or CSAN; the data are made once per machine; MEMCHECK_LIMIT, CSAN_LIMIT)
+#   PART=stops (for session 43; ~8 min): gsplat's build, calib_torus's data, then under MPS (MPS=0: without) for each of
+#       STOPS ("file signal"): PROCS (8) trainings at once stopped FAULT_LIMIT (150) s on, "file" by their own
+#       GCA_STOP_AT (the fix), "signal" by `timeout`'s SIGTERM (session 41's trigger); per round the logs with a CUDA
+#       error, those stopped cleanly and the new Xid lines                                -> stops.txt in all.tgz
 #       (session 42: the fault was `timeout`'s SIGTERM reaching MPS clients mid-work; each run now stops itself at
 #        GCA_STOP_AT 20 s before its timeout, SIGNAL_STOP=1 signals them as before: the negative control)
 #       (the bisection's knobs: FAULT_MLP="torch" or "triton_tf32", the kernels taken in turn; FAULT_EXTRA="--set
@@ -53,6 +57,24 @@ stamp() { python3 -c "import sys, time; print(f'[fast10 {int(time.time()) - $T0:
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine (and build_gsplat)
 . benchmarks/harness_runs.sh  # run, summary
 stamp "host: $(grep -m1 '^model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//'), $(nproc) cores"  # solo runs are host-bound (s39)
+# packed PREFIX LIMIT: PROCS (8) trainings of $SC at once from the data in $W, each on its own copy, the MLP kernels
+# FAULT_MLP taken in turn, FAULT_EXTRA added, each stopped LIMIT s on (harness_runs.sh run: GCA_STOP_AT, SIGNAL_STOP)
+packed() {
+  pk_prefix=$1 pk_limit=$2 P=${PROCS:-8} k=0  # (sh's variables are global: run's own names differ)
+  stamp "$P trainings at once ($pk_prefix, MPS=${MPS:-0}), $pk_limit s"
+  while [ "$k" -lt "$P" ]; do
+    rm -rf "/tmp/fault_$k"; cp -r "$W" "/tmp/fault_$k"; rm -rf "/tmp/fault_$k/runs" "/tmp/fault_$k/eval"
+    set -- ${FAULT_MLP:-torch triton_tf32}; shift $((k % $#)); mlp=$1  # the kernels taken in turn
+    # shellcheck disable=SC2086
+    run "${pk_prefix}_p$k" "$SC" "/tmp/fault_$k" 200 "$pk_limit" --reuse-data --stages train \
+        --set train.mlp_kernel=$mlp ${FAULT_EXTRA:-} > /dev/null &
+    k=$((k + 1))
+  done
+  wait
+  stamp "which processes met a CUDA error (first lines)"
+  for f in "$OUT/$pk_prefix"_p*.log; do
+    e=$(grep -m1 -n "illegal memory\|CUDA error\|error 700" "$f"); echo "$(basename "$f"): ${e:-no CUDA error}"; done
+}
 
 if [ "$PART" = a ] || [ "$PART" = ab ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
@@ -207,23 +229,31 @@ if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (
   # then the incident's load: P processes (half FP32, half TF32 MLP) training at once, each on its own copy of the
   # data, without MPS unless MPS=1 (a fault then stays in its own process: the faulting one is named)
   [ "${MPS:-0}" = 1 ] && start_mps  # off unless asked, here
-  P=${PROCS:-8}; k=0
-  stamp "$P trainings at once (MPS=${MPS:-0}), ${FAULT_LIMIT:-330} s"
-  while [ "$k" -lt "$P" ]; do
-    rm -rf "/tmp/fault_$k"; cp -r $W "/tmp/fault_$k"; rm -rf "/tmp/fault_$k/runs" "/tmp/fault_$k/eval"
-    set -- ${FAULT_MLP:-torch triton_tf32}; shift $((k % $#)); mlp=$1  # the kernels taken in turn
-    # shellcheck disable=SC2086
-    run "p$k" "$SC" "/tmp/fault_$k" 200 "${FAULT_LIMIT:-330}" --reuse-data --stages train --set train.mlp_kernel=$mlp \
-        ${FAULT_EXTRA:-} &
-    k=$((k + 1))
-  done
-  wait
-  stamp "which processes met a CUDA error (first lines, with the log's last iteration)"
-  for f in "$OUT"/p*.log; do
-    e=$(grep -m1 -n "illegal memory\|CUDA error\|error 700" "$f"); echo "$(basename "$f"): ${e:-no CUDA error}"; done
+  packed p "${FAULT_LIMIT:-330}"
   dmesg 2> /dev/null | grep -i "xid" | tail -n 5 > "$OUT/xid.txt"; cat "$OUT/xid.txt"  # the faulting PID and address
   [ "${MPS:-0}" = 1 ] && tail -n 40 "${CUDA_MPS_LOG_DIRECTORY:-/var/log/nvidia-mps}/server.log" > "$OUT/mps_server.log" 2>&1
   pack_out "$OUT"  # one all.tgz: the device returns 8 files
+fi
+
+if [ "$PART" = stops ]; then  # for session 43: session 42's fix measured against its negative control, one call
+  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
+  SC=${FAULT_SCENE:-calib_torus}; W=/tmp/fault_$SC
+  if [ -f "$W/.data_done" ]; then stamp "$SC: data made by an earlier call on this machine"; else
+    stamp "$SC: data"; run data "$SC" $W 1 200 --stages assets particles ground_truth preprocess && touch "$W/.data_done"
+  fi
+  MPS=${MPS:-1}; start_mps  # on unless MPS=0
+  for mode in ${STOPS:-file signal}; do  # file: each run stops at GCA_STOP_AT (the fix); signal: `timeout`'s SIGTERM
+    x0=$(dmesg 2> /dev/null | grep -ci "xid")
+    if [ "$mode" = signal ]; then SIGNAL_STOP=1 packed "$mode" "${FAULT_LIMIT:-150}"; else packed "$mode" "${FAULT_LIMIT:-150}"; fi
+    x1=$(dmesg 2> /dev/null | grep -ci "xid")
+    echo "stops $mode: $(grep -l "illegal memory\|CUDA error\|error 700" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) logs with a CUDA \
+error, $(grep -l "\[harness\] stopped" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) stopped cleanly, $((x1 - x0)) new Xid lines" \
+        | tee -a "$OUT/stops.txt"
+    dmesg 2> /dev/null | grep -i "xid" | tail -n $((x1 - x0)) | tail -n 5 >> "$OUT/stops.txt"
+    sleep 5  # the MPS server's reset after a fault, before the next round starts its clients
+  done
+  tail -n 40 "${CUDA_MPS_LOG_DIRECTORY:-/var/log/nvidia-mps}/server.log" > "$OUT/mps_server.log" 2>&1
+  pack_out "$OUT"
 fi
 
 if [ "$PART" = b ]; then

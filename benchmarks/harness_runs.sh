@@ -17,7 +17,8 @@ run() {  # tag scene work iterations timeout [extra harness args...]
   env "$stop_at" timeout "$limit" python3 benchmarks/harness.py --scene "$scene" --methods gca --profile paper --work "$w" --reuse-prior \
       --set velocity.iterations=20 --set render.backend=gsplat --set train.iterations="$its" --out "$OUT/$tag" \
       --tag "$tag" $@ > "$OUT/$tag.log" 2>&1
-  echo "$tag rc=$?"; tail -n 2 "$OUT/$tag.log"
+  echo "$tag rc=$?"; sed 's/\r/\n/g' "$OUT/$tag.log" | grep -v "^train:\|^velocity:" | tail -n 2  # no progress bars:
+  # the device's reply stays short (session 42 lost a machine while reading a long one)
 }
 summary() {
   python3 - "$OUT" "$@" <<'PY'

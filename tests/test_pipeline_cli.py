@@ -196,6 +196,16 @@ def test_internal_error_keeps_its_traceback():
         cli.run(main, [], name="train")
 
 
+def _run_restoring_sigterm(main, name: str) -> int:
+    """``cli.run(main)`` as stage ``name``; the test process's SIGTERM handler and stop state restored after."""
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        return cli.run(main, [], name=name)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        stop.reset()
+
+
 def test_sigterm_ends_a_stage_cleanly(tmp_path, capsys):
     def main(argv):
         with io.atomic_path(tmp_path / "out", is_dir=True) as tmp:
@@ -203,12 +213,7 @@ def test_sigterm_ends_a_stage_cleanly(tmp_path, capsys):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(5)
 
-    previous = signal.getsignal(signal.SIGTERM)
-    try:
-        assert cli.run(main, [], name="ground_truth") == 143
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        stop.reset()
+    assert _run_restoring_sigterm(main, "ground_truth") == 143
     assert capsys.readouterr().err == "ground_truth: stopped by SIGTERM\n"
     assert list(tmp_path.iterdir()) == []
 
@@ -315,12 +320,7 @@ def test_a_stage_stopped_at_its_stop_file_ends_143_with_the_reason(tmp_path, mon
             path.write_text("1\n")
             stop.check()
 
-    previous = signal.getsignal(signal.SIGTERM)
-    try:
-        assert cli.run(main, [], name="train") == 143
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        stop.reset()
+    assert _run_restoring_sigterm(main, "train") == 143
     assert capsys.readouterr().err == f"train: stopped by the stop file {path}\n"
     assert waited == [True] and [p.name for p in tmp_path.iterdir()] == ["job.stop"]
 
