@@ -16,12 +16,14 @@ while the same stops without MPS were clean. So a packed process is asked to sto
   seconds before their ``timeout``, which stays the backstop).
 
 Both are read where the flag is (:func:`requested`, latched: once seen, the stop stands), i.e. at a training
-iteration's end and between stages' runs, and end the stage like a SIGTERM (exit 143). :func:`quiesce` waits for the
-GPU's queued work before a stopped process exits.
+iteration's end and between stages' runs, and by a watcher thread (:func:`install`) that raises the stop in the main
+thread as the signal's handler would, but without a signal, so a stage that never reads the flag stops too; they end
+the stage like a SIGTERM (exit 143). :func:`quiesce` waits for the GPU's queued work before a stopped process exits.
 """
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import os
 import signal
@@ -30,7 +32,7 @@ import threading
 import time
 from typing import Iterator
 
-_state = {"requested": False, "deferring": 0, "reason": "stopped by SIGTERM"}
+_state = {"requested": False, "deferring": 0, "reason": "stopped by SIGTERM", "watcher": None}
 
 
 STOP_FILE_ENV, STOP_AT_ENV = "GCA_STOP_FILE", "GCA_STOP_AT"
@@ -47,32 +49,68 @@ class Terminated(SystemExit):
         return self.message
 
 
+WATCH_S = 0.5  # the watcher's poll of the stop file and the deadline [s]
+
+
 def _handler(signum, frame) -> None:
-    _state["requested"], _state["reason"] = True, "stopped by SIGTERM"
+    """SIGTERM's handler, also run by the watcher's :func:`_thread.interrupt_main` (then with its reason set)."""
+    if not _state["requested"]:
+        _state["requested"], _state["reason"] = True, "stopped by SIGTERM"
     if not _state["deferring"]:
-        raise Terminated()
+        raise Terminated(_state["reason"])
 
 
 def install() -> None:
-    """Turn SIGTERM into :class:`Terminated` in this process (main thread only; a no-op elsewhere)."""
+    """Turn SIGTERM into :class:`Terminated` in this process (main thread only; a no-op elsewhere), and with
+    ``GCA_STOP_FILE`` or ``GCA_STOP_AT`` set, start the watcher (:func:`_watch`)."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _handler)
+        _watch(os.environ.get(STOP_FILE_ENV) or None, _deadline(os.environ.get(STOP_AT_ENV)))
 
 
-def _asked() -> str:
-    """Why a stop is asked without a signal: the stop file exists or the deadline passed ("" if neither)."""
-    path = os.environ.get(STOP_FILE_ENV)
+def _deadline(at: str | None) -> float | None:
+    """``GCA_STOP_AT``'s value as a Unix time [s] (None: unset or empty); a value that is no number is refused."""
+    if not at:
+        return None
+    try:
+        return float(at)
+    except ValueError:
+        raise ValueError(f"gca/stop.py: {STOP_AT_ENV}={at!r} is not a Unix time in seconds") from None
+
+
+def _asked(path: str | None = None, deadline: float | None = None, env: bool = True) -> str:
+    """Why a stop is asked without a signal: the stop file exists or the deadline passed ("" if neither); ``env``:
+    the environment's ``GCA_STOP_FILE`` and ``GCA_STOP_AT`` (else ``path`` and ``deadline`` alone)."""
+    if env:
+        path, deadline = os.environ.get(STOP_FILE_ENV) or None, _deadline(os.environ.get(STOP_AT_ENV))
     if path and os.path.exists(path):
         return f"stopped by the stop file {path}"
-    at = os.environ.get(STOP_AT_ENV)
-    if at:
-        try:
-            deadline = float(at)
-        except ValueError:
-            raise ValueError(f"gca/stop.py: {STOP_AT_ENV}={at!r} is not a Unix time in seconds") from None
-        if time.time() >= deadline:
-            return f"stopped at the deadline {STOP_AT_ENV}={at}"
+    if deadline is not None and time.time() >= deadline:
+        return f"stopped at the deadline {STOP_AT_ENV}={deadline:.0f}"
     return ""
+
+
+def _watch(path: str | None, deadline: float | None) -> None:
+    """A daemon thread that polls the stop file ``path`` and the ``deadline`` every ``WATCH_S`` and, once asked,
+    raises the stop in the main thread as SIGTERM's handler would, **without a signal** (``_thread.interrupt_main``:
+    at the main thread's next bytecode, no system call interrupted): a stage that never reads :func:`requested` (a data
+    stage, an evaluation) stops too, a training at its iteration's end (:func:`deferred`). One watcher per process;
+    :func:`reset` ends it."""
+    if (path is None and deadline is None) or _state.get("watcher") is not None:
+        return
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.wait(WATCH_S):
+            reason = _asked(path, deadline, env=False)
+            if reason and not _state["requested"]:
+                _state["requested"], _state["reason"] = True, reason
+                _thread.interrupt_main(signal.SIGTERM)  # runs _handler in the main thread (no signal is sent)
+            if _state["requested"]:
+                return
+
+    _state["watcher"] = done
+    threading.Thread(target=watch, name="gca-stop-watch", daemon=True).start()
 
 
 def requested() -> bool:
@@ -120,5 +158,7 @@ def deferred(stop_at_end: bool = True) -> Iterator[None]:
 
 
 def reset() -> None:
-    """Forget an earlier stop (tests)."""
-    _state["requested"], _state["reason"] = False, "stopped by SIGTERM"
+    """Forget an earlier stop and end the watcher (tests)."""
+    if _state.get("watcher") is not None:
+        _state["watcher"].set()
+    _state["requested"], _state["reason"], _state["watcher"] = False, "stopped by SIGTERM", None

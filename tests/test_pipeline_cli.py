@@ -196,11 +196,12 @@ def test_internal_error_keeps_its_traceback():
         cli.run(main, [], name="train")
 
 
-def _run_restoring_sigterm(main, name: str) -> int:
-    """``cli.run(main)`` as stage ``name``; the test process's SIGTERM handler and stop state restored after."""
+def _run_restoring_sigterm(main, name: str, argv: list[str] | None = None) -> int:
+    """``cli.run(main, argv)`` as stage ``name``; the test process's SIGTERM handler and stop state (the watcher
+    included) restored after."""
     previous = signal.getsignal(signal.SIGTERM)
     try:
-        return cli.run(main, [], name=name)
+        return cli.run(main, argv or [], name=name)
     finally:
         signal.signal(signal.SIGTERM, previous)
         stop.reset()
@@ -323,6 +324,33 @@ def test_a_stage_stopped_at_its_stop_file_ends_143_with_the_reason(tmp_path, mon
     assert _run_restoring_sigterm(main, "train") == 143
     assert capsys.readouterr().err == f"train: stopped by the stop file {path}\n"
     assert waited == [True] and [p.name for p in tmp_path.iterdir()] == ["job.stop"]
+
+
+def test_a_stage_that_never_reads_the_flag_stops_at_its_file_without_a_signal(tmp_path, monkeypatch, capsys):
+    """The watcher (gca.stop.install) raises the stop in the main thread with no signal: a data stage or an evaluation,
+    which never reads the flag, ends 143 within a poll of the file's appearance; without the file it runs to its end
+    (negative control), and a GCA_STOP_AT that is no time is one line, exit 2."""
+    path = tmp_path / "job.stop"
+    monkeypatch.setenv(stop.STOP_FILE_ENV, str(path))
+    steps = []
+
+    def main(argv):
+        for i in range(60):  # 3 s of work, in steps (the stop lands between two)
+            steps.append(i)
+            if i == 4 and argv:
+                path.write_text("1\n")
+            time.sleep(0.05)
+
+    t0 = time.monotonic()
+    assert _run_restoring_sigterm(main, "ground_truth", ["--stop"]) == 143
+    assert time.monotonic() - t0 < 2.0 and len(steps) < 60, len(steps)
+    assert capsys.readouterr().err == f"ground_truth: stopped by the stop file {path}\n"
+    path.unlink()
+    steps.clear()
+    assert _run_restoring_sigterm(main, "ground_truth", []) == 0 and len(steps) == 60
+    monkeypatch.setenv(stop.STOP_AT_ENV, "later")
+    assert _run_restoring_sigterm(main, "ground_truth", []) == 2
+    assert capsys.readouterr().err == "ground_truth: error: gca/stop.py: GCA_STOP_AT='later' is not a Unix time in seconds\n"
 
 
 def _parser(stage: str, monkeypatch) -> argparse.ArgumentParser:

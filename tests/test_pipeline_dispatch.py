@@ -342,13 +342,13 @@ def test_finished_runs_count_as_if_packed_as_the_machine_packs_them(tmp_path):
 
 
 _FAKE_TRAIN = (  # a stage that stops as training does (gca.stop: SIGTERM, its stop file), saving its iteration (1 s)
-    "import os, signal, sys, time\nfrom gca import stop\nstop.install()\n"
+    "import os, sys, time\nfrom gca import stop\nstop.install()\n"
     "n = int(open('ckpt').read()) if os.path.exists('ckpt') else 0\n"
-    "signal.signal(signal.SIGTERM, lambda *_: (open('sigterm', 'w').close(), stop._handler(None, None)))\n"
     "with stop.deferred():\n"
     "    for i in range(n, 12):\n        time.sleep(0.5)\n"
     "        if (i + 1) % 4 == 0 or stop.requested():\n            time.sleep(1.0 if stop.requested() else 0.0)\n"
     "            open('ckpt', 'w').write(str(i + 1))\n"
+    "        if stop.requested():\n            open('reason', 'w').write(stop._state['reason'])\n"
     "        stop.check()\n")
 
 
@@ -366,10 +366,27 @@ def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeyp
     time.sleep(1.5)
     assert int((tmp_path / "ckpt").read_text()) == stopped_at and 4 < stopped_at < 12
     assert not dispatch.marker(tmp_path, job.name).exists()
-    assert not (tmp_path / "sigterm").exists(), "a job that stopped at its stop file got a SIGTERM too"
+    assert (tmp_path / "reason").read_text().startswith("stopped by the stop file"), "stopped by a SIGTERM"
     assert not dispatch.marker(tmp_path, job.name, ".stop").exists(), "the request outlived the job"
     assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, poll_s=0.1) == {job.name: "done"}
     assert (tmp_path / "ckpt").read_text() == "12"
+
+
+def test_a_stage_that_never_reads_the_flag_stops_at_its_file_too(tmp_path, monkeypatch):
+    """A data stage or an evaluation (cli.run, no training loop) stops at its stop file through gca.stop's watcher,
+    long before the SIGTERM would come (STOP_REQUEST_S = 30 s here): the deadline stop sends packed processes no
+    signal at all."""
+    monkeypatch.setattr(dispatch, "STOP_REQUEST_S", 30.0)
+    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
+    code = ("import sys, time; from gca.pipeline import cli; "
+            "sys.exit(cli.run(lambda argv: [time.sleep(0.05) for _ in range(1200)], [], name='ground_truth'))")
+    job = grid.Job("ground_truth@s", f"python -c {code!r}", [], [], cost=0.01)
+    lines = []
+    t0 = time.monotonic()
+    state = dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=3.0, poll_s=0.1,
+                         launch_until=1000.0)
+    assert state == {job.name: "todo"}, lines
+    assert time.monotonic() - t0 < 3.0 + 10.0, "the stage waited for the SIGTERM instead of stopping at its file"
 
 
 def test_a_job_that_does_not_stop_at_its_file_gets_sigterm(tmp_path, monkeypatch):

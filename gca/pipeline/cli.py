@@ -88,7 +88,11 @@ def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, 
     argv = list(sys.argv[1:] if argv is None else argv)
     name = name or Path(sys.argv[0]).stem
     debug = "--debug" in argv
-    stop.install()
+    try:
+        stop.install()
+    except ValueError as exc:  # GCA_STOP_AT that is no time
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return 2
     if quiet():
         quiet_progress()
     try:
