@@ -37,7 +37,8 @@
 #       with the TF32 MLP, without MPS (MPS=1: with), each its own data copy; which met a CUDA error  -> all.tgz
 #       (SKIP_CHECKS=1: no memcheck or CSAN; the data are made once per machine; MEMCHECK_LIMIT, CSAN_LIMIT)
 #   PART=stops (for session 43; ~8 min): gsplat's build, calib_torus's data, then under MPS (MPS=0: without) for each of
-#       STOPS ("file signal"): PROCS (8) trainings at once stopped FAULT_LIMIT (150) s on, "file" by their own
+#       STOPS ("file signal"): PROCS (8) trainings at once stopped FAULT_LIMIT (150; less if the call's LIMIT, 570 s,
+#       would not leave it) s on, "file" by their own
 #       GCA_STOP_AT (the fix), "signal" by `timeout`'s SIGTERM (session 41's trigger); per round the logs with a CUDA
 #       error, those stopped cleanly and the new Xid lines                                -> stops.txt in all.tgz
 #       (session 42: the fault was `timeout`'s SIGTERM reaching MPS clients mid-work; each run now stops itself at
@@ -242,14 +243,22 @@ if [ "$PART" = stops ]; then  # for session 43: session 42's fix measured agains
     stamp "$SC: data"; run data "$SC" $W 1 200 --stages assets particles ground_truth preprocess && touch "$W/.data_done"
   fi
   MPS=${MPS:-1}; start_mps  # on unless MPS=0
+  set -- ${STOPS:-file signal}; rounds=$#
   for mode in ${STOPS:-file signal}; do  # file: each run stops at GCA_STOP_AT (the fix); signal: `timeout`'s SIGTERM
+    # each round within the call's LIMIT (570 s from the start): the device's own limit kills what runs, and a kill
+    # under MPS is what this part measures (session 42's call 3 overran it by the build's and data's time)
+    left=$((${LIMIT:-570} - $(date +%s) + T0)); lim=$((left / rounds - 15)); rounds=$((rounds - 1)); last=0
+    [ "$lim" -lt 60 ] && { lim=$((left - 15)); last=1; }  # too little for every round: the earlier ones first
+    [ "$lim" -gt "${FAULT_LIMIT:-150}" ] && lim=${FAULT_LIMIT:-150}
+    [ "$lim" -lt 60 ] && { echo "stops $mode: skipped, ${lim} s left for it" | tee -a "$OUT/stops.txt"; break; }
     x0=$(dmesg 2> /dev/null | grep -ci "xid")
-    if [ "$mode" = signal ]; then SIGNAL_STOP=1 packed "$mode" "${FAULT_LIMIT:-150}"; else packed "$mode" "${FAULT_LIMIT:-150}"; fi
+    if [ "$mode" = signal ]; then SIGNAL_STOP=1 packed "$mode" "$lim"; else packed "$mode" "$lim"; fi
     x1=$(dmesg 2> /dev/null | grep -ci "xid")
     echo "stops $mode: $(grep -l "illegal memory\|CUDA error\|error 700" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) logs with a CUDA \
 error, $(grep -l "\[harness\] stopped" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) stopped cleanly, $((x1 - x0)) new Xid lines" \
         | tee -a "$OUT/stops.txt"
     dmesg 2> /dev/null | grep -i "xid" | tail -n $((x1 - x0)) | tail -n 5 >> "$OUT/stops.txt"
+    [ "$last" = 1 ] && { echo "stops: the later rounds skipped (the call's LIMIT)" | tee -a "$OUT/stops.txt"; break; }
     sleep 5  # the MPS server's reset after a fault, before the next round starts its clients
   done
   tail -n 40 "${CUDA_MPS_LOG_DIRECTORY:-/var/log/nvidia-mps}/server.log" > "$OUT/mps_server.log" 2>&1
