@@ -50,6 +50,7 @@ class Terminated(SystemExit):
 
 
 WATCH_S = 0.5  # the watcher's poll of the stop file and the deadline [s]
+_LOCK = threading.Lock()  # the watcher's act against unwatch()
 
 
 def _handler(signum, frame) -> None:
@@ -95,7 +96,9 @@ def _watch(path: str | None, deadline: float | None) -> None:
     raises the stop in the main thread as SIGTERM's handler would, **without a signal** (``_thread.interrupt_main``:
     at the main thread's next bytecode, no system call interrupted): a stage that never reads :func:`requested` (a data
     stage, an evaluation) stops too, a training at its iteration's end (:func:`deferred`). One watcher per process;
-    :func:`reset` ends it."""
+    :func:`unwatch` ends it. Limits: the main thread sees the stop only between bytecodes (a blocking call, e.g. a
+    ``time.sleep`` or a child process waited for, finishes first), and not at all if SIGTERM's handler is no longer
+    Python's; the grid's SIGTERM, ``dispatch.STOP_REQUEST_S`` later, is the backstop."""
     if (path is None and deadline is None) or _state.get("watcher") is not None:
         return
     done = threading.Event()
@@ -103,14 +106,25 @@ def _watch(path: str | None, deadline: float | None) -> None:
     def watch() -> None:
         while not done.wait(WATCH_S):
             reason = _asked(path, deadline, env=False)
-            if reason and not _state["requested"]:
-                _state["requested"], _state["reason"] = True, reason
-                _thread.interrupt_main(signal.SIGTERM)  # runs _handler in the main thread (no signal is sent)
-            if _state["requested"]:
-                return
+            with _LOCK:  # unwatch() holds it: a watcher it ended never acts after
+                if done.is_set():
+                    return
+                if reason and not _state["requested"]:
+                    _state["requested"], _state["reason"] = True, reason
+                    _thread.interrupt_main(signal.SIGTERM)  # runs _handler in the main thread (no signal is sent)
+                if _state["requested"]:
+                    return
 
     _state["watcher"] = done
     threading.Thread(target=watch, name="gca-stop-watch", daemon=True).start()
+
+
+def unwatch() -> None:
+    """End the watcher (a stage whose work is done: a stop asked while it exits must not cut its exit hooks)."""
+    with _LOCK:
+        if _state.get("watcher") is not None:
+            _state["watcher"].set()
+        _state["watcher"] = None
 
 
 def requested() -> bool:
@@ -158,7 +172,6 @@ def deferred(stop_at_end: bool = True) -> Iterator[None]:
 
 
 def reset() -> None:
-    """Forget an earlier stop and end the watcher (tests)."""
-    if _state.get("watcher") is not None:
-        _state["watcher"].set()
-    _state["requested"], _state["reason"], _state["watcher"] = False, "stopped by SIGTERM", None
+    """End the watcher and forget an earlier stop (tests)."""
+    unwatch()
+    _state["requested"], _state["reason"] = False, "stopped by SIGTERM"

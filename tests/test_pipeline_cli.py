@@ -353,6 +353,47 @@ def test_a_stage_that_never_reads_the_flag_stops_at_its_file_without_a_signal(tm
     assert capsys.readouterr().err == "ground_truth: error: gca/stop.py: GCA_STOP_AT='later' is not a Unix time in seconds\n"
 
 
+def test_quiesce_waits_for_the_gpu_only_where_torch_has_started_cuda(monkeypatch):
+    import torch
+
+    calls = []
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda *a: calls.append("sync"))
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: False)
+    stop.quiesce()
+    assert calls == []  # no CUDA context: nothing to wait for (negative control)
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
+    stop.quiesce()
+    assert calls == ["sync"]
+
+    def faulted(*a):
+        raise RuntimeError("CUDA error: an illegal memory access was encountered")
+    monkeypatch.setattr(torch.cuda, "synchronize", faulted)
+    stop.quiesce()  # a GPU already faulted: the stop's own message follows, not this error
+
+
+def test_an_ended_watcher_never_stops_the_process(tmp_path, monkeypatch):
+    """unwatch (cli.run's end, reset) ends the watcher: a stop file written afterwards stops nothing; a live watcher
+    does stop (control)."""
+    path = tmp_path / "job.stop"
+    monkeypatch.setenv(stop.STOP_FILE_ENV, str(path))
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        stop.install()
+        stop.unwatch()
+        path.write_text("1\n")
+        time.sleep(3 * stop.WATCH_S)
+        assert not stop._state["requested"]
+        path.unlink()
+        stop.install()
+        with pytest.raises(stop.Terminated, match="stop file"):
+            path.write_text("1\n")
+            for _ in range(40):
+                time.sleep(stop.WATCH_S / 4)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        stop.reset()
+
+
 def _parser(stage: str, monkeypatch) -> argparse.ArgumentParser:
     """The argument parser a stage's main builds (caught at parse_args)."""
     sys.path.insert(0, str(ROOT / "stages"))

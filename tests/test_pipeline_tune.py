@@ -398,3 +398,29 @@ def test_processes_launched_together_claim_units_in_progress_first(tmp_path, mon
     ran.clear()
     tune.main(argv)
     assert ran == [("neuma", 0, "calib_torus", 0)] and (tmp_path / "r.json").is_file()
+
+
+def test_a_units_training_stops_at_its_iterations_end_and_before_its_evaluation(tmp_path):
+    """A tuning shard stopped by its deadline (tune_bundle.sh: GCA_STOP_AT): the unit's training runs deferred (the
+    stop waits for the iteration's end and checkpoint), and a stop that came during it ends the unit before its
+    evaluation with the checkpoint kept; without a stop the checkpoint is cleared (control)."""
+    from gca import stop
+
+    ckpt = tmp_path / "checkpoint.pt"
+    seen = []
+
+    def train(ask: bool):
+        ckpt.write_text("it 200")
+        seen.append(stop._state["deferring"])
+        if ask:
+            stop._state["requested"] = True  # what the watcher or SIGTERM's handler does inside deferred
+        return {"iterations": 200}
+
+    assert tune.trained(lambda: train(False), ckpt) == {"iterations": 200} and not ckpt.exists()
+    try:
+        with pytest.raises(stop.Terminated):
+            tune.trained(lambda: train(True), ckpt)
+    finally:
+        stop.reset()
+    assert ckpt.is_file() and seen == [1, 1]
+

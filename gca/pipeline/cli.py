@@ -109,6 +109,8 @@ def run(main: Callable[[list[str]], object], argv: Sequence[str] | None = None, 
         return 2
     else:
         return 0
+    finally:  # done, failed or stopped: a stop file written as the stage exits cuts none of its exit hooks
+        stop.unwatch()
     # Out of the except block the stopped frames are garbage: collected now, an object the signal caught half-built
     # (inside third-party code: GitPython's config parser under MLflow, session 18) complains from its __del__ here,
     # visibly, and not after the stop line at interpreter exit. The stop line stays the last (a job log's reason).

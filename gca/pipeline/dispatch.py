@@ -154,6 +154,8 @@ class StageCommand:
         proc = self._proc
         if proc is None or proc.returncode is not None:
             return
+        # (submitit's cancel of a local job kills this controller ~1 s after its SIGINT; the stage then gets SIGTERM
+        # from its parent-death signal, _ignore_usr_signal)
         if not self.stop_file().exists() and _request_stop(self.stop_file()) and self._reaped(STOP_REQUEST_S):
             return
         proc.terminate()
@@ -324,11 +326,13 @@ class SubmititEngine(Engine):
         call never starts a job whose stopped process still writes its outputs. SLURM jobs: the cancel (their end is
         SLURM's to see)."""
         if not self.slurm:
-            for name in handles:  # the stop files first: a packed training stops without a signal (NOTES s42)
-                if _running_pid(marker(work, name, ".pid")) is not None:
-                    _request_stop(marker(work, name, ".stop"))
             t_end = time.monotonic() + STOP_REQUEST_S
-            while time.monotonic() < t_end and any(self.running(h) for h in handles.values()):
+            while True:  # the stop files first (a packed training stops without a signal, NOTES s42), again for a
+                for name in handles:  # stage that started meanwhile
+                    if _running_pid(marker(work, name, ".pid")) is not None and not marker(work, name, ".stop").exists():
+                        _request_stop(marker(work, name, ".stop"))
+                if time.monotonic() >= t_end or not any(self.running(h) for h in handles.values()):
+                    break
                 time.sleep(min(poll_s, 0.2))
             for name in handles:  # what did not stop at its file (a data stage, an evaluation): SIGTERM
                 _terminate(marker(work, name, ".pid"))

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import yaml
 
-from gca import config, stamp
+from gca import config, stamp, stop
 from gca.config import ConfigError, resolve
 from gca.io import pack_files, read_json, unpack_files, write_json
 from gca.pipeline import cli, dispatch, grid
@@ -191,8 +191,8 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
     velocity = tuple(read_json(shared)[k] for k in ("v0", "w0"))
     expected = unit_stamp(params, cfg, method_name, values, scene, seed)
     stamp.guard_checkpoint(run_dir / "checkpoint.pt", expected)  # a killed unit resumes only its own setup
-    train = train_method(settings, scene, method, inputs, velocity, run_dir, device=device, seed=seed)
-    stamp.clear_checkpoint(run_dir / "checkpoint.pt")
+    train = trained(lambda: train_method(settings, scene, method, inputs, velocity, run_dir, device=device, seed=seed),
+                    run_dir / "checkpoint.pt")
     body = settings.load_body(inputs.particles, inputs.gaussians, device)
     with truth.bind(inputs.scene_dir, work / "data/gt" / scene):
         metrics = evaluate_trained(settings, scene, method, inputs, body, runs_dir, runs_dir / "eval", device, seed)
@@ -201,6 +201,17 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
             "term_shares": train.get("term_shares", {}), "train_seconds": train["train_seconds"],
             "iterations": train["iterations"], "commit": train["commit"], "device": train["device"],
             stamp.KEY: expected}
+
+
+def trained(train, checkpoint: Path) -> dict:
+    """``train()``'s result, its ``checkpoint`` then cleared. A stop (SIGTERM, ``GCA_STOP_FILE``, ``GCA_STOP_AT``)
+    during it waits for the iteration's end and its checkpoint (:func:`gca.stop.deferred`); one that came after the
+    last iteration stops here, before the unit's evaluation, its checkpoint kept (the unit resumes from its end)."""
+    with stop.deferred(stop_at_end=False):
+        result = train()
+    stop.check()
+    stamp.clear_checkpoint(checkpoint)
+    return result
 
 
 def in_progress(work: Path, method: str, trial: int, scene: str, seed: int) -> bool:
