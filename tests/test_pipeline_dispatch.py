@@ -372,36 +372,32 @@ def test_deadline_stops_running_jobs_and_the_next_call_resumes(tmp_path, monkeyp
     assert (tmp_path / "ckpt").read_text() == "12"
 
 
+def _stopped_at_deadline(work: Path, name: str, code: str, deadline: float) -> float:
+    """One job ``python -c code`` run until the grid's deadline stop; the seconds the run took (the job stopped)."""
+    job = grid.Job(name, f"python -c {code!r}", [], [], cost=0.01 if name.startswith("ground") else 10.0)
+    lines, t0 = [], time.monotonic()
+    assert dispatch.run({name: job}, _local(work), work, lines.append, deadline=deadline, poll_s=0.1,
+                        launch_until=1000.0) == {name: "todo"}, lines
+    return time.monotonic() - t0
+
+
 def test_a_stage_that_never_reads_the_flag_stops_at_its_file_too(tmp_path, monkeypatch):
     """A data stage or an evaluation (cli.run, no training loop) stops at its stop file through gca.stop's watcher,
     long before the SIGTERM would come (STOP_REQUEST_S = 30 s here): the deadline stop sends packed processes no
-    signal at all."""
-    monkeypatch.setattr(dispatch, "STOP_REQUEST_S", 30.0)
+    signal at all. Negative control: a stage that does not read the file (no cli.run) gets SIGTERM after
+    STOP_REQUEST_S (1 s there) and stops on it."""
     monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
+    monkeypatch.setattr(dispatch, "STOP_REQUEST_S", 30.0)
     code = ("import sys, time; from gca.pipeline import cli; "
             "sys.exit(cli.run(lambda argv: [time.sleep(0.05) for _ in range(1200)], [], name='ground_truth'))")
-    job = grid.Job("ground_truth@s", f"python -c {code!r}", [], [], cost=0.01)
-    lines = []
-    t0 = time.monotonic()
-    state = dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=3.0, poll_s=0.1,
-                         launch_until=1000.0)
-    assert state == {job.name: "todo"}, lines
-    assert time.monotonic() - t0 < 3.0 + 10.0, "the stage waited for the SIGTERM instead of stopping at its file"
-
-
-def test_a_job_that_does_not_stop_at_its_file_gets_sigterm(tmp_path, monkeypatch):
-    """Negative control of the stop file: a stage that does not read it (a data stage) gets SIGTERM after
-    ``STOP_REQUEST_S`` and stops on it."""
+    took = _stopped_at_deadline(tmp_path / "a", "ground_truth@s", code, 3.0)
+    assert took < 3.0 + 10.0, "the stage waited for the SIGTERM instead of stopping at its file"
     monkeypatch.setattr(dispatch, "STOP_REQUEST_S", 1.0)
-    monkeypatch.setattr(dispatch, "RESUMABLE_MIN_S", 0.5)
     code = ("import signal, sys, time; signal.signal(signal.SIGTERM, lambda *_: (open('sigterm', 'w').close(), "
             "sys.exit(143))); time.sleep(60)")
-    job = grid.Job("train@s:gca", f"python -c {code!r}", [], [], cost=10.0)
-    lines = []
-    t0 = time.monotonic()
-    assert dispatch.run({job.name: job}, _local(tmp_path), tmp_path, lines.append, deadline=2.0,
-                        poll_s=0.1) == {job.name: "todo"}
-    assert (tmp_path / "sigterm").exists() and time.monotonic() - t0 < 2.0 + 1.0 + dispatch.STOP_GRACE_S
+    (tmp_path / "b").mkdir()
+    took = _stopped_at_deadline(tmp_path / "b", "train@s:gca", code, 2.0)
+    assert (tmp_path / "b" / "sigterm").exists() and took < 2.0 + 1.0 + dispatch.STOP_GRACE_S
 
 
 def test_a_deadline_stop_of_many_jobs_returns_within_its_grace(tmp_path, monkeypatch):
