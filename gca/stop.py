@@ -66,24 +66,23 @@ def install() -> None:
     ``GCA_STOP_FILE`` or ``GCA_STOP_AT`` set, start the watcher (:func:`_watch`)."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _handler)
-        _watch(os.environ.get(STOP_FILE_ENV) or None, _deadline(os.environ.get(STOP_AT_ENV)))
+        _watch(*_settings())
 
 
-def _deadline(at: str | None) -> float | None:
-    """``GCA_STOP_AT``'s value as a Unix time [s] (None: unset or empty); a value that is no number is refused."""
-    if not at:
-        return None
+def _settings() -> tuple[str | None, float | None]:
+    """The environment's stop file (``GCA_STOP_FILE``) and deadline (``GCA_STOP_AT`` as a Unix time [s]); None where
+    unset or empty; a deadline that is no number is refused."""
+    at = os.environ.get(STOP_AT_ENV)
     try:
-        return float(at)
+        deadline = float(at) if at else None
     except ValueError:
         raise ValueError(f"gca/stop.py: {STOP_AT_ENV}={at!r} is not a Unix time in seconds") from None
+    return os.environ.get(STOP_FILE_ENV) or None, deadline
 
 
-def _asked(path: str | None = None, deadline: float | None = None, env: bool = True) -> str:
-    """Why a stop is asked without a signal: the stop file exists or the deadline passed ("" if neither); ``env``:
-    the environment's ``GCA_STOP_FILE`` and ``GCA_STOP_AT`` (else ``path`` and ``deadline`` alone)."""
-    if env:
-        path, deadline = os.environ.get(STOP_FILE_ENV) or None, _deadline(os.environ.get(STOP_AT_ENV))
+def _asked(path: str | None, deadline: float | None) -> str:
+    """Why a stop is asked without a signal: the stop file ``path`` exists or the ``deadline`` passed ("" if
+    neither)."""
     if path and os.path.exists(path):
         return f"stopped by the stop file {path}"
     if deadline is not None and time.time() >= deadline:
@@ -105,7 +104,7 @@ def _watch(path: str | None, deadline: float | None) -> None:
 
     def watch() -> None:
         while not done.wait(WATCH_S):
-            reason = _asked(path, deadline, env=False)
+            reason = _asked(path, deadline)
             with _LOCK:  # unwatch() holds it: a watcher it ended never acts after
                 if done.is_set():
                     return
@@ -131,7 +130,7 @@ def requested() -> bool:
     """Whether a stop was asked: SIGTERM arrived, the stop file exists or the deadline passed (latched; inside
     :func:`deferred`: save what must be saved, then :func:`check`)."""
     if not _state["requested"]:
-        reason = _asked()
+        reason = _asked(*_settings())
         if reason:
             _state["requested"], _state["reason"] = True, reason
     return _state["requested"]
