@@ -58,6 +58,15 @@ stamp() { python3 -c "import sys, time; print(f'[fast10 {int(time.time()) - $T0:
 . benchmarks/gpu_wheels.sh && install_wheels  # the carried wheels beside warp, once per machine (and build_gsplat)
 . benchmarks/harness_runs.sh  # run, summary
 stamp "host: $(grep -m1 '^model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//'), $(nproc) cores"  # solo runs are host-bound (s39)
+# fault_inputs: gsplat built and FAULT_SCENE's (calib_torus) data in W=/tmp/fault_<scene> (SC, W set), once per machine
+fault_inputs() {
+  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
+  SC=${FAULT_SCENE:-calib_torus}; W=/tmp/fault_$SC
+  if [ -f "$W/.data_done" ]; then stamp "$SC: data made by an earlier call on this machine"; else
+    stamp "$SC: data"; run data "$SC" "$W" 1 200 --stages assets particles ground_truth preprocess && touch "$W/.data_done"
+  fi
+}
+CUDA_ERROR="illegal memory\|CUDA error\|error 700"  # what a faulted process's log says
 # packed PREFIX LIMIT: PROCS (8) trainings of $SC at once from the data in $W, each on its own copy, the MLP kernels
 # FAULT_MLP taken in turn, FAULT_EXTRA added, each stopped LIMIT s on (harness_runs.sh run: GCA_STOP_AT, SIGNAL_STOP)
 packed() {
@@ -74,7 +83,7 @@ packed() {
   wait
   stamp "which processes met a CUDA error (first lines)"
   for f in "$OUT/$pk_prefix"_p*.log; do
-    e=$(grep -m1 -n "illegal memory\|CUDA error\|error 700" "$f"); echo "$(basename "$f"): ${e:-no CUDA error}"; done
+    e=$(grep -m1 -n "$CUDA_ERROR" "$f"); echo "$(basename "$f"): ${e:-no CUDA error}"; done
 }
 
 if [ "$PART" = a ] || [ "$PART" = ab ]; then
@@ -217,11 +226,7 @@ if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (
         --sizes 29999 30001 --variants tf32_64 --iters 2 --repeats 1 > "$OUT/memcheck_mlp.txt" 2>&1
     echo "memcheck rc=$?"; grep -m5 "ERROR SUMMARY\|Invalid" "$OUT/memcheck_mlp.txt"
   fi
-  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
-  SC=${FAULT_SCENE:-calib_torus}; W=/tmp/fault_$SC
-  if [ -f "$W/.data_done" ]; then stamp "$SC: data made by an earlier call on this machine"; else  # (a later call)
-    stamp "$SC: data"; run data "$SC" $W 1 200 --stages assets particles ground_truth preprocess && touch "$W/.data_done"
-  fi
+  fault_inputs
   if [ "${SKIP_CHECKS:-0}" != 1 ]; then  # SKIP_CHECKS=1: a later call on this machine, the trainings alone
     stamp "3 iterations under torch's CUDA stream sanitizer (CSAN: races between streams on torch's tensors)"
     TORCH_CUDA_SANITIZER=1 run csan "$SC" $W 3 "${CSAN_LIMIT:-120}" --reuse-data --stages train
@@ -237,14 +242,10 @@ if [ "$PART" = fault ]; then  # session 41: the packed tunings' CUDA error 700 (
 fi
 
 if [ "$PART" = stops ]; then  # for session 43: session 42's fix measured against its negative control, one call
-  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
-  SC=${FAULT_SCENE:-calib_torus}; W=/tmp/fault_$SC
-  if [ -f "$W/.data_done" ]; then stamp "$SC: data made by an earlier call on this machine"; else
-    stamp "$SC: data"; run data "$SC" $W 1 200 --stages assets particles ground_truth preprocess && touch "$W/.data_done"
-  fi
+  fault_inputs
   MPS=${MPS:-1}; start_mps  # on unless MPS=0
   set -- ${STOPS:-file signal}; rounds=$#
-  for mode in ${STOPS:-file signal}; do  # file: each run stops at GCA_STOP_AT (the fix); signal: `timeout`'s SIGTERM
+  for mode in "$@"; do  # file: each run stops at GCA_STOP_AT (the fix); signal: `timeout`'s SIGTERM
     # each round within the call's LIMIT (570 s from the start): the device's own limit kills what runs, and a kill
     # under MPS is what this part measures (session 42's call 3 overran it by the build's and data's time)
     left=$((${LIMIT:-570} - $(date +%s) + T0)); lim=$((left / rounds - 15)); rounds=$((rounds - 1)); last=0
@@ -254,7 +255,7 @@ if [ "$PART" = stops ]; then  # for session 43: session 42's fix measured agains
     x0=$(dmesg 2> /dev/null | grep -ci "xid")
     if [ "$mode" = signal ]; then SIGNAL_STOP=1 packed "$mode" "$lim"; else packed "$mode" "$lim"; fi
     x1=$(dmesg 2> /dev/null | grep -ci "xid")
-    echo "stops $mode: $(grep -l "illegal memory\|CUDA error\|error 700" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) logs with a CUDA \
+    echo "stops $mode: $(grep -l "$CUDA_ERROR" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) logs with a CUDA \
 error, $(grep -l "\[harness\] stopped" "$OUT/$mode"_p*.log 2> /dev/null | wc -l) stopped cleanly, $((x1 - x0)) new Xid lines" \
         | tee -a "$OUT/stops.txt"
     dmesg 2> /dev/null | grep -i "xid" | tail -n $((x1 - x0)) | tail -n 5 >> "$OUT/stops.txt"
