@@ -46,7 +46,9 @@ say "inputs and launch velocities rc=$? ($(tail -n 1 "$OUT/prepare.log"))"; grep
 wait  # the gsplat build
 rm -rf "$W/claims"; k=0
 while [ "$k" -lt "$SHARDS" ]; do  # SHARDS processes on the one GPU, each taking the next unclaimed unit (those cut off
-  # mid-training first: they resume their checkpoints) until the deadline
+  # mid-training first: they resume their checkpoints) until 60 s before its stop (tune.no_start: a unit cut off at
+  # the stop resumes next call; session 43's shards kept to --deadline, which now binds only without GCA_STOP_AT,
+  # and idled ~20 % of the call)
   # (each stops itself 25 s before its `timeout`, GCA_STOP_AT: a unit in training checkpoints and no signal reaches
   # a process under MPS, where a SIGTERM with GPU work in flight ended every process on the GPU: NOTES session 42)
   # shellcheck disable=SC2086

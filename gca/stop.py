@@ -80,6 +80,12 @@ def _settings() -> tuple[str | None, float | None]:
     return os.environ.get(STOP_FILE_ENV) or None, deadline
 
 
+def deadline() -> float | None:
+    """The stop deadline ``GCA_STOP_AT`` [Unix s], or None where unset (a process that plans its work around it:
+    :func:`gca.pipeline.tune.no_start`)."""
+    return _settings()[1]
+
+
 def _asked(path: str | None, deadline: float | None) -> str:
     """Why a stop is asked without a signal: the stop file ``path`` exists or the ``deadline`` passed ("" if
     neither)."""

@@ -3,6 +3,7 @@
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -219,10 +220,19 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
     file is opened; a second call redoes nothing; the report page shows the shares."""
     from test_scenes_truth_isolation import recorder
 
+    from gca.pipeline import evaluate
+
     work, record_path = tmp_path / "work", tmp_path / "record.json"
     argv = ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
             "--set", "tuning.scenes=[calib_torus]", "--record", str(record_path), "--device", "cpu",
             "--methods", "gca", "neuma", "--set", "tuning.record=''"]  # around the checkout's values, cited or not
+    evaluated, real_evaluate = [], evaluate.evaluate_trained
+
+    def evaluate_seeing_the_checkpoint(settings, scene, method, inputs, body, runs_dir, *args, **kw):
+        evaluated.append(sorted(p.name for p in runs_dir.glob("*/checkpoint.pt")))  # the unit's training's, kept
+        return real_evaluate(settings, scene, method, inputs, body, runs_dir, *args, **kw)
+
+    monkeypatch.setattr(evaluate, "evaluate_trained", evaluate_seeing_the_checkpoint)
     with recorder() as rec:
         record = tune.main(argv)
     out = capsys.readouterr().out
@@ -250,6 +260,10 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
             {key for k in entry["knobs"] for key in k["keys"]}
     units = [u for e in record["methods"].values() for t in e["trials"] for u in t["units"]]
     assert all(u["device"].startswith("cpu") and u["commit"] != "unknown" for u in units)
+    # each trained unit's checkpoint stayed through its evaluation (a stop there resumes at the training's end: NOTES
+    # s43), and none is left once the results are written
+    assert len(evaluated) == 4 and evaluated.count(["checkpoint.pt"]) == sum(u["status"] != "failed" for u in units) > 0
+    assert not list(work.glob("tuning/*/trial*/*/*/checkpoint.pt*"))
     assert sum(record["unit_commits"].values()) == len(units) == 4
     shares = record["methods"]["gca"]["trials"][0]["score"]["shares"]
     assert set(shares) == {"silhouette", "global", "anchor"}
@@ -266,21 +280,34 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
     strip = lambda r: {k: v for k, v in r.items() if k != "date"}  # noqa: E731
     assert strip(again) == strip(record)
 
-    # the state carried to a fresh work directory (another machine, a later session): nothing is redone there, the
-    # record is the same, and a unit in progress keeps its checkpoint
-    progress = work / "tuning/gca/trial1/calib_torus/gca/checkpoint.pt"
+    # the state carried to a fresh work directory (another machine, a later session): nothing done is redone there,
+    # a unit in progress resumes with its checkpoint (then cleared), and the record is the same
+    result_of = tune.unit_path(work, "gca", 1, "calib_torus", 0)
+    kept = json.loads(result_of.read_text())
+    result_of.unlink()  # the unit is in progress: no result, a checkpoint
+    progress = tune.unit_run_dir(work, "gca", 1, "calib_torus", 0) / "checkpoint.pt"
     progress.parent.mkdir(parents=True, exist_ok=True)
     progress.write_bytes(b"ckpt")
     progress.with_name("checkpoint.pt.stamp").write_text("stamp")
     archive = tmp_path / "state.tgz"
     elsewhere = tmp_path / "elsewhere"
-    assert tune.save_state(work, archive) == len(tune.state_files(work)) >= 6  # 4 units, a velocity, a checkpoint
+    carried = {p.as_posix() for p in tune.state_files(work)}
+    assert tune.save_state(work, archive) == len(carried) >= 6  # 3 units, a velocity, a checkpoint and its stamp
+
+    def resumes(work_, params, cfg, method, trial, values, scene, seed, device):
+        assert (method, trial, scene, seed) == ("gca", 1, "calib_torus", 0), "a done unit was run again"
+        assert (work_ / progress.relative_to(work)).read_bytes() == b"ckpt"  # its checkpoint came along
+        return kept
+
+    monkeypatch.setattr(tune, "run_unit", resumes)
     moved = tune.main(["--work", str(elsewhere), *argv[2:], "--no-prepare", "--restore-state", str(archive)])
     assert strip(moved) == strip(record)
-    assert (elsewhere / progress.relative_to(work)).read_bytes() == b"ckpt"
+    assert not (elsewhere / progress.relative_to(work)).exists()  # cleared once the unit's result was written
     assert (elsewhere / "tuning/velocity/calib_torus/velocity.json").is_file()
     assert not (elsewhere / "data").exists() and not (elsewhere / "tuning/gca/trial0/calib_torus/eval").exists()
-    assert {p.as_posix() for p in tune.state_files(elsewhere)} == {p.as_posix() for p in tune.state_files(work)}
+    ckpt_files = {q.relative_to(work).as_posix() for q in (progress, progress.with_name("checkpoint.pt.stamp"))}
+    assert {p.as_posix() for p in tune.state_files(elsewhere)} == carried - ckpt_files | {
+        result_of.relative_to(work).as_posix()}
 
     from gca.report.tuning import write_tuning_tables
     (tmp_path / "report").mkdir()
@@ -403,24 +430,95 @@ def test_processes_launched_together_claim_units_in_progress_first(tmp_path, mon
 def test_a_units_training_stops_at_its_iterations_end_and_before_its_evaluation(tmp_path):
     """A tuning shard stopped by its deadline (tune_bundle.sh: GCA_STOP_AT): the unit's training runs deferred (the
     stop waits for the iteration's end and checkpoint), and a stop that came during it ends the unit before its
-    evaluation with the checkpoint kept; without a stop the checkpoint is cleared (control)."""
+    evaluation; without a stop the training's result comes back (control). (The checkpoint's fate is main()'s:
+    test_a_units_checkpoint_stays_until_its_result_is_written.)"""
     from gca import stop
 
-    ckpt = tmp_path / "checkpoint.pt"
     seen = []
 
     def train(ask: bool):
-        ckpt.write_text("it 200")
         seen.append(stop._state["deferring"])
         if ask:
             stop._state["requested"] = True  # what the watcher or SIGTERM's handler does inside deferred
         return {"iterations": 200}
 
-    assert tune.trained(lambda: train(False), ckpt) == {"iterations": 200} and not ckpt.exists()
+    assert tune.trained(lambda: train(False)) == {"iterations": 200}
     try:
         with pytest.raises(stop.Terminated):
-            tune.trained(lambda: train(True), ckpt)
+            tune.trained(lambda: train(True))
     finally:
         stop.reset()
-    assert ckpt.is_file() and seen == [1, 1]
+    assert seen == [1, 1]
 
+
+def _units_argv(work, tmp_path, *more):
+    return ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
+            "--set", "tuning.scenes=[calib_torus]", "--record", str(tmp_path / "r.json"), "--device", "cpu",
+            "--methods", "neuma", "--no-prepare", "--set", "tuning.record=''", *more]
+
+
+def _fake_units(ran, stop_in_evaluation=()):
+    """A run_unit stand-in: it "trains" (writes the unit's checkpoint, as train_method(keep_checkpoint=True) leaves
+    it), then "evaluates": a unit in ``stop_in_evaluation`` is stopped there."""
+    from gca import stop
+
+    def fake_unit(work_, params, cfg, method, trial, values, scene, seed, device):
+        ran.append((method, trial, scene, seed))
+        run_dir = tune.unit_run_dir(work_, method, trial, scene, seed)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "checkpoint.pt").write_bytes(b"it 1")
+        if (trial, seed) in stop_in_evaluation:
+            raise stop.Terminated("stopped at the deadline (test)")
+        return {"method": method, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
+                "status": "ok", "chamfer_mean": 0.1, "term_shares": {}, "train_seconds": 0.0, "iterations": 1,
+                "stamp": tune.unit_stamp(params, cfg, method, values, scene, seed)}
+    return fake_unit
+
+
+def test_a_units_checkpoint_stays_until_its_result_is_written(tmp_path, monkeypatch):
+    """A unit stopped in its evaluation keeps its training's checkpoint (the next launch resumes it at its end, not
+    from scratch: session 42's trained() cleared it before the evaluation); a unit whose result is written has none
+    left; a checkpoint left beside a written result (a stop between the two) goes at the next launch."""
+    from gca import stop
+
+    work, ran = tmp_path / "work", []
+    monkeypatch.setattr(tune, "run_unit", _fake_units(ran, stop_in_evaluation={(1, 0)}))
+    with pytest.raises(stop.Terminated):
+        tune.main(_units_argv(work, tmp_path))
+    assert ran == [("neuma", 0, "calib_torus", 0), ("neuma", 1, "calib_torus", 0)]
+    assert tune.unit_path(work, "neuma", 0, "calib_torus", 0).is_file()
+    assert not tune.in_progress(work, "neuma", 0, "calib_torus", 0)  # its result written: checkpoint cleared
+    assert not tune.unit_path(work, "neuma", 1, "calib_torus", 0).exists()
+    assert tune.in_progress(work, "neuma", 1, "calib_torus", 0)  # stopped in its evaluation: checkpoint kept
+    left = tune.unit_run_dir(work, "neuma", 0, "calib_torus", 0) / "checkpoint.pt"
+    left.write_bytes(b"left by a stop after the result's write")
+    ran.clear()
+    monkeypatch.setattr(tune, "run_unit", _fake_units(ran))
+    tune.main(_units_argv(work, tmp_path))
+    assert ran == [("neuma", 1, "calib_torus", 0)] and not left.exists() and (tmp_path / "r.json").is_file()
+    assert not tune.in_progress(work, "neuma", 1, "calib_torus", 0)
+
+
+def test_under_a_stop_deadline_units_start_until_shortly_before_it(tmp_path, monkeypatch, capsys):
+    """Session 43: shards keeping to --deadline idled ~20 % of a call. Under GCA_STOP_AT a unit cut off at the stop
+    resumes next launch, so units start while TAIL_START_S are left before it, whatever their cost; without it
+    (control) the measured cost still keeps a unit from starting past --deadline."""
+    from gca import stop
+
+    assert tune.no_start(10.0, [], 5.0, None, 0.0) == ""  # no cost measured yet: start
+    assert "a unit takes up to 20 s" in tune.no_start(10.0, [20.0], 25.0, None, 0.0)
+    assert tune.no_start(10.0, [20.0], 35.0, None, 0.0) == ""
+    assert tune.no_start(10.0, [500.0], 25.0, 1000.0 + tune.TAIL_START_S, 1000.0) == ""  # the stop keeps the work
+    assert "before GCA_STOP_AT" in tune.no_start(10.0, [], None, 1000.0 + tune.TAIL_START_S - 1, 1000.0)
+
+    ran = []
+    monkeypatch.setattr(tune, "run_unit", _fake_units(ran))
+    tune.main(_units_argv(tmp_path / "w0", tmp_path, "--deadline", "1e-6"))  # any unit's cost passes it
+    assert len(ran) == 1 and "deadline: 0 s used" in capsys.readouterr().out  # control: --deadline binds
+    ran.clear()
+    monkeypatch.setenv(stop.STOP_AT_ENV, str(time.time() + 3600))
+    try:
+        tune.main(_units_argv(tmp_path / "w1", tmp_path, "--deadline", "1e-6"))
+    finally:
+        stop.reset()
+    assert len(ran) == 2 and (tmp_path / "r.json").is_file()

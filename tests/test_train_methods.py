@@ -245,6 +245,91 @@ def test_a_resumed_gca_run_ends_with_the_uninterrupted_law(scene, tmp_path):
     assert all(torch.equal(a, b) for a, b in zip(whole.state().values(), resumed_law.state().values()))
 
 
+def test_a_run_resumed_from_its_last_iterations_checkpoint_only_selects_its_law(scene, tmp_path):
+    """What a tuning unit stopped after its training (or in its evaluation) relies on (tune.trained, NOTES session
+    43): started again from its last iteration's checkpoint, a run trains no iteration and keeps the same law by the
+    same rule as the uninterrupted run (keep = best: the final law's loss against the best earlier one)."""
+    ckpt = tmp_path / "checkpoint.pt"
+    law, go = _neuma_run(scene, checkpoint_path=ckpt, iterations=2, keep="best", checkpoint_every=100)
+    whole = go()
+    assert torch.load(ckpt, weights_only=False)["iteration"] == 2  # the last iteration's, though checkpoint_every=100
+    again_law, again = _neuma_run(scene, checkpoint_path=ckpt, iterations=2, keep="best", checkpoint_every=100)
+    resumed = again()
+    assert resumed.resumed_at == 2 and resumed.history == whole.history and resumed.status == "ok"
+    assert resumed.selected == whole.selected and whole.selected["rule"] == "best"
+    assert all(torch.equal(a, b) for a, b in zip(law.state().values(), again_law.state().values()))
+
+
+def test_a_resumed_run_takes_back_its_last_update_as_the_uninterrupted_one(scene, tmp_path, monkeypatch):
+    """NOTES session 43 (a review): the checkpoint holds the last update's Undo. Resumed after update 0, a rollout
+    that diverges at once retakes update 0 at half the step and the run ends with the uninterrupted run's law; the
+    same checkpoint without it (control: what checkpoints held before) ends "diverged before any update"."""
+    ckpt = tmp_path / "checkpoint.pt"
+    kw = dict(max_rejections=2, backtrack_factor=0.5, checkpoint_every=1)
+    whole_law, run = _neuma_run(scene, iterations=3, **kw)
+    _diverging_simulate(monkeypatch, fail_calls={1})
+    whole = run()
+    monkeypatch.undo()
+    _neuma_run(scene, checkpoint_path=ckpt, iterations=1, **kw)[1]()  # stopped after update 0, checkpointed
+    saved = torch.load(ckpt, weights_only=False)
+    assert saved["undo"] is not None and saved["undo"]["it"] == 0
+
+    def resume():
+        law, go = _neuma_run(scene, checkpoint_path=ckpt, iterations=3, **kw)
+        _diverging_simulate(monkeypatch, fail_calls={0})  # the first rollout after the resume
+        try:
+            return law, go()
+        finally:
+            monkeypatch.undo()
+
+    law, resumed = resume()
+    assert whole.status == resumed.status == "ok" and resumed.resumed_at == 1
+    assert [(r["iteration"], r["lr_scale"]) for r in resumed.rejected] == [(1, 0.5)] == \
+        [(r["iteration"], r["lr_scale"]) for r in whole.rejected]
+    assert all(torch.equal(a, b) for a, b in zip(whole_law.state().values(), law.state().values()))
+    torch.save({**saved, "undo": None}, ckpt)
+    _, control = resume()
+    assert control.status == "diverged" and "before any update" in control.message
+
+
+def test_a_run_resumed_at_its_end_whose_final_law_diverges_keeps_the_law_before_it(scene, tmp_path, monkeypatch):
+    """keep = best with no full-video loss during training (the curriculum's horizon never reached the whole video)
+    and a final rollout that diverges: the law before the last update is kept, by the uninterrupted run and by one
+    resumed from its last iteration's checkpoint alike (the Undo in the checkpoint; without it, control, the resumed
+    run kept the diverged law)."""
+    import gca.train.loop as loop
+
+    def run(checkpoint):
+        method = get_method("neuma")
+        cfg = TrainConfig(iterations=2, curriculum_start=0.25, curriculum_until=1.0, keep="best", checkpoint_every=1)
+        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
+        objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
+                              CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+        real = loop._gradient
+
+        def gradient(*args, provenance=True, **kw):
+            if not provenance:  # _select's evaluation of the final law
+                raise FloatingPointError("planted: the final rollout diverged")
+            return real(*args, provenance=provenance, **kw)
+
+        monkeypatch.setattr(loop, "_gradient", gradient)
+        try:
+            return law, train(tiny_solver(), law, _data(scene, method), objective, cfg, checkpoint_path=checkpoint)
+        finally:
+            monkeypatch.setattr(loop, "_gradient", real)
+
+    ckpt = tmp_path / "checkpoint.pt"
+    whole_law, whole = run(ckpt)
+    assert whole.selected["best_earlier_loss"] == math.inf and "the final law diverged" in whole.selected["note"]
+    again_law, again = run(ckpt)  # the checkpoint of iteration 2 is left: only the selection runs
+    assert again.resumed_at == 2 and again.selected == whole.selected
+    assert all(torch.equal(a, b) for a, b in zip(whole_law.state().values(), again_law.state().values()))
+    torch.save({**torch.load(ckpt, weights_only=False), "undo": None}, ckpt)
+    control_law, control = run(ckpt)
+    assert control.selected["loss"] == math.inf
+    assert not all(torch.equal(a, b) for a, b in zip(whole_law.state().values(), control_law.state().values()))
+
+
 @pytest.mark.parametrize("gradient", ["material", "full"])
 def test_fused_position_render_matches_two_passes(scene, gradient):
     """RGB + positions composited in one pass equal the separate renders (forward and gradient)."""

@@ -206,9 +206,13 @@ def train_job(settings: Settings, scene_name: str, method: Method, inputs: Scene
 
 
 def train_method(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
-                 out_dir: Path, run=None, device="cpu", seed: int | None = None) -> dict:
+                 out_dir: Path, run=None, device="cpu", seed: int | None = None, keep_checkpoint: bool = False) -> dict:
     """Train ``method`` on a scene with ``seed`` (one of ``train.seeds``; None: the first) into ``out_dir``
     (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json.
+
+    ``keep_checkpoint``: leave ``checkpoint.pt`` (the last iteration's; a diverged run's last periodic one) for the
+    caller to clear once what it makes of the run is safe (a tuning unit's evaluation, :func:`gca.pipeline.tune.run_unit`): a run started again from it
+    resumes at its end and only selects its law (:func:`gca.train.loop.train`), instead of training anew.
 
     ``inputs`` are the scene's (seed 0's directories); the run reads its seed's observations
     (:func:`observed_inputs`), and ``velocity`` must be its seed's estimate (:func:`velocity_path`)."""
@@ -222,7 +226,8 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                                     checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
     save_law(out_dir / "law.pt", law, scene.prior, {"method": method.name, "scene": scene_name})
     write_json(out_dir / "history.json", {"history": result.history})
-    (out_dir / "checkpoint.pt").unlink(missing_ok=True)
+    if not keep_checkpoint:
+        (out_dir / "checkpoint.pt").unlink(missing_ok=True)
     # a resumed run's time includes its earlier processes' (from the checkpoint); its peak is this process's
     summary = {"scene": scene_name, "method": method.name, "seed": tcfg.seed, "status": result.status, "message": result.message,
                "iterations": result.iterations, "train_seconds": cost.wall_s + result.seconds_before,

@@ -13,8 +13,11 @@
    with the trial's knob values, its CD and term shares into ``<work>/tuning/<method>/trial<i>/<scene>@seed<k>.json``.
    A unit done is not redone (resumable); ``--shard k/n`` runs every n-th unit (one process per GPU), or, with
    ``--claim DIR``, processes launched together take the next unclaimed unit as they free up (units cut off
-   mid-training first);
-   ``--deadline`` [s] starts no unit its measured cost would not finish in time.
+   first);
+   ``--deadline`` [s] starts no unit its measured cost would not finish in time; under a stop deadline
+   (``GCA_STOP_AT``) units start until ``TAIL_START_S`` before it, one cut off there resumes next launch
+   (:func:`no_start`). A unit's checkpoint stays until its result is written: stopped after its training, it
+   resumes at its end.
 3. When every unit is there: the record (``--record``, default ``tuning/record.json``) and the params.yaml change
    to apply (printed); else the units left, and the command to repeat.
 
@@ -191,8 +194,8 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
     velocity = tuple(read_json(shared)[k] for k in ("v0", "w0"))
     expected = unit_stamp(params, cfg, method_name, values, scene, seed)
     stamp.guard_checkpoint(run_dir / "checkpoint.pt", expected)  # a killed unit resumes only its own setup
-    train = trained(lambda: train_method(settings, scene, method, inputs, velocity, run_dir, device=device, seed=seed),
-                    run_dir / "checkpoint.pt")
+    train = trained(lambda: train_method(settings, scene, method, inputs, velocity, run_dir, device=device, seed=seed,
+                                         keep_checkpoint=True))  # cleared by main() once the unit's result is written
     body = settings.load_body(inputs.particles, inputs.gaussians, device)
     with truth.bind(inputs.scene_dir, work / "data/gt" / scene):
         metrics = evaluate_trained(settings, scene, method, inputs, body, runs_dir, runs_dir / "eval", device, seed)
@@ -203,19 +206,42 @@ def run_unit(work: Path, params: dict, cfg: TuningConfig, method_name: str, tria
             stamp.KEY: expected}
 
 
-def trained(train, checkpoint: Path) -> dict:
-    """``train()``'s result, its ``checkpoint`` then cleared. A stop (SIGTERM, ``GCA_STOP_FILE``, ``GCA_STOP_AT``)
-    during it waits for the iteration's end and its checkpoint (:func:`gca.stop.deferred`); one that came after the
-    last iteration stops here, before the unit's evaluation, its checkpoint kept (the unit resumes from its end)."""
+def trained(train) -> dict:
+    """``train()``'s result. A stop (SIGTERM, ``GCA_STOP_FILE``, ``GCA_STOP_AT``) during it waits for the iteration's
+    end and its checkpoint (:func:`gca.stop.deferred`); one that came after the last iteration stops here, before the
+    unit's evaluation. The unit's checkpoint (its last iteration's, a finished training's; a diverged one's: its last
+    periodic one) stays until :func:`main` has written the unit's result, so a unit stopped after its training, here
+    or in its evaluation, resumes from it (at its training's end) rather than from scratch."""
     with stop.deferred(stop_at_end=False):
         result = train()
     stop.check()
-    stamp.clear_checkpoint(checkpoint)
     return result
 
 
+TAIL_START_S = 60.0  # under a stop deadline, the least time left [s] worth starting a unit in: its setup and, cut
+# off, its resume next launch cost ~10-30 s on the GPU (process, inputs, kernels), the rest is training kept
+
+
+def no_start(elapsed: float, costs: list[float], deadline: float | None, stop_at: float | None, now: float) -> str:
+    """Why this process starts no further unit ("" if it may start one). ``elapsed`` [s] since it started, ``costs``
+    [s] of its units done, ``deadline`` (``--deadline``) [s since its start], ``stop_at`` (``GCA_STOP_AT``) and
+    ``now`` [Unix s].
+
+    Without a stop deadline a unit starts only if the longest one seen would end by ``deadline``. Under
+    ``GCA_STOP_AT`` (the device bundles) a unit still training at the stop checkpoints its iteration and the next
+    launch resumes it (:func:`trained`), so one starts while ``TAIL_START_S`` are left before the stop, whatever its
+    length: session 43's shards that kept to ``--deadline`` left ~20 % of a call's GPU slots idle."""
+    if stop_at is not None:
+        left = stop_at - now
+        return "" if left >= TAIL_START_S else f"{left:.0f} s left before {stop.STOP_AT_ENV}, under {TAIL_START_S:.0f}"
+    if deadline and costs and elapsed + max(costs) > deadline:
+        return f"deadline: {elapsed:.0f} s used, a unit takes up to {max(costs):.0f} s"
+    return ""
+
+
 def in_progress(work: Path, method: str, trial: int, scene: str, seed: int) -> bool:
-    """Whether the unit has a checkpoint to resume (it was cut off mid-training)."""
+    """Whether the unit has a checkpoint to resume: it was cut off in its training, or stopped after it (before its
+    result was written: it then resumes at its training's end)."""
     return (unit_run_dir(work, method, trial, scene, seed) / "checkpoint.pt").is_file()
 
 
@@ -314,7 +340,9 @@ def parse_args(argv):
                     help="override a params key (YAML value), e.g. tuning.trials=2; recorded")
     ap.add_argument("--methods", nargs="*", help="tuned methods (default: every key of tuning.methods)")
     ap.add_argument("--priors", type=Path, help="take <family>.pt from this folder instead of pretraining")
-    ap.add_argument("--deadline", type=float, help="seconds: start no unit that would not finish by then")
+    ap.add_argument("--deadline", type=float,
+                    help="seconds: start no unit that would not finish by then (under GCA_STOP_AT: start units until "
+                         "TAIL_START_S before it; one cut off there resumes next launch)")
     ap.add_argument("--shard", default="0/1", help="k/n: run every n-th unit from the k-th (one process per GPU)")
     ap.add_argument("--claim", type=Path, metavar="DIR",
                     help="processes launched together take units as they free up, each claimed by a file in DIR "
@@ -368,23 +396,26 @@ def main(argv=None) -> dict:
         print(f"tune: inputs and launch velocities of {', '.join(cfg.scenes)} ready in {args.work}")
         return {}
     todo = [u for j, u in enumerate(units_of(cfg, methods)) if j % shards == shard]
-    if args.claim is not None:  # units cut off mid-training first: they finish soonest and free their checkpoints
+    if args.claim is not None:  # units cut off (in or after training) first: they finish soonest, free their checkpoints
         todo.sort(key=lambda u: not in_progress(args.work, *u))
     trials = {m: trial_values(cfg, m, params) for m in methods}
     costs = []
     for j, (method, trial, scene, seed) in enumerate(todo):
         path = unit_path(args.work, method, trial, scene, seed)
+        checkpoint = unit_run_dir(args.work, method, trial, scene, seed) / "checkpoint.pt"
         if done_unit(path, unit_stamp(params, cfg, method, trials[method][trial], scene, seed)) is not None:
+            stamp.clear_checkpoint(checkpoint)  # one a stop left between the result's write and its clearing
             continue
-        elapsed = time.monotonic() - start
-        if args.deadline and costs and elapsed + max(costs) > args.deadline:
-            print(f"tune: deadline: {elapsed:.0f} s used, a unit takes up to {max(costs):.0f} s; stopping (repeat the command)")
+        why_not = no_start(time.monotonic() - start, costs, args.deadline, stop.deadline(), time.time())
+        if why_not:
+            print(f"tune: {why_not}; stopping (repeat the command)")
             break
         if args.claim is not None and not claim_unit(args.claim, method, trial, scene, seed):
             continue  # another process of this launch runs it
         t0 = time.monotonic()
         result = run_unit(args.work, params, cfg, method, trial, trials[method][trial], scene, seed, device)
         write_json(path, result)
+        stamp.clear_checkpoint(checkpoint)
         costs.append(time.monotonic() - t0)
         cd = result["chamfer_mean"]
         print(f"tune {method} trial {trial}/{cfg.trials - 1} {scene} seed {seed}: {result['status']} "

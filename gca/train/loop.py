@@ -128,10 +128,10 @@ def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objec
         return TrainResult("ok", 0, [], "nothing to train", 0.0)
     opt, sched = make_optimizer(law, cfg)
     best = BestLaw()
-    it0, history, rejected, seconds_before = resume_checkpoint(checkpoint_path, law, opt, sched, best, objective)
+    it0, history, rejected, seconds_before, undo = resume_checkpoint(checkpoint_path, law, opt, sched, best, objective)
     resumed = {"resumed_at": it0, "seconds_before": seconds_before}
     n_video = len(data.video_frames)
-    undo, in_a_row = None, 0  # the last update (none yet after a resume: it is not in the checkpoint)
+    in_a_row = 0  # rejected updates in a row (a checkpoint follows an accepted update); undo: the last update's
     bar = tqdm(total=cfg.iterations, desc="train", unit="it", initial=it0)
     it = it0
     while it < cfg.iterations:
@@ -177,7 +177,7 @@ def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objec
         stopping = stop.requested()  # read once: a stop asked between two reads would go uncheckpointed
         if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stopping):
             save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
-                             seconds_before + time.perf_counter() - start, objective)
+                             seconds_before + time.perf_counter() - start, objective, undo)
         if stopping:  # SIGTERM under gca.stop.deferred, the stop file or the deadline: stop here, checkpointed
             stop.check()
     bar.close()

@@ -88,6 +88,22 @@ class Undo:
         opt.step()
         sched._apply()
 
+    def state(self) -> dict:
+        """For the checkpoint: a run resumed after update ``it`` can still take it back (a diverging rollout right
+        after the resume) and keep the law before it (``_select``), as the uninterrupted run would."""
+        return {"params": self.params, "grads": self.grads, "opt_state": self.opt_state, "it": self.it}
+
+    @classmethod
+    def load(cls, state: dict | None) -> "Undo | None":
+        """The :meth:`state` saved (None for a checkpoint without one: before update 0, or written before session
+        43, when a resumed run could take back no update)."""
+        if not state:
+            return None
+        undo = cls.__new__(cls)
+        undo.params, undo.grads, undo.opt_state, undo.it = (state["params"], state["grads"], state["opt_state"],
+                                                             state["it"])
+        return undo
+
 
 class BestLaw:
     """The law with the lowest training loss over the whole video so far: its trainable parameters,
@@ -119,20 +135,22 @@ class BestLaw:
 
 
 def save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list,
-                     best: BestLaw, seconds: float, objective=None) -> None:
+                     best: BestLaw, seconds: float, objective=None, undo: Undo | None = None) -> None:
     """Everything a resumed run needs to go on as the uninterrupted one would (``objective``: an
-    :class:`gca.train.objective.Objective`, whose CPR fits carry over between iterations)."""
+    :class:`gca.train.objective.Objective`, whose CPR fits carry over between iterations; ``undo``: the last
+    update's :class:`Undo`, small: the LoRA parameters and their Adam state)."""
     save_torch({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(), "iteration": it,
                 "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds,
-                "objective": None if objective is None else objective.state()}, path)
+                "objective": None if objective is None else objective.state(),
+                "undo": None if undo is None else undo.state()}, path)
 
 
 def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: BestLaw,
-                      objective=None) -> tuple[int, list, list, float]:
+                      objective=None) -> tuple[int, list, list, float, Undo | None]:
     """Load a checkpoint into the law, optimiser, schedule, best-law tracker and (given) the objective;
-    returns ``(iteration, history, rejected updates, training seconds spent before it)``."""
+    returns ``(iteration, history, rejected updates, training seconds spent before it, the last update's Undo)``."""
     if path is None or not path.is_file():
-        return 0, [], [], 0.0
+        return 0, [], [], 0.0, None
     ckpt = torch.load(path, weights_only=False, map_location=law.trainable()[0].device)
     law.load_state(ckpt["law"])
     opt.load_state_dict(ckpt["opt"])
@@ -141,4 +159,4 @@ def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: Best
     if objective is not None:
         objective.load_state(ckpt.get("objective"))
     return (int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", [])),
-            float(ckpt.get("seconds", 0.0)))
+            float(ckpt.get("seconds", 0.0)), Undo.load(ckpt.get("undo")))
