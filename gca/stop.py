@@ -6,9 +6,10 @@ loop saves its checkpoint at the end of the iteration in progress (:func:`reques
 so a stopped run resumes where it was. ``benchmarks/grid.py`` sends SIGKILL 20 s after SIGTERM; the periodic
 checkpoints bound what a SIGKILL loses.
 
-**A stop without a signal** (session 42): under CUDA MPS, a SIGTERM that reaches a process with GPU work in flight
-ended every process on the GPU (an MMU fault, Xid 31, then CUDA error 700 in all MPS clients; NOTES session 42),
-while the same stops without MPS were clean. So a packed process is asked to stop without a signal:
+**A stop without a signal** (session 42): under CUDA MPS, a SIGTERM or kill that reached a process with GPU work in
+flight ended every process on the GPU three times (an MMU fault, Xid 31, then CUDA error 700 in all MPS clients;
+NOTES sessions 41-42), while the same stops without MPS were clean; eight SIGTERMs earlier in training did not
+(session 43: the trigger is not settled). So a packed process is asked to stop without a signal:
 
 - ``GCA_STOP_FILE`` (a path): the stop is requested once that file exists (the grid's deadline stop writes
   ``.grid/<job>.stop`` and sends SIGTERM only to a job that has not ended ``STOP_REQUEST_S`` later);
