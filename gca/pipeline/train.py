@@ -211,8 +211,9 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     (``runs/<scene>/<run>``); write ``law.pt``, ``history.json``, ``train.json``; return train.json.
 
     ``keep_checkpoint``: leave ``checkpoint.pt`` (the last iteration's; a diverged run's last periodic one) for the
-    caller to clear once what it makes of the run is safe (a tuning unit's evaluation, :func:`gca.pipeline.tune.run_unit`): a run started again from it
-    resumes at its end and only selects its law (:func:`gca.train.loop.train`), instead of training anew.
+    caller to clear once what it makes of the run is safe (a tuning unit's evaluation,
+    :func:`gca.pipeline.tune.run_unit`): a run started again from it resumes at its end and only selects its law
+    (:func:`gca.train.loop.train`), instead of training anew.
 
     ``inputs`` are the scene's (seed 0's directories); the run reads its seed's observations
     (:func:`observed_inputs`), and ``velocity`` must be its seed's estimate (:func:`velocity_path`)."""
