@@ -392,22 +392,39 @@ def test_a_failing_inputs_stage_stops_its_chain_and_names_itself(tmp_path):
     assert (tmp_path / "slow.end").is_file() and dispatch.is_done(tmp_path, "slow", "s")
 
 
+def _units_argv(work, tmp_path, *more):
+    return ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
+            "--set", "tuning.scenes=[calib_torus]", "--record", str(tmp_path / "r.json"), "--device", "cpu",
+            "--methods", "neuma", "--no-prepare", "--set", "tuning.record=''", *more]
+
+
+def _fake_units(ran, stop_in_evaluation=()):
+    """A run_unit stand-in: it "trains" (writes the unit's checkpoint, as train_method(keep_checkpoint=True) leaves
+    it), then "evaluates": a unit in ``stop_in_evaluation`` is stopped there."""
+    from gca import stop
+
+    def fake_unit(work_, params, cfg, method, trial, values, scene, seed, device):
+        ran.append((method, trial, scene, seed))
+        run_dir = tune.unit_run_dir(work_, method, trial, scene, seed)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "checkpoint.pt").write_bytes(b"it 1")
+        if (trial, seed) in stop_in_evaluation:
+            raise stop.Terminated("stopped at the deadline (test)")
+        return {"method": method, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
+                "status": "ok", "chamfer_mean": 0.1, "term_shares": {}, "train_seconds": 0.0, "iterations": 1,
+                "stamp": tune.unit_stamp(params, cfg, method, values, scene, seed)}
+    return fake_unit
+
+
 def test_processes_launched_together_claim_units_in_progress_first(tmp_path, monkeypatch):
     """--claim: a unit claimed by another process of the launch is not run here, a unit with a checkpoint (cut off
-    mid-training) runs before the others, and a claim is one file per unit, taken once."""
+    in or after its training) runs before the others, and a claim is one file per unit, taken once."""
     claims, work = tmp_path / "claims", tmp_path / "work"
     assert tune.claim_unit(claims, "gca", 0, "calib_torus", 0) and not tune.claim_unit(claims, "gca", 0, "calib_torus", 0)
     for p in claims.iterdir():
         p.unlink()
     ran = []
-
-    def fake_unit(work_, params, cfg, method, trial, values, scene, seed, device):
-        ran.append((method, trial, scene, seed))
-        return {"method": method, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
-                "status": "ok", "chamfer_mean": 0.1, "term_shares": {}, "train_seconds": 0.0, "iterations": 1,
-                "stamp": tune.unit_stamp(params, cfg, method, values, scene, seed)}
-
-    monkeypatch.setattr(tune, "run_unit", fake_unit)
+    monkeypatch.setattr(tune, "run_unit", _fake_units(ran))
     (work / "tuning/neuma/trial1/calib_star/neuma").mkdir(parents=True)
     (work / "tuning/neuma/trial1/calib_star/neuma/checkpoint.pt").write_bytes(b"ckpt")
     assert tune.claim_unit(claims, "neuma", 0, "calib_torus", 0)  # taken by another process of this launch
@@ -449,30 +466,6 @@ def test_a_units_training_stops_at_its_iterations_end_and_before_its_evaluation(
     finally:
         stop.reset()
     assert seen == [1, 1]
-
-
-def _units_argv(work, tmp_path, *more):
-    return ["--work", str(work), "--profile", "ci", "--set", "tuning.trials=2", "--set", "tuning.iterations=1",
-            "--set", "tuning.scenes=[calib_torus]", "--record", str(tmp_path / "r.json"), "--device", "cpu",
-            "--methods", "neuma", "--no-prepare", "--set", "tuning.record=''", *more]
-
-
-def _fake_units(ran, stop_in_evaluation=()):
-    """A run_unit stand-in: it "trains" (writes the unit's checkpoint, as train_method(keep_checkpoint=True) leaves
-    it), then "evaluates": a unit in ``stop_in_evaluation`` is stopped there."""
-    from gca import stop
-
-    def fake_unit(work_, params, cfg, method, trial, values, scene, seed, device):
-        ran.append((method, trial, scene, seed))
-        run_dir = tune.unit_run_dir(work_, method, trial, scene, seed)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "checkpoint.pt").write_bytes(b"it 1")
-        if (trial, seed) in stop_in_evaluation:
-            raise stop.Terminated("stopped at the deadline (test)")
-        return {"method": method, "trial": trial, "scene": scene, "seed": seed, "values": dict(values),
-                "status": "ok", "chamfer_mean": 0.1, "term_shares": {}, "train_seconds": 0.0, "iterations": 1,
-                "stamp": tune.unit_stamp(params, cfg, method, values, scene, seed)}
-    return fake_unit
 
 
 def test_a_units_checkpoint_stays_until_its_result_is_written(tmp_path, monkeypatch):

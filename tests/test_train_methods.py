@@ -300,11 +300,8 @@ def test_a_run_resumed_at_its_end_whose_final_law_diverges_keeps_the_law_before_
     import gca.train.loop as loop
 
     def run(checkpoint):
-        method = get_method("neuma")
-        cfg = TrainConfig(iterations=2, curriculum_start=0.25, curriculum_until=1.0, keep="best", checkpoint_every=1)
-        law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
-        objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
-                              CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+        law, go = _neuma_run(scene, checkpoint_path=checkpoint, iterations=2, curriculum_start=0.25,
+                             curriculum_until=1.0, keep="best", checkpoint_every=1)
         real = loop._gradient
 
         def gradient(*args, provenance=True, **kw):
@@ -314,7 +311,7 @@ def test_a_run_resumed_at_its_end_whose_final_law_diverges_keeps_the_law_before_
 
         monkeypatch.setattr(loop, "_gradient", gradient)
         try:
-            return law, train(tiny_solver(), law, _data(scene, method), objective, cfg, checkpoint_path=checkpoint)
+            return law, go()
         finally:
             monkeypatch.setattr(loop, "_gradient", real)
 
@@ -500,7 +497,7 @@ def _diverging_simulate(monkeypatch, fail_calls, error=None):
 def _neuma_run(scene, checkpoint_path=None, **cfg_kw):
     """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``)."""
     method = get_method("neuma")
-    cfg = TrainConfig(curriculum_start=1.0, **{"keep": "last", **cfg_kw})
+    cfg = TrainConfig(**{"curriculum_start": 1.0, "keep": "last", **cfg_kw})
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())

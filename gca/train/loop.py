@@ -131,7 +131,7 @@ def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objec
     it0, history, rejected, seconds_before, undo = resume_checkpoint(checkpoint_path, law, opt, sched, best, objective)
     resumed = {"resumed_at": it0, "seconds_before": seconds_before}
     n_video = len(data.video_frames)
-    in_a_row = 0  # rejected updates in a row (a checkpoint follows an accepted update); undo: the last update's
+    in_a_row = 0  # rejected updates in a row: none at a checkpoint (it follows an accepted update, whose Undo it holds)
     bar = tqdm(total=cfg.iterations, desc="train", unit="it", initial=it0)
     it = it0
     while it < cfg.iterations:
