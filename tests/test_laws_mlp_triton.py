@@ -124,6 +124,40 @@ print("ok")
 """, interpret=False)
 
 
+def test_one_compiled_backward_serves_every_particle_count():
+    """The compiled backward's launch carries no count as a constexpr (CPR's 1-10 frame chunks and each scene's particle
+    count compiled a kernel each, 2.3-2.5 s apiece: session 44), and its counts are not specialised by Triton. The
+    kernel compiles for sm_90 on this CPU (Triton's own compiler, no GPU): the CUDA path's source is checked here, not
+    only the interpreter's, and its tile loop is still software-pipelined (async copies). Control: the interpreted
+    launch does pass the count as a constexpr, and the equality check sees it."""
+    _run("""
+import triton
+from triton.backends.compiler import GPUTarget
+from triton.compiler import ASTSource
+from gca.laws import mlp_triton as m
+ns = [29985, 29985 * 7, 30000 * 10, 28418 * 3]
+launches = [m._bwd_launch(n, 13, 64, 9, m.BLOCK, "tf32", 264, interpreted=False) for n in ns]
+assert all(c == launches[0][2] for _, _, c in launches), [c for _, _, c in launches]
+assert len({counts for _, counts, _ in launches}) == len(ns)  # the counts do vary
+assert set(m._fused_mlp_bwd.do_not_specialize) == {"n", "n_programs", "per_program"}
+assert set(m._fused_mlp_fwd.do_not_specialize) == {"n"}
+interp = [m._bwd_launch(n, 13, 64, 9, m.BLOCK, "tf32", 264, interpreted=True)[2] for n in ns]
+assert len({c["INTERPRETED_PER"] for c in interp}) > 1  # control: a per-count constexpr would fail the check above
+for p, counts, _ in launches:  # fewer than per_program iterations of all p programs fall past the last tile
+    n, p2, per = counts
+    tiles = triton.cdiv(n, m.BLOCK)
+    assert p2 == p <= 264 and p * per >= tiles and p * per - tiles < per, counts
+fn, consts = m._fused_mlp_bwd, launches[0][2]
+sig = {a: "*fp32" if a.endswith("_ptr") else "i32" for a in fn.arg_names}
+sig.update({k: "constexpr" for k in consts})
+attrs = {(i,): [["tt.divisibility", 16]] for i, a in enumerate(fn.arg_names) if a.endswith("_ptr")}
+src = ASTSource(fn, sig, constexprs={(fn.arg_names.index(k),): v for k, v in consts.items()}, attrs=attrs)
+kernel = triton.compile(src, target=GPUTarget("cuda", 90, 32), options=dict(num_warps=m.BWD_WARPS))
+assert "scf.for" in kernel.asm["ttgir"] and "async_copy" in kernel.asm["ttgir"], kernel.asm["ttgir"][:2000]
+print("ok")
+""", interpret=False)
+
+
 def test_the_option_bench_rolls_out_both_kinds(tmp_path):
     """benchmarks/bench_mlp_option.py (the GPU measurement of the option) on a small block in the interpreter: a row
     per kind, the torch row the reference (0 deviation), the fused one within float32 rounding of it here."""

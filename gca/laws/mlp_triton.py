@@ -1,6 +1,7 @@
 """The neural laws' MLP as one fused Triton kernel each way: ``mlp_kernel: triton_tf32`` (``NeuralElasticity.mlp_kernel``,
-``train.mlp_kernel``), an option, off by default: its products are TF32 (a precision change, decided on the
-calibration scenes only, never on a table's result; ``benchmarks/NOTES.md``, session 37).
+``train.mlp_kernel``). Its products are TF32, a precision change. It was decided on the calibration scenes only, never
+on a table's result (``benchmarks/NOTES.md``, sessions 37 and 44), and is params.yaml's paper-profile default since
+session 44 (the CI profile runs torch's MLP).
 
 The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, bias-free; the equations in
 :mod:`gca.laws.mlp_kernel`) runs as (:class:`FusedMLP`):
@@ -46,7 +47,7 @@ def _gelu(x):
 
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n"])  # one compiled kernel for every particle count (:func:`_bwd_launch`)
 def _fused_mlp_fwd(x_ptr, w1_ptr, w2_ptr, w3_ptr, out_ptr, n, K_IN: tl.constexpr, K_PAD: tl.constexpr,
                    H: tl.constexpr, N_OUT: tl.constexpr, OUT_PAD: tl.constexpr, BLOCK: tl.constexpr,
                    PRECISION: tl.constexpr):
@@ -78,17 +79,20 @@ def _gelu_and_grad(x):
 
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n", "n_programs", "per_program"])  # one compiled kernel for every particle count
 def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, n, n_programs,
-                   K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
+                   per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
                    OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                   PER_PROGRAM: tl.constexpr):
-    """One persistent program: for its PER_PROGRAM tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
+                   INTERPRETED_PER: tl.constexpr):
+    """One persistent program: for its per_program tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
     recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
     particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
-    partial (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic). PER_PROGRAM is a
-    compile-time count (Triton's interpreter cannot loop to a runtime bound); the caller sizes the grid so that fewer
-    than PER_PROGRAM iterations of all programs fall past the last tile."""
+    partial (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic). The caller sizes
+    the grid so that fewer than per_program iterations of all programs fall past the last tile.
+
+    per_program is a runtime count, so one compiled kernel serves every particle count. Compiled, the loop runs to it
+    (INTERPRETED_PER 0). Triton's interpreter cannot loop to a runtime bound, so there INTERPRETED_PER repeats it as a
+    compile-time count (:func:`_bwd_launch`)."""
     pid = tl.program_id(0)
     k = tl.arange(0, K_PAD)
     h = tl.arange(0, H)
@@ -99,7 +103,9 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
     dw1 = tl.zeros((H, K_PAD), dtype=w1.dtype)
     dw2 = tl.zeros((H, H), dtype=w1.dtype)
     dw3 = tl.zeros((OUT_PAD, H), dtype=w1.dtype)
-    for i in range(0, PER_PROGRAM):  # tile pid + i programs (past the last tile: every row masked)
+    # tile pid + i programs (past the last tile: every row masked); the bound is chosen at compile time, inline (the
+    # interpreter turns every assigned value into a tensor, which it cannot loop to)
+    for i in range(0, INTERPRETED_PER if INTERPRETED_PER > 0 else per_program):
         rows = (pid + i * n_programs) * BLOCK + tl.arange(0, BLOCK)
         live = rows < n
         x = tl.load(x_ptr + rows[:, None] * K_IN + k[None, :], mask=live[:, None] & (k[None, :] < K_IN), other=0.0)
@@ -152,6 +158,27 @@ def _pad(v: int) -> int:
 
 
 
+def _bwd_launch(n: int, k_in: int, h: int, n_out: int, block: int, precision: str, programs: int,
+                interpreted: bool) -> tuple[int, tuple[int, int, int], dict]:
+    """The backward's launch for n particles: ``(p, (n, p, per_program), constexprs)``, p programs of per_program tiles
+    of ``block`` particles each (p <= ``programs``; fewer than per_program tile iterations of all programs fall past
+    the last tile).
+
+    Compiled (``interpreted`` False), the constexprs do not depend on n, and the counts are runtime arguments that
+    Triton does not specialise (``do_not_specialize``): one compiled kernel per network shape. Until session 44,
+    per_program was a constexpr. CPR evaluates the law on 1-10 frames of particles at a time, so every new chunk size
+    and every scene's particle count compiled a new kernel. That took 2.3-2.5 s each (sm_90, measured here on the CPU;
+    the duck's training on the H200 stalled 2.4-2.8 s at each of 9 new sizes, ``benchmarks/NOTES.md``, session 44).
+    Under Triton's interpreter (``interpreted``), the count is also passed as the constexpr INTERPRETED_PER, which the
+    interpreter can loop to."""
+    tiles = triton.cdiv(n, block)
+    per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
+    p = max(1, triton.cdiv(tiles, per))
+    consts = dict(K_IN=k_in, K_PAD=_pad(k_in), H=h, N_OUT=n_out, OUT_PAD=_pad(n_out), BLOCK=block, PRECISION=precision,
+                  INTERPRETED_PER=per if interpreted else 0)
+    return p, (n, p, per), consts
+
+
 BWD_PROGRAMS_PER_SM = 2  # the backward's persistent programs per SM (on a CPU: 8 programs in all)
 BWD_WARPS = 4  # the backward's warps per program; both from session 39's sweep (the module docstring)
 
@@ -178,15 +205,11 @@ class FusedMLP(torch.autograd.Function):
     def backward(ctx, g):
         x, w1, w2, w3 = ctx.saved_tensors
         block, precision, programs, warps = ctx.cfg
-        n, tiles = x.shape[0], triton.cdiv(x.shape[0], block)
-        per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
-        p = max(1, triton.cdiv(tiles, per))
+        p, counts, consts = _bwd_launch(x.shape[0], x.shape[1], w2.shape[0], w3.shape[0], block, precision, programs,
+                                        interpreted=not x.is_cuda)
         dx = torch.empty_like(x)
         parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
-        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, n, p, K_IN=x.shape[1],
-                             K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0], OUT_PAD=_pad(w3.shape[0]),
-                             BLOCK=block, PRECISION=precision, PER_PROGRAM=per,
-                             num_warps=warps)
+        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, *counts, **consts, num_warps=warps)
         return (dx, *(part.sum(0) for part in parts), None, None, None, None)
 
 
