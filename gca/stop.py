@@ -14,9 +14,14 @@ NOTES sessions 41-42), while the same stops without MPS were clean; eight SIGTER
 - ``GCA_STOP_FILE`` (a path): the stop is requested once that file exists (the grid's deadline stop writes
   ``.grid/<job>.stop`` and sends SIGTERM only to a job that has not ended ``STOP_REQUEST_S`` later);
 - ``GCA_STOP_AT`` (Unix time [s]): the stop is requested once the clock passes it (the device bundles set it some
-  seconds before their ``timeout``, which stays the backstop).
+  seconds before their ``timeout``, which stays the backstop);
+- ``GCA_STOP_PARENT`` (a process id): the stop is requested once this process's parent is no longer that process
+  (session 44). The grid's job process sets it for its stage, which runs in a session of its own, so a user's Ctrl-C
+  reaches the job (which asks the stage to stop by its file) but not the stage. When the job process dies, the stage
+  stops by this check, not by the parent-death SIGTERM it had before: :func:`install` clears that signal
+  (``PR_SET_PDEATHSIG``, ``gca.pipeline.dispatch``), which stays only for a command that never installs the watcher.
 
-Both are read where the flag is (:func:`requested`, latched: once seen, the stop stands), i.e. at a training
+All three are read where the flag is (:func:`requested`, latched: once seen, the stop stands), i.e. at a training
 iteration's end and between stages' runs, and by a watcher thread (:func:`install`) that raises the stop in the main
 thread as the signal's handler would, but without a signal, so a stage that never reads the flag stops too; they end
 the stage like a SIGTERM (exit 143). :func:`quiesce` waits for the GPU's queued work before a stopped process exits.
@@ -33,10 +38,10 @@ import threading
 import time
 from typing import Iterator
 
-_state = {"requested": False, "deferring": 0, "reason": "stopped by SIGTERM", "watcher": None}
+_state = {"requested": False, "deferring": 0, "reason": "stopped by SIGTERM", "watcher": None, "parent": None}
 
 
-STOP_FILE_ENV, STOP_AT_ENV = "GCA_STOP_FILE", "GCA_STOP_AT"
+STOP_FILE_ENV, STOP_AT_ENV, STOP_PARENT_ENV = "GCA_STOP_FILE", "GCA_STOP_AT", "GCA_STOP_PARENT"
 
 
 class Terminated(SystemExit):
@@ -64,21 +69,43 @@ def _handler(signum, frame) -> None:
 
 def install() -> None:
     """Turn SIGTERM into :class:`Terminated` in this process (main thread only; a no-op elsewhere), and with
-    ``GCA_STOP_FILE`` or ``GCA_STOP_AT`` set, start the watcher (:func:`_watch`)."""
+    ``GCA_STOP_FILE``, ``GCA_STOP_AT`` or ``GCA_STOP_PARENT`` set, start the watcher (:func:`_watch`). The parent is
+    this process's alone: it is taken out of the environment (a child's parent is this process)."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _handler)
-        _watch(*_settings())
+        path, deadline, parent = _settings()
+        if parent is not None:  # this process's own: taken out of the environment its children inherit
+            os.environ.pop(STOP_PARENT_ENV, None)
+            _state["parent"] = parent
+            _clear_parent_death_signal()  # the watcher checks the parent instead, with no signal
+        _watch(path, deadline, parent)
 
 
-def _settings() -> tuple[str | None, float | None]:
-    """The environment's stop file (``GCA_STOP_FILE``) and deadline (``GCA_STOP_AT`` as a Unix time [s]); None where
-    unset or empty; a deadline that is no number is refused."""
-    at = os.environ.get(STOP_AT_ENV)
+def _clear_parent_death_signal() -> None:
+    """Linux: no signal at the parent's death (``prctl(PR_SET_PDEATHSIG, 0)``; a no-op elsewhere)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, 0, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):
+            pass
+
+
+def _settings() -> tuple[str | None, float | None, int | None]:
+    """The environment's stop file (``GCA_STOP_FILE``), deadline (``GCA_STOP_AT`` as a Unix time [s]) and parent
+    (``GCA_STOP_PARENT``, a process id); None where unset or empty; a deadline or parent that is no number is
+    refused."""
+    at, parent = os.environ.get(STOP_AT_ENV), os.environ.get(STOP_PARENT_ENV)
     try:
         deadline = float(at) if at else None
     except ValueError:
         raise ValueError(f"gca/stop.py: {STOP_AT_ENV}={at!r} is not a Unix time in seconds") from None
-    return os.environ.get(STOP_FILE_ENV) or None, deadline
+    try:
+        parent_pid = int(parent) if parent else None
+    except ValueError:
+        raise ValueError(f"gca/stop.py: {STOP_PARENT_ENV}={parent!r} is not a process id") from None
+    return os.environ.get(STOP_FILE_ENV) or None, deadline, parent_pid
 
 
 def deadline() -> float | None:
@@ -87,31 +114,34 @@ def deadline() -> float | None:
     return _settings()[1]
 
 
-def _asked(path: str | None, deadline: float | None) -> str:
-    """Why a stop is asked without a signal: the stop file ``path`` exists or the ``deadline`` passed ("" if
-    neither)."""
+def _asked(path: str | None, deadline: float | None, parent: int | None = None) -> str:
+    """Why a stop is asked without a signal: the stop file ``path`` exists, the ``deadline`` passed or this process's
+    parent is no longer ``parent`` ("" if none of them)."""
     if path and os.path.exists(path):
         return f"stopped by the stop file {path}"
     if deadline is not None and time.time() >= deadline:
         return f"stopped at the deadline {STOP_AT_ENV}={deadline:.0f}"
+    if parent is not None and os.getppid() != parent:
+        return f"stopped: its parent process {parent} ended ({STOP_PARENT_ENV})"
     return ""
 
 
-def _watch(path: str | None, deadline: float | None) -> None:
-    """A daemon thread that polls the stop file ``path`` and the ``deadline`` every ``WATCH_S`` and, once asked,
-    raises the stop in the main thread as SIGTERM's handler would, **without a signal** (``_thread.interrupt_main``:
+def _watch(path: str | None, deadline: float | None, parent: int | None = None) -> None:
+    """A daemon thread that polls the stop file ``path``, the ``deadline`` and the ``parent`` every ``WATCH_S`` and,
+    once asked, raises the stop in the main thread as SIGTERM's handler would, **without a signal**
+    (``_thread.interrupt_main``:
     at the main thread's next bytecode, no system call interrupted): a stage that never reads :func:`requested` (a data
     stage, an evaluation) stops too, a training at its iteration's end (:func:`deferred`). One watcher per process;
     :func:`unwatch` ends it. Limits: the main thread sees the stop only between bytecodes (a blocking call, e.g. a
     ``time.sleep`` or a child process waited for, finishes first), and not at all if SIGTERM's handler is no longer
     Python's; the grid's SIGTERM, ``dispatch.STOP_REQUEST_S`` later, is the backstop."""
-    if (path is None and deadline is None) or _state.get("watcher") is not None:
+    if (path is None and deadline is None and parent is None) or _state.get("watcher") is not None:
         return
     done = threading.Event()
 
     def watch() -> None:
         while not done.wait(WATCH_S):
-            reason = _asked(path, deadline)
+            reason = _asked(path, deadline, parent)
             with _LOCK:  # unwatch() holds it: a watcher it ended never acts after
                 if done.is_set():
                     return
@@ -134,10 +164,10 @@ def unwatch() -> None:
 
 
 def requested() -> bool:
-    """Whether a stop was asked: SIGTERM arrived, the stop file exists or the deadline passed (latched; inside
-    :func:`deferred`: save what must be saved, then :func:`check`)."""
+    """Whether a stop was asked: SIGTERM arrived, the stop file exists, the deadline passed or the parent ended
+    (latched; inside :func:`deferred`: save what must be saved, then :func:`check`)."""
     if not _state["requested"]:
-        reason = _asked(*_settings())
+        reason = _asked(*_settings()[:2], _state["parent"])
         if reason:
             _state["requested"], _state["reason"] = True, reason
     return _state["requested"]
@@ -180,4 +210,4 @@ def deferred(stop_at_end: bool = True) -> Iterator[None]:
 def reset() -> None:
     """End the watcher and forget an earlier stop (tests)."""
     unwatch()
-    _state["requested"], _state["reason"] = False, "stopped by SIGTERM"
+    _state["requested"], _state["reason"], _state["parent"] = False, "stopped by SIGTERM", None

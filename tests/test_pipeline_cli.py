@@ -353,6 +353,31 @@ def test_a_stage_that_never_reads_the_flag_stops_at_its_file_without_a_signal(tm
     assert capsys.readouterr().err == "ground_truth: error: gca/stop.py: GCA_STOP_AT='later' is not a Unix time in seconds\n"
 
 
+def test_the_parent_to_watch_is_this_processs_own_and_checked(monkeypatch):
+    """GCA_STOP_PARENT: install() takes it out of the environment (a child's parent is this process, not the job) and
+    the stop comes once the parent is another process; this process's own parent asks for no stop (negative
+    control); a value that is no process id is refused."""
+    monkeypatch.delenv(stop.STOP_FILE_ENV, raising=False)
+    monkeypatch.delenv(stop.STOP_AT_ENV, raising=False)
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        monkeypatch.setenv(stop.STOP_PARENT_ENV, str(os.getppid()))
+        stop.install()
+        assert stop.STOP_PARENT_ENV not in os.environ and not stop.requested()
+        stop.reset()
+        monkeypatch.setenv(stop.STOP_PARENT_ENV, str(os.getppid() + 100000))  # not our parent: as if it had ended
+        stop.install()
+        with pytest.raises(stop.Terminated, match=r"stopped: its parent process \d+ ended \(GCA_STOP_PARENT\)"):
+            stop.check()
+        stop.reset()
+        monkeypatch.setenv(stop.STOP_PARENT_ENV, "the job")
+        with pytest.raises(ValueError, match="GCA_STOP_PARENT='the job' is not a process id"):
+            stop.install()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        stop.reset()
+
+
 def test_quiesce_waits_for_the_gpu_only_where_torch_has_started_cuda(monkeypatch):
     import torch
 

@@ -5,6 +5,7 @@ job's checkpoint, resume, deadline, and a DVC repository assembled by `dvc commi
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -84,6 +85,67 @@ def test_the_stage_process_leaves_the_requeue_signal_to_the_job(tmp_path):
     assert cmd() >= 0 and (tmp_path / "alive").is_file() and dispatch.marker(tmp_path, "s").is_file()
     with pytest.raises(dispatch.StageFailed, match="s: exit 3"):
         dispatch.StageCommand("s", "python -c 'raise SystemExit(3)'", tmp_path)()
+
+
+_STAGE = ("import os, sys, time; from gca.pipeline import cli; {pre}"
+          "open('stage.ids', 'w').write(f'{{os.getpid()}} {{os.getsid(0)}}'); "
+          "sys.exit(cli.run(lambda argv: [time.sleep(0.05) for _ in range(600)], [], name='ground_truth'))")
+_JOB = ("import os, sys; from gca.pipeline import dispatch; open('job.ids', 'w').write(f'{{os.getpid()}} {{os.getsid(0)}}'); "
+        "dispatch.StageCommand('ground_truth@s', sys.argv[1], {work!r})()")
+
+
+def _job_with_stage(work: Path, pre: str = "") -> tuple[subprocess.Popen, list[int], list[int]]:
+    """A job process (as submitit's: ``StageCommand()``) in a session of its own, its stage a ``cli.run`` stage that
+    would work for 30 s, both started; their (pid, sid) once the stage runs. Their output goes to ``work/log``."""
+    log = open(work / "log", "w")
+    stage = _STAGE.format(pre=pre)
+    job = subprocess.Popen([sys.executable, "-c", _JOB.format(work=str(work)), f"python -c {stage!r}"], cwd=work,
+                           stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+    t_end = time.monotonic() + 60
+    while not ((work / "stage.ids").is_file() and (work / "job.ids").is_file()):
+        assert time.monotonic() < t_end and job.poll() is None, (work / "log").read_text()
+        time.sleep(0.05)
+    time.sleep(0.3)  # the stage's cli.run has installed its watcher (the file is written just before)
+    ids = [[int(x) for x in (work / f).read_text().split()] for f in ("job.ids", "stage.ids")]
+    return job, ids[0], ids[1]
+
+
+def _stage_line(work: Path, timeout: float = 20.0) -> str:
+    """The stage's last line once it has stopped (it is not this process's child: its log is read)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        lines = [ln for ln in (work / "log").read_text().splitlines() if ln.startswith("ground_truth:")]
+        if lines:
+            return lines[-1]
+        time.sleep(0.1)
+    return (work / "log").read_text()
+
+
+def test_a_ctrl_c_reaches_the_job_and_the_job_stops_its_stage_by_its_file(tmp_path):
+    """The stage runs in a session of its own: a SIGINT to the job's process group (a user's Ctrl-C at the grid's
+    terminal) reaches the job, whose stop() asks the stage by its stop file, and not the stage (a signal to a process
+    packed under CUDA MPS: gca.stop, session 44). Before, the stage got the SIGINT too (KeyboardInterrupt, no stop)."""
+    job, (job_pid, job_sid), (_, stage_sid) = _job_with_stage(tmp_path)
+    assert stage_sid not in (job_sid, os.getsid(0))
+    os.killpg(job_sid, signal.SIGINT)
+    job.wait(timeout=60)
+    assert _stage_line(tmp_path) == f"ground_truth: stopped by the stop file {dispatch.marker(tmp_path, 'ground_truth@s', '.stop')}"
+    assert "KeyboardInterrupt" in (tmp_path / "log").read_text()  # the job's own, as it stopped the stage
+
+
+def test_a_stage_whose_job_process_died_stops_without_a_signal(tmp_path):
+    """The job process killed (submitit's cancel SIGKILLs it ~1 s after its SIGINT): its stage stops by gca.stop's
+    parent check (GCA_STOP_PARENT), with no signal. Control: a stage that does not take the check (the variable
+    removed before cli.run) gets the parent-death SIGTERM, as every stage did before session 44."""
+    for pre, expected in (("", "ground_truth: stopped: its parent process {pid} ended (GCA_STOP_PARENT)"),
+                          ("os.environ.pop('GCA_STOP_PARENT'); ", "ground_truth: stopped by SIGTERM")):
+        work = tmp_path / str(len(pre))
+        work.mkdir()
+        job, (job_pid, _), _ = _job_with_stage(work, pre)
+        job.kill()
+        job.wait(timeout=30)
+        assert _stage_line(work) == expected.format(pid=job_pid)
 
 
 def test_deadline_submits_nothing_that_would_end_late(tmp_path):

@@ -58,7 +58,9 @@ def _ignore_usr_signal() -> None:
     every process of the job): the job process handles it and stops the stage itself (``checkpoint``). On Linux
     the stage also gets SIGTERM (a clean stop: training checkpoints) when the job process dies: submitit's local
     cancel ends the job process with SIGKILL a second after its SIGINT, which would otherwise leave the stage
-    running on its own."""
+    running on its own. A stage that installs ``gca.stop``'s watcher (every ``cli.run`` stage) clears that signal
+    and stops by its parent check instead, with no signal (``GCA_STOP_PARENT``, :meth:`StageCommand.environment`);
+    the SIGTERM stays for a command that does not."""
     import signal
 
     signal.signal(getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")), signal.SIG_IGN)
@@ -115,9 +117,12 @@ class StageCommand:
         return marker(Path(self.work), self.name, ".stop")
 
     def environment(self) -> dict[str, str]:
-        from gca.stop import STOP_FILE_ENV
+        """The stage's environment: ``self.env`` over this process's, its stop file (``GCA_STOP_FILE``) and this
+        process as the parent whose end stops it (``GCA_STOP_PARENT``, ``gca.stop``)."""
+        from gca.stop import STOP_FILE_ENV, STOP_PARENT_ENV
 
-        env = {**os.environ, **self.env, "PYTHONUNBUFFERED": "1", STOP_FILE_ENV: str(self.stop_file())}
+        env = {**os.environ, **self.env, "PYTHONUNBUFFERED": "1", STOP_FILE_ENV: str(self.stop_file()),
+               STOP_PARENT_ENV: str(os.getpid())}
         # the work directory's own gca first (a checkout, or a grid work directory linking this one's)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (self.work, str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
         return env
@@ -127,7 +132,10 @@ class StageCommand:
         print(f"[gca job {self.name}] {self.cmd}  (cwd {self.work}, CUDA_VISIBLE_DEVICES="
               f"{os.environ.get('CUDA_VISIBLE_DEVICES', '')!r})", flush=True)
         self.stop_file().unlink(missing_ok=True)  # an earlier stop's request is not this run's
-        self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment(), preexec_fn=_ignore_usr_signal)
+        # a session of its own: a Ctrl-C at the grid's terminal reaches this job process, whose stop() asks the stage
+        # by its stop file, and not the stage (a signal to a process packed under CUDA MPS: gca.stop, session 44)
+        self._proc = subprocess.Popen(self.argv(), cwd=self.work, env=self.environment(), preexec_fn=_ignore_usr_signal,
+                                      start_new_session=True)
         pid_file = marker(Path(self.work), self.name, ".pid")  # what a deadline stop waits on (_wait_stopped)
         pid_file.parent.mkdir(parents=True, exist_ok=True)
         pid_file.write_text(f"{self._proc.pid}\n")
