@@ -8,7 +8,8 @@ scenes only). The runs are two tunings of one trial each, trial 0 being the froz
 calibration scenes, a table scene refused; GPU, paper profile; ``tuning/README.md`` for sharding and resuming)::
 
     python -m gca.pipeline.tune --work /tmp/prec_fp32 --profile paper --priors models/prior --methods gca \\
-        --set "tuning.record=''" --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --record /tmp/prec_fp32/record.json
+        --set "tuning.record=''" --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --set train.mlp_kernel=torch \\
+        --record /tmp/prec_fp32/record.json
     python -m gca.pipeline.tune --work /tmp/prec_tf32 --profile paper --priors models/prior --methods gca \\
         --set "tuning.record=''" --set tuning.trials=1 --set "tuning.seeds=[0,1,2]" --set train.mlp_kernel=triton_tf32 \\
         --record /tmp/prec_tf32/record.json
@@ -23,6 +24,9 @@ the CDs compare the laws, not the evaluation's arithmetic.)
 1. the two records are comparable: the same profile, benchmark version and budget, each complete (GCA's trial 0
    with a unit for every (scene, seed) of the budget), at least 2 seeds per scene, and overrides that differ by
    ``train.mlp_kernel`` alone, ``triton_tf32`` in the candidate, ``torch`` (or unset) in the reference;
+   (since session 44 a tuning record also holds the ``mlp_kernel`` its runs used, which is what is compared: the
+   paper profile's default became ``triton_tf32`` then, so a reference now sets ``train.mlp_kernel=torch``; the
+   session's own records, made at the old default, hold no such field and read as above)
 2. no unit of either record diverged or failed (a diverged FP32 seed would widen the spread the candidate is held
    to), and every CD is finite;
 3. on every scene, the candidate's mean CD over the seeds differs from the reference's by no more than the
@@ -30,6 +34,10 @@ the CDs compare the laws, not the evaluation's arithmetic.)
 
 Otherwise ``train.mlp_kernel`` stays ``torch``. A record that is not comparable is refused (exit 2, one line), not
 decided. Tests: ``tests/test_bench_precision_decision.py``.
+
+**Decided in session 44** (NVIDIA H200, the records in ``benchmarks/results/fast10_s44/precision/``): every scene's move
+within its seed spread, no unit failed: **adopted**. params.yaml's paper profile runs ``triton_tf32`` since (the CI
+profile torch's MLP).
 """
 
 from __future__ import annotations
@@ -56,12 +64,12 @@ class Refused(SystemExit):
         super().__init__(2)
 
 
-def _units(record: dict, where: str) -> dict[tuple[str, int], dict]:
-    """GCA's trial-0 units of a tuning record, keyed by (scene, seed)."""
+def _units(record: dict, where: str, method: str = METHOD) -> dict[tuple[str, int], dict]:
+    """``method``'s trial-0 units of a tuning record, keyed by (scene, seed)."""
     try:
-        trial = next(t for t in record["methods"][METHOD]["trials"] if t["trial"] == 0)
+        trial = next(t for t in record["methods"][method]["trials"] if t["trial"] == 0)
     except (KeyError, StopIteration):
-        raise Refused(f"{where}: no trial 0 of {METHOD} in this tuning record") from None
+        raise Refused(f"{where}: no trial 0 of {method} in this tuning record") from None
     return {(u["scene"], int(u["seed"])): u for u in trial["units"]}
 
 
@@ -75,7 +83,13 @@ def _overrides(record: dict) -> dict:
     return out
 
 
-def comparable(ref: dict, cand: dict) -> str | None:
+def _kernel(record: dict) -> str:
+    """The MLP kernel a record's runs trained with: its own ``mlp_kernel`` (tuning records since session 44), else its
+    override, else torch. A record without either was made when params.yaml's default was torch (until session 44)."""
+    return record.get("mlp_kernel") or _overrides(record).get(KNOB, REFERENCE)
+
+
+def comparable(ref: dict, cand: dict, method: str = METHOD) -> str | None:
     """Why the two records cannot be compared by the rule (its point 1), or None."""
     for key in ("profile", "benchmark_version", "budget"):
         if ref.get(key) != cand.get(key):
@@ -84,12 +98,13 @@ def comparable(ref: dict, cand: dict) -> str | None:
     changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
     if changed != [KNOB]:
         return f"their overrides must differ by {KNOB} alone, they differ by {changed or 'nothing'}"
-    if b.get(KNOB) != CANDIDATE or a.get(KNOB, REFERENCE) != REFERENCE:
+    if _kernel(cand) != CANDIDATE or _kernel(ref) != REFERENCE:
         return (f"the rule compares {KNOB}: {CANDIDATE} (candidate) with {REFERENCE} (reference), got "
-                f"{b.get(KNOB)!r} and {a.get(KNOB, REFERENCE)!r}")
+                f"{_kernel(cand)!r} and {_kernel(ref)!r} (a reference made since session 44 must set {KNOB}=torch: "
+                f"the paper profile's default is {CANDIDATE})")
     budget = ref.get("budget") or {}
     expected = set(itertools.product(budget.get("scenes", []), [int(k) for k in budget.get("seeds", [])]))
-    units = {name: set(_units(record, name)) for name, record in (("reference", ref), ("candidate", cand))}
+    units = {name: set(_units(record, name, method)) for name, record in (("reference", ref), ("candidate", cand))}
     for name, held in units.items():
         missing = sorted(f"{s}@seed{k}" for s, k in expected - held)
         if not expected or missing:
@@ -105,13 +120,15 @@ def comparable(ref: dict, cand: dict) -> str | None:
     return None
 
 
-def decide(ref: dict, cand: dict) -> dict:
-    """The rule's verdict on two comparable tuning records: per scene the reference's mean CD and seed spread, the
-    candidate's mean CD, its move and whether it is within the spread; the units of either not ``ok``; ``adopt``."""
-    why = comparable(ref, cand)
+def decide(ref: dict, cand: dict, method: str = METHOD) -> dict:
+    """The rule's verdict on two comparable tuning records of ``method`` (GCA, the rule's own; another method's
+    trial 0, e.g. NeuMA's, checks that the knob, global to every method's training, does not hurt it either): per
+    scene the reference's mean CD and seed spread, the candidate's mean CD, its move and whether it is within the
+    spread; the units of either not ``ok``; ``adopt``."""
+    why = comparable(ref, cand, method)
     if why is not None:
         raise Refused(f"the records are not comparable: {why}")
-    ru, cu = _units(ref, "reference"), _units(cand, "candidate")
+    ru, cu = _units(ref, "reference", method), _units(cand, "candidate", method)
     scenes = {}
     for scene in sorted({s for s, _ in ru}):
         keys = sorted(k for k in ru if k[0] == scene)
@@ -127,7 +144,7 @@ def decide(ref: dict, cand: dict) -> dict:
     bad = sorted(f"{name} {s}@seed{k}: {u.get('status')}" for name, units in (("candidate", cu), ("reference", ru))
                  for (s, k), u in units.items() if u.get("status") != "ok")
     adopt = not bad and all(r["finite"] and r["within"] for r in scenes.values())
-    return {"knob": KNOB, "candidate": _overrides(cand).get(KNOB), "reference": _overrides(ref).get(KNOB, "torch"),
+    return {"knob": KNOB, "method": method, "candidate": _kernel(cand), "reference": _kernel(ref),
             "scenes": scenes, "not_ok": bad, "adopt": adopt}
 
 
@@ -143,8 +160,9 @@ def table(result: dict) -> str:
             lines.append(f"| {scene} | {len(r['seeds'])} | non-finite CD | | | | no |")
     if result["not_ok"]:
         lines.append(f"\nUnits not ok: {', '.join(result['not_ok'])}")
-    verdict = (f"adopt {KNOB}: {result['candidate']}" if result["adopt"] else
-               f"keep {KNOB}: {result['reference']} (the rule is not met)")
+    whose = "" if result.get("method", METHOD) == METHOD else f" ({result['method']}'s trial 0)"
+    verdict = (f"adopt {KNOB}: {result['candidate']}{whose}" if result["adopt"] else
+               f"keep {KNOB}: {result['reference']}{whose} (the rule is not met)")
     return "\n".join(lines) + f"\n\n**Decision: {verdict}.**"
 
 
@@ -153,6 +171,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--reference", type=Path, required=True, help="the FP32 tuning record (train.mlp_kernel: torch)")
     ap.add_argument("--candidate", type=Path, required=True, help="the tuning record with the candidate's knob")
     ap.add_argument("--json", type=Path, help="write the verdict here too")
+    ap.add_argument("--method", default=METHOD, help="whose trial 0 the records compare (default gca, the rule's)")
     args = ap.parse_args(argv)
     records = []
     for path in (args.reference, args.candidate):
@@ -160,7 +179,7 @@ def main(argv=None) -> dict:
             records.append(json.loads(path.read_text()))
         except (OSError, ValueError) as exc:
             raise Refused(f"{path}: not a readable tuning record ({exc})") from None
-    result = decide(*records)
+    result = decide(*records, method=args.method)
     print(table(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))

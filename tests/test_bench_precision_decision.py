@@ -31,6 +31,7 @@ def record(cds: dict, overrides=(), status=None, seeds=(0, 1, 2)) -> dict:
 
 
 TF32 = ("train.mlp_kernel=triton_tf32",)
+FP32 = ("train.mlp_kernel=torch",)
 
 
 def shifted(delta: dict) -> dict:
@@ -144,12 +145,49 @@ def test_the_documented_overrides_load_on_the_calibration_scenes():
     from gca.pipeline import tune
     from gca.train.config import TrainConfig
 
-    for extra in ([], list(TF32)):
+    for extra, kernel in (([], "triton_tf32"), (list(TF32), "triton_tf32"), (list(FP32), "torch")):
         raw, resolved, cfg = tune.load_config(ROOT / "params.yaml", "paper",
                                               ["tuning.trials=1", "tuning.seeds=[0,1,2]", *extra])
         assert cfg.trials == 1 and cfg.seeds == (0, 1, 2) and set(cfg.scenes) == set(SCENES)
         assert all(resolved["scenes"][s].get("calibration") for s in cfg.scenes)
         train = build(TrainConfig, section(resolved, "train"), "train")
-        assert train.mlp_kernel == ("triton_tf32" if extra else "torch")
+        assert train.mlp_kernel == kernel  # the paper default is TF32 since session 44: the reference names torch
     doc = pd.__doc__
     assert '--set tuning.trials=1 --set "tuning.seeds=[0,1,2]"' in doc and f"--set {TF32[0]}" in doc
+    assert f"--set {FP32[0]}" in doc
+
+
+def test_the_kernel_a_record_ran_is_what_the_rule_compares(capsys):
+    """A tuning record holds the MLP kernel its runs used (session 44 on); the rule compares that, not the overrides
+    alone: a reference made at the new paper default (TF32) without naming torch is refused. Records without the field
+    (made at the old default) read as their override, else torch: session 44's own pair is still decided."""
+    ref, cand = record(BASE, FP32), record(BASE, TF32)
+    ref["mlp_kernel"], cand["mlp_kernel"] = "torch", "triton_tf32"
+    assert pd.decide(ref, cand)["adopt"] and pd.decide(ref, cand)["reference"] == "torch"
+    old_ref = record(BASE)  # no field, no override: the default then, torch
+    assert pd.decide(old_ref, record(BASE, TF32))["reference"] == "torch"
+    unnamed = record(BASE)
+    unnamed["mlp_kernel"] = "triton_tf32"  # made since session 44 without --set train.mlp_kernel=torch
+    with pytest.raises(SystemExit) as exc:
+        pd.decide(unnamed, cand)
+    assert exc.value.code == 2 and "must set train.mlp_kernel=torch" in capsys.readouterr().err
+
+
+def test_another_methods_trial_0_is_decided_by_the_same_rule(tmp_path):
+    """``--method neuma``: the knob is global to every method's training, so the rule can check it on NeuMA's trial 0
+    too; a record without that method's trial is refused, and GCA's units are not read for it."""
+    def as_method(rec, name):
+        rec["methods"] = {name: rec["methods"]["gca"]}
+        return rec
+    ref, cand = as_method(record(BASE), "neuma"), as_method(record(shifted({"calib_star": 0.003}), TF32), "neuma")
+    verdict = pd.decide(ref, cand, method="neuma")
+    assert verdict["method"] == "neuma" and not verdict["adopt"] and not verdict["scenes"]["calib_star"]["within"]
+    assert "(neuma's trial 0)" in pd.table(verdict)
+    with pytest.raises(SystemExit) as exc:
+        pd.decide(record(BASE), record(BASE, TF32), method="neuma")  # GCA's records only
+    assert exc.value.code == 2
+    (tmp_path / "r.json").write_text(json.dumps(ref))
+    (tmp_path / "c.json").write_text(json.dumps(as_method(record(BASE, TF32), "neuma")))
+    out = subprocess.run([sys.executable, str(SCRIPT), "--reference", str(tmp_path / "r.json"), "--candidate",
+                          str(tmp_path / "c.json"), "--method", "neuma"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "adopt train.mlp_kernel: triton_tf32 (neuma's trial 0)" in out.stdout, out.stderr

@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -250,6 +251,7 @@ def test_a_tiny_tuning_on_one_calibration_scene(tmp_path, monkeypatch, capsys):
     assert record["budget"] == {"trials": 2, "iterations": 1, "seeds": [0], "scenes": ["calib_torus"],
                                 "runs_per_method": 2, "iterations_per_method": 2}
     assert record["profile"] == "ci" and record["overrides"][0] == "tuning.trials=2"
+    assert record["mlp_kernel"] == "torch"  # what the runs used (the CI profile's; precision_decision.py reads it)
     for method, entry in record["methods"].items():
         assert [t["trial"] for t in entry["trials"]] == [0, 1]
         for t in entry["trials"]:
@@ -507,7 +509,8 @@ def test_under_a_stop_deadline_units_start_until_shortly_before_it(tmp_path, mon
     ran = []
     monkeypatch.setattr(tune, "run_unit", _fake_units(ran))
     tune.main(_units_argv(tmp_path / "w0", tmp_path, "--deadline", "1e-6"))  # any unit's cost passes it
-    assert len(ran) == 1 and "deadline: 0 s used" in capsys.readouterr().out  # control: --deadline binds
+    out = capsys.readouterr().out  # control: --deadline binds (the seconds used depend on the machine's load)
+    assert len(ran) == 1 and re.search(r"deadline: \d+ s used", out), out
     ran.clear()
     monkeypatch.setenv(stop.STOP_AT_ENV, str(time.time() + 3600))
     try:

@@ -551,6 +551,48 @@ def test_training_runs_its_mlp_kernel_and_restores_the_networks_own(scene, monke
     assert losses["simt"] == pytest.approx(losses["torch"], rel=1e-5)
 
 
+def test_a_run_whose_mlp_kernel_cannot_run_here_stops_before_reading_any_input(repo_root, tmp_path, monkeypatch):
+    """The paper profile's train.mlp_kernel (triton_tf32, session 44) on a CPU without Triton's interpreter: one
+    ConfigError naming params.yaml and the way out, raised before any input is read (these inputs do not exist).
+    Control: the CI profile's torch passes the check and fails on the missing inputs instead."""
+    from gca import config
+    from gca.pipeline import train as pipeline_train
+    from gca.pipeline.settings import Settings
+
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    raw = config.read_yaml(repo_root / "params.yaml")
+    missing = pipeline_train.SceneInputs(*(tmp_path / name for name in ("scene", "prep", "p.ply", "g.ply", "prior.pt")))
+    velocity = ([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    paper = Settings(config.resolve(raw, "paper"))
+    assert paper.section_as(TrainConfig, "train").mlp_kernel == "triton_tf32"
+    with pytest.raises(config.ConfigError, match=r"params.yaml: train.mlp_kernel=triton_tf32 .*ci profile"):
+        pipeline_train.train_job(paper, "ball", get_method("gca"), missing, velocity, "cpu")
+    ci = Settings(config.resolve(raw, "ci"))
+    assert ci.section_as(TrainConfig, "train").mlp_kernel == "torch"
+    with pytest.raises(Exception) as caught:
+        pipeline_train.train_job(ci, "ball", get_method("gca"), missing, velocity, "cpu")
+    assert "train.mlp_kernel" not in str(caught.value) and "scene directory not found" in str(caught.value)
+
+
+def test_the_mlp_kernels_conditions_are_named():
+    """gca.laws.neural.mlp_kernel_problem: torch's, warp's and simt's MLPs run anywhere; triton_tf32 on a CPU only under
+    Triton's interpreter (read when called)."""
+    import os
+
+    from gca.laws.neural import MLP_KERNELS, mlp_kernel_problem
+    assert all(mlp_kernel_problem(kind, "cpu") is None for kind in MLP_KERNELS if kind != "triton_tf32")
+    pytest.importorskip("triton")
+    own = os.environ.pop("TRITON_INTERPRET", None)
+    try:
+        assert "TRITON_INTERPRET=1" in mlp_kernel_problem("triton_tf32", "cpu")
+        os.environ["TRITON_INTERPRET"] = "1"
+        assert mlp_kernel_problem("triton_tf32", "cpu") is None
+    finally:
+        os.environ.pop("TRITON_INTERPRET", None)
+        if own is not None:
+            os.environ["TRITON_INTERPRET"] = own
+
+
 def test_matmul_precision_is_validated():
     with pytest.raises(ValueError, match="train.matmul_precision must be one of"):
         TrainConfig(matmul_precision="medium")

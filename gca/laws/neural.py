@@ -112,6 +112,21 @@ def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor) -> torch.Tensor:
                           "tf32" if z.dtype == torch.float32 else "ieee")
 
 
+def mlp_kernel_problem(kind: str, device) -> str | None:
+    """Why the MLP kernel ``kind`` cannot run on ``device`` (None: it can). Only ``triton_tf32`` has a condition: it
+    needs triton, and CUDA or a CPU under Triton's interpreter (``gca.laws.mlp_triton.runs_here``)."""
+    if kind != "triton_tf32":
+        return None
+    try:
+        from gca.laws import mlp_triton
+    except ImportError as exc:
+        return f"needs triton ({exc})"
+    if not mlp_triton.runs_here(torch.empty(0, device=device)):
+        return (f"runs on CUDA, or on a CPU only under Triton's interpreter (TRITON_INTERPRET=1, far slower than torch), "
+                f"not on {torch.device(device).type}")
+    return None
+
+
 class _InvariantNetwork(nn.Module):
     """Shared trunk: F -> (R, S) with R the polar rotation and S = sym(MLP(z(F))).
 

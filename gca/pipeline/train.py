@@ -31,6 +31,7 @@ from gca.eval.evaluate import device_name
 from gca.io import atomic_path, read_json, save_torch, write_json
 from gca.laws.base import Material
 from gca.laws.checkpoint import load_adapter, load_prior, save_adapter, save_prior
+from gca.laws.neural import mlp_kernel_problem
 from gca.laws.presets import material_category
 from gca.pipeline.settings import Settings
 from gca.pipeline.track import git_commit
@@ -197,6 +198,10 @@ def train_job(settings: Settings, scene_name: str, method: Method, inputs: Scene
     ``benchmarks/profile_train.py`` both call it)."""
     scene = settings.scene(scene_name)
     tcfg = train_config(settings, method, scene, seed)
+    problem = mlp_kernel_problem(tcfg.mlp_kernel, device)
+    if problem:  # before any data is read: the paper profile's default on a CPU (gca.laws.neural.mlp_kernel_problem)
+        raise config.ConfigError(f"params.yaml: train.mlp_kernel={tcfg.mlp_kernel} {problem}; on this machine run "
+                                 f"the ci profile or set train.mlp_kernel: torch (FP32)")
     data = load_train_data(settings, observed_inputs(settings, scene_name, inputs, tcfg.seed), method, velocity,
                            settings.video.background, device, dt=scene.dt)
     law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,

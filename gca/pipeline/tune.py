@@ -296,6 +296,8 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
               "profile": params["profile"],
               "benchmark_version": str(params.get("benchmark", {}).get("version", "")),
               "overrides": list(overrides), "budget": cfg.budget(),
+              # what the runs trained with where params.yaml's default differs by profile (benchmarks/precision_decision.py)
+              "mlp_kernel": (params.get("train") or {}).get("mlp_kernel", "torch"),
               "search": {"kind": "latin_hypercube", "space": "log-uniform per knob", "sampler_seed": cfg.sampler_seed,
                          "trial_0": "the frozen params"},
               "objective": {"metric": "chamfer_mean (mean over calibration scenes and seeds; failed = inf)",

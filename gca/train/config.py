@@ -82,9 +82,12 @@ class TrainConfig:
             per particle, torch's backward; ``gca.laws.mlp_kernel.simt_mlp``) or ``warp`` (one tile kernel each
             way); both measured slower on the H100 (NOTES s34-35). The same law to float rounding; a speed option
             measured in ``benchmarks/bench_mlp.py``. ``triton_tf32`` (one fused Triton kernel each way,
-            ``gca.laws.mlp_triton``): faster on an H200 (NOTES s37) but TF32 products, so not the same numbers: off
-            by default, to be decided on the calibration scenes, and recorded in a grid's state. Evaluation runs
-            torch's.
+            ``gca.laws.mlp_triton``): faster on an H200 (NOTES s37) but TF32 products, so not the same numbers,
+            and recorded in a grid's state. params.yaml's paper profile runs it (adopted in session 44 by the
+            precision rule on the calibration scenes, ``benchmarks/precision_decision.py``), its CI profile torch;
+            the dataclass default is torch, the CI value, so a config built in code runs on a CPU. A run on a
+            device the kernel cannot use stops before reading data (``gca.laws.neural.mlp_kernel_problem``).
+            Evaluation runs torch's.
         keep: which law the run returns: "best", the one with the lowest training loss over the whole
             video among those evaluated (the final law is evaluated once more for it), or "last", the
             final iterate. Selection uses the training objective only, never the ground truth.
