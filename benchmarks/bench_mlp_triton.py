@@ -12,7 +12,7 @@ gives dx and the three weight gradients, summed per program in registers and sto
 fixed order), because a packed grid is bound by the GPU's throughput, where bytes count more than one call's latency
 (``bench_mlp_packed.py`` times both ways). Session 37: the FP32 kernels lose packed too (0.57x), the TF32 ones win
 (1.44x forward + backward at 8 processes, H200); the kernels moved into the library (``gca.laws.mlp_triton``, the laws'
-``mlp_kernel: triton_tf32`` option, off by default) and this script times them. Tests run in Triton's CPU interpreter
+``mlp_kernel: triton_tf32``, the paper profile's ``train.mlp_kernel`` since session 44) and this script times them. Tests run in Triton's CPU interpreter
 (``tests/test_bench_mlp_triton.py``: float64 equal to torch's autograd to 1e-12, a gradcheck, a transposed weight
 caught; ``tests/test_laws_mlp_triton.py``: the laws with the option).
 

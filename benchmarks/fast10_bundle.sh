@@ -48,7 +48,9 @@
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 #       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair;
-#        EXTRA="--reuse-data --set train.mlp_kernel=triton_tf32" TAG=_tf32: more harness options, another folder)
+#        EXTRA="--reuse-data --set train.mlp_kernel=torch" TAG=_fp32: more harness options, another folder; the paper
+#        profile trains with the TF32 MLP since session 44, so the parts below that measured other knobs against the
+#        FP32 MLP of their session pin it: --set train.mlp_kernel=torch)
 set -u
 OUT=${OUT:-/tmp/fast10_out}; PART=${PART:-a}
 mkdir -p "$OUT"
@@ -93,10 +95,11 @@ if [ "$PART" = a ] || [ "$PART" = ab ]; then
   stamp "ab_old holds the gca of $(cat ab_old/REV 2> /dev/null || echo 1593090)"
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   W=/tmp/fast10_ball
-  stamp "rdga (HEAD): data + 10 iterations"; run rdga ball $W 10 240
+  stamp "rdga (HEAD): data + 10 iterations"; run rdga ball $W 10 240 --set train.mlp_kernel=torch
   stamp "rdga_old (the gca in ab_old): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
   (cd /tmp && PYTHONPATH=$OLDPWD/ab_old:$PYTHONPATH python3 -c "import gca.align.rdga as r; print('rdga_old reads', r.__file__)")
-  PYTHONPATH=$PWD/ab_old:$PYTHONPATH run rdga_old ball $W 10 150 --reuse-data --stages train evaluate
+  PYTHONPATH=$PWD/ab_old:$PYTHONPATH run rdga_old ball $W 10 150 --reuse-data --stages train evaluate \
+      --set train.mlp_kernel=torch
   if [ "$PART" = ab ]; then  # session 40: and the CUDA twins of the frame batch (gsplat's frames in one call)
     summary rdga rdga_old
     stamp "CUDA tests of the rasterizer"
@@ -126,10 +129,11 @@ fi
 if [ "$PART" = tf32 ]; then
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   W=/tmp/fast10_ball
-  stamp "fp32: data + 10 iterations"; run fp32 ball $W 10 170  # with the build's 200 s the limits sum to 570 s
+  stamp "fp32: data + 10 iterations"; run fp32 ball $W 10 170 --set train.mlp_kernel=torch  # limits sum to 570 s
   stamp "tf32: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
-  run tf32 ball $W 10 100 --reuse-data --stages train evaluate --set train.matmul_precision=high
-  stamp "fp32 again"; rm -rf $W/runs/ball $W/eval; run fp32b ball $W 10 100 --reuse-data --stages train evaluate
+  run tf32 ball $W 10 100 --reuse-data --stages train evaluate --set train.matmul_precision=high --set train.mlp_kernel=torch
+  stamp "fp32 again"; rm -rf $W/runs/ball $W/eval
+  run fp32b ball $W 10 100 --reuse-data --stages train evaluate --set train.mlp_kernel=torch
   summary fp32 tf32 fp32b
 fi
 
@@ -148,7 +152,7 @@ if [ "$PART" = simt ]; then  # for session 35: the simt MLP and TF32 at the MLP,
   echo "mlp rc=$?"; grep -E "^\||Module gca_laws_mlp" "$OUT/mlp.txt"
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   W=/tmp/fast10_ball
-  stamp "torchmlp: data + 10 iterations"; run torchmlp ball $W 10 150
+  stamp "torchmlp: data + 10 iterations"; run torchmlp ball $W 10 150 --set train.mlp_kernel=torch
   stamp "simt: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
   run simt ball $W 10 100 --reuse-data --stages train evaluate --set train.mlp_kernel=simt
   grep -c "running eagerly" "$OUT/simt.log" "$OUT/torchmlp.log"  # a frame whose CUDA-graph capture failed (0: none)
@@ -205,13 +209,16 @@ fi
 if [ "$PART" = chunks ]; then  # session 40: the frames' losses in chunks, and the TF32 MLP, on the same data
   stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   W=/tmp/fast10_ball
-  stamp "chunk0 (every frame in one call): data + 10 iterations"; run chunk0 ball $W 10 200
+  stamp "chunk0 (every frame in one call): data + 10 iterations"; run chunk0 ball $W 10 200 --set train.mlp_kernel=torch \
+      --set train.loss_chunk_frames=0  # (the default is 8 since session 40)
   for c in 8 4; do
     stamp "chunk$c: 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
-    run "chunk$c" ball $W 10 120 --reuse-data --stages train evaluate --set "train.loss_chunk_frames=$c"
+    run "chunk$c" ball $W 10 120 --reuse-data --stages train evaluate --set "train.loss_chunk_frames=$c" \
+        --set train.mlp_kernel=torch
   done
   stamp "tf32 (train.mlp_kernel=triton_tf32, chunk0): 10 iterations, same data"; rm -rf $W/runs/ball $W/eval
-  run tf32 ball $W 10 120 --reuse-data --stages train evaluate --set train.mlp_kernel=triton_tf32
+  run tf32 ball $W 10 120 --reuse-data --stages train evaluate --set train.mlp_kernel=triton_tf32 \
+      --set train.loss_chunk_frames=0
   summary chunk0 chunk8 chunk4 tf32
 fi
 

@@ -32,8 +32,8 @@ the CDs compare the laws, not the evaluation's arithmetic.)
 3. on every scene, the candidate's mean CD over the seeds differs from the reference's by no more than the
    reference's own seed spread there (the largest minus the smallest of its seeds' CDs).
 
-Otherwise ``train.mlp_kernel`` stays ``torch``. A record that is not comparable is refused (exit 2, one line), not
-decided. Tests: ``tests/test_bench_precision_decision.py``.
+Otherwise ``train.mlp_kernel`` stays ``torch`` (after session 44's adoption, a ``--method`` check that keeps torch would
+need a per-method knob, not built). A record that is not comparable is refused (exit 2, one line), not decided. Tests: ``tests/test_bench_precision_decision.py``.
 
 **Decided in session 44** (NVIDIA H200, the records in ``benchmarks/results/fast10_s44/precision/``): every scene's move
 within its seed spread, no unit failed: **adopted**. params.yaml's paper profile runs ``triton_tf32`` since (the CI

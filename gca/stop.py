@@ -1,4 +1,4 @@
-"""Stopping a stage cleanly: SIGTERM, a stop file or a deadline.
+"""Stopping a stage cleanly: SIGTERM, a stop file, a deadline or its parent's end.
 
 SIGTERM becomes :class:`Terminated`, an exception every ``finally`` and atomic write (``gca.io.atomic_path``) unwinds
 through, so no temporary is left behind. Inside :func:`deferred` (training) the signal only sets a flag: the training
@@ -45,7 +45,8 @@ STOP_FILE_ENV, STOP_AT_ENV, STOP_PARENT_ENV = "GCA_STOP_FILE", "GCA_STOP_AT", "G
 
 
 class Terminated(SystemExit):
-    """The process received SIGTERM or found its stop file or deadline (exit status 143, as the signal's default)."""
+    """The process received SIGTERM, found its stop file or deadline, or lost its parent (exit status 143, as the
+    signal's default)."""
 
     def __init__(self, message: str = "stopped by SIGTERM"):
         super().__init__(143)
@@ -55,7 +56,8 @@ class Terminated(SystemExit):
         return self.message
 
 
-WATCH_S = 0.5  # the watcher's poll of the stop file and the deadline [s]
+WATCH_S = 0.5  # the watcher's poll of the stop file, the deadline and the parent [s]
+ORPHAN_GRACE_S = 60.0  # a stop asked because the parent ended: SIGTERM to itself if still running this long after [s]
 _LOCK = threading.Lock()  # the watcher's act against unwatch()
 
 
@@ -74,6 +76,7 @@ def install() -> None:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _handler)
         path, deadline, parent = _settings()
+        parent = _state["parent"] if parent is None else parent  # installed again (the variable was taken already)
         if parent is not None:  # this process's own: taken out of the environment its children inherit
             os.environ.pop(STOP_PARENT_ENV, None)
             _state["parent"] = parent
@@ -134,7 +137,9 @@ def _watch(path: str | None, deadline: float | None, parent: int | None = None) 
     stage, an evaluation) stops too, a training at its iteration's end (:func:`deferred`). One watcher per process;
     :func:`unwatch` ends it. Limits: the main thread sees the stop only between bytecodes (a blocking call, e.g. a
     ``time.sleep`` or a child process waited for, finishes first), and not at all if SIGTERM's handler is no longer
-    Python's; the grid's SIGTERM, ``dispatch.STOP_REQUEST_S`` later, is the backstop."""
+    Python's; the grid's SIGTERM, ``dispatch.STOP_REQUEST_S`` later, is the backstop. When the stop came from the
+    parent's end there is no grid left to send it, so the watcher sends its own process SIGTERM if the process still
+    runs ``ORPHAN_GRACE_S`` later (a real signal interrupts a blocking call)."""
     if (path is None and deadline is None and parent is None) or _state.get("watcher") is not None:
         return
     done = threading.Event()
@@ -148,8 +153,12 @@ def _watch(path: str | None, deadline: float | None, parent: int | None = None) 
                 if reason and not _state["requested"]:
                     _state["requested"], _state["reason"] = True, reason
                     _thread.interrupt_main(signal.SIGTERM)  # runs _handler in the main thread (no signal is sent)
+                    if parent is not None and reason.startswith("stopped: its parent"):
+                        break  # no grid is left to send the backstop SIGTERM: this thread keeps one (below)
                 if _state["requested"]:
                     return
+        if not done.wait(ORPHAN_GRACE_S):  # still running: a main thread blocked in a call the stop cannot reach
+            os.kill(os.getpid(), signal.SIGTERM)
 
     _state["watcher"] = done
     threading.Thread(target=watch, name="gca-stop-watch", daemon=True).start()

@@ -31,8 +31,8 @@ from gca.io import read_json, write_json
 from gca.pipeline.track import method_params, stage_run, train_run_args
 
 from common import scene_context, scene_parser  # stages/common.py
-from gca.pipeline.train import (estimate_scene_velocity, observed_inputs, read_velocity, seed_runs, train_method,
-                                 velocity_path)
+from gca.pipeline.train import (check_mlp_kernel, estimate_scene_velocity, observed_inputs, read_velocity, seed_runs,
+                                 train_method, velocity_path)
 
 
 # params the launch velocity and the training runs depend on (dvc.yaml's train params, in two parts)
@@ -79,6 +79,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--velocity", type=Path, help="reuse this velocity.json (of the one seed run) instead of estimating it")
     args = ap.parse_args(argv)
     settings, scene, methods, inputs = scene_context("train", args)
+    check_mlp_kernel(settings.train.mlp_kernel, args.device)  # before the launch-velocity fits
     runs = seed_runs(settings, methods, args.seeds)
     seeds = list(dict.fromkeys(s for _, s, _ in runs))
     if args.velocity is not None and len(seeds) > 1:

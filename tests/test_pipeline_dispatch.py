@@ -87,18 +87,20 @@ def test_the_stage_process_leaves_the_requeue_signal_to_the_job(tmp_path):
         dispatch.StageCommand("s", "python -c 'raise SystemExit(3)'", tmp_path)()
 
 
-_STAGE = ("import os, sys, time; from gca.pipeline import cli; {pre}"
-          "open('stage.ids', 'w').write(f'{{os.getpid()}} {{os.getsid(0)}}'); "
-          "sys.exit(cli.run(lambda argv: [time.sleep(0.05) for _ in range(600)], [], name='ground_truth'))")
+_STAGE = ("import os, sys, time; from gca.pipeline import cli; {pre}"  # the ids written once cli.run has installed
+          "sys.exit(cli.run(lambda argv: (open('stage.ids', 'w').write(f'{{os.getpid()}} {{os.getsid(0)}}'), "
+          "{work}), [], name='ground_truth'))")
+_STEPS = "[time.sleep(0.05) for _ in range(600)]"  # 30 s of work in steps: a stop lands between two
 _JOB = ("import os, sys; from gca.pipeline import dispatch; open('job.ids', 'w').write(f'{{os.getpid()}} {{os.getsid(0)}}'); "
         "dispatch.StageCommand('ground_truth@s', sys.argv[1], {work!r})()")
 
 
-def _job_with_stage(work: Path, pre: str = "") -> tuple[subprocess.Popen, list[int], list[int]]:
+def _job_with_stage(work: Path, pre: str = "", steps: str = _STEPS) -> tuple[subprocess.Popen, list[int], list[int]]:
     """A job process (as submitit's: ``StageCommand()``) in a session of its own, its stage a ``cli.run`` stage that
-    would work for 30 s, both started; their (pid, sid) once the stage runs. Their output goes to ``work/log``."""
+    would work for 30 s (``steps``), both started; their (pid, sid) once the stage runs. Their output goes to
+    ``work/log``."""
     log = open(work / "log", "w")
-    stage = _STAGE.format(pre=pre)
+    stage = _STAGE.format(pre=pre, work=steps)
     job = subprocess.Popen([sys.executable, "-c", _JOB.format(work=str(work)), f"python -c {stage!r}"], cwd=work,
                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
                            env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -106,7 +108,7 @@ def _job_with_stage(work: Path, pre: str = "") -> tuple[subprocess.Popen, list[i
     while not ((work / "stage.ids").is_file() and (work / "job.ids").is_file()):
         assert time.monotonic() < t_end and job.poll() is None, (work / "log").read_text()
         time.sleep(0.05)
-    time.sleep(0.3)  # the stage's cli.run has installed its watcher (the file is written just before)
+    time.sleep(0.1)  # the files are whole
     ids = [[int(x) for x in (work / f).read_text().split()] for f in ("job.ids", "stage.ids")]
     return job, ids[0], ids[1]
 
@@ -136,16 +138,21 @@ def test_a_ctrl_c_reaches_the_job_and_the_job_stops_its_stage_by_its_file(tmp_pa
 
 def test_a_stage_whose_job_process_died_stops_without_a_signal(tmp_path):
     """The job process killed (submitit's cancel SIGKILLs it ~1 s after its SIGINT): its stage stops by gca.stop's
-    parent check (GCA_STOP_PARENT), with no signal. Control: a stage that does not take the check (the variable
-    removed before cli.run) gets the parent-death SIGTERM, as every stage did before session 44."""
-    for pre, expected in (("", "ground_truth: stopped: its parent process {pid} ended (GCA_STOP_PARENT)"),
-                          ("os.environ.pop('GCA_STOP_PARENT'); ", "ground_truth: stopped by SIGTERM")):
-        work = tmp_path / str(len(pre))
+    parent check (GCA_STOP_PARENT), with no signal. A stage blocked in one long call, which the watcher's stop cannot
+    reach, gets its own SIGTERM ORPHAN_GRACE_S later (1 s here; it would sleep 60 s). Control: a stage that does not
+    take the check (the variable removed before cli.run) gets the parent-death SIGTERM, as every stage did before
+    session 44."""
+    parent_line = "ground_truth: stopped: its parent process {pid} ended (GCA_STOP_PARENT)"
+    cases = (("", _STEPS, parent_line),
+             ("from gca import stop; stop.ORPHAN_GRACE_S = 1.0; ", "time.sleep(60)", parent_line),
+             ("os.environ.pop('GCA_STOP_PARENT'); ", _STEPS, "ground_truth: stopped by SIGTERM"))
+    for k, (pre, steps, expected) in enumerate(cases):
+        work = tmp_path / str(k)
         work.mkdir()
-        job, (job_pid, _), _ = _job_with_stage(work, pre)
+        job, (job_pid, _), _ = _job_with_stage(work, pre, steps)
         job.kill()
         job.wait(timeout=30)
-        assert _stage_line(work) == expected.format(pid=job_pid)
+        assert _stage_line(work) == expected.format(pid=job_pid), k
 
 
 def test_deadline_submits_nothing_that_would_end_late(tmp_path):

@@ -518,3 +518,13 @@ def test_under_a_stop_deadline_units_start_until_shortly_before_it(tmp_path, mon
     finally:
         stop.reset()
     assert len(ran) == 2 and (tmp_path / "r.json").is_file()
+
+
+def test_a_tuning_record_holds_the_mlp_kernel_its_runs_used(tmp_path):
+    """The record names the resolved train.mlp_kernel (benchmarks/precision_decision.py compares it): an override's,
+    else the profile's value (the paper profile's TF32 since session 44, the CI profile's torch)."""
+    for profile, overrides, expected in (("ci", ["train.mlp_kernel=simt"], "simt"), ("ci", [], "torch"),
+                                         ("paper", [], "triton_tf32")):
+        _, resolved, cfg = tune.load_config(ROOT / "params.yaml", profile, overrides)
+        record, _ = tune.build_record(tmp_path, resolved, cfg, [], "cpu", overrides)
+        assert record["mlp_kernel"] == expected, (profile, overrides)

@@ -575,22 +575,20 @@ def test_a_run_whose_mlp_kernel_cannot_run_here_stops_before_reading_any_input(r
 
 
 def test_the_mlp_kernels_conditions_are_named():
-    """gca.laws.neural.mlp_kernel_problem: torch's, warp's and simt's MLPs run anywhere; triton_tf32 on a CPU only under
-    Triton's interpreter (read when called)."""
+    """gca.laws.neural.mlp_kernel_problem: torch's, warp's and simt's MLPs run anywhere; triton_tf32 on a CPU only where
+    its kernels were decorated under Triton's interpreter (TRITON_INTERPRET at their import: a fresh process each)."""
     import os
+    import subprocess
 
     from gca.laws.neural import MLP_KERNELS, mlp_kernel_problem
     assert all(mlp_kernel_problem(kind, "cpu") is None for kind in MLP_KERNELS if kind != "triton_tf32")
     pytest.importorskip("triton")
-    own = os.environ.pop("TRITON_INTERPRET", None)
-    try:
-        assert "TRITON_INTERPRET=1" in mlp_kernel_problem("triton_tf32", "cpu")
-        os.environ["TRITON_INTERPRET"] = "1"
-        assert mlp_kernel_problem("triton_tf32", "cpu") is None
-    finally:
-        os.environ.pop("TRITON_INTERPRET", None)
-        if own is not None:
-            os.environ["TRITON_INTERPRET"] = own
+    code = "from gca.laws.neural import mlp_kernel_problem as p; print(repr(p('triton_tf32', 'cpu')))"
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    for interpret, expected in ((None, "TRITON_INTERPRET=1"), ("1", "None")):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                             env={**env, **({"TRITON_INTERPRET": interpret} if interpret else {})})
+        assert out.returncode == 0 and expected in out.stdout, out.stdout + out.stderr
 
 
 def test_matmul_precision_is_validated():

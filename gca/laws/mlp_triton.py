@@ -30,11 +30,10 @@ computed in float32.
 
 from __future__ import annotations
 
-import os
-
 import torch
 import triton
 import triton.language as tl
+from triton.runtime.interpreter import InterpretedFunction
 
 _WHERE = "gca/laws/mlp_triton.py"
 BLOCK = 64  # particles per program (tl.dot needs >= 16; 64 measured fastest of 32 / 64 in TF32, session 36-37)
@@ -158,6 +157,11 @@ def _pad(v: int) -> int:
 
 
 
+#: whether the kernels were decorated under Triton's interpreter (TRITON_INTERPRET at this module's import, which
+#: Triton reads then): how they run, on a CPU or on CUDA tensors alike (the interpreter copies those to the host)
+INTERPRETED = isinstance(_fused_mlp_bwd, InterpretedFunction)
+
+
 def _bwd_launch(n: int, k_in: int, h: int, n_out: int, block: int, precision: str, programs: int,
                 interpreted: bool) -> tuple[int, tuple[int, int, int], dict]:
     """The backward's launch for n particles: ``(p, (n, p, per_program), constexprs)``, p programs of per_program tiles
@@ -167,12 +171,12 @@ def _bwd_launch(n: int, k_in: int, h: int, n_out: int, block: int, precision: st
     Compiled (``interpreted`` False), the constexprs do not depend on n, and the counts are runtime arguments that
     Triton does not specialise (``do_not_specialize``): one compiled kernel per network shape. Until session 44,
     per_program was a constexpr. CPR evaluates the law on 1-10 frames of particles at a time, so every new chunk size
-    and every scene's particle count compiled a new kernel. That took 2.3-2.5 s each (sm_90, measured here on the CPU;
-    the duck's training on the H200 stalled 2.4-2.8 s at each of 9 new sizes, ``benchmarks/NOTES.md``, session 44).
+    and every scene's particle count compiled a new kernel. That took 2.2-2.5 s each (sm_90, measured here on the CPU;
+    the duck's training on the H200 stalled 2.4-2.8 s at each of 8 new sizes, ``benchmarks/NOTES.md``, session 44).
     Under Triton's interpreter (``interpreted``), the count is also passed as the constexpr INTERPRETED_PER, which the
     interpreter can loop to."""
     tiles = triton.cdiv(n, block)
-    per = triton.cdiv(tiles, max(1, programs))  # tiles per program: the grid then wastes < per tile iterations
+    per = max(1, triton.cdiv(tiles, max(1, programs)))  # tiles per program: the grid then wastes < per tile iterations
     p = max(1, triton.cdiv(tiles, per))
     consts = dict(K_IN=k_in, K_PAD=_pad(k_in), H=h, N_OUT=n_out, OUT_PAD=_pad(n_out), BLOCK=block, PRECISION=precision,
                   INTERPRETED_PER=per if interpreted else 0)
@@ -206,7 +210,7 @@ class FusedMLP(torch.autograd.Function):
         x, w1, w2, w3 = ctx.saved_tensors
         block, precision, programs, warps = ctx.cfg
         p, counts, consts = _bwd_launch(x.shape[0], x.shape[1], w2.shape[0], w3.shape[0], block, precision, programs,
-                                        interpreted=not x.is_cuda)
+                                        interpreted=INTERPRETED)
         dx = torch.empty_like(x)
         parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
         _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, *counts, **consts, num_warps=warps)
@@ -214,8 +218,9 @@ class FusedMLP(torch.autograd.Function):
 
 
 def runs_here(z: torch.Tensor) -> bool:
-    """Whether the fused kernels can run on ``z``'s device: CUDA, or a CPU under Triton's interpreter."""
-    return z.is_cuda or os.environ.get("TRITON_INTERPRET", "0").lower() in ("1", "true", "on")
+    """Whether the fused kernels can run on ``z``'s device: CUDA, or a CPU under Triton's interpreter (decorated so at
+    import: :data:`INTERPRETED`)."""
+    return z.is_cuda or INTERPRETED
 
 
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", block: int = BLOCK,

@@ -142,7 +142,8 @@ class _InvariantNetwork(nn.Module):
     backward 215 vs 124 us), and so is ``simt`` (forward 165.7 vs 34.5 us, session 35). ``triton_tf32``: one fused
     Triton kernel each way with TF32 products (``gca.laws.mlp_triton``; exact GELU only): faster (1.44x forward +
     backward, 4.3x forward at 8 processes, H200, session 37) but **not the same numbers** (TF32's 10-bit mantissa in
-    every product): a precision change, to be decided on the calibration scenes. Options, not the default.
+    every product): a precision change, which the calibration scenes decided for in session 44 (params.yaml's paper
+    profile sets it through ``train.mlp_kernel``; this class's own default stays torch, as on the CI profile).
     """
 
     fast_path: bool = True

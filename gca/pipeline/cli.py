@@ -4,8 +4,9 @@
   classes in :data:`USER_ERRORS`) prints one line, ``<stage>: error: <message>``, and exits 2; ``--debug``
   shows the traceback. Anything else is an internal error: its traceback is printed and the exit status
   is 1.
-- **SIGTERM**, the stop file ``GCA_STOP_FILE`` or the deadline ``GCA_STOP_AT`` ends the stage cleanly (``gca.stop``:
-  temporaries removed, training checkpointed first, the GPU's queued work waited for), exit status 143.
+- **SIGTERM**, the stop file ``GCA_STOP_FILE``, the deadline ``GCA_STOP_AT`` or the end of the parent named by
+  ``GCA_STOP_PARENT`` ends the stage cleanly (``gca.stop``: temporaries removed, training checkpointed first, the
+  GPU's queued work waited for), exit status 143.
 - At start, the stale temporaries a killed run left beside this stage's outputs are swept
   (``gca.io.sweep`` on the folders of its path arguments).
 - Progress bars (tqdm) are quiet under CI (``CI=true``) or when stderr is not a terminal.

@@ -162,8 +162,8 @@ class StageCommand:
         proc = self._proc
         if proc is None or proc.returncode is not None:
             return
-        # (submitit's cancel of a local job kills this controller ~1 s after its SIGINT; the stage then gets SIGTERM
-        # from its parent-death signal, _ignore_usr_signal)
+        # (submitit's cancel of a local job kills this controller ~1 s after its SIGINT; the stage then stops by its
+        # parent check, GCA_STOP_PARENT, or a command without gca.stop's watcher by its parent-death SIGTERM)
         if not self.stop_file().exists() and _request_stop(self.stop_file()) and self._reaped(STOP_REQUEST_S):
             return
         proc.terminate()

@@ -191,6 +191,16 @@ class TrainJob:
     solver: MPMSolver
 
 
+def check_mlp_kernel(kernel: str, device) -> None:
+    """One ``ConfigError`` line when ``train.mlp_kernel`` ``kernel`` cannot run on ``device`` (the paper profile's
+    ``triton_tf32`` on a CPU: :func:`gca.laws.neural.mlp_kernel_problem`); the stage and the tuning call it before
+    their launch-velocity fits, :func:`train_job` before reading any input."""
+    problem = mlp_kernel_problem(kernel, device)
+    if problem:
+        raise config.ConfigError(f"params.yaml: train.mlp_kernel={kernel} {problem}; on this machine run the ci "
+                                 f"profile or set train.mlp_kernel: torch (FP32)")
+
+
 def train_job(settings: Settings, scene_name: str, method: Method, inputs: SceneInputs, velocity: tuple[list, list],
               device="cpu", seed: int | None = None) -> TrainJob:
     """The run of ``method`` on a scene with ``seed``: its config, observed data (its seed's, :func:`observed_inputs`),
@@ -198,10 +208,7 @@ def train_job(settings: Settings, scene_name: str, method: Method, inputs: Scene
     ``benchmarks/profile_train.py`` both call it)."""
     scene = settings.scene(scene_name)
     tcfg = train_config(settings, method, scene, seed)
-    problem = mlp_kernel_problem(tcfg.mlp_kernel, device)
-    if problem:  # before any data is read: the paper profile's default on a CPU (gca.laws.neural.mlp_kernel_problem)
-        raise config.ConfigError(f"params.yaml: train.mlp_kernel={tcfg.mlp_kernel} {problem}; on this machine run "
-                                 f"the ci profile or set train.mlp_kernel: torch (FP32)")
+    check_mlp_kernel(tcfg.mlp_kernel, device)  # before any data is read (the stage and the tuning check earlier)
     data = load_train_data(settings, observed_inputs(settings, scene_name, inputs, tcfg.seed), method, velocity,
                            settings.video.background, device, dt=scene.dt)
     law = law_for(settings, method, scene, inputs, float(data.body.mass.sum() / data.body.vol.sum()), device, tcfg.seed,

@@ -365,10 +365,11 @@ def parse_args(argv):
 def main(argv=None) -> dict:
     args = parse_args(argv)
     start = time.monotonic()
-    from gca.pipeline.train import default_device
+    from gca.pipeline.train import check_mlp_kernel, default_device
 
     device = args.device or default_device()
-    raw, _, cfg = load_config(args.params, args.profile, args.overrides)
+    raw, resolved, cfg = load_config(args.params, args.profile, args.overrides)
+    check_mlp_kernel((resolved.get("train") or {}).get("mlp_kernel", "torch"), device)  # before any input is made
     if cfg.record:
         raise ConfigError(
             f"{args.params}: cites the tuning record {cfg.record} (tuning.record): its knobs hold that tuning's choice, "
