@@ -98,9 +98,10 @@ def comparable(ref: dict, cand: dict, method: str = METHOD) -> str | None:
     changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
     if changed != [KNOB]:
         return f"their overrides must differ by {KNOB} alone, they differ by {changed or 'nothing'}"
-    if _kernel(cand) != CANDIDATE or _kernel(ref) != REFERENCE:
+    kernels = _kernel(cand), _kernel(ref)
+    if kernels != (CANDIDATE, REFERENCE):
         return (f"the rule compares {KNOB}: {CANDIDATE} (candidate) with {REFERENCE} (reference), got "
-                f"{_kernel(cand)!r} and {_kernel(ref)!r} (a reference made since session 44 must set {KNOB}=torch: "
+                f"{kernels[0]!r} and {kernels[1]!r} (a reference made since session 44 must set {KNOB}=torch: "
                 f"the paper profile's default is {CANDIDATE})")
     budget = ref.get("budget") or {}
     expected = set(itertools.product(budget.get("scenes", []), [int(k) for k in budget.get("seeds", [])]))

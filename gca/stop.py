@@ -80,17 +80,18 @@ def install() -> None:
         if parent is not None:  # this process's own: taken out of the environment its children inherit
             os.environ.pop(STOP_PARENT_ENV, None)
             _state["parent"] = parent
-            _clear_parent_death_signal()  # the watcher checks the parent instead, with no signal
+            parent_death_signal(0)  # the watcher checks the parent instead, with no signal
         _watch(path, deadline, parent)
 
 
-def _clear_parent_death_signal() -> None:
-    """Linux: no signal at the parent's death (``prctl(PR_SET_PDEATHSIG, 0)``; a no-op elsewhere)."""
+def parent_death_signal(signum: int) -> None:
+    """Linux: the signal this process gets when its parent dies (``prctl(PR_SET_PDEATHSIG)``; 0: none). A no-op
+    elsewhere. The grid's stage process sets SIGTERM (``gca.pipeline.dispatch``), :func:`install` clears it."""
     if sys.platform.startswith("linux"):
         import ctypes
 
         try:
-            ctypes.CDLL(None, use_errno=True).prctl(1, 0, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signum), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
         except (OSError, AttributeError):
             pass
 
@@ -132,9 +133,8 @@ def _asked(path: str | None, deadline: float | None, parent: int | None = None) 
 def _watch(path: str | None, deadline: float | None, parent: int | None = None) -> None:
     """A daemon thread that polls the stop file ``path``, the ``deadline`` and the ``parent`` every ``WATCH_S`` and,
     once asked, raises the stop in the main thread as SIGTERM's handler would, **without a signal**
-    (``_thread.interrupt_main``:
-    at the main thread's next bytecode, no system call interrupted): a stage that never reads :func:`requested` (a data
-    stage, an evaluation) stops too, a training at its iteration's end (:func:`deferred`). One watcher per process;
+    (``_thread.interrupt_main``: at the main thread's next bytecode, no system call interrupted): a stage that never
+    reads :func:`requested` (a data stage, an evaluation) stops too, a training at its iteration's end (:func:`deferred`). One watcher per process;
     :func:`unwatch` ends it. Limits: the main thread sees the stop only between bytecodes (a blocking call, e.g. a
     ``time.sleep`` or a child process waited for, finishes first), and not at all if SIGTERM's handler is no longer
     Python's; the grid's SIGTERM, ``dispatch.STOP_REQUEST_S`` later, is the backstop. When the stop came from the
@@ -153,7 +153,7 @@ def _watch(path: str | None, deadline: float | None, parent: int | None = None) 
                 if reason and not _state["requested"]:
                     _state["requested"], _state["reason"] = True, reason
                     _thread.interrupt_main(signal.SIGTERM)  # runs _handler in the main thread (no signal is sent)
-                    if parent is not None and reason.startswith("stopped: its parent"):
+                    if parent is not None and os.getppid() != parent:
                         break  # no grid is left to send the backstop SIGTERM: this thread keeps one (below)
                 if _state["requested"]:
                     return

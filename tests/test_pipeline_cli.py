@@ -360,12 +360,12 @@ def test_the_parent_to_watch_is_this_processs_own_and_checked(monkeypatch):
     monkeypatch.delenv(stop.STOP_FILE_ENV, raising=False)
     monkeypatch.delenv(stop.STOP_AT_ENV, raising=False)
     cleared = []
-    monkeypatch.setattr(stop, "_clear_parent_death_signal", lambda: cleared.append(True))  # not pytest's own
+    monkeypatch.setattr(stop, "parent_death_signal", cleared.append)  # not pytest's own
     previous = signal.getsignal(signal.SIGTERM)
     try:
         monkeypatch.setenv(stop.STOP_PARENT_ENV, str(os.getppid()))
         stop.install()
-        assert stop.STOP_PARENT_ENV not in os.environ and not stop.requested() and cleared == [True]
+        assert stop.STOP_PARENT_ENV not in os.environ and not stop.requested() and cleared == [0]
         stop.reset()
         monkeypatch.setenv(stop.STOP_PARENT_ENV, str(os.getppid() + 100000))  # not our parent: as if it had ended
         stop.install()

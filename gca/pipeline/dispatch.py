@@ -37,6 +37,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from gca.stop import parent_death_signal  # stdlib only: light in the job process
+
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yaml, stages/
 STOP_GRACE_S = 20.0  # a stopped stage process gets SIGTERM, then SIGKILL after this long [s]
 STOP_REQUEST_S = STOP_GRACE_S / 2  # before the SIGTERM, this long for the stage to stop at its stop file [s]
@@ -64,13 +66,7 @@ def _ignore_usr_signal() -> None:
     import signal
 
     signal.signal(getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2")), signal.SIG_IGN)
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        try:
-            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            pass
+    parent_death_signal(signal.SIGTERM)
 
 
 def is_done(work: Path, name: str, stamp: str = "") -> bool:

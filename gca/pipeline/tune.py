@@ -284,6 +284,14 @@ def restore_state(archive: Path, work: Path) -> int:
         raise ConfigError(str(exc)) from exc
 
 
+def run_mlp_kernel(params: dict) -> str:
+    """``train.mlp_kernel`` of resolved ``params`` (the dataclass default where unset): what the tuning's runs train
+    with, which its record names (``benchmarks/precision_decision.py`` compares it)."""
+    from gca.train.config import TrainConfig  # torch: only where a tuning runs
+
+    return (params.get("train") or {}).get("mlp_kernel", TrainConfig.mlp_kernel)
+
+
 def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str], device: str,
                  overrides: list[str]) -> tuple[dict, int]:
     """The tuning record from the unit files in ``work`` and the number of units still missing."""
@@ -297,7 +305,7 @@ def build_record(work: Path, params: dict, cfg: TuningConfig, methods: list[str]
               "benchmark_version": str(params.get("benchmark", {}).get("version", "")),
               "overrides": list(overrides), "budget": cfg.budget(),
               # what the runs trained with where params.yaml's default differs by profile (benchmarks/precision_decision.py)
-              "mlp_kernel": (params.get("train") or {}).get("mlp_kernel", "torch"),
+              "mlp_kernel": run_mlp_kernel(params),
               "search": {"kind": "latin_hypercube", "space": "log-uniform per knob", "sampler_seed": cfg.sampler_seed,
                          "trial_0": "the frozen params"},
               "objective": {"metric": "chamfer_mean (mean over calibration scenes and seeds; failed = inf)",
@@ -369,7 +377,7 @@ def main(argv=None) -> dict:
 
     device = args.device or default_device()
     raw, resolved, cfg = load_config(args.params, args.profile, args.overrides)
-    check_mlp_kernel((resolved.get("train") or {}).get("mlp_kernel", "torch"), device)  # before any input is made
+    check_mlp_kernel(run_mlp_kernel(resolved), device)  # before any input is made
     if cfg.record:
         raise ConfigError(
             f"{args.params}: cites the tuning record {cfg.record} (tuning.record): its knobs hold that tuning's choice, "
