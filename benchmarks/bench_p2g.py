@@ -8,11 +8,15 @@ session 34); ``ball64_sub``: the same particles by sub-lattice, i.e. sorted by t
 mod 4 (each of the 64 sub-lattices holds one particle per cell) and in meshgrid order within one, so a warp's threads
 fall in 32 different cells instead of 8; ``ball64_shuffle``: the same particles in a random order; ``ball12`` and
 ``ball12_sub``: the paper profile's real density, ~2.4 particles per cell edge, as sampled (C order) and by
-sub-lattice (lattice index mod 4; session 34: slower than C order at this density, 56 vs 48 us on an H100),
+sub-lattice (lattice index mod 4; session 34: slower than C order at this density, 56 vs 48 us on an H100);
+``duck``: the duck's density (dx / h = 3.76 at n_grid 32: ~38 particles per occupied cell of the duck as sampled,
+53 in a full cell; its training's P2G took 88 us a launch against the ball's 60, session 45) in C order,
 times on one device, side by side in one run:
 
 - ``p2g``: the per-particle scatter kernel (27 stencil nodes in one thread),
 - ``p2g_nodes``: one thread per (particle, node) pair (an option, off since session 13),
+- ``p2g_agg``: warp-aggregated atomics (``kernels.p2g_agg``: a warp's particles of one stencil base summed by
+  shuffles, one atomic per node and base; an option, off until measured, session 45),
 - ``p2g_block``: the block-summed scatter (``kernels.scatter_block``; an option, off: slower, session 32),
   with the share of blocks that took the shared window,
 - ``p2g_indirect``: the per-particle scatter reading its particle through an index array (thread t scatters particle
@@ -20,7 +24,7 @@ times on one device, side by side in one run:
   order (:func:`interleaved`: each cell's first particle, cells in grid order, then each cell's second, ...), which a
   solver could compute from x0 instead of reordering the data,
 - ``g2p``: the per-particle gather, and its adjoint (``g2p_adj``: warp's, scattering the grid's velocity gradient
-  with atomics),
+  with atomics; ``g2p_agg_adj``: ``kernels.g2p_agg``'s, that scatter aggregated per warp like ``p2g_agg``),
 
 as the best of ``--repeats`` averages over ``--iters`` launches (CUDA events around the loop).
 
@@ -41,7 +45,9 @@ import warp as wp
 from gca.efficiency import best_time_us
 from gca.sim.kernels import BLOCK, KERNELS, PAD, grid_size, launch_blocks
 
-ORDERS = ("random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle", "ball12", "ball12_sub")
+ORDERS = ("random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle", "ball12", "ball12_sub",
+          "duck")
+DUCK_PER_EDGE = 0.03125 / 0.008308  # the duck's dx / h at the paper profile (n_grid 32, spacing 0.008308 m)
 
 
 def _cells(x: torch.Tensor, n_grid: int) -> torch.Tensor:
@@ -74,9 +80,11 @@ def particles(n: int, n_grid: int, order: str, device, seed: int = 0) -> torch.T
     """n positions [n, 3] in a centred cube of ~8 particles per cell, in the given order."""
     side = min((n / 8) ** (1 / 3), n_grid - 8) / n_grid
     lo = 0.5 - side / 2
-    if order.startswith("ball12"):  # the paper profile's ball: C order as sampled, or the sampler's sub-lattice order
-        h = 1.0 / (2.4 * n_grid)
-        x, _ = lattice_ball(n, n_grid, 2.4)
+    if order.startswith("ball12") or order == "duck":  # the paper profile's ball (C order as sampled, or the
+        # sampler's sub-lattice order), or a ball at the duck's density
+        per_edge = DUCK_PER_EDGE if order == "duck" else 2.4
+        h = 1.0 / (per_edge * n_grid)
+        x, _ = lattice_ball(n, n_grid, per_edge)
         x = x + 0.5 + 0.5 * h  # cell centres (i + 1/2) h, as the sampler's lattice
         if order == "ball12_sub":  # stable: C order within each sub-lattice (lattice index mod 4)
             idx = torch.floor(x / h).long()
@@ -173,6 +181,8 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
                                  iters, repeats)
     row["p2g_nodes_us"] = best_time_us(lambda: wp.launch(k.p2g_nodes, dim=27 * n, inputs=args, device=wd), device,
                                        iters, repeats)
+    row["p2g_agg_us"] = best_time_us(lambda: wp.launch(k.p2g_agg, dim=n, inputs=args, device=wd), device, iters,
+                                     repeats)
     windows = wp.zeros(1, dtype=int, device=wd)
     row["p2g_block_us"] = best_time_us(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters,
                                        repeats)
@@ -182,6 +192,8 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
     adj = [wp.zeros_like(a) if isinstance(a, wp.array) else None for a in g2p_args]
     row["g2p_adj_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
                                                        device=wd), device, iters, repeats)
+    row["g2p_agg_adj_us"] = best_time_us(lambda: wp.launch(k.g2p_agg, dim=n, inputs=g2p_args, adj_inputs=adj,
+                                                           adjoint=True, device=wd), device, iters, repeats)
     for bd in block_dims:
         row[f"g2p_bd{bd}_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, device=wd, block_dim=bd),
                                              device, iters, repeats)
@@ -208,17 +220,19 @@ def main(argv=None) -> list[dict]:
     if device.type == "cuda" and device.index is None:  # warp needs an explicit ordinal
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    print("| particles | grid | order | p2g us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
-          "p2g_block us (window share) | g2p us | g2p adjoint us |\n| --- | --- | --- | --- | --- | --- | --- | --- | "
-          "--- | --- |")
+    print("| particles | grid | order | p2g us | p2g_agg us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
+          "p2g_block us (window share) | g2p us | g2p adjoint us | g2p_agg adjoint us |\n| --- | --- | --- | --- | --- | "
+          "--- | --- | --- | --- | --- | --- | --- |")
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:
             r = measure(n, n_grid, order, device, a.iters, a.repeats, a.block_dims)
             rows.append(r)
-            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_indirect_us']:.1f} | "
+            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_agg_us']:.1f} | "
+                  f"{r['p2g_indirect_us']:.1f} | "
                   f"{r['p2g_interleaved_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
-                  f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} |",
+                  f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} | "
+                  f"{r['g2p_agg_adj_us']:.1f} |",
                   flush=True)
             if a.block_dims:
                 print("|   block dims " + ", ".join(f"{bd}: p2g {r[f'p2g_bd{bd}_us']:.1f} g2p {r[f'g2p_bd{bd}_us']:.1f} "

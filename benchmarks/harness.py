@@ -167,7 +167,7 @@ def keep_stopped(work: Path, out: Path, tag: str) -> list[Path]:
     return written
 
 
-SOLVER_SWITCHES = ("block_p2g", "fuse_frames", "fuse_analytic", "split_p2g", "keep_grid")
+SOLVER_SWITCHES = ("block_p2g", "agg_p2g", "agg_g2p", "fuse_frames", "fuse_analytic", "split_p2g", "keep_grid")
 
 
 def set_solver_switches(items: list[str]) -> None:

@@ -40,13 +40,31 @@ def test_block_orders_fill_the_same_cube():
 def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
     rows = _load("bench_p2g").main(["--device", "cpu", "--sizes", "500:16", "--iters", "1", "--repeats", "1"])
     assert [r["order"] for r in rows] == ["random", "lattice", "cell", "morton", "ball64", "ball64_sub", "ball64_shuffle",
-                                          "ball12", "ball12_sub"]
+                                          "ball12", "ball12_sub", "duck"]
     assert rows[1]["particles"] == 512  # 8^3
+    assert abs(rows[9]["particles"] - 500) < 60
     assert rows[7]["particles"] == rows[8]["particles"] and abs(rows[7]["particles"] - 500) < 60
     assert abs(rows[4]["particles"] - 500) < 60  # a lattice ball of ~500 at ~64 per cell
     assert rows[4]["particles"] == rows[5]["particles"] == rows[6]["particles"]  # the same ball reordered
-    assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_indirect_us", "p2g_interleaved_us", "p2g_nodes_us",
-                                                "p2g_block_us", "g2p_us", "g2p_adj_us"))
+    assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_agg_us", "p2g_indirect_us", "p2g_interleaved_us",
+                                                "p2g_nodes_us", "p2g_block_us", "g2p_us", "g2p_adj_us",
+                                                "g2p_agg_adj_us"))
+
+
+def test_the_duck_order_has_the_duck_s_density_and_warp_spread():
+    # the duck as sampled at the paper profile (session 45): a warp's 32 particles on ~8 stencil bases, ~4 lanes a
+    # node; the paper ball's density on ~13. The bench's lattice balls must show the same contrast
+    bench = _load("bench_p2g")
+
+    def bases_per_warp(x):
+        base = torch.floor(x.double() * 32 - 0.5).long()
+        key = (base[:, 0] * 64 + base[:, 1]) * 64 + base[:, 2]
+        n = len(key) // 32 * 32
+        return sum(len(set(w.tolist())) for w in key[:n].reshape(-1, 32)) / (n // 32)
+
+    duck, ball = (bench.particles(30000, 32, o, torch.device("cpu")) for o in ("duck", "ball12"))
+    assert abs(len(duck) - 30000) < 1500
+    assert 6.5 < bases_per_warp(duck) < 10 < 11.5 < bases_per_warp(ball) < 15
 
 
 def test_ball64_orders_are_one_ball_and_the_sub_lattice_order_spreads_a_warp_over_cells():

@@ -55,6 +55,84 @@ BLOCK = 128  # particles per thread block of the block-summed P2G on a GPU (scat
 WINDOW = wp.constant(1024)  # nodes of a block's shared-memory window (scatter_block; 16 KiB in float32) [count]
 
 
+# Warp-aggregated atomics (``p2g_agg``): the lanes of a warp whose particles share a stencil base ("peers", found with
+# ``__match_any_sync``) sum their shares by shuffles and one of them (the lowest lane, the "leader") adds the sum to
+# the grid, so a node takes one atomic add per distinct base in a warp instead of one per particle (Westphal, "Voting
+# and shuffling to optimize atomic operations", NVIDIA Parallel Forall, 2015). Every intrinsic is masked with the
+# lane's own peer set, so a warp split by divergence aggregates each part apart and stays correct. Off CUDA each
+# thread is its own (only) peer: the kernel is ``p2g``'s, the same sums in the same order.
+_PEERS = """
+#if defined(__CUDA_ARCH__)
+return (int)__match_any_sync(__activemask(), key);
+#else
+return 1;
+#endif
+"""
+_LEADER = """
+#if defined(__CUDA_ARCH__)
+return ((unsigned)peers & ((1u << (threadIdx.x & 31u)) - 1u)) == 0u;
+#else
+return true;
+#endif
+"""
+def _peer_tree(value: str, n: int) -> str:
+    """CUDA lines leaving in ``s`` (a copy of the ``n``-component vector ``value``), at the lowest lane of the int mask
+    ``peers``, the sum of ``value`` over those lanes (other lanes: partial sums, unused). A tree over the peers in
+    rank order: each round, a lane of even rank (among the peers left) adds the running sum of the next peer left
+    above it, and the lanes of odd rank leave. Every intrinsic is masked with the lane's peers, all of which run it
+    (``tests/test_sim_agg_p2g.py`` models it lane by lane)."""
+    reads = "\n".join(f"    const auto t{c} = __shfl_sync(p, s.c[{c}], src);" for c in range(n))
+    adds = " ".join(f"s.c[{c}] += t{c};" for c in range(n))
+    return f"""const unsigned p = (unsigned)peers;
+const unsigned lane = threadIdx.x & 31u;
+unsigned rest = p & ~((2u << lane) - 1u);
+unsigned rank = __popc(p & ((1u << lane) - 1u));
+auto s = {value};
+while (__any_sync(p, rest != 0u)) {{
+    const int next = __ffs(rest);
+    const int src = next ? next - 1 : (int)lane;
+{reads}
+    if (next) {{ {adds} }}
+    rest &= ~__ballot_sync(p, rank & 1u);
+    rank >>= 1;
+}}
+"""
+
+
+_PEER_SUM4 = f"""
+#if defined(__CUDA_ARCH__)
+{_peer_tree("a", 4)}return s;
+#else
+return a;
+#endif
+"""
+# a node's value read in G2P, whose adjoint adds the lanes' cotangents per peer set before one atomic add (warp's own
+# adjoint of an array read, wp::adj_address, adds each lane's: the CPU branch)
+_LOAD_AGG = "return wp::index(a, i, j, k);"
+_LOAD_AGG_ADJ = f"""
+#if defined(__CUDA_ARCH__)
+{_peer_tree("adj_ret", 3)}if ((p & ((1u << lane) - 1u)) == 0u) {{
+    if (adj_a.data) wp::adj_atomic_add(&wp::index(adj_a, i, j, k), s);
+    else if (a.grad) wp::adj_atomic_add(&wp::index_grad(a, i, j, k), s);
+}}
+#else
+wp::adj_address(a, i, j, k, adj_a, adj_i, adj_j, adj_k, adj_ret);
+#endif
+"""
+
+
+@wp.func_native(_PEERS)
+def warp_peers(key: int) -> int:
+    """Bit mask of the lanes of this thread's warp (among those active) whose ``key`` equals this one's; 1 off CUDA."""
+    ...
+
+
+@wp.func_native(_LEADER)
+def peer_leader(peers: int) -> bool:
+    """Whether this lane is the lowest of ``peers`` (:func:`warp_peers`); True off CUDA."""
+    ...
+
+
 def block_dim(device) -> int:
     """Threads per block of the block-cooperative kernels on a warp ``device``: ``BLOCK`` on CUDA; on a CPU 1 (warp
     runs a CPU block as one thread) unless ``wp.config.enable_cpu_blocks`` (cooperative fibers, used by the tests)."""
@@ -166,6 +244,53 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                     wp.atomic_add(grid_m, I, J, K, w * m_p)
 
     vec4 = wp.types.vector(4, T)
+
+    @wp.func_native(_PEER_SUM4)
+    def peer_sum4(peers: int, a: vec4) -> vec4:
+        """At the leader of ``peers`` (:func:`peer_leader`), the sum of ``a`` over them (other lanes: partial sums,
+        unused); off CUDA ``a``. Every lane of ``peers`` must call it (they do: all call it 27 times)."""
+        ...
+
+    @wp.kernel(module=module)
+    def p2g_agg(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        tau: wp.array(dtype=mat33),
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+    ):
+        """:func:`p2g` with warp-aggregated atomics: a warp's particles of one stencil base (the same 27 nodes) sum
+        their shares by shuffles, and one atomic add per node and base reaches the grid (``_PEER_SUM4``). Forward
+        only, like ``p2g_nodes``: the step's backward uses the adjoint of ``p2g``. Off CUDA it is ``p2g``."""
+        p = wp.tid()
+        base, fx, W = stencil(x[p], inv_dx, n_grid)
+        off = run_offset(run, p, n_grid, grid_m.shape[0])
+        G = grid_m.shape[1]
+        peers = warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)  # the base node's index
+        lead = peer_leader(peers)
+        m_p = mass[p]
+        affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau[p] + m_p * C[p]
+        mv_p = m_p * v[p]
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    share = w * (mv_p + affine @ dpos)
+                    s = peer_sum4(peers, vec4(share[0], share[1], share[2], w * m_p))
+                    if lead:
+                        I = base[0] + i + PAD + off
+                        J = base[1] + j + PAD
+                        K = base[2] + k + PAD
+                        wp.atomic_add(grid_mv, I, J, K, vec3(s[0], s[1], s[2]))
+                        wp.atomic_add(grid_m, I, J, K, s[3])
 
     @wp.func
     def scatter_block(valid: bool, x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int,
@@ -343,51 +468,82 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         grid_v[s0, s1, s2] = node_velocity(grid_mv[s0, s1, s2], grid_m[s0, s1, s2], s0, s1, s2, gravity, dt, eps,
                                            m_min, n_grid, bound, kind, mu_b)
 
-    @wp.func
-    def gather(x_p: vec3, F_p: mat33, off: int, grid_v: wp.array3d(dtype=vec3), dt: T, inv_dx: T, n_grid: int, lo: T,
-               hi: T):
-        """G2P of one particle from the grid at offset ``off``: (x' clamped to [lo, hi], v', C', F_trial)."""
-        base, fx, W = stencil(x_p, inv_dx, n_grid)
-        v_new = vec3(T(0.0))
-        B = mat33(T(0.0))
-        for i in range(3):
-            for j in range(3):
-                for k in range(3):
-                    w = W[i, 0] * W[j, 1] * W[k, 2]
-                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-                    v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
-                    v_new += w * v_i
-                    B += w * wp.outer(v_i, dpos)
-        C_new = (T(4.0) * inv_dx * inv_dx) * B
-        x_new = x_p + dt * v_new
-        x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
-        return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+    @wp.func_native(_LOAD_AGG, adj_snippet=_LOAD_AGG_ADJ)
+    def node_read_agg(a: wp.array3d(dtype=vec3), i: int, j: int, k: int, peers: int) -> vec3:
+        """``a[i, j, k]``; its adjoint sums the cotangents of ``peers`` (:func:`warp_peers`) and adds them once."""
+        ...
 
-    @wp.kernel(module=module)
-    def g2p(
-        x: wp.array(dtype=vec3),
-        F: wp.array(dtype=mat33),
-        run: wp.array(dtype=int),
-        grid_v: wp.array3d(dtype=vec3),
-        dt: T,
-        inv_dx: T,
-        n_grid: int,
-        lo: T,
-        hi: T,
-        x_out: wp.array(dtype=vec3),
-        v_out: wp.array(dtype=vec3),
-        C_out: wp.array(dtype=mat33),
-        F_out: wp.array(dtype=mat33),
-    ):
-        p = wp.tid()
-        x_new, v_new, C_new, F_new = gather(x[p], F[p], run_offset(run, p, n_grid, grid_v.shape[0]), grid_v, dt, inv_dx,
-                                            n_grid, lo, hi)
-        v_out[p] = v_new
-        C_out[p] = C_new
-        F_out[p] = F_new
-        x_out[p] = x_new
+    def make_gather(agg: bool):
+        """The G2P of one particle; ``agg``: the grid's cotangent summed over the warp's ``peers`` (same stencil
+        base) before its atomic adds (the adjoint's scatter), else each lane adds its own (``peers`` unused)."""
 
-    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, grid_update=grid_update, g2p=g2p,
+        def gather(x_p: vec3, F_p: mat33, off: int, grid_v: wp.array3d(dtype=vec3), dt: T, inv_dx: T, n_grid: int,
+                   lo: T, hi: T, peers: int):
+            """G2P of one particle from the grid at offset ``off``: (x' clamped to [lo, hi], v', C', F_trial)."""
+            base, fx, W = stencil(x_p, inv_dx, n_grid)
+            v_new = vec3(T(0.0))
+            B = mat33(T(0.0))
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        w = W[i, 0] * W[j, 1] * W[k, 2]
+                        dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                        if wp.static(agg):
+                            v_i = node_read_agg(grid_v, base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD,
+                                                peers)
+                        else:
+                            v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
+                        v_new += w * v_i
+                        B += w * wp.outer(v_i, dpos)
+            C_new = (T(4.0) * inv_dx * inv_dx) * B
+            x_new = x_p + dt * v_new
+            x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
+            return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+
+        gather.__qualname__ += "_agg" if agg else ""
+        return wp.func(gather)
+
+    gather, gather_agg = make_gather(False), make_gather(True)
+
+    def make_g2p(agg: bool):
+        """The G2P kernel over the particles (``agg``: its adjoint's grid scatter aggregated per warp, ``g2p_agg``)."""
+
+        def g2p(
+            x: wp.array(dtype=vec3),
+            F: wp.array(dtype=mat33),
+            run: wp.array(dtype=int),
+            grid_v: wp.array3d(dtype=vec3),
+            dt: T,
+            inv_dx: T,
+            n_grid: int,
+            lo: T,
+            hi: T,
+            x_out: wp.array(dtype=vec3),
+            v_out: wp.array(dtype=vec3),
+            C_out: wp.array(dtype=mat33),
+            F_out: wp.array(dtype=mat33),
+        ):
+            p = wp.tid()
+            off = run_offset(run, p, n_grid, grid_v.shape[0])
+            peers = int(0)
+            if wp.static(agg):  # the lanes of one stencil base (the same 27 nodes), as p2g_agg's
+                base, fx, W = stencil(x[p], inv_dx, n_grid)
+                G = grid_v.shape[1]
+                peers = warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)
+            x_new, v_new, C_new, F_new = wp.static(gather_agg if agg else gather)(
+                x[p], F[p], off, grid_v, dt, inv_dx, n_grid, lo, hi, peers)
+            v_out[p] = v_new
+            C_out[p] = C_new
+            F_out[p] = F_new
+            x_out[p] = x_new
+
+        g2p.__name__ = g2p.__qualname__ = "g2p_agg" if agg else "g2p"
+        return wp.kernel(g2p, module=module)
+
+    g2p, g2p_agg = make_g2p(False), make_g2p(True)
+
+    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg,
+                                 grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
                                  vec3=vec3, mat33=mat33, T=T, scatter=scatter, scatter_block=scatter_block, gather=gather,
                                  run_offset=run_offset, node_velocity=node_velocity)
 

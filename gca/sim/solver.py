@@ -130,6 +130,13 @@ class MPMSolver:
     # session 32, bench_p2g) it is slower than the per-particle kernel on the pipeline's lattice-ordered particles
     # (ball at ~64 per cell: 99 vs 59 us; 8 per cell: 51 vs 35 us) although every block's sums went through its window
     block_p2g: bool | None = False
+    # forward P2G with warp-aggregated atomics (kernels.p2g_agg: a warp's particles of one stencil base sum their
+    # shares by shuffles, one atomic per node and base), True / False, or None: on CUDA only (off CUDA it is p2g).
+    # Off until measured (NOTES session 45: the duck's ~38 particles per cell put 4 lanes of a warp on each node)
+    agg_p2g: bool | None = False
+    # G2P whose adjoint sums a warp's grid cotangents per stencil base before its atomic adds (kernels.g2p_agg; its
+    # forward is g2p's plus one __match_any_sync), True / False, or None: on CUDA only. Off until measured (session 45)
+    agg_g2p: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -157,7 +164,8 @@ class MPMSolver:
             self._refined[k] = fine if self._batch is None else fine.with_runs(*self._batch)
         fine = self._refined[k]  # the path switches follow this solver's (a captured CUDA graph keeps its own)
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
-        fine.fuse_frames, fine.block_p2g = self.fuse_frames, self.block_p2g
+        fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
+        fine.agg_g2p = self.agg_g2p
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -225,6 +233,17 @@ class MPMSolver:
     def blocks_p2g(self) -> bool:
         """Whether forward P2G takes the block-summed kernels (``block_p2g``, resolved for this device)."""
         return self.device.type == "cuda" if self.block_p2g is None else bool(self.block_p2g)
+
+    @property
+    def aggs_p2g(self) -> bool:
+        """Whether forward P2G takes the warp-aggregated kernel (``agg_p2g``, resolved for this device)."""
+        return self.device.type == "cuda" if self.agg_p2g is None else bool(self.agg_p2g)
+
+    @property
+    def aggs_g2p(self) -> bool:
+        """Whether G2P (forward and adjoint) takes the warp-aggregated adjoint (``agg_g2p``, resolved for this
+        device)."""
+        return self.device.type == "cuda" if self.agg_g2p is None else bool(self.agg_g2p)
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
@@ -399,7 +418,8 @@ class MPMSolver:
         n = args[0].shape[0]
         return [(k.p2g, n, self._p2g_args(args, run, mv, m)),
                 (k.grid_update, mv.shape, self._update_args(mv, m, gv)),
-                (k.g2p, n, [args[0], args[3], run, gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])]
+                (k.g2p_agg if self.aggs_g2p else k.g2p, n,
+                 [args[0], args[3], run, gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])]
 
     def _launch(self, args, run, outs, requires_grad: bool, grid=None, n_runs: int = 1):
         """P2G, grid update, G2P from the wrapped inputs ``args`` into the wrapped ``outs`` (on ``grid``, or on
@@ -412,6 +432,8 @@ class MPMSolver:
                 continue
             if kernel is self.k.p2g and self.split_p2g and not requires_grad:
                 kernel, dim = self.k.p2g_nodes, 27 * dim  # same inputs, a thread per (particle, node)
+            elif kernel is self.k.p2g and self.aggs_p2g and not requires_grad:
+                kernel = self.k.p2g_agg  # same inputs, one atomic per node and stencil base in a warp
             wp.launch(kernel, dim=dim, inputs=kargs, device=self.wp_device)
 
     def _new_grid(self, n_runs: int = 1):
