@@ -45,6 +45,12 @@
 #        GCA_STOP_AT 20 s before its timeout, SIGNAL_STOP=1 signals them as before: the negative control)
 #       (the bisection's knobs: FAULT_MLP="torch" or "triton_tf32", the kernels taken in turn; FAULT_EXTRA="--set
 #       train.loss_chunk_frames=0" or "--set train.reverse_sweep=false"; PROCS, FAULT_LIMIT, FAULT_SCENE)
+#   PART=agg (for session 46; ~2.5 min, no gsplat): the warp-aggregated scatters (kernels.p2g_agg, g2p_agg) checked
+#       against the plain kernels on the GPU (tests/test_sim_agg_p2g.py's CUDA tests: carry tests/conftest.py,
+#       tests/slow.txt and that file if LEAN=1 moved tests/ aside), bench_mlp_triton (the backward's partials in one
+#       reduction), then bench_p2g on the orders that decide it                 -> agg_tests.txt, mlp.*, p2g_agg.*
+#       (then the trainings: PART=b SCENES=duck TAG=_agg EXTRA="--solver agg_p2g=true --solver agg_g2p=true", and
+#        the control on the same HEAD: PART=b SCENES=duck TAG=_plain)
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 #       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair;
@@ -273,6 +279,20 @@ error, $(grep -l "\[harness\] stopped" "$OUT/$mode"_p*.log 2> /dev/null | wc -l)
   pack_out "$OUT"
 fi
 
+if [ "$PART" = agg ]; then  # for session 46: warp-aggregated atomics in the two scatters (NOTES s45, predicted)
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  stamp "the aggregated kernels against the plain ones on CUDA (float64)"
+  timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_sim_agg_p2g.py > "$OUT/agg_tests.txt" 2>&1
+  echo "agg tests rc=$?"; tail -n 4 "$OUT/agg_tests.txt"
+  stamp "bench_mlp_triton: the backward's partials in one reduction"
+  timeout 150 python3 benchmarks/bench_mlp_triton.py --device cuda --variants torch tf32_64 --sizes 30000 100000 \
+      --json "$OUT/mlp.json" > "$OUT/mlp.txt" 2>&1
+  echo "mlp rc=$?"; grep -E "^\|" "$OUT/mlp.txt"
+  stamp "bench_p2g: p2g_agg and g2p_agg's adjoint by density"
+  timeout 240 python3 benchmarks/bench_p2g.py --device cuda --sizes 30000:32 100000:64 \
+      --orders random lattice ball64 ball12 duck --json "$OUT/p2g_agg.json" > "$OUT/p2g_agg.txt" 2>&1
+  echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g_agg.txt"
+fi
 if [ "$PART" = b ]; then
   stamp "gsplat: build its extension once per machine (or the first run would time the build)"
   build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"

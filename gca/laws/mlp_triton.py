@@ -11,7 +11,8 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
 - backward: one persistent launch (``BWD_PROGRAMS_PER_SM`` programs of ``BWD_WARPS`` warps) that recomputes each
   tile's forward on chip, stores dz per
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
-  in a fixed order (no atomics: deterministic).
+  in a fixed order (no atomics: deterministic), the three in one reduction (since session 45: the duck's profile
+  had the three sums at 30.7 ms of a 563-ms iteration, 6.4 us each, latency-bound).
 
 Measured (NVIDIA H200, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``, session 37): at
 30k particles TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9, at 8
@@ -79,15 +80,16 @@ def _gelu_and_grad(x):
 
 
 @triton.jit(do_not_specialize=["n", "n_programs", "per_program"])  # one compiled kernel for every particle count
-def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, n, n_programs,
-                   per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
+def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, part_stride, n,
+                   n_programs, per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
                    OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
                    INTERPRETED_PER: tl.constexpr):
     """One persistent program: for its per_program tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
     recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
     particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
-    partial (dw*_ptr[pid]; the caller sums the partials in a fixed order: no atomics, deterministic). The caller sizes
-    the grid so that fewer than per_program iterations of all programs fall past the last tile.
+    partial (at dw*_ptr + pid part_stride: the three partials of a program share one row of the caller's buffer,
+    which it sums in one reduction, in a fixed order: no atomics, deterministic). The caller sizes the grid so that
+    fewer than per_program iterations of all programs fall past the last tile.
 
     per_program is a runtime count, so one compiled kernel serves every particle count. Compiled, the loop runs to it
     (INTERPRETED_PER 0). Triton's interpreter cannot loop to a runtime bound, so there INTERPRETED_PER repeats it as a
@@ -118,9 +120,9 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
         dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
         dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
         tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
-    tl.store(dw1_ptr + pid * H * K_IN + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
-    tl.store(dw2_ptr + pid * H * H + h[:, None] * H + h[None, :], dw2)
-    tl.store(dw3_ptr + pid * N_OUT * H + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
+    tl.store(dw1_ptr + pid * part_stride + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
+    tl.store(dw2_ptr + pid * part_stride + h[:, None] * H + h[None, :], dw2)
+    tl.store(dw3_ptr + pid * part_stride + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
 
 
 
@@ -212,9 +214,12 @@ class FusedMLP(torch.autograd.Function):
         p, counts, consts = _bwd_launch(x.shape[0], x.shape[1], w2.shape[0], w3.shape[0], block, precision, programs,
                                         interpreted=INTERPRETED)
         dx = torch.empty_like(x)
-        parts = [torch.empty(p, *w.shape, device=x.device, dtype=x.dtype) for w in (w1, w2, w3)]
-        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts, *counts, **consts, num_warps=warps)
-        return (dx, *(part.sum(0) for part in parts), None, None, None, None)
+        sizes = [w.numel() for w in (w1, w2, w3)]
+        parts = torch.empty(p, sum(sizes), device=x.device, dtype=x.dtype)  # a program's three partials in one row
+        _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts.split(sizes, dim=1), parts.shape[1], *counts,
+                             **consts, num_warps=warps)
+        sums = parts.sum(0).split(sizes)  # one reduction launch, not three (session 45: 3 x 6.4 us per backward)
+        return (dx, *(d.view_as(w) for d, w in zip(sums, (w1, w2, w3))), None, None, None, None)
 
 
 def runs_here(z: torch.Tensor) -> bool:
