@@ -16,7 +16,8 @@ For each ``particles:n_grid`` size it runs, in one process on one device:
 - ``ours_graph``: the same through ``gca.sim.graph`` frames of ``--steps-per-frame`` steps (CUDA
   graphs on a GPU; on the CPU the eager twin); ``ours_graph_generic``: its frames through the generic step (law, then
   transfers); ``ours_graph_block``: its forward P2G summed per thread block in shared memory first
-  (``MPMSolver.block_p2g`` True; off by default: slower on the H100, session 32);
+  (``MPMSolver.block_p2g`` True; off by default: slower on the H100, session 32); ``ours_graph_agg``: its scatters'
+  atomics aggregated per warp (``MPMSolver.agg_p2g`` True; off until measured, session 45);
 - ``theirs``: ``MPM_Simulator_WARP.p2g2p`` exactly as published (it wraps every kernel in
   ``wp.ScopedTimer(synchronize=True)``, i.e. five host syncs per step);
 - ``theirs_nosync``: the same ``p2g2p`` with ``wp.ScopedTimer`` temporarily replaced by a no-op while
@@ -168,17 +169,20 @@ def initial_state(n: int, n_grid: int, dt: float, device: torch.device, v_drop: 
 
 
 def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solver_cache: dict, fuse: bool = True,
-             block: bool | None = None):
+             block: bool | None = None, agg: bool | None = None):
     """Final positions after ``steps`` steps, and a closure that re-runs them (for timing). ``fuse``: graphed frames
     take the fused analytic step (``MPMSolver.step_fused``, the default); False: the generic step (law, then
-    transfers; the default before session 30). ``block``: ``MPMSolver.block_p2g`` (None: its default, off)."""
+    transfers; the default before session 30). ``block``: ``MPMSolver.block_p2g``, ``agg``: ``MPMSolver.agg_p2g``
+    (None: their defaults, off)."""
     cfg, x0, v0, C0, F0, vol, mass, _ = state
-    key = f"solver_{fuse}_{block}"
+    key = f"solver_{fuse}_{block}_{agg}"
     if key not in solver_cache:
         solver_cache[key] = MPMSolver(cfg, device)
         solver_cache[key].fuse_analytic = fuse
         if block is not None:  # None: the solver's own default (None there would mean "on CUDA")
             solver_cache[key].block_p2g = block
+        if agg is not None:
+            solver_cache[key].agg_p2g = agg
         solver_cache[key + "_material"] = Material(CorotatedElasticity(E, NU), IdentityPlasticity(), RHO).to(
             device=device, dtype=cfg.torch_dtype)
     solver, material = solver_cache[key], solver_cache[key + "_material"]
@@ -268,7 +272,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
     row = {"particles": int(x0.shape[0]), "n_grid": n_grid, "steps": args.steps, "dt": args.dt, "block_side": side,
            "ms_per_step": {}, "final_x": {}}
     cache: dict = {}
-    variants = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph", "theirs", "theirs_nosync"] + \
+    variants = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph", "theirs",
+                "theirs_nosync"] + \
         (["theirs_graph"] if device.type == "cuda" else [])
     finals = {}
     for name in variants:
@@ -276,7 +281,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
             if name.startswith("ours"):
                 go, info = run_ours(state, args.steps, device, name != "ours", args.steps_per_frame, cache,
                                     fuse=name != "ours_graph_generic",
-                                    block=True if name == "ours_graph_block" else None)
+                                    block=True if name == "ours_graph_block" else None,
+                                    agg=True if name == "ours_graph_agg" else None)
                 finals[name] = go()  # warm-up + trajectory
                 best = float("inf")
                 for _ in range(args.repeats):
@@ -305,6 +311,7 @@ def measure(mod, n, n_grid, args, device) -> dict:
     row["trajectory"] = {"ours_vs_theirs": diff("ours", "theirs"), "ours_vs_ours_graph": diff("ours", "ours_graph"),
                          "ours_graph_vs_ours_graph_generic": diff("ours_graph", "ours_graph_generic"),
                          "ours_graph_vs_ours_graph_block": diff("ours_graph", "ours_graph_block"),
+                         "ours_graph_vs_ours_graph_agg": diff("ours_graph", "ours_graph_agg"),
                          "theirs_vs_theirs_nosync": diff("theirs", "theirs_nosync"),
                          "theirs_vs_theirs_graph": diff("theirs", "theirs_graph")}
     if "ours" in finals:
@@ -321,7 +328,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
 
 
 def _table(results: dict) -> str:
-    names = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph", "theirs", "theirs_nosync", "theirs_graph"]
+    names = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph", "theirs", "theirs_nosync",
+             "theirs_graph"]
     lines = ["| particles | grid | " + " | ".join(f"{k} ms/step" for k in names)
              + " | speed-up (ours_graph / best theirs) | max / mean |dx| ours vs theirs (block sides) | mean displacement |",
              "|" + " --- |" * (len(names) + 5)]

@@ -45,10 +45,12 @@
 #        GCA_STOP_AT 20 s before its timeout, SIGNAL_STOP=1 signals them as before: the negative control)
 #       (the bisection's knobs: FAULT_MLP="torch" or "triton_tf32", the kernels taken in turn; FAULT_EXTRA="--set
 #       train.loss_chunk_frames=0" or "--set train.reverse_sweep=false"; PROCS, FAULT_LIMIT, FAULT_SCENE)
-#   PART=agg (for session 46; ~2.5 min, no gsplat): the warp-aggregated scatters (kernels.p2g_agg, g2p_agg) checked
-#       against the plain kernels on the GPU (tests/test_sim_agg_p2g.py's CUDA tests: carry tests/conftest.py,
-#       tests/slow.txt and that file if LEAN=1 moved tests/ aside), bench_mlp_triton (the backward's partials in one
-#       reduction), then bench_p2g on the orders that decide it                 -> agg_tests.txt, mlp.*, p2g_agg.*
+#   PART=agg (for session 46; ~4-6 min, no gsplat: the float64 modules compile first): the warp-aggregated scatters
+#       (kernels.p2g_agg, g2p_agg, the fused step's *_agg) checked against the plain kernels on the GPU
+#       (tests/test_sim_agg_p2g.py's CUDA tests; if LEAN=1 moved tests/ aside: `mkdir tests && cp
+#       /tmp/gca_carry_aside/lean/tests/{conftest.py,slow.txt,test_sim_agg_p2g.py} tests/`, and `rm -r tests` before
+#       `carry_aside.sh back`), bench_mlp_triton (the backward's partials in one reduction), then bench_p2g on the
+#       orders that decide it                                                    -> agg_tests.txt, mlp.*, p2g_agg.*
 #       (then the trainings: PART=b SCENES=duck TAG=_agg EXTRA="--solver agg_p2g=true --solver agg_g2p=true", and
 #        the control on the same HEAD: PART=b SCENES=duck TAG=_plain)
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
@@ -282,7 +284,7 @@ fi
 if [ "$PART" = agg ]; then  # for session 46: warp-aggregated atomics in the two scatters (NOTES s45, predicted)
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   stamp "the aggregated kernels against the plain ones on CUDA (float64)"
-  timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_sim_agg_p2g.py > "$OUT/agg_tests.txt" 2>&1
+  timeout 400 python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_sim_agg_p2g.py > "$OUT/agg_tests.txt" 2>&1
   echo "agg tests rc=$?"; tail -n 4 "$OUT/agg_tests.txt"
   stamp "bench_mlp_triton: the backward's partials in one reduction"
   timeout 150 python3 benchmarks/bench_mlp_triton.py --device cuda --variants torch tf32_64 --sizes 30000 100000 \

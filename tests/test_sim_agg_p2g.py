@@ -12,6 +12,10 @@ import pytest
 import torch
 import warp as wp
 
+from gca.laws.base import Material
+from gca.laws.elastic import CorotatedElasticity
+from gca.laws.plastic import IdentityPlasticity
+from gca.sim.frame import simulate_frame
 from gca.sim.kernels import KERNELS, grid_size
 from gca.sim.solver import MPMSolver, SimConfig
 
@@ -69,6 +73,33 @@ def test_the_aggregated_kernels_equal_the_plain_ones_off_cuda(dtype, switch, ker
     assert float(outs[True][0].detach().sub(x).abs().max()) > 0  # the particles moved
     for a, b in zip(outs[True], outs[False]):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("frames", [True, False], ids=["one_pass_frame", "fused_steps"])
+def test_the_fused_analytic_step_takes_the_aggregated_scatter(frames):
+    # agg_p2g also routes the fused step's kernels (p2g_stress_agg, g2p_p2g_agg): off CUDA bitwise the plain fused
+    # frame, and within rounding of the generic step (law, then transfers)
+    cfg = SimConfig(n_grid=16, dt=5e-4, bound=2, boundary="friction", friction=0.3, dtype="float64", max_refine=1)
+    x, v, C, F, _, vol, mass = _state(400, seed=11, lo=0.05, hi=0.95)
+    material = Material(CorotatedElasticity(1e5, 0.3, learnable=False), IdentityPlasticity(), 1000.0).double()
+    calls, real, results = [], wp.launch, {}
+    for path in ("agg", "fused", "generic"):
+        solver = MPMSolver(cfg)
+        solver.fuse_frames, solver.agg_p2g, solver.fuse_analytic = frames, path == "agg", path != "generic"
+        calls.clear()
+        wp.launch = lambda k, *a, **kw: (calls.append(k.key.rsplit("__", 1)[-1]), real(k, *a, **kw))[1]
+        try:
+            with torch.no_grad():
+                results[path] = simulate_frame(solver, material, 4, x, v, C, F, vol, mass)
+        finally:
+            wp.launch = real
+        took = {c for c in calls if c.endswith("_agg")}
+        assert took == ({"p2g_stress_agg", "g2p_p2g_agg"} if frames else {"p2g_stress_agg"}) if path == "agg" \
+            else not took
+    assert float((results["agg"][0] - x).abs().max()) > 1e-6
+    for a, b, c in zip(results["agg"], results["fused"], results["generic"]):
+        assert torch.equal(a, b)
+        assert float((a - c).abs().max()) <= 1e-12 * float(c.abs().max())
 
 
 def test_agg_p2g_takes_the_runs_grids():
@@ -169,6 +200,7 @@ def test_agg_p2g_compiles_for_sm_90(tmp_path):
     assert paths and all(p.exists() for p in paths)
     src = "".join(p.read_text() for p in tmp_path.glob("*.cu"))
     assert "__match_any_sync" in src and "__shfl_sync" in src and "p2g_agg" in src and "g2p_agg" in src
+    # (the fused step's *_agg kernels call the same kernels.scatter_agg as p2g_agg: compiled here through it)
     adj = src[src.index("void adj_make_kernels__locals__node_read_agg"):]  # the G2P adjoint's aggregated scatter
     assert "__shfl_sync" in adj[:adj.index("}\n\n")]
 
@@ -229,3 +261,22 @@ def test_agg_g2p_adjoint_equals_g2p_s_on_cuda(per_edge):
     for a, b in zip(*results):
         assert float(a.abs().max()) > 0
         assert torch.allclose(b, a, rtol=1e-10, atol=1e-12 * float(a.abs().max()))
+
+
+@pytest.mark.gpu
+def test_the_aggregated_fused_frame_equals_the_plain_one_on_cuda():
+    # the fused analytic frame (p2g_stress_agg, g2p_p2g_agg) at the duck's density, float64, 4 steps: to rounding
+    cfg = SimConfig(n_grid=32, dt=2e-4, bound=2, boundary="friction", friction=0.3, dtype="float64", max_refine=1)
+    x = _lattice_ball(3.76, 32, 30000, torch.float64, "cuda")
+    _, v, C, F, _, vol, mass = _state(x.shape[0], seed=12, device="cuda")
+    material = Material(CorotatedElasticity(1e5, 0.3, learnable=False), IdentityPlasticity(), 1000.0).double().cuda()
+    results = []
+    for agg in (False, True):
+        solver = MPMSolver(cfg, "cuda")
+        solver.agg_p2g = agg
+        with torch.no_grad():
+            results.append(simulate_frame(solver, material, 4, x, 0.1 * v, 0.1 * C, F, vol, mass))
+    assert float((results[0][0] - x).abs().max()) > 0
+    for a, b in zip(*results):
+        assert torch.isfinite(b).all()
+        assert float((b - a).abs().max()) <= 1e-10 * float(a.abs().max())

@@ -41,39 +41,47 @@ from gca.sim.kernels import KERNELS
 
 @functools.cache
 def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
-    """Build ``p2g_stress`` and ``grid_update_zero`` for ``torch.float32`` or ``torch.float64``."""
+    """Build ``p2g_stress``, ``grid_update_zero`` and ``g2p_p2g`` (and their block-summed and warp-aggregated
+    variants) for ``torch.float32`` or ``torch.float64``."""
     T = WARP_FLOATS[dtype]
     k = KERNELS[T.__name__]
     law = make_law_kernels(dtype)
     vec3, mat33 = k.vec3, k.mat33
-    scatter, gather, run_offset, node_velocity = k.scatter, k.gather, k.run_offset, k.node_velocity
+    scatter, scatter_agg, gather = k.scatter, k.scatter_agg, k.gather
+    run_offset, node_velocity = k.run_offset, k.node_velocity
     analytic_stress = law.analytic_stress
     module = f"gca_sim_fused_step_{T.__name__}"
 
-    @wp.kernel(module=module)
-    def p2g_stress(
-        x: wp.array(dtype=vec3),
-        v: wp.array(dtype=vec3),
-        C: wp.array(dtype=mat33),
-        F: wp.array(dtype=mat33),
-        kind: int,
-        mu: wp.array(dtype=T),
-        lam: wp.array(dtype=T),
-        per: int,
-        j_min: T,
-        vol: wp.array(dtype=T),
-        mass: wp.array(dtype=T),
-        run: wp.array(dtype=int),
-        dt: T,
-        inv_dx: T,
-        n_grid: int,
-        grid_mv: wp.array3d(dtype=vec3),
-        grid_m: wp.array3d(dtype=T),
-    ):
-        p = wp.tid()
-        tau = analytic_stress(kind, F[p], mu[p * per], lam[p * per], j_min)
-        scatter(x[p], v[p], C[p], tau, vol[p], mass[p], run_offset(run, p, n_grid, grid_m.shape[0]), dt, inv_dx,
-                n_grid, grid_mv, grid_m)
+    def make_p2g_stress(agg: bool):
+        """``p2g_stress``, or with ``agg`` its scatter's atomics aggregated per warp (``kernels.scatter_agg``)."""
+
+        def p2g_stress(
+            x: wp.array(dtype=vec3),
+            v: wp.array(dtype=vec3),
+            C: wp.array(dtype=mat33),
+            F: wp.array(dtype=mat33),
+            kind: int,
+            mu: wp.array(dtype=T),
+            lam: wp.array(dtype=T),
+            per: int,
+            j_min: T,
+            vol: wp.array(dtype=T),
+            mass: wp.array(dtype=T),
+            run: wp.array(dtype=int),
+            dt: T,
+            inv_dx: T,
+            n_grid: int,
+            grid_mv: wp.array3d(dtype=vec3),
+            grid_m: wp.array3d(dtype=T),
+        ):
+            p = wp.tid()
+            tau = analytic_stress(kind, F[p], mu[p * per], lam[p * per], j_min)
+            wp.static(scatter_agg if agg else scatter)(x[p], v[p], C[p], tau, vol[p], mass[p],
+                                                       run_offset(run, p, n_grid, grid_m.shape[0]), dt, inv_dx,
+                                                       n_grid, grid_mv, grid_m)
+
+        p2g_stress.__name__ = p2g_stress.__qualname__ = "p2g_stress_agg" if agg else "p2g_stress"
+        return wp.kernel(p2g_stress, module=module)
 
     @wp.kernel(module=module)
     def grid_update_zero(
@@ -95,39 +103,48 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         grid_mv[s0, s1, s2] = vec3(T(0.0))
         grid_m[s0, s1, s2] = T(0.0)
 
-    @wp.kernel(module=module)
-    def g2p_p2g(
-        x_src: wp.array(dtype=vec3),
-        F_src: wp.array(dtype=mat33),
-        run: wp.array(dtype=int),
-        grid_v: wp.array3d(dtype=vec3),
-        kind: int,
-        mu: wp.array(dtype=T),
-        lam: wp.array(dtype=T),
-        per: int,
-        j_min: T,
-        vol: wp.array(dtype=T),
-        mass: wp.array(dtype=T),
-        dt: T,
-        inv_dx: T,
-        n_grid: int,
-        lo: T,
-        hi: T,
-        x_dst: wp.array(dtype=vec3),
-        F_dst: wp.array(dtype=mat33),
-        grid_mv: wp.array3d(dtype=vec3),
-        grid_m: wp.array3d(dtype=T),
-    ):
-        """G2P of one step and P2G of the next in one particle pass, for a purely elastic material (F_e = F_trial):
-        the particle's new x and F are stored (``*_dst`` may be ``*_src``: each thread reads its particle before it
-        writes it), its new v and C go straight into the scatter onto the zeroed mv and m."""
-        p = wp.tid()
-        off = run_offset(run, p, n_grid, grid_v.shape[0])
-        x1, v1, C1, F1 = gather(x_src[p], F_src[p], off, grid_v, dt, inv_dx, n_grid, lo, hi, 0)
-        x_dst[p] = x1
-        F_dst[p] = F1
-        tau = analytic_stress(kind, F1, mu[p * per], lam[p * per], j_min)
-        scatter(x1, v1, C1, tau, vol[p], mass[p], off, dt, inv_dx, n_grid, grid_mv, grid_m)
+    def make_g2p_p2g(agg: bool):
+        """``g2p_p2g``, or with ``agg`` its scatter's atomics aggregated per warp (``kernels.scatter_agg``)."""
+
+        def g2p_p2g(
+            x_src: wp.array(dtype=vec3),
+            F_src: wp.array(dtype=mat33),
+            run: wp.array(dtype=int),
+            grid_v: wp.array3d(dtype=vec3),
+            kind: int,
+            mu: wp.array(dtype=T),
+            lam: wp.array(dtype=T),
+            per: int,
+            j_min: T,
+            vol: wp.array(dtype=T),
+            mass: wp.array(dtype=T),
+            dt: T,
+            inv_dx: T,
+            n_grid: int,
+            lo: T,
+            hi: T,
+            x_dst: wp.array(dtype=vec3),
+            F_dst: wp.array(dtype=mat33),
+            grid_mv: wp.array3d(dtype=vec3),
+            grid_m: wp.array3d(dtype=T),
+        ):
+            """G2P of one step and P2G of the next in one particle pass, for a purely elastic material (F_e =
+            F_trial): the particle's new x and F are stored (``*_dst`` may be ``*_src``: each thread reads its particle
+            before it writes it), its new v and C go straight into the scatter onto the zeroed mv and m."""
+            p = wp.tid()
+            off = run_offset(run, p, n_grid, grid_v.shape[0])
+            x1, v1, C1, F1 = gather(x_src[p], F_src[p], off, grid_v, dt, inv_dx, n_grid, lo, hi, 0)
+            x_dst[p] = x1
+            F_dst[p] = F1
+            tau = analytic_stress(kind, F1, mu[p * per], lam[p * per], j_min)
+            wp.static(scatter_agg if agg else scatter)(x1, v1, C1, tau, vol[p], mass[p], off, dt, inv_dx, n_grid,
+                                                       grid_mv, grid_m)
+
+        g2p_p2g.__name__ = g2p_p2g.__qualname__ = "g2p_p2g_agg" if agg else "g2p_p2g"
+        return wp.kernel(g2p_p2g, module=module)
+
+    p2g_stress, p2g_stress_agg = make_p2g_stress(False), make_p2g_stress(True)
+    g2p_p2g, g2p_p2g_agg = make_g2p_p2g(False), make_g2p_p2g(True)
 
     scatter_block = k.scatter_block
     block_module = f"gca_sim_fused_step_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
@@ -202,4 +219,5 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         scatter_block(p < n, x1, v1, C1, tau, vol[q], mass[q], off, lane, dt, inv_dx, n_grid, grid_mv, grid_m, windows)
 
     return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p, g2p_p2g=g2p_p2g,
-                                 p2g_stress_block=p2g_stress_block, g2p_p2g_block=g2p_p2g_block)
+                                 p2g_stress_block=p2g_stress_block, g2p_p2g_block=g2p_p2g_block,
+                                 p2g_stress_agg=p2g_stress_agg, g2p_p2g_agg=g2p_p2g_agg)

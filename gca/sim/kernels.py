@@ -251,6 +251,32 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         unused); off CUDA ``a``. Every lane of ``peers`` must call it (they do: all call it 27 times)."""
         ...
 
+    @wp.func
+    def scatter_agg(x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int, dt: T, inv_dx: T,
+                    n_grid: int, grid_mv: wp.array3d(dtype=vec3), grid_m: wp.array3d(dtype=T)):
+        """:func:`scatter` with warp-aggregated atomics: the warp's lanes of one stencil base (the same 27 nodes; the
+        key is the base node's stacked index, so two runs never merge) sum their shares by shuffles, and the lowest
+        adds the sum: one atomic add per node and base (``_PEER_SUM4``). Forward only; off CUDA it is ``scatter``."""
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        G = grid_m.shape[1]
+        peers = warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)
+        lead = peer_leader(peers)
+        affine = (-dt * vol_p * T(4.0) * inv_dx * inv_dx) * tau_p + m_p * C_p
+        mv_p = m_p * v_p
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    share = w * (mv_p + affine @ dpos)
+                    s = peer_sum4(peers, vec4(share[0], share[1], share[2], w * m_p))
+                    if lead:
+                        I = base[0] + i + PAD + off
+                        J = base[1] + j + PAD
+                        K = base[2] + k + PAD
+                        wp.atomic_add(grid_mv, I, J, K, vec3(s[0], s[1], s[2]))
+                        wp.atomic_add(grid_m, I, J, K, s[3])
+
     @wp.kernel(module=module)
     def p2g_agg(
         x: wp.array(dtype=vec3),
@@ -266,31 +292,11 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         grid_mv: wp.array3d(dtype=vec3),
         grid_m: wp.array3d(dtype=T),
     ):
-        """:func:`p2g` with warp-aggregated atomics: a warp's particles of one stencil base (the same 27 nodes) sum
-        their shares by shuffles, and one atomic add per node and base reaches the grid (``_PEER_SUM4``). Forward
-        only, like ``p2g_nodes``: the step's backward uses the adjoint of ``p2g``. Off CUDA it is ``p2g``."""
+        """:func:`p2g` through :func:`scatter_agg`. Forward only, like ``p2g_nodes``: the step's backward uses the
+        adjoint of ``p2g``. Off CUDA it is ``p2g``."""
         p = wp.tid()
-        base, fx, W = stencil(x[p], inv_dx, n_grid)
-        off = run_offset(run, p, n_grid, grid_m.shape[0])
-        G = grid_m.shape[1]
-        peers = warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)  # the base node's index
-        lead = peer_leader(peers)
-        m_p = mass[p]
-        affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau[p] + m_p * C[p]
-        mv_p = m_p * v[p]
-        for i in range(3):
-            for j in range(3):
-                for k in range(3):
-                    w = W[i, 0] * W[j, 1] * W[k, 2]
-                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
-                    share = w * (mv_p + affine @ dpos)
-                    s = peer_sum4(peers, vec4(share[0], share[1], share[2], w * m_p))
-                    if lead:
-                        I = base[0] + i + PAD + off
-                        J = base[1] + j + PAD
-                        K = base[2] + k + PAD
-                        wp.atomic_add(grid_mv, I, J, K, vec3(s[0], s[1], s[2]))
-                        wp.atomic_add(grid_m, I, J, K, s[3])
+        scatter_agg(x[p], v[p], C[p], tau[p], vol[p], mass[p], run_offset(run, p, n_grid, grid_m.shape[0]), dt, inv_dx,
+                    n_grid, grid_mv, grid_m)
 
     @wp.func
     def scatter_block(valid: bool, x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int,
@@ -544,8 +550,9 @@ def make_kernels(T: type) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
-                                 vec3=vec3, mat33=mat33, T=T, scatter=scatter, scatter_block=scatter_block, gather=gather,
-                                 run_offset=run_offset, node_velocity=node_velocity)
+                                 vec3=vec3, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,
+                                 scatter_block=scatter_block, gather=gather, run_offset=run_offset,
+                                 node_velocity=node_velocity)
 
 
 KERNELS = {"float32": make_kernels(wp.float32), "float64": make_kernels(wp.float64)}

@@ -130,8 +130,9 @@ class MPMSolver:
     # session 32, bench_p2g) it is slower than the per-particle kernel on the pipeline's lattice-ordered particles
     # (ball at ~64 per cell: 99 vs 59 us; 8 per cell: 51 vs 35 us) although every block's sums went through its window
     block_p2g: bool | None = False
-    # forward P2G with warp-aggregated atomics (kernels.p2g_agg: a warp's particles of one stencil base sum their
-    # shares by shuffles, one atomic per node and base), True / False, or None: on CUDA only (off CUDA it is p2g).
+    # forward P2G with warp-aggregated atomics (kernels.p2g_agg, and the fused analytic step's kernels through
+    # kernels.scatter_agg: a warp's particles of one stencil base sum their shares by shuffles, one atomic per node
+    # and base), True / False, or None: on CUDA only (off CUDA it is p2g). block_p2g, where on, takes precedence.
     # Off until measured (NOTES session 45: the duck's ~38 particles per cell put 4 lanes of a warp on each node)
     agg_p2g: bool | None = False
     # G2P whose adjoint sums a warp's grid cotangents per stencil base before its atomic adds (kernels.g2p_agg; its
@@ -289,7 +290,8 @@ class MPMSolver:
             moduli = [law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T), law.per, law.j_min]
             update = self._update_args(mv, m, gv)
             blocks = self.blocks_p2g
-            p2g_stress, g2p_p2g = (k.p2g_stress_block, k.g2p_p2g_block) if blocks else (k.p2g_stress, k.g2p_p2g)
+            p2g_stress, g2p_p2g = ((k.p2g_stress_block, k.g2p_p2g_block) if blocks else
+                                   (k.p2g_stress_agg, k.g2p_p2g_agg) if self.aggs_p2g else (k.p2g_stress, k.g2p_p2g))
 
             def scatter(kernel, inputs):
                 if blocks:
