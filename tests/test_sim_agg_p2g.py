@@ -193,10 +193,12 @@ def test_peer_sum_tree_negative_control():
     assert _peer_sum_model(keys, values, broken=True)[0] != sum(values)
 
 
-def test_agg_p2g_compiles_for_sm_90(tmp_path):
+@pytest.mark.parametrize("module", ["gca_sim_mpm_float32", "gca_sim_mpm_float64"])
+def test_agg_p2g_compiles_for_sm_90(tmp_path, module):
     # the CUDA snippets (match, shuffles, ballots) through warp's own NVRTC for the H100/H200's arch, on any machine
-    # (the PyPI wheel carries NVRTC; a snippet that does not compile raises "CUDA kernel build failed")
-    paths = wp.compile_aot_module("gca_sim_mpm_float32", arch=90, module_dir=str(tmp_path))
+    # (the PyPI wheel carries NVRTC; a snippet that does not compile raises "CUDA kernel build failed"); float64 is
+    # what the CUDA tests below run
+    paths = wp.compile_aot_module(module, arch=90, module_dir=str(tmp_path))
     assert paths and all(p.exists() for p in paths)
     src = "".join(p.read_text() for p in tmp_path.glob("*.cu"))
     assert "__match_any_sync" in src and "__shfl_sync" in src and "p2g_agg" in src and "g2p_agg" in src
@@ -205,21 +207,43 @@ def test_agg_p2g_compiles_for_sm_90(tmp_path):
     assert "__shfl_sync" in adj[:adj.index("}\n\n")]
 
 
+CUDA_CASES = ["ball", "duck", "ball64", "duck_shuffled", "one_cell", "two_runs"]
+
+
+def _cuda_case(case: str):
+    """Particles on CUDA (float64) for a peer pattern: C-order lattice balls at the paper ball's density (~2.3 lanes of
+    a warp per stencil base), the duck's (~4) and ~64 per cell; the duck's shuffled (a base's lanes not adjacent);
+    1000 particles inside one cell (all 32 lanes on one base: five rounds; a partial last warp); the duck's lattice
+    twice, interleaved as runs 0 and 1 (the same base in one warp for two runs: keys must keep them apart).
+    Returns (x [N, 3], run [N] int32, n_runs)."""
+    if case == "one_cell":
+        g = torch.Generator().manual_seed(13)
+        x = (15.6 + 0.8 * torch.rand(1000, 3, generator=g, dtype=torch.float64)) / 32  # cell 15, away from its edges
+        return x.cuda(), torch.zeros(1000, dtype=torch.int32, device="cuda"), 1
+    per_edge = {"ball": 2.4, "ball64": 4.0}.get(case, 3.76)
+    x = _lattice_ball(per_edge, 32, 30000, torch.float64, "cuda")
+    if case == "duck_shuffled":
+        x = x[torch.randperm(len(x), generator=torch.Generator().manual_seed(14)).cuda()]
+    if case == "two_runs":
+        x = torch.stack([x, x], 1).reshape(-1, 3)
+        run = torch.arange(len(x), device="cuda", dtype=torch.int32) % 2
+        return x.contiguous(), run, 2
+    return x, torch.zeros(len(x), dtype=torch.int32, device="cuda"), 1
+
+
 @pytest.mark.gpu
-@pytest.mark.parametrize("per_edge", [2.4, 3.76, 4.0])  # the paper ball's density, the duck's, ~64 per cell
-def test_agg_p2g_equals_p2g_on_cuda(per_edge):
-    # dense C-order lattices put 2-16 lanes of a warp on one base: float64 grids equal to rounding (sums reordered)
-    device = "cuda"
+@pytest.mark.parametrize("case", CUDA_CASES)
+def test_agg_p2g_equals_p2g_on_cuda(case):
+    # float64 grids equal to rounding (the sums reordered), each run's mass on its own grid
     k = KERNELS["float64"]
-    x = _lattice_ball(per_edge, 32, 30000, torch.float64, device)
+    x, run, n_runs = _cuda_case(case)
     n = x.shape[0]
-    _, v, C, _, tau, vol, mass = _state(n, seed=3, device=device)
-    run = torch.zeros(n, dtype=torch.int32, device=device)
+    _, v, C, _, tau, vol, mass = _state(n, seed=3, device="cuda")
     G = grid_size(32)
     grids = []
     for kernel in (k.p2g, k.p2g_agg):
-        mv = torch.zeros(G, G, G, 3, dtype=torch.float64, device=device)
-        m = torch.zeros(G, G, G, dtype=torch.float64, device=device)
+        mv = torch.zeros(n_runs * G, G, G, 3, dtype=torch.float64, device="cuda")
+        m = torch.zeros(n_runs * G, G, G, dtype=torch.float64, device="cuda")
         wp.launch(kernel, dim=n, inputs=[wp.from_torch(x, dtype=k.vec3), wp.from_torch(v, dtype=k.vec3),
                                          wp.from_torch(C, dtype=k.mat33), wp.from_torch(tau, dtype=k.mat33),
                                          wp.from_torch(vol), wp.from_torch(mass), wp.from_torch(run), 1e-4, 32.0, 32,
@@ -230,30 +254,31 @@ def test_agg_p2g_equals_p2g_on_cuda(per_edge):
     assert float(m0.sum()) > 0
     assert torch.allclose(m1, m0, rtol=1e-12, atol=1e-12 * float(m0.max()))
     assert torch.allclose(mv1, mv0, rtol=1e-12, atol=1e-12 * float(mv0.abs().max()))
+    for r in range(n_runs):
+        assert abs(float(m1[r * G:(r + 1) * G].sum()) - float(mass[run == r].sum())) <= 1e-12 * float(mass.sum())
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("per_edge", [2.4, 3.76])
-def test_agg_g2p_adjoint_equals_g2p_s_on_cuda(per_edge):
+@pytest.mark.parametrize("case", CUDA_CASES)
+def test_agg_g2p_adjoint_equals_g2p_s_on_cuda(case):
     # the grid's cotangent (the aggregated scatter) and the particles' (unchanged) match warp's own adjoint
-    device = "cuda"
     k = KERNELS["float64"]
-    x = _lattice_ball(per_edge, 32, 30000, torch.float64, device)
+    x, run_t, n_runs = _cuda_case(case)
     n = x.shape[0]
-    _, _, _, F, _, _, _ = _state(n, seed=4, device=device)
+    _, _, _, F, _, _, _ = _state(n, seed=4, device="cuda")
     g = torch.Generator().manual_seed(5)
     G = grid_size(32)
-    gv = torch.randn(G, G, G, 3, generator=g, dtype=torch.float64).to(device)
-    cots = [torch.randn(n, *s, generator=g, dtype=torch.float64).to(device) for s in ((3,), (3,), (3, 3), (3, 3))]
+    gv = torch.randn(n_runs * G, G, G, 3, generator=g, dtype=torch.float64).cuda()
+    cots = [torch.randn(n, *s, generator=g, dtype=torch.float64).cuda() for s in ((3,), (3,), (3, 3), (3, 3))]
     wd = wp.device_from_torch(x.device)
-    run = wp.from_torch(torch.zeros(n, dtype=torch.int32, device=device))
+    run = wp.from_torch(run_t)
     results = []
     for kernel in (k.g2p, k.g2p_agg):
         adj_x, adj_F, adj_gv = torch.zeros_like(x), torch.zeros_like(F), torch.zeros_like(gv)
         ins = [wp.from_torch(x, dtype=k.vec3), wp.from_torch(F, dtype=k.mat33), run, wp.from_torch(gv, dtype=k.vec3),
                1e-4, 32.0, 32, 0.0, 1.0]
         outs = [wp.zeros(n, dtype=t, device=wd) for t in (k.vec3, k.vec3, k.mat33, k.mat33)]
-        adj_ins = [wp.from_torch(adj_x, dtype=k.vec3), wp.from_torch(adj_F, dtype=k.mat33), None,
+        adj_ins = [wp.from_torch(adj_x, dtype=k.vec3), wp.from_torch(adj_F, dtype=k.mat33), wp.zeros_like(run),
                    wp.from_torch(adj_gv, dtype=k.vec3), 0.0, 0.0, 0, 0.0, 0.0]
         adj_outs = [wp.from_torch(c.clone(), dtype=t) for c, t in zip(cots, (k.vec3, k.vec3, k.mat33, k.mat33))]
         wp.launch(kernel, dim=n, inputs=ins + outs, adj_inputs=adj_ins + adj_outs, adjoint=True, device=wd)

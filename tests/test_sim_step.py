@@ -350,6 +350,9 @@ def test_run_indices_are_checked():
         solver.step(x, v, C, F, tau, vol, mass, run=torch.zeros(5, dtype=torch.int64), n_runs=2)
     with pytest.raises(ValueError, match="n_runs=0 must be an integer >= 1"):
         solver.step(x, v, C, F, tau, vol, mass, run=torch.zeros(5, dtype=torch.int32), n_runs=0)
+    # the stacked grids' node index is int32 (warp's, the aggregated kernels' peer key): 11^3 nodes per run at n_grid 8
+    with pytest.raises(ValueError, match="pass int32's node index"):
+        solver.step(x, v, C, F, tau, vol, mass, run=torch.zeros(5, dtype=torch.int32), n_runs=2 ** 31 // 11 ** 3 + 1)
 
 
 @pytest.mark.parametrize("split", [False, True])

@@ -358,6 +358,10 @@ class MPMSolver:
         """The particles' run indices as a contiguous int32 tensor [N] (all 0 when ``run`` is None; cached per N)."""
         if int(n_runs) != n_runs or n_runs < 1:
             raise ValueError(f"{_WHERE}: n_runs={n_runs} must be an integer >= 1")
+        if n_runs * grid_size(self.cfg.n_grid) ** 3 >= 2 ** 31:  # the stacked grids' node index (warp's int32; the
+            # aggregated kernels' peer key) would overflow
+            raise ValueError(f"{_WHERE}: n_runs={n_runs} grids of {grid_size(self.cfg.n_grid)}^3 nodes pass int32's "
+                             "node index; use fewer runs per launch")
         if run is None:
             if n_runs != 1:
                 raise ValueError(f"{_WHERE}: n_runs={n_runs} needs the particles' run indices (run=)")
