@@ -221,8 +221,8 @@ def main(argv=None) -> list[dict]:
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
     print("| particles | grid | order | p2g us | p2g_agg us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
-          "p2g_block us (window share) | g2p us | g2p adjoint us | g2p_agg adjoint us |\n| --- | --- | --- | --- | --- | "
-          "--- | --- | --- | --- | --- | --- | --- |")
+          "p2g_block us (window share) | g2p us | g2p adjoint us | g2p_agg adjoint us |\n"
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:

@@ -1,10 +1,11 @@
 """Warp-aggregated atomics: the forward P2G (``gca.sim.kernels.p2g_agg``, ``MPMSolver.agg_p2g``) and G2P's adjoint
 (``g2p_agg``, ``MPMSolver.agg_g2p``).
 
-On a CPU every thread is its own peer, so the kernels are ``p2g``'s and ``g2p``'s (bitwise). The CUDA part (``__match_any_sync``, the
-shuffle tree of ``_PEER_SUM4``) is checked three ways here: the tree's algorithm lane by lane in Python (a model of
-the snippet, with a broken variant as the negative control), its compile for sm_90 (warp's own NVRTC, no GPU needed),
-and, where CUDA is present, the kernel against ``p2g`` on dense lattice particles (many peers per warp).
+On a CPU every thread is its own peer, so the kernels are ``p2g``'s and ``g2p``'s (bitwise). The CUDA part
+(``__match_any_sync``, the shuffle tree of ``_peer_tree``) is checked three ways here: the tree's algorithm lane by
+lane in Python (a model of the snippet, with a broken variant as the negative control), its compile for sm_90 (warp's
+own NVRTC, no GPU needed), and, where CUDA is present, the kernels against the plain ones on dense lattices, shuffled
+peers, one cell and two runs (many peers per warp).
 """
 
 import numpy as np

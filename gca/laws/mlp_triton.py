@@ -81,8 +81,8 @@ def _gelu_and_grad(x):
 
 @triton.jit(do_not_specialize=["n", "n_programs", "per_program"])  # one compiled kernel for every particle count
 def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, part_stride, n,
-                   n_programs, per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr, N_OUT: tl.constexpr,
-                   OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
+                   n_programs, per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr,
+                   N_OUT: tl.constexpr, OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
                    INTERPRETED_PER: tl.constexpr):
     """One persistent program: for its per_program tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
     recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
