@@ -194,7 +194,7 @@ def test_peer_sum_tree_negative_control():
     assert _peer_sum_model(keys, values, broken=True)[0] != sum(values)
 
 
-@pytest.mark.parametrize("module", ["gca_sim_mpm_float32", "gca_sim_mpm_float64"])
+@pytest.mark.parametrize("module", ["gca_sim_mpm_agg_float32", "gca_sim_mpm_agg_float64"])  # their own modules
 def test_agg_p2g_compiles_for_sm_90(tmp_path, module):
     # the CUDA snippets (match, shuffles, ballots) through warp's own NVRTC for the H100/H200's arch, on any machine
     # (the PyPI wheel carries NVRTC; a snippet that does not compile raises "CUDA kernel build failed"); float64 is

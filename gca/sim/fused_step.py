@@ -51,6 +51,7 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
     run_offset, node_velocity = k.run_offset, k.node_velocity
     analytic_stress = law.analytic_stress
     module = f"gca_sim_fused_step_{T.__name__}"
+    agg_module = f"gca_sim_fused_step_agg_{T.__name__}"  # the warp-aggregated variants: compiled where launched
 
     def make_p2g_stress(agg: bool):
         """``p2g_stress``, or with ``agg`` its scatter's atomics aggregated per warp (``kernels.scatter_agg``)."""
@@ -81,7 +82,7 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
                                                        n_grid, grid_mv, grid_m)
 
         p2g_stress.__name__ = p2g_stress.__qualname__ = "p2g_stress_agg" if agg else "p2g_stress"
-        return wp.kernel(p2g_stress, module=module)
+        return wp.kernel(p2g_stress, module=agg_module if agg else module)
 
     @wp.kernel(module=module)
     def grid_update_zero(
@@ -141,7 +142,7 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
                                                        grid_mv, grid_m)
 
         g2p_p2g.__name__ = g2p_p2g.__qualname__ = "g2p_p2g_agg" if agg else "g2p_p2g"
-        return wp.kernel(g2p_p2g, module=module)
+        return wp.kernel(g2p_p2g, module=agg_module if agg else module)
 
     p2g_stress, p2g_stress_agg = make_p2g_stress(False), make_p2g_stress(True)
     g2p_p2g, g2p_p2g_agg = make_g2p_p2g(False), make_g2p_p2g(True)

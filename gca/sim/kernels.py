@@ -167,6 +167,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     mat33 = wp.types.matrix((3, 3), T)
     module = f"gca_sim_mpm_{T.__name__}"
     block_module = f"gca_sim_mpm_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
+    agg_module = f"gca_sim_mpm_agg_{T.__name__}"  # warp-aggregated kernels (options): compiled only where launched
 
     @wp.func
     def stencil(x: vec3, inv_dx: T, n_grid: int):
@@ -277,7 +278,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                         wp.atomic_add(grid_mv, I, J, K, vec3(s[0], s[1], s[2]))
                         wp.atomic_add(grid_m, I, J, K, s[3])
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=agg_module)
     def p2g_agg(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
@@ -544,7 +545,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
             x_out[p] = x_new
 
         g2p.__name__ = g2p.__qualname__ = "g2p_agg" if agg else "g2p"
-        return wp.kernel(g2p, module=module)
+        return wp.kernel(g2p, module=agg_module if agg else module)
 
     g2p, g2p_agg = make_g2p(False), make_g2p(True)
 
