@@ -134,7 +134,7 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
             before it writes it), its new v and C go straight into the scatter onto the zeroed mv and m."""
             p = wp.tid()
             off = run_offset(run, p, n_grid, grid_v.shape[0])
-            x1, v1, C1, F1 = gather(x_src[p], F_src[p], off, grid_v, dt, inv_dx, n_grid, lo, hi, 0)
+            x1, v1, C1, F1 = gather(x_src[p], F_src[p], off, grid_v, dt, inv_dx, n_grid, lo, hi)
             x_dst[p] = x1
             F_dst[p] = F1
             tau = analytic_stress(kind, F1, mu[p * per], lam[p * per], j_min)
@@ -212,7 +212,7 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         p = blk * wp.block_dim() + lane
         q = wp.min(p, n - 1)
         off = run_offset(run, q, n_grid, grid_v.shape[0])
-        x1, v1, C1, F1 = gather(x_src[q], F_src[q], off, grid_v, dt, inv_dx, n_grid, lo, hi, 0)
+        x1, v1, C1, F1 = gather(x_src[q], F_src[q], off, grid_v, dt, inv_dx, n_grid, lo, hi)
         if p < n:
             x_dst[p] = x1
             F_dst[p] = F1

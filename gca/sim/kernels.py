@@ -68,9 +68,10 @@ return (int)__match_any_sync(__activemask(), key);
 return 1;
 #endif
 """
-_LEADER = """
+_IS_LEADER = "(((unsigned)peers & ((1u << (threadIdx.x & 31u)) - 1u)) == 0u)"  # no lower lane among the peers
+_LEADER = f"""
 #if defined(__CUDA_ARCH__)
-return ((unsigned)peers & ((1u << (threadIdx.x & 31u)) - 1u)) == 0u;
+return {_IS_LEADER};
 #else
 return true;
 #endif
@@ -111,7 +112,7 @@ return a;
 _LOAD_AGG = "return wp::index(a, i, j, k);"
 _LOAD_AGG_ADJ = f"""
 #if defined(__CUDA_ARCH__)
-{_peer_tree("adj_ret", 3)}if ((p & ((1u << lane) - 1u)) == 0u) {{
+{_peer_tree("adj_ret", 3)}if ({_IS_LEADER}) {{
     if (adj_a.data) wp::adj_atomic_add(&wp::index(adj_a, i, j, k), s);
     else if (a.grad) wp::adj_atomic_add(&wp::index_grad(a, i, j, k), s);
 }}
@@ -253,14 +254,19 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         ...
 
     @wp.func
+    def base_peers(base: wp.vec3i, off: int, G: int):
+        """:func:`warp_peers` of the stencil base ``base`` in the run whose grid starts at ``off`` along the first
+        axis: the key is the base node's index in the stacked grids (``G`` nodes a side), so two runs never merge."""
+        return warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)
+
+    @wp.func
     def scatter_agg(x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int, dt: T, inv_dx: T,
                     n_grid: int, grid_mv: wp.array3d(dtype=vec3), grid_m: wp.array3d(dtype=T)):
-        """:func:`scatter` with warp-aggregated atomics: the warp's lanes of one stencil base (the same 27 nodes; the
-        key is the base node's stacked index, so two runs never merge) sum their shares by shuffles, and the lowest
-        adds the sum: one atomic add per node and base (``_PEER_SUM4``). Forward only; off CUDA it is ``scatter``."""
+        """:func:`scatter` with warp-aggregated atomics: the warp's lanes of one stencil base (the same 27 nodes,
+        :func:`base_peers`) sum their shares by shuffles, and the lowest adds the sum: one atomic add per node and base
+        (``_PEER_SUM4``). Forward only; off CUDA it is ``scatter``."""
         base, fx, W = stencil(x_p, inv_dx, n_grid)
-        G = grid_m.shape[1]
-        peers = warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)
+        peers = base_peers(base, off, grid_m.shape[1])
         lead = peer_leader(peers)
         affine = (-dt * vol_p * T(4.0) * inv_dx * inv_dx) * tau_p + m_p * C_p
         mv_p = m_p * v_p
@@ -481,13 +487,15 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         ...
 
     def make_gather(agg: bool):
-        """The G2P of one particle; ``agg``: the grid's cotangent summed over the warp's ``peers`` (same stencil
-        base) before its atomic adds (the adjoint's scatter), else each lane adds its own (``peers`` unused)."""
+        """The G2P of one particle; ``agg``: the grid's cotangent summed over the warp's lanes of the same stencil
+        base (:func:`base_peers`) before its atomic adds (the adjoint's scatter), else each lane adds its own."""
 
         def gather(x_p: vec3, F_p: mat33, off: int, grid_v: wp.array3d(dtype=vec3), dt: T, inv_dx: T, n_grid: int,
-                   lo: T, hi: T, peers: int):
+                   lo: T, hi: T):
             """G2P of one particle from the grid at offset ``off``: (x' clamped to [lo, hi], v', C', F_trial)."""
             base, fx, W = stencil(x_p, inv_dx, n_grid)
+            if wp.static(agg):
+                peers = base_peers(base, off, grid_v.shape[1])
             v_new = vec3(T(0.0))
             B = mat33(T(0.0))
             for i in range(3):
@@ -531,14 +539,8 @@ def make_kernels(T: type) -> types.SimpleNamespace:
             F_out: wp.array(dtype=mat33),
         ):
             p = wp.tid()
-            off = run_offset(run, p, n_grid, grid_v.shape[0])
-            peers = int(0)
-            if wp.static(agg):  # the lanes of one stencil base (the same 27 nodes), as p2g_agg's
-                base, fx, W = stencil(x[p], inv_dx, n_grid)
-                G = grid_v.shape[1]
-                peers = warp_peers(((base[0] + PAD + off) * G + base[1] + PAD) * G + base[2] + PAD)
             x_new, v_new, C_new, F_new = wp.static(gather_agg if agg else gather)(
-                x[p], F[p], off, grid_v, dt, inv_dx, n_grid, lo, hi, peers)
+                x[p], F[p], run_offset(run, p, n_grid, grid_v.shape[0]), grid_v, dt, inv_dx, n_grid, lo, hi)
             v_out[p] = v_new
             C_out[p] = C_new
             F_out[p] = F_new

@@ -225,26 +225,30 @@ class MPMSolver:
         """
         return self.frame_fused(x, v, C, F, law, vol, mass, 1, run, n_runs)
 
+    def _resolve(self, switch: bool | None) -> bool:
+        """A path switch for this solver's device: True / False as set, None: on CUDA only."""
+        return self.device.type == "cuda" if switch is None else bool(switch)
+
     @property
     def frames_fused(self) -> bool:
         """Whether a purely elastic frame takes :meth:`frame_fused` (``fuse_frames``, resolved for this device)."""
-        return self.device.type == "cuda" if self.fuse_frames is None else bool(self.fuse_frames)
+        return self._resolve(self.fuse_frames)
 
     @property
     def blocks_p2g(self) -> bool:
         """Whether forward P2G takes the block-summed kernels (``block_p2g``, resolved for this device)."""
-        return self.device.type == "cuda" if self.block_p2g is None else bool(self.block_p2g)
+        return self._resolve(self.block_p2g)
 
     @property
     def aggs_p2g(self) -> bool:
         """Whether forward P2G takes the warp-aggregated kernel (``agg_p2g``, resolved for this device)."""
-        return self.device.type == "cuda" if self.agg_p2g is None else bool(self.agg_p2g)
+        return self._resolve(self.agg_p2g)
 
     @property
     def aggs_g2p(self) -> bool:
         """Whether G2P (forward and adjoint) takes the warp-aggregated adjoint (``agg_g2p``, resolved for this
         device)."""
-        return self.device.type == "cuda" if self.agg_g2p is None else bool(self.agg_g2p)
+        return self._resolve(self.agg_g2p)
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
