@@ -217,6 +217,7 @@ def _cuda_case(case: str):
     1000 particles inside one cell (all 32 lanes on one base: five rounds; a partial last warp); the duck's lattice
     twice, interleaved as runs 0 and 1 (the same base in one warp for two runs: keys must keep them apart).
     Returns (x [N, 3], run [N] int32, n_runs)."""
+    wp.init()  # wp.from_torch reads warp's runtime, which a launch would start only later (session 46's first call)
     if case == "one_cell":
         g = torch.Generator().manual_seed(13)
         x = (15.6 + 0.8 * torch.rand(1000, 3, generator=g, dtype=torch.float64)) / 32  # cell 15, away from its edges
