@@ -133,10 +133,13 @@ class MPMSolver:
     # forward P2G with warp-aggregated atomics (kernels.p2g_agg, and the fused analytic step's kernels through
     # kernels.scatter_agg: a warp's particles of one stencil base sum their shares by shuffles, one atomic per node
     # and base), True / False, or None: on CUDA only (off CUDA it is p2g). block_p2g, where on, takes precedence.
-    # Off until measured (NOTES session 45: the duck's ~38 particles per cell put 4 lanes of a warp on each node)
+    # Off: measured on the H200 (NOTES session 46, bench_p2g) at the paper profile's 30k particles on 32^3 it is 8 %
+    # faster on the duck's order (~4 lanes per base) and 20 % slower at the ball's density (~2.3); it halves P2G only
+    # at 100k / 64^3 on dense orders, where the atomics' contention binds
     agg_p2g: bool | None = False
     # G2P whose adjoint sums a warp's grid cotangents per stencil base before its atomic adds (kernels.g2p_agg; its
-    # forward is g2p's plus one __match_any_sync), True / False, or None: on CUDA only. Off until measured (session 45)
+    # forward is g2p's plus one __match_any_sync), True / False, or None: on CUDA only. Off: measured slower on every
+    # order and size (NOTES session 46: +12 to +167 %)
     agg_g2p: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
