@@ -168,6 +168,7 @@ def keep_stopped(work: Path, out: Path, tag: str) -> list[Path]:
 
 
 SOLVER_SWITCHES = ("block_p2g", "agg_p2g", "agg_g2p", "fuse_frames", "fuse_analytic", "split_p2g", "keep_grid")
+SOLVER_NUMBERS = ("stash_mib",)  # MPMSolver's numeric path settings (>= 0; stash_mib=0: the grid stash off)
 
 
 def set_solver_switches(items: list[str]) -> None:
@@ -178,9 +179,11 @@ def set_solver_switches(items: list[str]) -> None:
     for item in items:
         name, _, value = item.partition("=")
         parsed = yaml.safe_load(value) if value else "missing"
-        if name not in SOLVER_SWITCHES or not (parsed is None or isinstance(parsed, bool)):
+        number = name in SOLVER_NUMBERS and isinstance(parsed, (int, float)) and not isinstance(parsed, bool) \
+            and parsed >= 0
+        if not number and (name not in SOLVER_SWITCHES or not (parsed is None or isinstance(parsed, bool))):
             raise SystemExit(f"harness.py: --solver {item!r}: expected one of {', '.join(SOLVER_SWITCHES)}"
-                             "=true|false|null")
+                             f"=true|false|null, or {', '.join(SOLVER_NUMBERS)}=a number >= 0")
         setattr(MPMSolver, name, parsed)
         print(f"[harness] MPMSolver.{name} = {getattr(MPMSolver, name)!r}", flush=True)
 

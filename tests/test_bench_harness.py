@@ -66,6 +66,12 @@ def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one
         harness.set_solver_switches(["n_grid=4"])
     with pytest.raises(SystemExit, match="=true|false|null"):  # Python's spelling is a string here, and a true one
         harness.set_solver_switches(["block_p2g=None"])
+    monkeypatch.setattr(MPMSolver, "stash_mib", MPMSolver.stash_mib)
+    harness.set_solver_switches(["stash_mib=0"])  # a number setting: the grid stash off
+    assert MPMSolver(SimConfig(n_grid=8)).stash_mib == 0
+    for bad in ("stash_mib=-1", "stash_mib=true", "block_p2g=3"):
+        with pytest.raises(SystemExit, match="a number >= 0"):
+            harness.set_solver_switches([bad])
 
 
 def test_a_harness_row_names_its_host_cpu(tmp_path):

@@ -10,6 +10,12 @@ count):
   ``torch.autograd.grad`` of its outputs against static output cotangents, giving the gradients of
   the frame-start state and of the material's trainable parameters.
 
+With a grid stash (:func:`gca.sim.frame.stashable`: a material whose forward takes the generic step; the solver's
+``stash_mib``) the forward graph also leaves each step's P2G grid (mv, m) in static buffers, which
+:meth:`FrameGraphs.stashed` hands out for the caller to keep per frame, and a second backward graph (the
+**replay**) recomputes the frame from such a stash: each step's grid update and G2P from its stashed grid, P2G
+skipped (``MPMSolver.step``'s ``grid``), then the same differentiation. Same gradients (bitwise on the CPU).
+
 :func:`graphed_frame` wraps them in a ``torch.autograd.Function`` that saves only the frame-start
 state, i.e. the same memory profile as per-frame checkpointing (``gca.sim.rollout``), with both
 passes replayed instead of launched. Parameters are read from their storage at replay time, so
@@ -32,7 +38,7 @@ import torch
 from torch import nn
 
 from gca.laws.neural import neural_networks
-from gca.sim.frame import simulate_frame_trial
+from gca.sim.frame import simulate_frame_trial, stashable
 
 _WHERE = "gca/sim/graph.py"
 _STATE = ("x", "v", "C", "F")
@@ -50,8 +56,8 @@ class _Frame(nn.Module):
         super().__init__()
         self.solver, self.material, self.n_steps = solver, material, n_steps
 
-    def forward(self, x, v, C, F, vol, mass):
-        return simulate_frame_trial(self.solver, self.material, self.n_steps, x, v, C, F, vol, mass)
+    def forward(self, x, v, C, F, vol, mass, grids=None):
+        return simulate_frame_trial(self.solver, self.material, self.n_steps, x, v, C, F, vol, mass, grids)
 
 
 @contextlib.contextmanager
@@ -112,15 +118,26 @@ class FrameGraphs:
         self.mass = torch.zeros(n, dtype=dt, device=dev)
         self.fwd_in, self.bwd_in = new(), new()
         self.bwd_cot = {**new(), "F_trial": torch.zeros(n, 3, 3, dtype=dt, device=dev)}
-        self.fwd_out = self.bwd_grads = None
-        self._fwd_graph = self._bwd_graph = None
+        # the grid stash: each step's (mv, m) as the forward left them, and the replay's copy of a frame's stash
+        self.stashes = stashable(solver, material)
+        shapes_g = solver.stash_shapes()
+        grid = lambda: tuple(torch.zeros((self.n_steps, *s), dtype=dt, device=dev) for s in shapes_g)  # noqa: E731
+        self.fwd_grids, self.bwd_grids = (grid(), grid()) if self.stashes else (None, None)
+        self.fwd_out = self.bwd_grads = self.rep_grads = None
+        self._fwd_graph = self._bwd_graph = self._rep_graph = None
         self._captured = False
+
+    @property
+    def stash_bytes(self) -> int:
+        """Bytes of one frame's grid stash (0 where the frame cannot stash)."""
+        return sum(t.numel() * t.element_size() for t in self.fwd_grids) if self.stashes else 0
 
     def matches(self, material, n_steps: int, n: int, capture: bool | None = None) -> bool:
         return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
                 and (capture is None or self.capture_asked == capture)
                 and self.precision == torch.get_float32_matmul_precision()
                 and self.kernels == _mlp_kernels(material)
+                and self.stashes == stashable(self.solver, material)
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 
     def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:
@@ -133,17 +150,19 @@ class FrameGraphs:
     def _run_forward(self):
         s = self.fwd_in
         with torch.no_grad():
-            return self.frame(s["x"], s["v"], s["C"], s["F"], self.vol, self.mass)
+            return self.frame(s["x"], s["v"], s["C"], s["F"], self.vol, self.mass, self.fwd_grids)
 
-    def _run_backward(self):
-        """Recompute the frame and differentiate it. The trainable parameters enter as fresh aliases
+    def _run_backward(self, replay: bool = False):
+        """Recompute the frame and differentiate it (``replay``: from the stash in ``bwd_grids``, P2G skipped). The
+        trainable parameters enter as fresh aliases
         (same storage, new autograd leaves): differentiating the parameters themselves would touch
         their accumulation nodes, which may belong to a live graph on another stream (e.g. a
         regulariser evaluated before the rollout) and then break the capture."""
         with torch.enable_grad():
             ins = [self.bwd_in[k].detach().requires_grad_(True) for k in _STATE]
             alias = {name: p.detach().requires_grad_(True) for name, p in zip(self.param_names, self.params)}
-            outs = torch.func.functional_call(self.frame, alias, (*ins, self.vol, self.mass), strict=False)
+            outs = torch.func.functional_call(self.frame, alias, (*ins, self.vol, self.mass,
+                                                                  self.bwd_grids if replay else None), strict=False)
             cots = [self.bwd_cot[k] for k in (*_STATE, "F_trial")]
             leaves = [*ins, *alias.values()]
             grads = torch.autograd.grad(outs, leaves, cots, allow_unused=True)
@@ -160,17 +179,23 @@ class FrameGraphs:
             with torch.cuda.stream(side):  # warm-up: lazy inits, warp module loads, cuBLAS handles
                 self._run_forward()
                 self._run_backward()
+                if self.stashes:
+                    self._run_backward(replay=True)
             torch.cuda.current_stream(self.solver.device).wait_stream(side)
             self._fwd_graph, self._bwd_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+            self._rep_graph = torch.cuda.CUDAGraph() if self.stashes else None
             with _collector_paused():
                 with torch.cuda.graph(self._fwd_graph, capture_error_mode="thread_local"):
                     self.fwd_out = self._run_forward()
                 with torch.cuda.graph(self._bwd_graph, capture_error_mode="thread_local"):
                     self.bwd_grads = self._run_backward()
+                if self.stashes:
+                    with torch.cuda.graph(self._rep_graph, capture_error_mode="thread_local"):
+                        self.rep_grads = self._run_backward(replay=True)
         except RuntimeError as err:  # a host sync inside the law: run eagerly instead
             warnings.warn(f"{_WHERE}: CUDA graph capture of {type(self.material).__name__} failed, running "
                           f"eagerly ({str(err).splitlines()[0]})", RuntimeWarning, stacklevel=3)
-            self.capture, self._fwd_graph, self._bwd_graph = False, None, None
+            self.capture, self._fwd_graph, self._bwd_graph, self._rep_graph = False, None, None, None
             torch.cuda.synchronize(self.solver.device)
         self._captured = True
 
@@ -188,45 +213,61 @@ class FrameGraphs:
             out = self._run_forward()
         return tuple(o.clone() for o in out)
 
-    def backward(self, state, cotangents):
+    def stashed(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The grid stash of the last :meth:`forward` (copies of each step's mv [n_steps, R G, G, G, 3] and m
+        [n_steps, R G, G, G]), for :meth:`backward`'s ``grids``; None where the frame cannot stash."""
+        return tuple(t.clone() for t in self.fwd_grids) if self.stashes else None
+
+    def backward(self, state, cotangents, grids=None):
         """Gradients of the frame-start ``state`` (x, v, C, F) and of the trainable parameters.
 
         Args:
             state: the frame's inputs (x, v, C, F).
             cotangents: gradients of the frame's outputs (x, v, C, F, F_trial).
+            grids: the frame's grid stash from :meth:`stashed` after its :meth:`forward` from ``state`` (the
+                replay: P2G not recomputed), or None (the recompute).
         """
+        if grids is not None and not self.stashes:
+            raise ValueError(f"{_WHERE}: a grid stash given to a frame runner that cannot stash")
         for k, t in zip(_STATE, state):
             self.bwd_in[k].copy_(t)
         for k, g in zip((*_STATE, "F_trial"), cotangents):
             self.bwd_cot[k].copy_(g)
+        if grids is not None:
+            for buf, g in zip(self.bwd_grids, grids):
+                buf.copy_(g)
         self._ensure_captured()
         if self.capture:
-            self._bwd_graph.replay()
-            grads = self.bwd_grads
+            (self._bwd_graph if grids is None else self._rep_graph).replay()
+            grads = self.bwd_grads if grids is None else self.rep_grads
         else:
-            grads = self._run_backward()
+            grads = self._run_backward(replay=grids is not None)
         return tuple(g.clone() for g in grads)
 
 
 class _GraphedFrame(torch.autograd.Function):
-    """autograd bridge of :class:`FrameGraphs`: saves the frame-start state only."""
+    """autograd bridge of :class:`FrameGraphs`: saves the frame-start state only (and the frame's grid stash where
+    ``stash``)."""
 
     @staticmethod
-    def forward(ctx, runner: FrameGraphs, x, v, C, F, *params):
+    def forward(ctx, runner: FrameGraphs, stash: bool, x, v, C, F, *params):
         ctx.runner = runner
         ctx.save_for_backward(x, v, C, F)
-        return runner.forward(x, v, C, F)
+        out = runner.forward(x, v, C, F)
+        ctx.grids = runner.stashed() if stash else None
+        return out
 
     @staticmethod
     def backward(ctx, *cotangents):
-        grads = ctx.runner.backward(ctx.saved_tensors, cotangents)
-        return (None, *grads)
+        grads = ctx.runner.backward(ctx.saved_tensors, cotangents, ctx.grids)
+        return (None, None, *grads)
 
 
-def graphed_frame(runner: FrameGraphs, x, v, C, F):
-    """Differentiable frame through the runner: (x, v, C, F) -> (x, v, C, F, F_trial)."""
+def graphed_frame(runner: FrameGraphs, x, v, C, F, stash: bool = False):
+    """Differentiable frame through the runner: (x, v, C, F) -> (x, v, C, F, F_trial); ``stash``: its backward
+    replays the forward's grid stash (the runner must stash: :attr:`FrameGraphs.stashes`)."""
     if torch.is_grad_enabled():
-        return _GraphedFrame.apply(runner, x, v, C, F, *runner.params)
+        return _GraphedFrame.apply(runner, bool(stash and runner.stashes), x, v, C, F, *runner.params)
     return runner.forward(x, v, C, F)
 
 

@@ -13,7 +13,9 @@ position clamp (they left the domain) all raise :class:`SimulationDiverged` with
 counts and the law.
 
 Speed. With ``graph`` (default on CUDA) each frame's forward and recompute-backward are replayed
-from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step from Python.
+from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step from Python. Where the frames can
+stash their grids (:func:`gca.sim.frame.stashable`) and all of them fit ``MPMSolver.stash_mib``, a frame runner's
+rollout (swept or graphed) keeps each frame's stash from its forward pass, and the frames' recomputes skip P2G.
 """
 
 from __future__ import annotations
@@ -175,6 +177,8 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         if graph or sweep else None
     if runner is not None:
         runner.bind(vol, mass)
+    stash = runner is not None and _stash_fits(runner, solver, n_steps // steps_per_frame)
+    grids = [] if sweep and stash else None  # each frame's grid stash, for the sweep
     Cs = [C]
     if sweep:
         x, v, C, F = (t.detach() for t in (x, v, C, F))
@@ -182,8 +186,10 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         args = (solver, material, steps_per_frame, x, v, C, F, vol, mass)
         if sweep:
             x, v, C, F, F_trial = runner.forward(x, v, C, F)
+            if grids is not None:
+                grids.append(runner.stashed())
         elif runner is not None:
-            x, v, C, F, F_trial = graphed_frame(runner, x, v, C, F)
+            x, v, C, F, F_trial = graphed_frame(runner, x, v, C, F, stash)
         elif checkpoint and torch.is_grad_enabled():
             x, v, C, F, F_trial = torch_checkpoint(simulate_frame_trial, *args, use_reentrant=False)
         else:
@@ -205,8 +211,14 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         # as soon as it ends, not at the next garbage collection; a 200-iteration run peaked at 9.4 GiB with the cycle)
         traj.sweep = ReverseSweep(runner, (traj.x, traj.v, Cs, traj.F), v0, traj.clamped, lambda: [
             judge_state(solver, x0.shape[0], row, f * steps_per_frame, law)
-            for f, row in enumerate(torch.stack(checks).tolist())])
+            for f, row in enumerate(torch.stack(checks).tolist())], grids)
     return traj
+
+
+def _stash_fits(runner, solver: MPMSolver, n_frames: int) -> bool:
+    """Whether a rollout of ``n_frames`` frames through ``runner`` keeps its frames' grid stashes: the frames can
+    stash (:attr:`gca.sim.graph.FrameGraphs.stashes`) and all of them fit ``solver.stash_mib``."""
+    return runner.stashes and n_frames * runner.stash_bytes <= solver.stash_mib * 2 ** 20
 
 
 class ReverseSweep:
@@ -230,10 +242,13 @@ class ReverseSweep:
         clamped: the rollout's ``clamped`` list, filled by :meth:`judge`.
         checks: reads the rollout's per-frame health checks (one host read), raising :class:`SimulationDiverged` at
             the first broken frame, and returns the clamped counts (:meth:`judge`).
+        grids: each frame's grid stash from its forward (``FrameGraphs.stashed``; the frame's adjoint then replays
+            it instead of recomputing P2G, and drops it), or None: every frame recomputed.
     """
 
-    def __init__(self, runner, frames: tuple, v0: torch.Tensor, clamped: list, checks: Callable[[], list]):
-        self.runner, self.v0, self.clamped, self._checks = runner, v0, clamped, checks
+    def __init__(self, runner, frames: tuple, v0: torch.Tensor, clamped: list, checks: Callable[[], list],
+                 grids: list | None = None):
+        self.runner, self.v0, self.clamped, self._checks, self.grids = runner, v0, clamped, checks, grids
         self.xs, self.vs, self.Cs, self.Fs = frames
         self.judged = False
         self.last = self.xs.shape[0] - 1
@@ -289,7 +304,13 @@ class ReverseSweep:
         """Adjoints of the frames ``top .. frame + 1`` (the current stream is the side stream)."""
         for f in range(self.top, frame, -1):
             state = (self.xs[f - 1], self.vs[f - 1], self.Cs[f - 1], self.Fs[f - 1])
-            out = self.runner.backward(state, (*self.cot, torch.zeros_like(self.cot[3])))
+            grids = None
+            if self.grids is not None:  # frame f - 1 -> f's stash, dropped once its adjoint is queued
+                grids, self.grids[f - 1] = self.grids[f - 1], None
+                if self.stream is not None:  # made on the caller's stream: not reused before the side stream read it
+                    for t in grids:
+                        t.record_stream(self.stream)
+            out = self.runner.backward(state, (*self.cot, torch.zeros_like(self.cot[3])), grids)
             self.cot = list(out[:4])
             self.grads = [g if a is None else a + g for a, g in zip(self.grads, out[4:])]
         self.top = min(self.top, frame)
@@ -331,6 +352,7 @@ class ReverseSweep:
             torch.cuda.current_stream(self.stream.device).wait_stream(self.stream)
         self.done = True
         self.xs = self.vs = self.Cs = self.Fs = None  # the frames are the caller's again (freed with the Rollout)
+        self.grids = None
 
 
 _SIDE_STREAMS: dict = {}

@@ -17,6 +17,13 @@ In training each frame's steps already run twice (the forward pass, then the rec
 checkpointed or CUDA-graphed frame in backward), so keeping the grid within the recompute saves a
 third pass of the transfers at the price of one frame's grids in memory.
 
+The grid stash (``step(..., grid=(mv, m))``, driven by :class:`gca.sim.graph.FrameGraphs` and the rollout,
+``stash_mib``): the forward pass, run without autograd, scatters each step's P2G into the given buffers (mv, m),
+which the caller keeps; the recompute then takes each step's grid from them instead of running P2G again (grid
+update and G2P only), and its backward runs on that grid as with ``keep_grid``. The same gradients: bitwise on
+the CPU, where P2G's sums run in one order (tested); on a GPU the stash is the forward's own grid, which a
+recompute would reproduce only to the atomics' rounding. It costs 4 floats per node and step (0.69 MB at 32^3).
+
 ``vol`` and ``mass`` are constants of the simulation (no gradient).
 """
 
@@ -113,6 +120,10 @@ class MPMSolver:
     """
 
     keep_grid: bool = True  # backward from the forward's kept grid; False: recompute the step under a tape
+    # the grid stash's budget per rollout [MiB]: a rollout whose frames' stashed grids (mv, m of every step) fit keeps
+    # them from its forward pass, so that its frames' recomputes skip P2G (the step's costliest kernel); 0 = off. At the
+    # paper profile (32^3, 800 steps) a rollout stashes ~550 MB. Needs keep_grid (the reference path recomputes all)
+    stash_mib: float = 1536.0
     # forward P2G with a thread per (particle, node) (kernels.p2g_nodes) instead of per particle. Off: measured on the
     # H100 (benchmarks/bench_p2g.py, NOTES session 13) it is faster only for particles in random order (30k: 60 vs
     # 82 us) and 2x slower for the lattice-ordered particles the pipeline samples (70 vs 35 us); ~7x slower on a CPU
@@ -169,7 +180,7 @@ class MPMSolver:
         fine = self._refined[k]  # the path switches follow this solver's (a captured CUDA graph keeps its own)
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
-        fine.agg_g2p = self.agg_g2p
+        fine.agg_g2p, fine.stash_mib = self.agg_g2p, self.stash_mib
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -188,7 +199,7 @@ class MPMSolver:
         """A cached :class:`gca.sim.graph.FrameGraphs` for ``n_steps`` steps of ``material`` on ``n`` particles."""
         return self._graphs.get(self, material, n_steps, n, capture)
 
-    def step(self, x, v, C, F, tau, vol, mass, run=None, n_runs: int = 1):
+    def step(self, x, v, C, F, tau, vol, mass, run=None, n_runs: int = 1, grid=None):
         """Advance the particles by one step of ``cfg.dt``.
 
         Args:
@@ -203,6 +214,10 @@ class MPMSolver:
                 simulations in one launch, each on its own grid (``gca.sim.kernels``: runs), equal to stepping
                 each run's particles alone (tested). Indices outside the range are clamped to it.
             n_runs: number of runs (grids).
+            grid: the grid stash of this step, ``(mv [R G, G, G, 3], m [R G, G, G])`` (:meth:`stash_shapes`; R =
+                ``n_runs``): without a gradient to record, P2G scatters into it (zeroed first) and the caller keeps it;
+                with one (``keep_grid``), the step takes its grid from it (as the forward made it from these inputs)
+                and skips P2G. None: the step's own grid.
 
         Returns:
             ``(x', v', C', F_trial)`` with the shapes of ``x, v, C, F``; ``F_trial = (I + dt C') F``
@@ -212,8 +227,32 @@ class MPMSolver:
         if run is None and self._batch is not None:
             run, n_runs = self._batch
         run = self._runs(run, x.shape[0], n_runs)
-        keep = self.keep_grid and torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, tau))
-        return _MPMStep.apply(self, keep, n_runs, run, x, v, C, F, tau, vol, mass)
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, tau))
+        keep = self.keep_grid and grad
+        if grid is not None:
+            grid = self._check_stash(grid, n_runs)
+            if grad and not keep:
+                raise ValueError(f"{_WHERE}: a stashed grid needs keep_grid for its backward (the reference path "
+                                 "recomputes P2G under a tape)")
+        return _MPMStep.apply(self, keep, n_runs, run, x, v, C, F, tau, vol, mass, *(grid or ()))
+
+    def stash_shapes(self, n_runs: int | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """Shapes of one step's grid stash (mv, m) for ``n_runs`` stacked grids (None: this solver's runs, 1 unless
+        :meth:`with_runs`)."""
+        if n_runs is None:
+            n_runs = self._batch[1] if self._batch is not None else 1
+        G = grid_size(self.cfg.n_grid)
+        return (n_runs * G, G, G, 3), (n_runs * G, G, G)
+
+    def _check_stash(self, grid, n_runs: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The step's grid stash (mv, m), checked against :meth:`stash_shapes`, dtype, device and contiguity."""
+        mv, m = grid
+        for name, t, shape in (("mv", mv, self.stash_shapes(n_runs)[0]), ("m", m, self.stash_shapes(n_runs)[1])):
+            if tuple(t.shape) != shape or t.dtype != self.dtype or t.device.type != self.device.type \
+                    or not t.is_contiguous():
+                raise ValueError(f"{_WHERE}: the grid stash's {name} must be a contiguous {self.dtype} tensor of shape "
+                                 f"{shape} on {self.device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+        return mv, m
 
     def step_fused(self, x, v, C, F, law, vol, mass, run=None, n_runs: int = 1):
         """:meth:`step` with the analytic law ``law`` evaluated inside P2G (``gca.sim.fused_step``), forward only.
@@ -434,12 +473,13 @@ class MPMSolver:
                 (k.g2p_agg if self.aggs_g2p else k.g2p, n,
                  [args[0], args[3], run, gv, cfg.dt, 1.0 / cfg.dx, cfg.n_grid, lo, hi, *outs])]
 
-    def _launch(self, args, run, outs, requires_grad: bool, grid=None, n_runs: int = 1):
+    def _launch(self, args, run, outs, requires_grad: bool, grid=None, n_runs: int = 1, p2g: bool = True):
         """P2G, grid update, G2P from the wrapped inputs ``args`` into the wrapped ``outs`` (on ``grid``, or on
         the reused scratch buffers). Under a tape (``requires_grad``, the reference backward) P2G is the
-        per-particle kernel, whose adjoint the tape replays."""
+        per-particle kernel, whose adjoint the tape replays. ``p2g`` False: the grid's (mv, m) are given (a
+        stash), the grid update and G2P only."""
         grid = self._scratch(requires_grad, n_runs) if grid is None else grid
-        for kernel, dim, kargs in self._kernel_args(args, run, grid, outs):
+        for kernel, dim, kargs in self._kernel_args(args, run, grid, outs)[0 if p2g else 1:]:
             if kernel is self.k.p2g and not requires_grad and self.blocks_p2g:
                 launch_blocks(self.k.p2g_block, dim, [*kargs, self._windows], self.wp_device)  # summed per block first
                 continue
@@ -463,18 +503,26 @@ class MPMSolver:
         return [wp.from_torch(t, dtype=ty, grad=g, requires_grad=g is not None)
                 for t, ty, g in zip(grid, (self.k.vec3, self.k.T, self.k.vec3), grads)]
 
-    def _forward(self, x, v, C, F, tau, vol, mass, run, n_runs: int = 1, keep_grid: bool = False):
+    def _forward(self, x, v, C, F, tau, vol, mass, run, n_runs: int = 1, keep_grid: bool = False, stash=None):
         """The step's outputs (x', v', C', F_trial), and its grid tensors (mv, m, v_grid) if ``keep_grid``
-        (else None)."""
+        (else None). ``stash`` (mv, m): with ``keep_grid`` the step's grid, P2G skipped (the stash replayed);
+        without, P2G's target (zeroed here; the stash recorded)."""
         outs = [torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F)]
-        grid = self._new_grid(n_runs) if keep_grid else None
+        if stash is not None:
+            grid = (*stash, torch.empty_like(stash[0]))
+            if not keep_grid:
+                for t in stash:
+                    t.zero_()
+        else:
+            grid = self._new_grid(n_runs) if keep_grid else None
         with _stream(self.device):
             args = self._wrap(x, v, C, F, tau, vol, mass)
             wouts = [wp.from_torch(o, dtype=ty, requires_grad=False)
                      for o, ty in zip(outs, (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33))]
             self._launch(args, wp.from_torch(run, dtype=wp.int32), wouts, requires_grad=False,
-                         grid=None if grid is None else self._wrap_grid(grid), n_runs=n_runs)
-        return tuple(outs), grid
+                         grid=None if grid is None else self._wrap_grid(grid), n_runs=n_runs,
+                         p2g=stash is None or not keep_grid)
+        return tuple(outs), (grid if keep_grid else None)
 
     def _backward_from_grid(self, inputs, run, grid, v_outs):
         """Adjoints of G2P, the grid update and P2G, in reverse order, on the forward's kept ``grid``; return the
@@ -518,10 +566,10 @@ class _MPMStep(torch.autograd.Function):
     """torch.autograd bridge of :meth:`MPMSolver.step` (backward recomputes the step)."""
 
     @staticmethod
-    def forward(ctx, solver, keep_grid, n_runs, run, x, v, C, F, tau, vol, mass):
-        ctx.solver, ctx.n_runs = solver, n_runs
+    def forward(ctx, solver, keep_grid, n_runs, run, x, v, C, F, tau, vol, mass, *stash):
+        ctx.solver, ctx.n_runs, ctx.n_stash = solver, n_runs, len(stash)
         inputs = tuple(t.contiguous() for t in (x, v, C, F, tau, vol, mass))
-        outs, grid = solver._forward(*inputs, run, n_runs=n_runs, keep_grid=keep_grid)
+        outs, grid = solver._forward(*inputs, run, n_runs=n_runs, keep_grid=keep_grid, stash=stash or None)
         ctx.save_for_backward(*inputs, run, *(grid or ()))
         return outs
 
@@ -534,7 +582,7 @@ class _MPMStep(torch.autograd.Function):
         solver = ctx.solver
         v_ins = solver._backward_from_grid(inputs, run, grid, cot) if grid else \
             solver._backward(inputs, run, cot, ctx.n_runs)
-        return (None, None, None, None, *v_ins, None, None)
+        return (None, None, None, None, *v_ins, None, None, *(None,) * ctx.n_stash)
 
 
 def _adjoint(a):
