@@ -179,6 +179,11 @@ def set_solver_switches(items: list[str]) -> None:
     for item in items:
         name, _, value = item.partition("=")
         parsed = yaml.safe_load(value) if value else "missing"
+        if name in SOLVER_NUMBERS and isinstance(parsed, str):  # YAML 1.1 reads 1e9 as a string
+            try:
+                parsed = float(parsed)
+            except ValueError:
+                pass
         number = name in SOLVER_NUMBERS and isinstance(parsed, (int, float)) and not isinstance(parsed, bool) \
             and parsed >= 0
         if not number and (name not in SOLVER_SWITCHES or not (parsed is None or isinstance(parsed, bool))):

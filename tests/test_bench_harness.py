@@ -67,9 +67,11 @@ def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one
     with pytest.raises(SystemExit, match="=true|false|null"):  # Python's spelling is a string here, and a true one
         harness.set_solver_switches(["block_p2g=None"])
     monkeypatch.setattr(MPMSolver, "stash_mib", MPMSolver.stash_mib)
-    harness.set_solver_switches(["stash_mib=0"])  # a number setting: the grid stash off
+    harness.set_solver_switches(["stash_mib=1e9"])  # a number setting (YAML 1.1 reads 1e9 as a string)
+    assert MPMSolver(SimConfig(n_grid=8)).stash_mib == 1e9
+    harness.set_solver_switches(["stash_mib=0"])  # the grid stash off
     assert MPMSolver(SimConfig(n_grid=8)).stash_mib == 0
-    for bad in ("stash_mib=-1", "stash_mib=true", "block_p2g=3"):
+    for bad in ("stash_mib=-1", "stash_mib=true", "stash_mib=many", "block_p2g=3"):
         with pytest.raises(SystemExit, match="a number >= 0"):
             harness.set_solver_switches([bad])
 

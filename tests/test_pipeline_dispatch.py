@@ -101,8 +101,11 @@ def _job_with_stage(work: Path, pre: str = "", steps: str = _STEPS) -> tuple[sub
     ``work/log``."""
     log = open(work / "log", "w")
     stage = _STAGE.format(pre=pre, work=steps)
+    # SIGINT at its default in the job, as in a terminal: a test run in the background (`cmd &` in a non-interactive
+    # shell, nohup) starts with SIGINT ignored, which the job would inherit and so ignore the test's Ctrl-C
     job = subprocess.Popen([sys.executable, "-c", _JOB.format(work=str(work)), f"python -c {stage!r}"], cwd=work,
                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
                            env={**os.environ, "PYTHONPATH": str(ROOT)})
     t_end = time.monotonic() + 60
     while not ((work / "stage.ids").is_file() and (work / "job.ids").is_file()):

@@ -147,9 +147,11 @@ def test_capture_refused_on_cpu():
         FrameGraphs(solver, _law(), 2, 4, capture=True)
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_graphs_match_eager_on_gpu():
-    """On a GPU: captured replay vs the eager twin vs the checkpointed rollout (float32)."""
+    """On a GPU: captured replay vs the eager twin vs the checkpointed rollout (float32); the graphed frames'
+    autograd path replays the grid stash (the term shares' path)."""
     material = _law(dtype=torch.float32).cuda()
     solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1), "cuda")
     scene = [t.cuda() for t in _scene(n=500, dtype=torch.float32)]
@@ -157,11 +159,13 @@ def test_cuda_graphs_match_eager_on_gpu():
     out, g = _loss_and_grads(material, solver, True, *scene)
     runner = solver.frame_graphs(material, 2, 500)
     assert runner.capture, "capture fell back to eager"
+    assert runner.stashes and runner._rep_graph is not None  # the stash's replay graph was captured and taken
     torch.testing.assert_close(out.x, ref.x, atol=1e-5, rtol=1e-5)
     for a, b in zip(g, g_ref):
         torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_capture_survives_unreachable_warp_memory():
     """An unreachable solver (a reference cycle holding warp-owned grid buffers) must not be collected

@@ -5,6 +5,8 @@ is the forward's bit for bit: the stash must give exactly the gradients of the r
 perturbed stash must change them (it is read), and what cannot stash (analytic laws' fused frames, the reference
 path, a rollout over the budget) must not."""
 
+import warnings
+
 import pytest
 import torch
 import warp as wp
@@ -104,10 +106,59 @@ def test_batched_runs_stash_their_stacked_grids():
         assert torch.equal(a, b)
 
 
+def test_a_refined_rollout_stashes_its_substeps():
+    # CFL refinement (dt 50 ms: 3 sub-steps per step here): the refined solver's frames stash their sub-steps, bitwise
+    material, scene = _law(), _scene()
+
+    def refined(stash_mib):
+        solver = MPMSolver(SimConfig(n_grid=12, dt=5e-2, bound=1, boundary="friction", friction=0.3,
+                                     dtype="float64", max_refine=4))
+        solver.stash_mib = stash_mib
+        return solver
+
+    x_ref, g_ref, _ = _swept(refined(0.0), material, scene, n_steps=4)
+    x, g, stash = _swept(refined(1536.0), material, scene, n_steps=4)
+    assert stash is not None and stash[0][0].shape[0] > 2  # a frame of 2 steps stashed more sub-steps
+    assert torch.equal(x, x_ref)
+    for a, b in zip(g, g_ref):
+        assert torch.equal(a, b)
+    _, g_bad, _ = _swept(refined(1536.0), material, scene, n_steps=4, perturb=1.01)
+    assert not torch.allclose(g_bad[0], g_ref[0], rtol=1e-6)
+
+
+def test_toggling_the_stash_between_rollouts_takes_a_fitting_runner():
+    # stash_mib 1536 -> 0 -> 1536 on one solver: each rollout's runner stashes as the solver says, same gradients
+    material, scene = _law(), _scene()
+    solver = _solver()
+    results = []
+    for mib in (1536.0, 0.0, 1536.0):
+        solver.stash_mib = mib
+        x, g, stash = _swept(solver, material, scene)
+        assert (stash is not None) == (mib > 0)
+        assert solver.frame_graphs(material, 2, scene[0].shape[0]).stashes == (mib > 0)
+        results.append(g)
+    for a, b, c in zip(*results):
+        assert torch.equal(a, b) and torch.equal(a, c)
+
+
+def test_an_abandoned_sweep_drops_its_stash():
+    material, (x0, v0, vol, mass) = _law(), _scene()
+    out = rollout(_solver(), material, x0, v0, vol, mass, 8, 2, sweep=True)
+    assert out.sweep.grids is not None
+    x, F = (t[4].detach().requires_grad_() for t in (out.x, out.F))
+    out.sweep.add(4, *torch.autograd.grad((x ** 2).sum() + F.sum(), [x, F]))
+    out.sweep.add(2, None, None)  # frames 4 and 3 swept: their stashes dropped as they went
+    assert out.sweep.grids[3] is None and out.sweep.grids[2] is None and out.sweep.grids[1] is not None
+    out.sweep.abandon()
+    assert out.sweep.grids is None
+
+
 def test_what_cannot_stash_does_not():
     solver = _solver()
     analytic = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
     assert not stashable(solver, analytic)  # its forward fuses the law into P2G: no grid to keep
+    hybrid = Material(CorotatedElasticity(3e4, 0.3), _law().plasticity, 1e3).double()
+    assert not stashable(solver, hybrid)  # an analytic elasticity under a neural plastic law still fuses its forward
     x0, v0, vol, mass = _scene()
     out = rollout(solver, analytic, x0, v0, vol, mass, 8, 2, sweep=True)
     assert out.sweep.grids is None
@@ -126,6 +177,22 @@ def test_what_cannot_stash_does_not():
     out = rollout(solver, material, x0, v0, vol, mass, 8, 2, sweep=True)
     assert out.sweep.grids is not None
     out.sweep.abandon()
+
+
+def test_an_analytic_law_off_the_fused_path_stashes_like_a_neural_one():
+    # fuse_analytic off: the analytic law's forward takes the generic step, so it stashes, bitwise as before
+    analytic = Material(CorotatedElasticity(3e4, 0.3), IdentityPlasticity(), 1e3).double()
+    results = []
+    for mib in (0.0, 1536.0):
+        solver = _solver(stash_mib=mib)
+        solver.fuse_analytic = False
+        assert stashable(solver, analytic) == (mib > 0)
+        results.append(_swept(solver, analytic, _scene()))
+    (x_ref, g_ref, _), (x, g, stash) = results
+    assert stash is not None and torch.equal(x, x_ref)
+    assert float(g_ref[1].abs()) > 0  # log E's gradient
+    for a, b in zip(g, g_ref):
+        assert torch.equal(a, b)
 
 
 def test_a_bad_stash_is_refused_in_one_line():
@@ -157,8 +224,12 @@ def test_the_stash_on_cuda_graphs_equals_the_recompute():
         return solver
 
     x_ref, g_ref, _ = _swept(cuda_solver(0.0), material, scene)
-    x, g, stash = _swept(cuda_solver(1536.0), material, scene)
-    assert stash is not None
+    solver = cuda_solver(1536.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a failed capture falls back to eager with a warning
+        x, g, stash = _swept(solver, material, scene)
+    runner = solver.frame_graphs(material, 2, 400)
+    assert stash is not None and runner.capture and runner._rep_graph is not None
     torch.testing.assert_close(x, x_ref, rtol=1e-12, atol=1e-12)
     for a, b in zip(g, g_ref):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12 * float(b.abs().max()))

@@ -189,8 +189,10 @@ class FrameGraphs:
                     self.fwd_out = self._run_forward()
                 with torch.cuda.graph(self._bwd_graph, capture_error_mode="thread_local"):
                     self.bwd_grads = self._run_backward()
-                if self.stashes:
-                    with torch.cuda.graph(self._rep_graph, capture_error_mode="thread_local"):
+                if self.stashes:  # the replay shares the recompute's pool: only one runs at a time, on one stream,
+                    # and each one's outputs are copied out at once (backward)
+                    with torch.cuda.graph(self._rep_graph, pool=self._bwd_graph.pool(),
+                                          capture_error_mode="thread_local"):
                         self.rep_grads = self._run_backward(replay=True)
         except RuntimeError as err:  # a host sync inside the law: run eagerly instead
             warnings.warn(f"{_WHERE}: CUDA graph capture of {type(self.material).__name__} failed, running "
@@ -252,14 +254,15 @@ class _GraphedFrame(torch.autograd.Function):
     @staticmethod
     def forward(ctx, runner: FrameGraphs, stash: bool, x, v, C, F, *params):
         ctx.runner = runner
-        ctx.save_for_backward(x, v, C, F)
         out = runner.forward(x, v, C, F)
-        ctx.grids = runner.stashed() if stash else None
+        # saved, not kept on ctx: autograd frees the stash with the frame's backward (unless the graph is retained)
+        ctx.save_for_backward(x, v, C, F, *(runner.stashed() if stash else ()))
         return out
 
     @staticmethod
     def backward(ctx, *cotangents):
-        grads = ctx.runner.backward(ctx.saved_tensors, cotangents, ctx.grids)
+        saved = ctx.saved_tensors
+        grads = ctx.runner.backward(saved[:4], cotangents, saved[4:] or None)
         return (None, None, *grads)
 
 

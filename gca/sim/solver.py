@@ -122,7 +122,8 @@ class MPMSolver:
     keep_grid: bool = True  # backward from the forward's kept grid; False: recompute the step under a tape
     # the grid stash's budget per rollout [MiB]: a rollout whose frames' stashed grids (mv, m of every step) fit keeps
     # them from its forward pass, so that its frames' recomputes skip P2G (the step's costliest kernel); 0 = off. At the
-    # paper profile (32^3, 800 steps) a rollout stashes ~550 MB. Needs keep_grid (the reference path recomputes all)
+    # paper profile (32^3, 800 steps) a rollout stashes ~550 MB. Needs keep_grid (the reference path recomputes all).
+    # The budget is per rollout, not per device: processes packed on one GPU each keep their own (NOTES session 46)
     stash_mib: float = 1536.0
     # forward P2G with a thread per (particle, node) (kernels.p2g_nodes) instead of per particle. Off: measured on the
     # H100 (benchmarks/bench_p2g.py, NOTES session 13) it is faster only for particles in random order (30k: 60 vs
