@@ -530,15 +530,19 @@ class MPMSolver:
         gradients for (x, v, C, F, tau). The same launches as ``wp.Tape.backward`` of :meth:`_launch`, without
         replaying the forward first."""
         x, v, C, F, tau, vol, mass = inputs
-        v_ins = [torch.zeros(t.shape, dtype=t.dtype, device=t.device) for t in (x, v, C, F, tau)]
-        v_grid = [torch.zeros_like(t) for t in grid]
+        # the adjoints accumulate: every gradient buffer zeroed, in one memset (views of one buffer); a step's backward
+        # in training is ~100 small kernels, 8 of them were these zeroings (NOTES session 46)
+        *v_ins, v_mv, v_m, v_gv = _views(torch.zeros, (x, v, C, F, tau, *grid))
+        v_grid = [v_mv, v_m, v_gv]
+        # copies: the adjoint of an array store zeroes the stored cotangent, and autograd's must stay intact (one
+        # copy kernel for the four)
+        cots = _views(lambda n, **to: torch.cat([g.reshape(-1) for g in v_outs]), (x, v, C, F))
         with _stream(self.device):
             args = self._wrap(x, v, C, F, tau, vol, mass, grads=(*v_ins, None, None))
             types = (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33)
-            # copies: the adjoint of an array store zeroes the stored cotangent, and autograd's must stay intact
-            outs = [wp.from_torch(torch.empty(t.shape, dtype=t.dtype, device=t.device), dtype=ty,
-                                  grad=g.contiguous().clone(), requires_grad=True)
-                    for t, ty, g in zip((x, v, C, F), types, v_outs)]
+            outs = [wp.from_torch(torch.empty(t.shape, dtype=t.dtype, device=t.device), dtype=ty, grad=g,
+                                  requires_grad=True)
+                    for t, ty, g in zip((x, v, C, F), types, cots)]
             wgrid = self._wrap_grid(grid, grads=v_grid)
             wrun = wp.from_torch(run, dtype=wp.int32)
             for kernel, dim, kargs in reversed(self._kernel_args(args, wrun, wgrid, outs)):
@@ -584,6 +588,14 @@ class _MPMStep(torch.autograd.Function):
         v_ins = solver._backward_from_grid(inputs, run, grid, cot) if grid else \
             solver._backward(inputs, run, cot, ctx.n_runs)
         return (None, None, None, None, *v_ins, None, None, *(None,) * ctx.n_stash)
+
+
+def _views(make, like) -> list[torch.Tensor]:
+    """Tensors shaped as ``like`` (one dtype and device) as views of one flat buffer ``make(n, dtype=, device=)``
+    of their total size ``n``: one kernel (a memset, a concatenation) where one per tensor was launched."""
+    sizes = [t.numel() for t in like]
+    flat = make(sum(sizes), dtype=like[0].dtype, device=like[0].device)
+    return [part.view(t.shape) for part, t in zip(flat.split(sizes), like)]
 
 
 def _adjoint(a):
