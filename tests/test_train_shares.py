@@ -58,7 +58,14 @@ def test_term_gradients_sum_to_the_total(scene, name):
     loss, stats = objective.gradient(traj, n_video, law, shares=True)
     grads = objective.last_term_grads
     assert set(grads) == set(method.terms), (sorted(grads), method.terms)
+    assert objective.last_shares_summed  # the total is the terms' sum (no pass of its own): the comparison that
+    # makes it independent is the default path's below, and test_default_path_computes_no_shares_and_the_same_gradient
     total = [p.grad.detach().clone() for p in params]
+    for p in params:
+        p.grad = None
+    objective.gradient(simulate(tiny_solver(), law, data, n_video), n_video, law)  # the plain path: its own pass
+    for t, p in zip(total, params):
+        torch.testing.assert_close(p.grad, t, rtol=1e-4, atol=1e-9)
     summed = [sum(g[i] for g in grads.values() if g[i] is not None) for i in range(len(params))]
     for t, s_ in zip(total, summed):
         torch.testing.assert_close(s_, t, rtol=1e-4, atol=1e-9)
@@ -121,3 +128,22 @@ def test_term_gradients_sum_to_the_total_under_frame_weights(scene, name):
     if name == "neuma":
         assert stats["share/color/norm"] == pytest.approx(stats["share/total/norm"], rel=1e-5)
         assert stats["share/color/cos"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_terms_that_do_not_add_up_fall_back_to_the_losss_own_pass(scene, monkeypatch):
+    # a term collected wrong (here: halved) no longer sums to the data loss: the total is the loss's own backward pass
+    # (the plain path's gradient), not the terms' sum, which would miss half a term
+    _, cfg, law, objective = _setup(scene, "gca")
+    data = scene[0]
+    n_video = len(data.video_frames)
+    objective.gradient(simulate(tiny_solver(), law, data, n_video), n_video, law)
+    plain = [p.grad.detach().clone() for p in law.trainable()]
+    for p in law.trainable():
+        p.grad = None
+    collect = Objective._collect
+    monkeypatch.setattr(Objective, "_collect", lambda self, term, value: collect(
+        self, term, 0.5 * value if term == "silhouette" else value))
+    objective.gradient(simulate(tiny_solver(), law, data, n_video), n_video, law, shares=True)
+    assert not objective.last_shares_summed
+    for a, p in zip(plain, law.trainable()):
+        torch.testing.assert_close(p.grad, a)
