@@ -121,6 +121,7 @@ def test_term_gradients_sum_to_the_total_under_frame_weights(scene, name):
     traj = simulate(tiny_solver(), law, data, n_video)
     _, stats = objective.gradient(traj, n_video, law, shares=True)
     grads = objective.last_term_grads
+    assert objective.last_shares_summed  # the weighted terms still add up: no extra pass
     total = [p.grad.detach().clone() for p in law.trainable()]
     summed = [sum(g[i] for g in grads.values() if g[i] is not None) for i in range(len(total))]
     for t, s_ in zip(total, summed):
