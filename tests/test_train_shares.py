@@ -124,6 +124,11 @@ def test_term_gradients_sum_to_the_total_under_frame_weights(scene, name):
     assert objective.last_shares_summed  # the weighted terms still add up: no extra pass
     total = [p.grad.detach().clone() for p in law.trainable()]
     summed = [sum(g[i] for g in grads.values() if g[i] is not None) for i in range(len(total))]
+    for p in law.trainable():
+        p.grad = None
+    objective.gradient(simulate(tiny_solver(), law, data, n_video), n_video, law)  # the plain path, same weights
+    for t, p in zip(total, law.trainable()):
+        torch.testing.assert_close(p.grad, t, rtol=1e-4, atol=1e-9)
     for t, s_ in zip(total, summed):
         torch.testing.assert_close(s_, t, rtol=1e-4, atol=1e-9)
     if name == "neuma":
