@@ -582,10 +582,12 @@ def depth_l1_aligned(depth: torch.Tensor, est: torch.Tensor, mask: torch.Tensor,
 
 
 def _adds_up(values: list[torch.Tensor], total: torch.Tensor, rtol: float = 1e-5) -> bool:
-    """Whether the scalar terms ``values`` sum to ``total`` (to ``rtol`` of the larger magnitude; one host read): a
-    term left out of the collection would make their gradients' sum miss its part."""
-    a, b = torch.stack([torch.stack([v.detach() for v in values]).sum(), total.detach()]).double().tolist()
-    return abs(a - b) <= rtol * max(abs(a), abs(b), 1e-30)
+    """Whether the scalar terms ``values`` sum to ``total`` (to ``rtol`` of the terms' magnitudes, which may cancel:
+    RDGA's anchor term is negative; one host read): a term left out of the collection would make their gradients'
+    sum miss its part."""
+    v = torch.stack([t.detach() for t in values]).double()
+    a, b, scale = torch.stack([v.sum(), total.detach().double(), v.abs().sum()]).tolist()
+    return abs(a - b) <= rtol * max(scale, abs(b), 1e-30)
 
 
 def _sum_grads(grads) -> torch.Tensor | None:
