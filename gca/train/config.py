@@ -38,8 +38,8 @@ class TrainConfig:
         lambda_depth_l1: weight of the L1 monocular-depth loss (PAC-NeRF + depth row).
         cpr_every: apply CPR on every n-th supervised frame.
         term_shares_every: every k-th iteration (0 = never) also each declared loss term's gradient norm and
-            its cosine with the total gradient (``share/<term>/norm|cos`` in the history and MLflow; one extra
-            backward pass per image term on those iterations; ``Objective.gradient(shares=True)``).
+            its cosine with the total gradient (``share/<term>/norm|cos`` in the history and MLflow; one backward
+            pass per image term on those iterations, the total their sum; ``Objective.gradient(shares=True)``).
         checkpoint_every: save a resumable checkpoint every n iterations.
         max_spread_growth: a rollout whose particles spread further from their centre of mass than
             at rest by more than this [m] is treated as diverged (particles flying away).
