@@ -122,6 +122,8 @@ def test_term_gradients_sum_to_the_total_under_frame_weights(scene, name):
     _, stats = objective.gradient(traj, n_video, law, shares=True)
     grads = objective.last_term_grads
     assert objective.last_shares_summed  # the weighted terms still add up: no extra pass
+    for p, g in zip(law.trainable(), grads[method.terms[0]]):  # a copy, not the term's own gradient (which in-place
+        assert g is None or p.grad.data_ptr() != g.data_ptr()  # clipping of .grad would rescale: NeuMA's one term)
     total = [p.grad.detach().clone() for p in law.trainable()]
     summed = [sum(g[i] for g in grads.values() if g[i] is not None) for i in range(len(total))]
     for p in law.trainable():

@@ -597,10 +597,12 @@ def _sum_grads(grads) -> torch.Tensor | None:
 
 
 def _accumulate(params: list[torch.Tensor], grads: list) -> None:
-    """Add ``grads`` (None: nothing) into the parameters' ``.grad``, as ``backward`` would."""
+    """Add ``grads`` (None: nothing) into the parameters' ``.grad``, as ``backward`` would; a copy, never ``g`` itself
+    (a term's own gradient when it is the only one, kept in ``last_term_grads``, which clipping ``.grad`` in place
+    would rescale)."""
     for p, g in zip(params, grads):
         if g is not None:
-            p.grad = g if p.grad is None else p.grad + g
+            p.grad = g.clone() if p.grad is None else p.grad + g
 
 
 def term_shares(term_grads: dict[str, list], total: list) -> dict[str, float]:
