@@ -53,8 +53,9 @@
 #       orders that decide it                                                    -> agg_tests.txt, mlp.*, p2g_agg.*
 #       (then the trainings: PART=b SCENES=duck TAG=_agg EXTRA="--solver agg_p2g=true --solver agg_g2p=true", and
 #        the control on the same HEAD: PART=b SCENES=duck TAG=_plain)
-#   PART=stash (for session 46; ~8.5 min on a fresh machine): the grid stash's CUDA tests, gsplat's build, then SCENES
-#       (duck ball) solo with the stash (on by default); OUT=/tmp/o PACK=$OUT: all of it in $PACK/all.tgz after each
+#   PART=stash (for session 46; ~8.5 min on a fresh machine for two scenes): the grid stash's CUDA tests, then PART=b
+#       (SCENES, TAG, LIMIT as there: session 46 set SCENES="duck ball" TAG=_stash LIMIT=215); OUT=/tmp/o PACK=$OUT:
+#       all of it in $PACK/all.tgz after each run (PACK works for PART=b too)
 #   call 3.. (no carry, within 30 s): PART=b SCENES="ball duck fish" OUT=$OUT sh benchmarks/fast10_bundle.sh
 #       each scene's whole harness run (data, 200 iterations of GCA, evaluation) alone on the GPU  -> solo_<scene>/
 #       (METHODS="gca gca_full_ft": those methods one after another on the same data, each alone: Table 4's pair;
@@ -297,26 +298,19 @@ if [ "$PART" = agg ]; then  # for session 46: warp-aggregated atomics in the two
       --orders random lattice ball64 ball12 duck --json "$OUT/p2g_agg.json" > "$OUT/p2g_agg.txt" 2>&1
   echo "p2g rc=$?"; grep -E "^\|" "$OUT/p2g_agg.txt"
 fi
+# with PACK (the device's $OUT; OUT then a folder of its own, e.g. /tmp/o), all of OUT is packed into $PACK/all.tgz
+# after each solo run (a call that meets the device's limit still returns the runs done); without it, nothing
+packed_to() { [ -z "${PACK:-}" ] || { tar czf "$PACK/all.tgz.part" -C "$OUT" . && mv "$PACK/all.tgz.part" "$PACK/all.tgz"; }; }
 if [ "$PART" = stash ]; then  # for session 46: the grid stash (MPMSolver.stash_mib; NOTES s46, predicted) on CUDA
-  # graphs, then the solo trainings with it (on by default); with PACK (the device's $OUT; OUT then a folder of its
-  # own) all of OUT is packed into $PACK/all.tgz after each (the call may meet the device's limit). The control is
-  # session 46's solo_{ball,duck}_s46 at 51d59f6 on the same kind
-  packed_to() { [ -z "${PACK:-}" ] || { tar czf "$PACK/all.tgz.part" -C "$OUT" . && mv "$PACK/all.tgz.part" "$PACK/all.tgz"; }; }
+  # graphs, then PART=b's solo trainings with it (on by default). The control is session 46's solo_{ball,duck}_s46
+  # at 51d59f6 on the same kind
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   stamp "the stash against the recompute on CUDA (float64), and the graphed frames' CUDA tests"
   timeout 200 python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_sim_stash.py tests/test_sim_graph.py \
       > "$OUT/stash_tests.txt" 2>&1
   echo "stash tests rc=$?"; tail -n 4 "$OUT/stash_tests.txt"; packed_to
-  stamp "gsplat: build its extension once per machine"; build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
-  for scene in ${SCENES:-duck ball}; do
-    stamp "solo_$scene${TAG:-_stash}: data, 200 iterations of gca, evaluation ${EXTRA:-}"
-    # shellcheck disable=SC2086
-    run "solo_$scene${TAG:-_stash}" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-230}" ${EXTRA:-}
-    packed_to
-  done
-  summary $(for s in ${SCENES:-duck ball}; do printf 'solo_%s%s ' "$s" "${TAG:-_stash}"; done)
 fi
-if [ "$PART" = b ]; then
+if [ "$PART" = b ] || [ "$PART" = stash ]; then
   stamp "gsplat: build its extension once per machine (or the first run would time the build)"
   build_gsplat /tmp/gca-warp "$OUT/gsplat_build.log"
   for scene in ${SCENES:-ball}; do
@@ -325,6 +319,7 @@ if [ "$PART" = b ]; then
     # shellcheck disable=SC2086
     run "solo_$scene${TAG:-}" "$scene" "/tmp/fast10_$scene" 200 "${LIMIT:-560}" \
         ${METHODS:+--methods $METHODS} ${EXTRA:-}
+    packed_to
   done
   summary $(for s in ${SCENES:-ball}; do printf 'solo_%s%s ' "$s" "${TAG:-}"; done)
 fi

@@ -248,7 +248,7 @@ class MPMSolver:
     def _check_stash(self, grid, n_runs: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The step's grid stash (mv, m), checked against :meth:`stash_shapes`, dtype, device and contiguity."""
         mv, m = grid
-        for name, t, shape in (("mv", mv, self.stash_shapes(n_runs)[0]), ("m", m, self.stash_shapes(n_runs)[1])):
+        for name, t, shape in zip(("mv", "m"), grid, self.stash_shapes(n_runs)):
             if tuple(t.shape) != shape or t.dtype != self.dtype or t.device.type != self.device.type \
                     or not t.is_contiguous():
                 raise ValueError(f"{_WHERE}: the grid stash's {name} must be a contiguous {self.dtype} tensor of shape "
