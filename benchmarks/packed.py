@@ -42,18 +42,19 @@ def exit_on_sigterm() -> None:
 
 
 def run_workers(cmds: list[list[str]], parent: Path, ready_timeout: float, what: str,
-                run_timeout: float = 600.0) -> tuple[float, list[dict]]:
-    """Start one process per ``cmds[i]`` (``--ready``, ``--go``, ``--result`` and ``--ready-timeout`` are appended)
-    with its files in a fresh folder under ``parent``; go when all are ready. Returns (span [s], results). Exits with
-    one line naming ``what`` when a worker fails, is not ready within ``ready_timeout`` [s] or not done within
-    ``run_timeout`` [s] of the go; every worker still running is stopped on the way out."""
+                run_timeout: float = 600.0, envs: list[dict] | None = None) -> tuple[float, list[dict]]:
+    """Start one process per ``cmds[i]`` (``--ready``, ``--go``, ``--result`` and ``--ready-timeout`` are appended;
+    ``envs[i]``: more of its environment) with its files in a fresh folder under ``parent``; go when all are ready.
+    Returns (span [s], results). Exits with one line naming ``what`` when a worker fails, is not ready within
+    ``ready_timeout`` [s] or not done within ``run_timeout`` [s] of the go; every worker still running is stopped on
+    the way out."""
     parent.mkdir(parents=True, exist_ok=True)
     d = Path(tempfile.mkdtemp(prefix="run", dir=parent))  # fresh: an earlier run's ready and go files cannot count
     extra = os.environ.get("PYTHONPATH")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT)] + ([extra] if extra else []))}
     procs = [subprocess.Popen([sys.executable, *cmd, "--ready", str(d / f"ready{i}"), "--go", str(d / "go"),
                                "--result", str(d / f"result{i}.json"), "--ready-timeout", str(ready_timeout)],
-                              cwd=ROOT, env=env) for i, cmd in enumerate(cmds)]
+                              cwd=ROOT, env={**env, **(envs[i] if envs else {})}) for i, cmd in enumerate(cmds)]
     try:
         deadline = time.monotonic() + ready_timeout
         while sum((d / f"ready{i}").exists() for i in range(len(cmds))) < len(cmds):

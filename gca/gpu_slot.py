@@ -54,6 +54,8 @@ def runs_per_gpu() -> int:
 
 
 MPS_ENV = "GCA_MPS"  # whether the runs shared their GPU under CUDA MPS ("1"/"0"; read by gca.pipeline.train)
+MPS_PRIORITY_ENV = "CUDA_MPS_CLIENT_PRIORITY"  # CUDA's own (MPS docs, environment variables): a client's coarse
+MPS_BELOW_NORMAL = "1"  # priority over every stream it makes, read when CUDA starts: "0" normal, "1" below normal
 
 
 def mps_running() -> bool:

@@ -200,11 +200,29 @@ def test_bench_runs_packed_runs_processes_of_batched_runs_at_once_on_the_cpu(tmp
     for r in rows[1:]:  # the ratio is the rates' ratio, against the one-run row
         assert r["x_solo"] == pytest.approx(r["run_rollouts_per_s"] / rows[0]["run_rollouts_per_s"])
     assert json.loads((tmp_path / "p.json").read_text())["rows"] == rows
+    assert all(r["low_priority"] == 0 and r["mean_s_low"] is None and r["priorities"] == [None] * r["processes"]
+               for r in rows)
+
+
+def test_bench_runs_packed_gives_the_last_k_processes_below_normal_mps_priority(tmp_path):
+    """``PxB:K``: the last K workers start with CUDA's MPS client priority at below normal, the others without it
+    (the worker's own record of its environment), each group's mean time from the go beside the span."""
+    mod = _load("bench_runs_packed")
+    rows = mod.main(["--device", "cpu", "--configs", "3x1:2", "2x1", "--particles", "200", "--n-grid", "12",
+                     "--steps", "4", "--steps-per-frame", "2", "--rollouts-each", "3"])
+    low, plain = rows
+    assert low["priorities"] == [None, "1", "1"] and plain["priorities"] == [None, None]
+    assert (low["low_priority"], low["rollouts_per_process"], plain["rollouts_per_process"]) == (2, 3, 3)
+    for r in rows:
+        groups = [v for v in (r["mean_s_normal"], r["mean_s_low"]) if v is not None]
+        assert groups and all(0 < v <= r["span_s"] + 1e-9 for v in groups)
+    assert plain["mean_s_low"] is None and low["mean_s_low"] is not None
+    assert mod.parse_config("12x1:12") == (12, 1, 12) and mod.parse_config("4x2") == (4, 2, 0)
 
 
 def test_bench_runs_packed_refuses_a_bad_config_and_reports_a_failed_worker():
     mod = _load("bench_runs_packed")
-    for bad in ("8", "0x2", "2xb"):
+    for bad in ("8", "0x2", "2xb", "2x1:3", "2x1:-1", "2x1:a"):
         with pytest.raises(SystemExit):  # argparse: one line naming the config
             mod.main(["--device", "cpu", "--configs", bad])
     with pytest.raises(SystemExit, match="a worker failed"):  # control: a worker that cannot start is not waited on
