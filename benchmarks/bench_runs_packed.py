@@ -16,12 +16,14 @@ rendering and the losses are not in it.
 Session 47: ``PxB:K`` runs the last K of the P processes at CUDA MPS's below-normal client priority
 (``gca.gpu_slot.MPS_PRIORITY_ENV``), the others at normal; the row gives each group's mean time from the go to its
 own end, so whether the GPU serves the normal ones first while the low ones fill in (the grid's priority for its
-longest trainings) shows against ``PxB`` (all normal). ``--rollouts-each`` fixes every process's work across configs.
+longest trainings) shows against ``PxB`` (all normal). ``--rollouts-each`` fixes every process's work across configs, ``--short S N`` gives the last S processes N rollouts
+(a grid's short runs beside its long ones: whether the priority shortens the span itself).
 
 Usage (the GPU machine; ``--mps`` starts and stops the MPS daemon through ``gca.pipeline.grid.mps_daemon``)::
 
     python benchmarks/bench_runs_packed.py --device cuda --mps --configs 1x1 8x1 4x2 2x4 1x8 --json out.json
     python benchmarks/bench_runs_packed.py --device cuda --mps --configs 4x1 12x1 12x1:8 --rollouts-each 30
+    python benchmarks/bench_runs_packed.py --device cuda --mps --configs 12x1 12x1:8 --rollouts-each 60 --short 8 30
 """
 
 from __future__ import annotations
@@ -75,13 +77,15 @@ def worker(a) -> None:
                  priority=os.environ.get(MPS_PRIORITY_ENV))
 
 
-def run_config(p: int, b: int, rollouts: int, a, tmp: Path, low: int = 0) -> dict:
-    """P workers of B runs at once, the last ``low`` of them at MPS's below-normal client priority; returns the
-    config's row (throughput in run-rollouts per second; each priority group's mean seconds from the go to a
-    worker's end, None for an empty group)."""
+def run_config(p: int, b: int, rollouts: int, a, tmp: Path, low: int = 0, short: tuple[int, int] = (0, 0)) -> dict:
+    """P workers of B runs at once, the last ``low`` of them at MPS's below-normal client priority, the last
+    ``short[0]`` of them doing ``short[1]`` rollouts instead of ``rollouts`` (a grid's short runs beside its long
+    ones); returns the config's row (throughput in run-rollouts per second; each priority group's mean seconds from
+    the go to a worker's end, None for an empty group)."""
+    each = [short[1] if i >= p - short[0] else rollouts for i in range(p)]
     cmds = [["-m", "benchmarks.bench_runs_packed", "--worker", "--device", a.device, "--runs", str(b),
              "--particles", str(a.particles), "--n-grid", str(a.n_grid), "--steps", str(a.steps),
-             "--steps-per-frame", str(a.steps_per_frame), "--rollouts", str(rollouts), "--seed", str(i)]
+             "--steps-per-frame", str(a.steps_per_frame), "--rollouts", str(each[i]), "--seed", str(i)]
             for i in range(p)]
     envs = [{MPS_PRIORITY_ENV: MPS_BELOW_NORMAL} if i >= p - low else {} for i in range(p)]
     span, rs = run_workers(cmds, tmp, a.ready_timeout, f"bench_runs_packed: config {p}x{b}" + (f":{low}" if low else ""),
@@ -91,9 +95,11 @@ def run_config(p: int, b: int, rollouts: int, a, tmp: Path, low: int = 0) -> dic
 
     def mean(group):
         return statistics.fmean(group) if group else None
+    total = b * sum(each)
     return {"processes": p, "runs_per_process": b, "runs": p * b, "rollouts_per_process": rollouts,
+            "short_processes": short[0] if short[0] else 0, "short_rollouts": short[1] if short[0] else None,
             "low_priority": low, "particles_per_run": rs[0]["particles_per_run"], "span_s": span,
-            "run_rollouts_per_s": p * b * rollouts / span, "s_per_run_rollout": span / (p * b * rollouts),
+            "run_rollouts_per_s": total / span, "s_per_run_rollout": span / total,
             "mean_s_normal": mean(took[:p - low]), "mean_s_low": mean(took[p - low:]),
             "priorities": [r.get("priority") for r in rs]}
 
@@ -107,6 +113,8 @@ def main(argv=None) -> list[dict]:
                     help="run-rollouts per config (P x B x rollouts per process, at least 2 per process)")
     ap.add_argument("--rollouts-each", type=int, default=None,
                     help="rollouts per process in every config instead (the same work per process)")
+    ap.add_argument("--short", type=int, nargs=2, default=(0, 0), metavar=("S", "N"),
+                    help="the last S processes of every config of more than S do N rollouts (short runs beside long)")
     ap.add_argument("--particles", type=int, default=30000)
     ap.add_argument("--n-grid", type=int, default=32)
     ap.add_argument("--steps", type=int, default=200)
@@ -129,7 +137,7 @@ def main(argv=None) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp, mps_daemon(a.mps, lambda m: print(m, flush=True)) as mps_on:
         for p, b, low in a.configs:
             each = a.rollouts_each if a.rollouts_each else max(2, a.run_rollouts // (p * b))
-            r = run_config(p, b, each, a, Path(tmp), low)
+            r = run_config(p, b, each, a, Path(tmp), low, tuple(a.short) if p > a.short[0] else (0, 0))
             r["mps"] = mps_on
             rows.append(r)
             ratios(rows, "x_solo", solo, "s_per_run_rollout")

@@ -218,6 +218,11 @@ def test_bench_runs_packed_gives_the_last_k_processes_below_normal_mps_priority(
         assert groups and all(0 < v <= r["span_s"] + 1e-9 for v in groups)
     assert plain["mean_s_low"] is None and low["mean_s_low"] is not None
     assert mod.parse_config("12x1:12") == (12, 1, 12) and mod.parse_config("4x2") == (4, 2, 0)
+    short = mod.main(["--device", "cpu", "--configs", "3x1:1", "1x1", "--particles", "200", "--n-grid", "12",
+                      "--steps", "4", "--steps-per-frame", "2", "--rollouts-each", "3", "--short", "2", "1"])
+    assert (short[0]["short_processes"], short[0]["short_rollouts"]) == (2, 1)  # the last two do one rollout each
+    assert (short[1]["short_processes"], short[1]["short_rollouts"]) == (0, None)  # a config of <= S: all long
+    assert short[0]["run_rollouts_per_s"] == pytest.approx(5 / short[0]["span_s"])  # 3 + 1 + 1 run-rollouts
 
 
 def test_bench_runs_packed_refuses_a_bad_config_and_reports_a_failed_worker():
