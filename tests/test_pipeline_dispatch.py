@@ -802,6 +802,27 @@ def test_free_slots_wait_only_for_units_ranked_above_by_first(tmp_path):
     assert got[:3] == ["prep@quick", "train@quick:a", "train@quick:b"], got
 
 
+def test_a_job_without_a_run_that_trains_is_never_kept_waiting_for_better_ranked_units(tmp_path):
+    """Session 47's Table 1: the slot reservation kept fish's and pawn's NCLaw jobs (each scene's ~30-s launch-velocity
+    fit, which the scene's runs wait on) waiting 50-80 s for better-ranked units. With the grid's ``may_wait``
+    (:func:`grid.trains_any`) the slow scene's NCLaw job starts at once while its training run still waits for the
+    quick unit (its 900 s left rank it below the quick unit's 860 even once the NCLaw job runs); negative control:
+    without it, the NCLaw job waits too."""
+    times = {"slow": 900.0, "quick": 430.0}
+    expected = lambda n: times[n.split("@")[1].split(":")[0]]  # noqa: E731
+
+    def order(folder, may_wait):
+        lines = []
+        state = dispatch.run(_slow_and_quick(slow=("nclaw", "a")), _local(folder, slots=2), folder, lines.append,
+                             poll_s=0.05, expected_s=expected, may_wait=may_wait)
+        assert set(state.values()) == {"done"}
+        return [ln.split()[1] for ln in lines if ln.startswith(("start train@", "done  prep@quick"))]
+    got = order(tmp_path / "fit", grid.trains_any)
+    assert got[0] == "train@slow:nclaw" and got.index("train@slow:a") > got.index("prep@quick"), got
+    got = order(tmp_path / "plain", None)
+    assert got[0] == "prep@quick" and got.index("train@slow:nclaw") > got.index("prep@quick"), got
+
+
 def test_no_slot_waits_for_runs_that_could_not_finish_after_their_inputs(tmp_path):
     """Review: the reservation must count the inputs still to be made before a run: a quick unit whose inputs take
     longer than the lease leaves once it could start would hold the slots for nothing. Here the quick scene's input

@@ -736,3 +736,64 @@ def test_the_grid_tells_its_runs_how_they_share_the_gpu(tmp_path, monkeypatch):
     grid.main(["--work", str(tmp_path / "b"), *argv, "--slots", "1"])
     assert (seen[0]["GCA_RUNS_PER_GPU"], seen[0]["GCA_MPS"]) == ("8", "0")  # --mps not asked
     assert seen[1]["GCA_RUNS_PER_GPU"] == "1"
+
+
+def _table1_steps() -> dict[str, int]:
+    """MPM steps per rollout of Table 1's scenes at the paper profile (what :func:`grid.scene_steps` reads there)."""
+    return {"ball": 800, "duck": 800, "pawn": 400, "cat": 400, "fish": 500, "bottle": 500}
+
+
+def test_the_lighter_runs_jobs_start_below_normal_and_the_heaviest_and_their_inputs_at_normal():
+    """Session 47: the table ends with its heaviest runs (ball and duck: 800 steps) alone on a part-empty GPU; at
+    MPS's below-normal priority for the lighter runs' jobs the GPU serves the heaviest first. NeuMA's 40-frame runs
+    (cost 4.0 against 4.5) stay normal; NCLaw's job (the scene's launch-velocity fit) and inputs never go below."""
+    steps = _table1_steps()
+    left = [f"train@{s}:{m}" for s in steps for m in ("nclaw", "neuma", "gca")]
+    low = {n for n in [*left, *(n.replace("train@", "evaluate@") for n in left), "assets@pawn", "report"]
+           if grid.below_normal(n, left, steps)}
+    assert low == {f"{stage}@{s}:{m}" for stage in ("train", "evaluate") for s in ("pawn", "cat", "fish", "bottle")
+                   for m in ("neuma", "gca")}
+    assert grid.run_work("train@ball:gca", steps) == 4.5 * 800 and grid.run_work("train@pawn:nclaw", steps) is None
+    assert grid.run_work("train@pawn:neuma@seed1+gca@seed1", steps) == (4.0 + 4.5) * 400  # a batch: its runs' sum
+    assert grid.run_work("train@capture1:gca", steps) == 4.5 * 800  # a scene without steps: the largest
+    # when the heaviest are done, the rest is the heaviest left: normal (and so is everything at share 0)
+    rest = [n for n in left if "@ball" not in n and "@duck" not in n]
+    assert not any(grid.below_normal(n, rest, steps) for n in rest if "fish" in n or "bottle" in n)
+    assert grid.below_normal("train@pawn:neuma", rest, steps)  # 1600 < 0.75 x 2250 (fish's GCA)
+    assert not grid.below_normal("train@pawn:gca", rest, steps)  # 1800: within the share
+    assert not any(grid.below_normal(n, left, steps, share=0.0) for n in left)
+    assert not grid.below_normal("evaluate@ball:gca", [], steps)  # nothing left to yield to
+    assert grid.trains_any("train@ball:gca") and not grid.trains_any("train@ball:nclaw")
+    assert grid.trains_any("train@ball:nclaw@seed1+gca@seed1") and grid.trains_any("assets@ball")
+
+
+def test_the_grid_starts_its_lighter_runs_below_normal_under_mps_only(tmp_path, monkeypatch):
+    """The command line: under MPS each job's environment carries CUDA's client priority as :func:`grid.below_normal`
+    says, and the log names each such job; ``--no-mps-priority``, ``--machine-left`` (its lease check counts equal
+    shares) and no MPS leave every job at normal (negative controls). The runs' records say which they were."""
+    seen: dict[str, dict] = {}
+
+    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp="", **machine):
+        assert machine["may_wait"] is grid.trains_any  # NCLaw's velocity fit is never kept waiting
+        for name, job in jobs.items():
+            seen[name] = dict(job_env(job, 0))
+        return {n: "done" for n in jobs}
+
+    @contextlib.contextmanager
+    def fake_mps(enable, log):
+        yield enable
+    monkeypatch.setattr(grid.dispatch, "run", fake_run)
+    monkeypatch.setattr(grid, "mps_daemon", fake_mps)
+    argv = ["--scenes", "ball", "pawn", "--methods", "nclaw", "gca", "--profile", "paper", "--stages", "train",
+            "evaluate", "--gpus", "0", "--slots", "4"]
+    prio = "CUDA_MPS_CLIENT_PRIORITY"
+    for extra, expect_low in ((["--mps"], {"train@pawn:gca", "evaluate@pawn:gca"}), (["--mps", "--no-mps-priority"], set()),
+                              (["--mps", "--machine-left", "3000"], set()), ([], set())):
+        seen.clear()
+        grid.main(["--work", str(tmp_path / "w"), *argv, *extra])
+        assert {n for n, env in seen.items() if env.get(prio) == "1"} == expect_low, extra
+        assert all(prio not in env for n, env in seen.items() if n not in expect_low)
+        assert {n for n, env in seen.items() if env.get("GCA_MPS") == "1"} == (set(seen) if "--mps" in extra else set())
+    log = (tmp_path / "w" / ".grid" / "grid.log").read_text()
+    assert "prio  train@pawn:gca: below normal" in log and "prio  train@ball:gca" not in log
+    assert "every job at normal priority: --machine-left" in log

@@ -284,6 +284,14 @@ def test_table4_says_when_its_times_are_packed(tmp_path):
     assert not any("packed" in n for n in tables.table4_efficiency(load_runs(alone)).notes)
     (note,) = [n for n in tables.table4_efficiency(load_runs(packed)).notes if "packed" in n]
     assert note.startswith("1 of 2 runs trained with up to 8 runs on one GPU (under CUDA MPS)")
+    assert "below-normal" not in note  # the grid's priority: said only where a run had it
+    low = tmp_path / "low"
+    for method in ("gca", "gca_full_ft"):
+        _write(low, _record("ball", method, chamfer_mean=0.1, train_seconds=60.0, peak_memory_gib=1.0,
+                            runs_per_gpu=8, mps=True, mps_below_normal=method == "gca"))
+    (note,) = [n for n in tables.table4_efficiency(load_runs(low)).notes if "packed" in n]
+    assert note.startswith("2 of 2 runs trained with up to 8 runs on one GPU (under CUDA MPS, 1 of them at MPS's "
+                           "below-normal priority")
 
 
 def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
@@ -292,10 +300,15 @@ def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
 
     monkeypatch.delenv("GCA_RUNS_PER_GPU", raising=False)
     monkeypatch.delenv("GCA_MPS", raising=False)
-    assert gpu_sharing() == {"runs_per_gpu": 1, "mps": False}
+    monkeypatch.delenv("CUDA_MPS_CLIENT_PRIORITY", raising=False)
+    assert gpu_sharing() == {"runs_per_gpu": 1, "mps": False, "mps_below_normal": False}
     monkeypatch.setenv("GCA_RUNS_PER_GPU", "8")
     monkeypatch.setenv("GCA_MPS", "1")
-    assert gpu_sharing() == {"runs_per_gpu": 8, "mps": True}
+    assert gpu_sharing() == {"runs_per_gpu": 8, "mps": True, "mps_below_normal": False}
+    monkeypatch.setenv("CUDA_MPS_CLIENT_PRIORITY", "1")  # the grid's priority for a lighter run (CUDA reads it too)
+    assert gpu_sharing()["mps_below_normal"] is True
+    monkeypatch.setenv("CUDA_MPS_CLIENT_PRIORITY", "0")  # normal, said explicitly
+    assert gpu_sharing()["mps_below_normal"] is False
 
 
 def test_a_run_is_evaluated_with_the_launch_velocity_it_trained_with(tmp_path):

@@ -529,7 +529,8 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
         job_env=None, stamp: str = "", launch_until: float | None = None,
         expected_s: Callable[[str], float] | None = None,
         packed_s: Callable[[float, float], float] | None = None,
-        first: Callable[[str], bool] | None = None) -> dict[str, str]:
+        first: Callable[[str], bool] | None = None,
+        may_wait: Callable[[str], bool] | None = None) -> dict[str, str]:
     """Run ``jobs`` (``gca.pipeline.grid.Job``: name, cmd, cost, ``after`` linked) through ``engine`` in ``work``.
 
     A job already done (``.grid/<job>.done``) is not submitted. A failed job is logged with its error and
@@ -544,7 +545,10 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
     ``packed_s(seconds, k)`` (with slots): ``expected_s``'s seconds at k-way packing; the lease check then counts the
     trainings on the run's GPU and the work they have left (:func:`lease_admits`; a stopped run's left work goes to
     the next call, :func:`record_progress`). ``first(name)``: training jobs whose (scene, seed) units go before
-    the others (:func:`launch_order`). Returns each job's state: done, failed, skipped or todo.
+    the others (:func:`launch_order`). ``may_wait(name)``: whether the slot reservation (:func:`waiting_above`'s rule)
+    may keep training job ``name`` waiting for better-ranked units' coming runs (default every one; the grid exempts
+    a job with no run that trains: NCLaw's is its scene's ~30-s launch-velocity fit, which its unit's runs wait on,
+    session 47). Returns each job's state: done, failed, skipped or todo.
     """
     work = Path(work)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
@@ -730,7 +734,7 @@ def run(jobs: dict, engine: Engine, work: Path, log, deadline: float | None = No
                 break
             if not fits(n):
                 continue
-            if waiting and n.startswith("train@") and waiting(n) >= len(free):
+            if waiting and n.startswith("train@") and (may_wait is None or may_wait(n)) and waiting(n) >= len(free):
                 continue  # the free slots are kept for better-ranked units' runs whose inputs are being made
             place = None if free is None else place_next()
             env = dict(job_env(jobs[n], place)) if job_env else {}

@@ -701,6 +701,47 @@ def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene:
     return max(guesses)
 
 
+PRIORITY_SHARE = 0.75  # a per-run job whose runs' work is under this share of the heaviest training left starts at
+# CUDA MPS's below-normal client priority (run_work, below_normal): Table 1's 20-frame scenes (400 steps) beside the
+# ball and the duck (800), NeuMA's 40-frame runs (cost 4.0 against GCA's 4.5) at normal. Session 47, 12 processes
+# under MPS (benchmarks/bench_runs_packed.py): four long ones at normal beside eight short ones below it ended in 30.8
+# s against 43.4 with all at normal, the span 6.5 % shorter
+
+
+def run_work(job: str, steps: dict[str, int]) -> float | None:
+    """The work of the runs a per-run job trains or evaluates (``train@<scene>:<run>[+<run>...]``, ``evaluate@...``)
+    [cost GPU-minutes x MPM steps per rollout]: per run that trains, its method's :func:`train_cost` times the scene's
+    steps (``steps``: :func:`scene_steps`; a scene without an entry, a capture: the largest there, 1 without any). None
+    for any other job, and for a job none of whose runs trains (NCLaw's is its scene's launch-velocity fit, which the
+    scene's other runs wait on)."""
+    if dispatch.RUN_JOB_RE.match(job) is None:
+        return None
+    scene, runs = dispatch.job_runs(job)
+    methods = [m for m in (r.split("@", 1)[0] for r in runs) if _trains(m)]
+    if not methods:
+        return None
+    return sum(train_cost(m) for m in methods) * (steps.get(scene) or max(steps.values(), default=1))
+
+
+def trains_any(job: str) -> bool:
+    """Whether per-run job ``job`` has a run that trains (:func:`run_work` is not None); any other job: True. The slot
+    reservation never keeps a job without one waiting (``dispatch.run``'s ``may_wait``): NCLaw's velocity fit."""
+    return dispatch.RUN_JOB_RE.match(job) is None or run_work(job, {}) is not None
+
+
+def below_normal(job: str, left, steps: dict[str, int], share: float = PRIORITY_SHARE) -> bool:
+    """Whether ``job`` starts at CUDA MPS's below-normal client priority (``gca.gpu_slot.MPS_PRIORITY_ENV``): its runs'
+    work (:func:`run_work`) is under ``share`` of the heaviest training job in ``left`` (the grid's training jobs not
+    done, ``job`` itself included when it trains). Inputs, the report and jobs of no run that trains never are: the
+    runs wait on them. Under MPS the GPU then serves the heaviest runs first and the lighter ones fill in what they
+    leave, so the table no longer ends with its heaviest runs alone on a part-empty GPU (session 47)."""
+    work = run_work(job, steps)
+    if work is None:
+        return False
+    heaviest = max((w for n in left if (w := run_work(n, steps)) is not None), default=0.0)
+    return work < share * heaviest
+
+
 def scene_steps(work: Path) -> dict[str, int]:
     """MPM steps of one rollout of each scene of ``work/params.yaml`` at its profile (simulated frames x substeps,
     :func:`gca.scenes.config.scene_video`), for :func:`_scaled_elsewhere`. A capture scene (its timing comes from its
@@ -863,7 +904,12 @@ def main(argv=None) -> dict[str, str]:
                     help="--machine-left: a training run's expected seconds where none of its scene and method has "
                          "finished here (default 900: the slowest Table 1 GCA run under 8-way MPS, session 20)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
-                                                        "allowed (root), stop it at the end; says so where not")
+                                                        "allowed (root), stop it at the end; says so where not. A "
+                                                        "per-run job whose runs' work is under "
+                                                        f"{PRIORITY_SHARE:g} of the heaviest training left starts at "
+                                                        "MPS's below-normal client priority (not with --machine-left)")
+    ap.add_argument("--no-mps-priority", action="store_true",
+                    help="--mps: every job at normal priority (the control of an A/B)")
     dispatch.add_engine_args(ap, slots=2)
     args = ap.parse_args(argv)
     work = (args.work or args.repo).resolve()
@@ -938,12 +984,31 @@ def main(argv=None) -> dict[str, str]:
     env[gpu_slot.RUNS_ENV] = str(args.slots if engine.places else 1)  # provenance of the runs' times (Table 4)
     with mps_daemon(args.mps, log) as mps_on:
         env[gpu_slot.MPS_ENV] = "1" if mps_on else "0"
-        state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=lambda job, place: env, stamp=stamp,
+        prioritise = mps_on and bool(engine.places) and not args.no_mps_priority and args.machine_left is None
+        if mps_on and engine.places and not args.no_mps_priority and args.machine_left is not None:
+            log("--mps: every job at normal priority: --machine-left's lease check counts equal shares of the GPU")
+        steps = scene_steps(work) if prioritise else {}
+        if prioritise:
+            log(f"--mps: a run's jobs under {PRIORITY_SHARE:g} x the heaviest training left start at below-normal "
+                f"priority ({gpu_slot.MPS_PRIORITY_ENV}={gpu_slot.MPS_BELOW_NORMAL}; --no-mps-priority: none)")
+
+        def job_env(job, place) -> dict:
+            """The jobs' environment, and MPS's below-normal priority for a light run's job (:func:`below_normal`)."""
+            if not prioritise:
+                return env
+            left = [n for n in jobs if n.startswith("train@") and not dispatch.is_done(work, n, stamp)]
+            if not below_normal(job.name, left, steps):
+                return env
+            log(f"prio  {job.name}: below normal")
+            return {**env, gpu_slot.MPS_PRIORITY_ENV: gpu_slot.MPS_BELOW_NORMAL}
+
+        state = dispatch.run(jobs, engine, work, log, args.deadline, job_env=job_env, stamp=stamp,
                              launch_until=args.machine_left,
                              expected_s=_expected_in(work, args.expected_train_s,
                                                      args.slots if engine.places else None),
                              packed_s=(lambda seconds, k: packed_seconds(seconds, args.slots, k))
-                             if engine.places else None, first=first_methods(args.first_methods))
+                             if engine.places else None, first=first_methods(args.first_methods),
+                             may_wait=trains_any)
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))

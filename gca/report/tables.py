@@ -170,9 +170,12 @@ def _sharing_note(runs: Runs) -> tuple[str, ...]:
         return ()
     most = max(int(r["runs_per_gpu"]) for r in shared)
     mps = "under CUDA MPS" if any(r.get("mps") for r in shared) else "time-sliced, without MPS"
-    return (f"{len(shared)} of {len(records)} runs trained with up to {most} runs on one GPU ({mps}): their training "
-            "times are packed times, not solo ones; LoRA vs full fine-tuning compares fairly only between runs packed "
-            "alike. Solo timings: `benchmarks/harness.py`.",)
+    low = sum(1 for r in shared if r.get("mps_below_normal"))
+    low = (f", {low} of them at MPS's below-normal priority (the grid's lighter runs yield the GPU to its heaviest)"
+           if low else "")
+    return (f"{len(shared)} of {len(records)} runs trained with up to {most} runs on one GPU ({mps}{low}): their "
+            "training times are packed times, not solo ones; LoRA vs full fine-tuning compares fairly only between runs "
+            "packed alike. Solo timings: `benchmarks/harness.py`.",)
 
 
 def _n_scenes(runs: Runs, method: str) -> int:
