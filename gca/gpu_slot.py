@@ -56,6 +56,8 @@ def runs_per_gpu() -> int:
 MPS_ENV = "GCA_MPS"  # whether the runs shared their GPU under CUDA MPS ("1"/"0"; read by gca.pipeline.train)
 MPS_PRIORITY_ENV = "CUDA_MPS_CLIENT_PRIORITY"  # CUDA's own (MPS docs, environment variables): a client's coarse
 MPS_BELOW_NORMAL = "1"  # priority over every stream it makes, read when CUDA starts: "0" normal, "1" below normal
+PRIORITY_GRID_ENV = "GCA_MPS_PRIORITY"  # "1": the grid that started the run gave its lighter units below-normal
+# priority (gca.pipeline.grid.below_normal), so the run's time is no equal share of its GPU (read by gca.pipeline.train)
 
 
 def mps_running() -> bool:

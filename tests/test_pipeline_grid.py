@@ -743,28 +743,43 @@ def _table1_steps() -> dict[str, int]:
     return {"ball": 800, "duck": 800, "pawn": 400, "cat": 400, "fish": 500, "bottle": 500}
 
 
-def test_the_lighter_runs_jobs_start_below_normal_and_the_heaviest_and_their_inputs_at_normal():
+def test_the_lighter_units_jobs_start_below_normal_and_the_heaviest_and_the_inputs_at_normal():
     """Session 47: the table ends with its heaviest runs (ball and duck: 800 steps) alone on a part-empty GPU; at
-    MPS's below-normal priority for the lighter runs' jobs the GPU serves the heaviest first. NeuMA's 40-frame runs
-    (cost 4.0 against 4.5) stay normal; NCLaw's job (the scene's launch-velocity fit) and inputs never go below."""
+    MPS's below-normal priority for the lighter (scene, seed) units' jobs the GPU serves the heaviest first. One
+    priority a unit (its NCLaw fit and every method alike: Table 4's pairs stay comparable); inputs never go below."""
     steps = _table1_steps()
     left = [f"train@{s}:{m}" for s in steps for m in ("nclaw", "neuma", "gca")]
-    low = {n for n in [*left, *(n.replace("train@", "evaluate@") for n in left), "assets@pawn", "report"]
-           if grid.below_normal(n, left, steps)}
+    jobs = [*left, *(n.replace("train@", "evaluate@") for n in left), "assets@pawn", "report"]
+    low = {n for n in jobs if grid.below_normal(n, jobs, left, steps)}
     assert low == {f"{stage}@{s}:{m}" for stage in ("train", "evaluate") for s in ("pawn", "cat", "fish", "bottle")
-                   for m in ("neuma", "gca")}
+                   for m in ("nclaw", "neuma", "gca")}
+    assert grid.unit_work(jobs, steps) == {"ball@seed0": 3600.0, "duck@seed0": 3600.0, "pawn@seed0": 1800.0,
+                                           "cat@seed0": 1800.0, "fish@seed0": 2250.0, "bottle@seed0": 2250.0}
     assert grid.run_work("train@ball:gca", steps) == 4.5 * 800 and grid.run_work("train@pawn:nclaw", steps) is None
     assert grid.run_work("train@pawn:neuma@seed1+gca@seed1", steps) == (4.0 + 4.5) * 400  # a batch: its runs' sum
     assert grid.run_work("train@capture1:gca", steps) == 4.5 * 800  # a scene without steps: the largest
-    # when the heaviest are done, the rest is the heaviest left: normal (and so is everything at share 0)
+    seeds = ["train@pawn:gca@seed1", "train@ball:gca@seed1"]  # seed 1's units beside seed 0's
+    assert grid.below_normal("evaluate@pawn:nclaw@seed1", [*jobs, *seeds], [*left, *seeds], steps)
+    assert not grid.below_normal("train@ball:nclaw@seed1", [*jobs, *seeds], [*left, *seeds], steps)
+    # once the heaviest are done, what is left decides: fish's 2250 x 0.75 = 1687.5 < the pawn's 1800, all normal
     rest = [n for n in left if "@ball" not in n and "@duck" not in n]
-    assert not any(grid.below_normal(n, rest, steps) for n in rest if "fish" in n or "bottle" in n)
-    assert grid.below_normal("train@pawn:neuma", rest, steps)  # 1600 < 0.75 x 2250 (fish's GCA)
-    assert not grid.below_normal("train@pawn:gca", rest, steps)  # 1800: within the share
-    assert not any(grid.below_normal(n, left, steps, share=0.0) for n in left)
-    assert not grid.below_normal("evaluate@ball:gca", [], steps)  # nothing left to yield to
+    assert not any(grid.below_normal(n, jobs, rest, steps) for n in jobs)
+    assert not any(grid.below_normal(n, jobs, left, steps, share=0.0) for n in jobs)
+    assert not grid.below_normal("evaluate@ball:gca", jobs, [], steps)  # nothing left to yield to
+    assert not grid.below_normal("train@pawn:nclaw", ["train@pawn:nclaw"], left, steps)  # NCLaw alone: no work
     assert grid.trains_any("train@ball:gca") and not grid.trains_any("train@ball:nclaw")
     assert grid.trains_any("train@ball:nclaw@seed1+gca@seed1") and grid.trains_any("assets@ball")
+
+
+def test_a_priority_calls_times_teach_no_estimate(tmp_path):
+    """Review, session 47: a run timed in a call that gave MPS priorities is no equal share of its GPU (a below-normal
+    run slower, a normal one beside it faster), so ``--machine-left``'s estimates leave it out; the same record
+    without the field counts (negative control)."""
+    for scene, priority in (("ball", "normal"), ("pawn", None), ("cat", "below_normal")):
+        _write(tmp_path, [f"runs/{scene}/gca/train.json"])
+        record = {"status": "ok", "train_seconds": 100.0, **({"mps_priority": priority} if priority else {})}
+        (tmp_path / f"runs/{scene}/gca/train.json").write_text(json.dumps(record))
+    assert grid.finished_train_seconds(tmp_path) == {"gca": {"pawn": 100.0}}
 
 
 def test_the_grid_starts_its_lighter_runs_below_normal_under_mps_only(tmp_path, monkeypatch):
@@ -773,8 +788,10 @@ def test_the_grid_starts_its_lighter_runs_below_normal_under_mps_only(tmp_path, 
     shares) and no MPS leave every job at normal (negative controls). The runs' records say which they were."""
     seen: dict[str, dict] = {}
 
-    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp="", **machine):
-        assert machine["may_wait"] is grid.trains_any  # NCLaw's velocity fit is never kept waiting
+    machine = {}
+
+    def fake_run(jobs, engine, work, log, deadline, job_env=None, stamp="", **kw):
+        machine.update(kw)
         for name, job in jobs.items():
             seen[name] = dict(job_env(job, 0))
         return {n: "done" for n in jobs}
@@ -787,13 +804,22 @@ def test_the_grid_starts_its_lighter_runs_below_normal_under_mps_only(tmp_path, 
     argv = ["--scenes", "ball", "pawn", "--methods", "nclaw", "gca", "--profile", "paper", "--stages", "train",
             "evaluate", "--gpus", "0", "--slots", "4"]
     prio = "CUDA_MPS_CLIENT_PRIORITY"
-    for extra, expect_low in ((["--mps"], {"train@pawn:gca", "evaluate@pawn:gca"}), (["--mps", "--no-mps-priority"], set()),
+    pawn = {f"{stage}@pawn:{m}" for stage in ("train", "evaluate") for m in ("nclaw", "gca")}
+    for extra, expect_low in ((["--mps"], pawn), (["--mps", "--no-mps-priority"], set()),
                               (["--mps", "--machine-left", "3000"], set()), ([], set())):
         seen.clear()
         grid.main(["--work", str(tmp_path / "w"), *argv, *extra])
         assert {n for n, env in seen.items() if env.get(prio) == "1"} == expect_low, extra
         assert all(prio not in env for n, env in seen.items() if n not in expect_low)
         assert {n for n, env in seen.items() if env.get("GCA_MPS") == "1"} == (set(seen) if "--mps" in extra else set())
+        assert {n for n, env in seen.items() if env.get("GCA_MPS_PRIORITY") == "1"} == (set(seen) if expect_low else set())
+        assert (machine["may_wait"] is None) == ("--machine-left" in extra)  # a lease keeps the reservation whole
     log = (tmp_path / "w" / ".grid" / "grid.log").read_text()
     assert "prio  train@pawn:gca: below normal" in log and "prio  train@ball:gca" not in log
     assert "every job at normal priority: --machine-left" in log
+    # the ball's training done: the pawn is the heaviest left, and nothing goes below (the markers are read)
+    for m in ("nclaw", "gca"):
+        (tmp_path / "w" / ".grid" / f"train@ball:{m}.done").write_text("done\n")
+    seen.clear()
+    grid.main(["--work", str(tmp_path / "w"), *argv, "--mps"])
+    assert not any(env.get(prio) == "1" for env in seen.values())

@@ -288,7 +288,7 @@ def test_table4_says_when_its_times_are_packed(tmp_path):
     low = tmp_path / "low"
     for method in ("gca", "gca_full_ft"):
         _write(low, _record("ball", method, chamfer_mean=0.1, train_seconds=60.0, peak_memory_gib=1.0,
-                            runs_per_gpu=8, mps=True, mps_below_normal=method == "gca"))
+                            runs_per_gpu=8, mps=True, mps_priority="below_normal" if method == "gca" else "normal"))
     (note,) = [n for n in tables.table4_efficiency(load_runs(low)).notes if "packed" in n]
     assert note.startswith("2 of 2 runs trained with up to 8 runs on one GPU (under CUDA MPS, 1 of them at MPS's "
                            "below-normal priority")
@@ -301,14 +301,19 @@ def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
     monkeypatch.delenv("GCA_RUNS_PER_GPU", raising=False)
     monkeypatch.delenv("GCA_MPS", raising=False)
     monkeypatch.delenv("CUDA_MPS_CLIENT_PRIORITY", raising=False)
-    assert gpu_sharing() == {"runs_per_gpu": 1, "mps": False, "mps_below_normal": False}
+    monkeypatch.delenv("GCA_MPS_PRIORITY", raising=False)
+    assert gpu_sharing() == {"runs_per_gpu": 1, "mps": False, "mps_priority": None}
     monkeypatch.setenv("GCA_RUNS_PER_GPU", "8")
     monkeypatch.setenv("GCA_MPS", "1")
-    assert gpu_sharing() == {"runs_per_gpu": 8, "mps": True, "mps_below_normal": False}
-    monkeypatch.setenv("CUDA_MPS_CLIENT_PRIORITY", "1")  # the grid's priority for a lighter run (CUDA reads it too)
-    assert gpu_sharing()["mps_below_normal"] is True
-    monkeypatch.setenv("CUDA_MPS_CLIENT_PRIORITY", "0")  # normal, said explicitly
-    assert gpu_sharing()["mps_below_normal"] is False
+    assert gpu_sharing() == {"runs_per_gpu": 8, "mps": True, "mps_priority": None}
+    monkeypatch.setenv("CUDA_MPS_CLIENT_PRIORITY", "1")  # CUDA's own, set by someone else: not the grid's priority
+    assert gpu_sharing()["mps_priority"] is None
+    monkeypatch.setenv("GCA_MPS_PRIORITY", "1")  # a grid that gave priorities: this run below normal
+    assert gpu_sharing()["mps_priority"] == "below_normal"
+    monkeypatch.setenv("CUDA_MPS_CLIENT_PRIORITY", "0")  # normal, beside below-normal ones
+    assert gpu_sharing()["mps_priority"] == "normal"
+    monkeypatch.setenv("GCA_MPS", "0")  # without MPS no priority acts
+    assert gpu_sharing()["mps_priority"] is None
 
 
 def test_a_run_is_evaluated_with_the_launch_velocity_it_trained_with(tmp_path):

@@ -66,7 +66,7 @@ def evaluate_trained(settings: Settings, scene_name: str, method, inputs, body: 
             "train_device": train.get("device", "not recorded"), "train_commit": train.get("commit", "not recorded"),
             "velocity_source": train["velocity_source"],
             "term_shares": train.get("term_shares", {}), "runs_per_gpu": train.get("runs_per_gpu", 1),
-            "mps": train.get("mps", False), "mps_below_normal": train.get("mps_below_normal", False)}
+            "mps": train.get("mps", False), "mps_priority": train.get("mps_priority")}
 
 
 def launch_error(v0, v0_true) -> dict:

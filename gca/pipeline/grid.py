@@ -614,7 +614,9 @@ def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, di
     """``{method: {scene: the longest train_seconds}}`` of the runs in ``work/runs`` that finished ``ok`` (a diverged
     one stops early); with ``slots``, each as if packed ``slots``-way (:func:`packed_seconds`, from the sharing its
     training job's marker records: ``dispatch.record_sharing``; none recorded: taken as packed so). Session 21: a
-    run timed 5-way (310 s) set the expectation of runs that then ran 8-way and outlasted the machine."""
+    run timed 5-way (310 s) set the expectation of runs that then ran 8-way and outlasted the machine. A run timed
+    in a call that gave MPS priorities (``mps_priority`` in its record: :func:`below_normal`) is left out: its time
+    is no equal share of the GPU."""
     shares = {}
     if slots:
         for path in (work / ".grid").glob("train@*:*.done"):
@@ -625,7 +627,8 @@ def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, di
     out: dict[str, dict[str, float]] = {}
     for path in (work / "runs").glob("*/*/train.json"):
         record = json.loads(path.read_text())
-        if record.get("status") == "ok":
+        if record.get("status") == "ok" and not record.get("mps_priority"):  # a priority call's times are not equal
+            # shares (a below-normal run slower, a normal one beside it faster): no estimate learns from them
             scenes = out.setdefault(path.parent.name.split("@", 1)[0], {})
             scene = path.parent.parent.name
             seconds = float(record.get("train_seconds") or 0.0)
@@ -701,9 +704,9 @@ def _scaled_elsewhere(finished: dict[str, dict[str, float]], method: str, scene:
     return max(guesses)
 
 
-PRIORITY_SHARE = 0.75  # a per-run job whose runs' work is under this share of the heaviest training left starts at
-# CUDA MPS's below-normal client priority (run_work, below_normal): Table 1's 20-frame scenes (400 steps) beside the
-# ball and the duck (800), NeuMA's 40-frame runs (cost 4.0 against GCA's 4.5) at normal. Session 47, 12 processes
+PRIORITY_SHARE = 0.75  # a (scene, seed) unit whose heaviest run's work is under this share of the heaviest unit with
+# training left starts its jobs at CUDA MPS's below-normal client priority (unit_work, below_normal): Table 1's
+# 20-frame scenes (400-500 steps) beside the ball and the duck (800) at the paper profile. Session 47, 12 processes
 # under MPS (benchmarks/bench_runs_packed.py): four long ones at normal beside eight short ones below it ended in 30.8
 # s against 43.4 with all at normal, the span 6.5 % shorter
 
@@ -724,22 +727,37 @@ def run_work(job: str, steps: dict[str, int]) -> float | None:
 
 
 def trains_any(job: str) -> bool:
-    """Whether per-run job ``job`` has a run that trains (:func:`run_work` is not None); any other job: True. The slot
-    reservation never keeps a job without one waiting (``dispatch.run``'s ``may_wait``): NCLaw's velocity fit."""
+    """Whether per-run job ``job`` has a run that trains (:func:`run_work` is not None); any other job: True. Without
+    a machine's lease the slot reservation keeps no job without one waiting (``dispatch.run``'s ``may_wait``): NCLaw's
+    velocity fit, ~30 s, which its unit's runs wait on (session 47)."""
     return dispatch.RUN_JOB_RE.match(job) is None or run_work(job, {}) is not None
 
 
-def below_normal(job: str, left, steps: dict[str, int], share: float = PRIORITY_SHARE) -> bool:
-    """Whether ``job`` starts at CUDA MPS's below-normal client priority (``gca.gpu_slot.MPS_PRIORITY_ENV``): its runs'
-    work (:func:`run_work`) is under ``share`` of the heaviest training job in ``left`` (the grid's training jobs not
-    done, ``job`` itself included when it trains). Inputs, the report and jobs of no run that trains never are: the
-    runs wait on them. Under MPS the GPU then serves the heaviest runs first and the lighter ones fill in what they
-    leave, so the table no longer ends with its heaviest runs alone on a part-empty GPU (session 47)."""
-    work = run_work(job, steps)
-    if work is None:
+def unit_work(jobs, steps: dict[str, int]) -> dict[str, float]:
+    """Each (scene, seed) unit's work (``dispatch.unit_of``): the largest :func:`run_work` among its per-run jobs in
+    ``jobs`` (names), done or not; a unit of no run that trains (NCLaw alone) is not listed."""
+    out: dict[str, float] = {}
+    for n in jobs:
+        u, w = dispatch.unit_of(n), run_work(n, steps)
+        if u is not None and w is not None:
+            out[u] = max(out.get(u, 0.0), w)
+    return out
+
+
+def below_normal(job: str, jobs, left, steps: dict[str, int], share: float = PRIORITY_SHARE) -> bool:
+    """Whether ``job`` starts at CUDA MPS's below-normal client priority (``gca.gpu_slot.MPS_PRIORITY_ENV``): it is a
+    per-run job of a (scene, seed) unit whose work (:func:`unit_work` over the grid's ``jobs``) is under ``share`` of
+    the heaviest unit with a training job in ``left`` (the grid's training jobs not done). One priority a unit: its
+    methods' times stay comparable (Table 4's pairs) and its launch-velocity fit goes at its runs' priority. Inputs and
+    the report never are: every run waits on them. Under MPS the GPU then serves the heaviest units first and the
+    lighter ones fill in what they leave, so the table does not end with its heaviest runs alone on a part-empty GPU
+    (session 47). A failed heavy training still counts as left for the rest of the call (its ``.done`` never comes)."""
+    unit = dispatch.unit_of(job)
+    works = unit_work(jobs, steps)
+    if unit not in works:
         return False
-    heaviest = max((w for n in left if (w := run_work(n, steps)) is not None), default=0.0)
-    return work < share * heaviest
+    heaviest = max((works[u] for n in left if (u := dispatch.unit_of(n)) in works), default=0.0)
+    return works[unit] < share * heaviest
 
 
 def scene_steps(work: Path) -> dict[str, int]:
@@ -992,12 +1010,15 @@ def main(argv=None) -> dict[str, str]:
             log(f"--mps: a run's jobs under {PRIORITY_SHARE:g} x the heaviest training left start at below-normal "
                 f"priority ({gpu_slot.MPS_PRIORITY_ENV}={gpu_slot.MPS_BELOW_NORMAL}; --no-mps-priority: none)")
 
+        if prioritise:  # every run of this call records it: its time is not an equal share's (finished_train_seconds)
+            env[gpu_slot.PRIORITY_GRID_ENV] = "1"
+
         def job_env(job, place) -> dict:
-            """The jobs' environment, and MPS's below-normal priority for a light run's job (:func:`below_normal`)."""
+            """The jobs' environment, and MPS's below-normal priority for a lighter unit's job (:func:`below_normal`)."""
             if not prioritise:
                 return env
             left = [n for n in jobs if n.startswith("train@") and not dispatch.is_done(work, n, stamp)]
-            if not below_normal(job.name, left, steps):
+            if not below_normal(job.name, jobs, left, steps):
                 return env
             log(f"prio  {job.name}: below normal")
             return {**env, gpu_slot.MPS_PRIORITY_ENV: gpu_slot.MPS_BELOW_NORMAL}
@@ -1008,7 +1029,7 @@ def main(argv=None) -> dict[str, str]:
                                                      args.slots if engine.places else None),
                              packed_s=(lambda seconds, k: packed_seconds(seconds, args.slots, k))
                              if engine.places else None, first=first_methods(args.first_methods),
-                             may_wait=trains_any)
+                             may_wait=trains_any if args.machine_left is None else None)
     counts = {s: sum(1 for v in state.values() if v == s) for s in ("done", "todo", "failed", "skipped")}
     log(f"after {time.monotonic() - t0:.0f} s: {counts}" + ("; run the same command again to go on" if counts["todo"]
                                                             else "; nothing left to run"))

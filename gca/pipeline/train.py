@@ -259,12 +259,16 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
 def gpu_sharing() -> dict:
     """How the run shared its GPU, from the launcher (``gca.pipeline.grid`` sets ``GCA_RUNS_PER_GPU``, its slots per
     GPU, and ``GCA_MPS``; DVC queue workers set the first, and ``gca.gpu_slot`` the second from the MPS daemon it
-    finds): ``runs_per_gpu`` [count] and ``mps`` [bool], and ``mps_below_normal`` [bool]: the grid started it at MPS's
-    below-normal client priority (``gca.pipeline.grid.below_normal``: it yielded the GPU to heavier runs, so its time
-    is longer than its share). A time measured with 8 runs on one GPU is not a solo time (Table 4 says so); a run
-    started otherwise (dvc repro, by hand) counts as alone."""
-    return {"runs_per_gpu": gpu_slot.runs_per_gpu(), "mps": os.environ.get(gpu_slot.MPS_ENV) == "1",
-            "mps_below_normal": os.environ.get(gpu_slot.MPS_PRIORITY_ENV) == gpu_slot.MPS_BELOW_NORMAL}
+    finds): ``runs_per_gpu`` [count] and ``mps`` [bool], and ``mps_priority``: None where the grid gave no priorities,
+    else ``"below_normal"`` (its unit yielded the GPU to heavier ones: ``gca.pipeline.grid.below_normal``) or
+    ``"normal"`` (beside such runs: faster than an equal share). A time measured with 8 runs on one GPU is not a solo
+    time (Table 4 says so); a run started otherwise (dvc repro, by hand) counts as alone."""
+    mps = os.environ.get(gpu_slot.MPS_ENV) == "1"
+    priority = None
+    if mps and os.environ.get(gpu_slot.PRIORITY_GRID_ENV) == "1":
+        low = os.environ.get(gpu_slot.MPS_PRIORITY_ENV) == gpu_slot.MPS_BELOW_NORMAL
+        priority = "below_normal" if low else "normal"
+    return {"runs_per_gpu": gpu_slot.runs_per_gpu(), "mps": mps, "mps_priority": priority}
 
 
 def mean_term_shares(history: list[dict]) -> dict[str, float]:

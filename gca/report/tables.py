@@ -170,7 +170,7 @@ def _sharing_note(runs: Runs) -> tuple[str, ...]:
         return ()
     most = max(int(r["runs_per_gpu"]) for r in shared)
     mps = "under CUDA MPS" if any(r.get("mps") for r in shared) else "time-sliced, without MPS"
-    low = sum(1 for r in shared if r.get("mps_below_normal"))
+    low = sum(1 for r in shared if r.get("mps_priority") == "below_normal")
     low = (f", {low} of them at MPS's below-normal priority (the grid's lighter runs yield the GPU to its heaviest)"
            if low else "")
     return (f"{len(shared)} of {len(records)} runs trained with up to {most} runs on one GPU ({mps}{low}): their "
