@@ -922,10 +922,11 @@ def main(argv=None) -> dict[str, str]:
                     help="--machine-left: a training run's expected seconds where none of its scene and method has "
                          "finished here (default 900: the slowest Table 1 GCA run under 8-way MPS, session 20)")
     ap.add_argument("--mps", action="store_true", help="run the jobs under CUDA MPS: start the daemon where "
-                                                        "allowed (root), stop it at the end; says so where not. A "
-                                                        "per-run job whose runs' work is under "
-                                                        f"{PRIORITY_SHARE:g} of the heaviest training left starts at "
-                                                        "MPS's below-normal client priority (not with --machine-left)")
+                                                        "allowed (root), stop it at the end; says so where not. "
+                                                        "The jobs of a (scene, seed) unit whose work is under "
+                                                        f"{PRIORITY_SHARE:g} of the heaviest unit's with training left "
+                                                        "start at MPS's below-normal client priority (not with "
+                                                        "--machine-left)")
     ap.add_argument("--no-mps-priority", action="store_true",
                     help="--mps: every job at normal priority (the control of an A/B)")
     dispatch.add_engine_args(ap, slots=2)
@@ -1007,11 +1008,10 @@ def main(argv=None) -> dict[str, str]:
             log("--mps: every job at normal priority: --machine-left's lease check counts equal shares of the GPU")
         steps = scene_steps(work) if prioritise else {}
         if prioritise:
-            log(f"--mps: a run's jobs under {PRIORITY_SHARE:g} x the heaviest training left start at below-normal "
-                f"priority ({gpu_slot.MPS_PRIORITY_ENV}={gpu_slot.MPS_BELOW_NORMAL}; --no-mps-priority: none)")
-
-        if prioritise:  # every run of this call records it: its time is not an equal share's (finished_train_seconds)
-            env[gpu_slot.PRIORITY_GRID_ENV] = "1"
+            log(f"--mps: the jobs of a unit under {PRIORITY_SHARE:g} x the heaviest unit's with training left start at "
+                f"below-normal priority ({gpu_slot.MPS_PRIORITY_ENV}={gpu_slot.MPS_BELOW_NORMAL}; --no-mps-priority: "
+                "none)")
+            env[gpu_slot.PRIORITY_GRID_ENV] = "1"  # every run of this call records it: no equal share's time
 
         def job_env(job, place) -> dict:
             """The jobs' environment, and MPS's below-normal priority for a lighter unit's job (:func:`below_normal`)."""
