@@ -10,7 +10,8 @@
 #       the grid, stopped at DEADLINE s (its jobs checkpoint); the same command again resumes it until "nothing left".
 #       $OUT/timing.txt: each call's grid seconds; $OUT/grid_results.tar.gz: the small results; $OUT/grid.log
 #   GRID_ARGS   more grid options, e.g. "--no-mps-priority" (session 47: the control; by default under --mps the lighter
-#       units' jobs start at MPS's below-normal client priority, gca.pipeline.grid.below_normal)
+#       units' jobs start at MPS's below-normal client priority, gca.pipeline.grid.below_normal), or
+#       "--set train.seeds=[0,1,2]" (issue 20's three-seed table: 54 runs, ~3x the GPU work; not yet run this way)
 #   GCA_COMMIT  required for the grid: the commit sent (`git rev-parse --short HEAD` here; the copy there carries a stale
 #       .git, and session 32's runs recorded 4d7bdae+dirty without it)
 set -u
