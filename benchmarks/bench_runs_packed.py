@@ -16,8 +16,9 @@ rendering and the losses are not in it.
 Session 47: ``PxB:K`` runs the last K of the P processes at CUDA MPS's below-normal client priority
 (``gca.gpu_slot.MPS_PRIORITY_ENV``), the others at normal; the row gives each group's mean time from the go to its
 own end, so whether the GPU serves the normal ones first while the low ones fill in (the grid's priority for its
-longest trainings) shows against ``PxB`` (all normal). ``--rollouts-each`` fixes every process's work across configs, ``--short S N`` gives the last S processes N rollouts
-(a grid's short runs beside its long ones: whether the priority shortens the span itself).
+longest trainings) shows against ``PxB`` (all normal). ``--rollouts-each`` fixes every process's work across configs,
+``--short S N`` gives the last S processes N rollouts (a grid's short runs beside its long ones: whether the priority
+shortens the span itself).
 
 Usage (the GPU machine; ``--mps`` starts and stops the MPS daemon through ``gca.pipeline.grid.mps_daemon``)::
 
@@ -97,7 +98,7 @@ def run_config(p: int, b: int, rollouts: int, a, tmp: Path, low: int = 0, short:
         return statistics.fmean(group) if group else None
     total = b * sum(each)
     return {"processes": p, "runs_per_process": b, "runs": p * b, "rollouts_per_process": rollouts,
-            "short_processes": short[0] if short[0] else 0, "short_rollouts": short[1] if short[0] else None,
+            "short_processes": short[0], "short_rollouts": short[1] if short[0] else None,
             "low_priority": low, "particles_per_run": rs[0]["particles_per_run"], "span_s": span,
             "run_rollouts_per_s": total / span, "s_per_run_rollout": span / total,
             "mean_s_normal": mean(took[:p - low]), "mean_s_low": mean(took[p - low:]),

@@ -750,23 +750,26 @@ def test_the_lighter_units_jobs_start_below_normal_and_the_heaviest_and_the_inpu
     steps = _table1_steps()
     left = [f"train@{s}:{m}" for s in steps for m in ("nclaw", "neuma", "gca")]
     jobs = [*left, *(n.replace("train@", "evaluate@") for n in left), "assets@pawn", "report"]
-    low = {n for n in jobs if grid.below_normal(n, jobs, left, steps)}
+    works = grid.unit_work(jobs, steps)
+    low = {n for n in jobs if grid.below_normal(n, works, left)}
     assert low == {f"{stage}@{s}:{m}" for stage in ("train", "evaluate") for s in ("pawn", "cat", "fish", "bottle")
                    for m in ("nclaw", "neuma", "gca")}
-    assert grid.unit_work(jobs, steps) == {"ball@seed0": 3600.0, "duck@seed0": 3600.0, "pawn@seed0": 1800.0,
+    assert works == {"ball@seed0": 3600.0, "duck@seed0": 3600.0, "pawn@seed0": 1800.0,
                                            "cat@seed0": 1800.0, "fish@seed0": 2250.0, "bottle@seed0": 2250.0}
     assert grid.run_work("train@ball:gca", steps) == 4.5 * 800 and grid.run_work("train@pawn:nclaw", steps) is None
     assert grid.run_work("train@pawn:neuma@seed1+gca@seed1", steps) == (4.0 + 4.5) * 400  # a batch: its runs' sum
     assert grid.run_work("train@capture1:gca", steps) == 4.5 * 800  # a scene without steps: the largest
     seeds = ["train@pawn:gca@seed1", "train@ball:gca@seed1"]  # seed 1's units beside seed 0's
-    assert grid.below_normal("evaluate@pawn:nclaw@seed1", [*jobs, *seeds], [*left, *seeds], steps)
-    assert not grid.below_normal("train@ball:nclaw@seed1", [*jobs, *seeds], [*left, *seeds], steps)
+    both = grid.unit_work([*jobs, *seeds], steps)
+    assert grid.below_normal("evaluate@pawn:nclaw@seed1", both, [*left, *seeds])
+    assert not grid.below_normal("train@ball:nclaw@seed1", both, [*left, *seeds])
     # once the heaviest are done, what is left decides: fish's 2250 x 0.75 = 1687.5 < the pawn's 1800, all normal
     rest = [n for n in left if "@ball" not in n and "@duck" not in n]
-    assert not any(grid.below_normal(n, jobs, rest, steps) for n in jobs)
-    assert not any(grid.below_normal(n, jobs, left, steps, share=0.0) for n in jobs)
-    assert not grid.below_normal("evaluate@ball:gca", jobs, [], steps)  # nothing left to yield to
-    assert not grid.below_normal("train@pawn:nclaw", ["train@pawn:nclaw"], left, steps)  # NCLaw alone: no work
+    assert not any(grid.below_normal(n, works, rest) for n in jobs)
+    assert not any(grid.below_normal(n, works, left, share=0.0) for n in jobs)
+    assert not grid.below_normal("evaluate@ball:gca", works, [])  # nothing left to yield to
+    alone = grid.unit_work(["train@pawn:nclaw"], steps)  # NCLaw alone: no work
+    assert alone == {} and not grid.below_normal("train@pawn:nclaw", alone, left)
     assert grid.trains_any("train@ball:gca") and not grid.trains_any("train@ball:nclaw")
     assert grid.trains_any("train@ball:nclaw@seed1+gca@seed1") and grid.trains_any("assets@ball")
 

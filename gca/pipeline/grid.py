@@ -744,16 +744,16 @@ def unit_work(jobs, steps: dict[str, int]) -> dict[str, float]:
     return out
 
 
-def below_normal(job: str, jobs, left, steps: dict[str, int], share: float = PRIORITY_SHARE) -> bool:
+def below_normal(job: str, works: dict[str, float], left, share: float = PRIORITY_SHARE) -> bool:
     """Whether ``job`` starts at CUDA MPS's below-normal client priority (``gca.gpu_slot.MPS_PRIORITY_ENV``): it is a
-    per-run job of a (scene, seed) unit whose work (:func:`unit_work` over the grid's ``jobs``) is under ``share`` of
-    the heaviest unit with a training job in ``left`` (the grid's training jobs not done). One priority a unit: its
+    per-run job of a (scene, seed) unit whose work (``works``: :func:`unit_work` of the grid's jobs, made once) is
+    under ``share`` of the heaviest unit with a training job in ``left`` (the grid's training jobs not done). One
+    priority a unit: its
     methods' times stay comparable (Table 4's pairs) and its launch-velocity fit goes at its runs' priority. Inputs and
     the report never are: every run waits on them. Under MPS the GPU then serves the heaviest units first and the
     lighter ones fill in what they leave, so the table does not end with its heaviest runs alone on a part-empty GPU
     (session 47). A failed heavy training still counts as left for the rest of the call (its ``.done`` never comes)."""
     unit = dispatch.unit_of(job)
-    works = unit_work(jobs, steps)
     if unit not in works:
         return False
     heaviest = max((works[u] for n in left if (u := dispatch.unit_of(n)) in works), default=0.0)
@@ -762,9 +762,9 @@ def below_normal(job: str, jobs, left, steps: dict[str, int], share: float = PRI
 
 def scene_steps(work: Path) -> dict[str, int]:
     """MPM steps of one rollout of each scene of ``work/params.yaml`` at its profile (simulated frames x substeps,
-    :func:`gca.scenes.config.scene_video`), for :func:`_scaled_elsewhere`. A capture scene (its timing comes from its
-    video) is left out, and so is a scene whose entry does not build; none when the file is absent or is not this
-    project's (``--repo``: another DVC repository's params, without ``scenes`` and ``video`` of these shapes). The
+    :func:`gca.scenes.config.scene_video`), for :func:`_scaled_elsewhere` and :func:`unit_work`. A capture scene (its
+    timing comes from its video) is left out, and so is a scene whose entry does not build; none when the file is
+    absent or is not this project's (``--repo``: another DVC repository's params, without ``scenes`` and ``video`` of these shapes). The
     stages check the params; an estimate only falls back to the runs' own times."""
     from gca.config import ConfigError
     from gca.pipeline import schema  # the typed configs: only where an estimate needs them
@@ -1003,10 +1003,11 @@ def main(argv=None) -> dict[str, str]:
     env[gpu_slot.RUNS_ENV] = str(args.slots if engine.places else 1)  # provenance of the runs' times (Table 4)
     with mps_daemon(args.mps, log) as mps_on:
         env[gpu_slot.MPS_ENV] = "1" if mps_on else "0"
-        prioritise = mps_on and bool(engine.places) and not args.no_mps_priority and args.machine_left is None
-        if mps_on and engine.places and not args.no_mps_priority and args.machine_left is not None:
+        asked = mps_on and bool(engine.places) and not args.no_mps_priority
+        prioritise = asked and args.machine_left is None
+        if asked and not prioritise:
             log("--mps: every job at normal priority: --machine-left's lease check counts equal shares of the GPU")
-        steps = scene_steps(work) if prioritise else {}
+        works = unit_work(jobs, scene_steps(work)) if prioritise else {}
         if prioritise:
             log(f"--mps: the jobs of a unit under {PRIORITY_SHARE:g} x the heaviest unit's with training left start at "
                 f"below-normal priority ({gpu_slot.MPS_PRIORITY_ENV}={gpu_slot.MPS_BELOW_NORMAL}; --no-mps-priority: "
@@ -1018,7 +1019,7 @@ def main(argv=None) -> dict[str, str]:
             if not prioritise:
                 return env
             left = [n for n in jobs if n.startswith("train@") and not dispatch.is_done(work, n, stamp)]
-            if not below_normal(job.name, jobs, left, steps):
+            if not below_normal(job.name, works, left):
                 return env
             log(f"prio  {job.name}: below normal")
             return {**env, gpu_slot.MPS_PRIORITY_ENV: gpu_slot.MPS_BELOW_NORMAL}
