@@ -93,9 +93,11 @@ def repo(tmp_path_factory):
 
 def test_engine_runs_every_stage_and_writes_every_report(repo):
     dest, _, log, _ = repo
-    for job in ["assets@ball", "particles@cat", "prior@jelly", "ground_truth@ball", "preprocess@cat",
-                "train@ball:nclaw", "evaluate@cat:gca+", "demo", "report"]:
+    # each scene's inputs (assets, particles, ground_truth, preprocess) as one chain job (grid.chain_inputs)
+    for job in ["inputs@ball", "inputs@cat", "prior@jelly", "train@ball:nclaw", "evaluate@cat:gca+", "demo", "report"]:
         assert f"done  {job}" in log, log
+    commit = next(ln for ln in log.splitlines() if "dvc commit -f " in ln)  # the chains' members, stage by stage
+    assert {"assets@ball", "particles@cat", "ground_truth@ball", "preprocess@cat"} <= set(commit.split()), commit
     # the runs after each seed's velocity job go in batches (`--runs-per-job`; which runs share one follows their
     # cost order): every run of the scene is in one done training job
     batches = re.findall(r"done  train@cat:(\S+)", log)

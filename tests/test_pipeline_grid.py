@@ -564,7 +564,7 @@ def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
             "ground_truth", "preprocess", "train", "evaluate"]
     first, second = tmp_path / "a", tmp_path / "b"
     grid.main(["--work", str(first), *argv])
-    assert "assets@ball" in seen[0] and "evaluate@ball:gca" in seen[0]
+    assert "inputs@ball" in seen[0] and "evaluate@ball:gca" in seen[0]  # assets to preprocess: one chain job
     _write(first, [".grid/train@ball:nclaw.done", ".grid/train@ball:gca.done", ".grid/evaluate@ball:gca.done",
                    ".grid/evaluate@ball:nclaw.done",
                    "runs/ball/gca/train.json", "metrics/eval/ball/gca.json"])
@@ -575,7 +575,7 @@ def test_grid_main_goes_on_from_a_restored_state(tmp_path, monkeypatch):
     assert (second / "metrics/eval/ball/gca.json").is_file() and (tmp_path / "b.tgz").is_file()
     (second / ".grid/train@ball:gca.done").unlink()  # negative control: a run left remakes its inputs
     grid.main(["--work", str(second), *argv])
-    assert seen[-1] == ["assets@ball", "ground_truth@ball", "particles@ball", "preprocess@ball", "train@ball:gca"]
+    assert seen[-1] == ["inputs@ball", "train@ball:gca"]
 
 
 def _bundle_env(**more) -> dict:
@@ -611,7 +611,7 @@ def test_table_bundle_goes_on_from_its_state_on_another_machine(tmp_path, nclaw_
     second = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
                             env=_bundle_env(STATE=str(state), W=str(tmp_path / "b"), OUT=str(tmp_path / "out_b")))
     assert "state files restored" in second.stdout and "nothing left to run" in second.stdout, second.stdout
-    assert "done  report" in second.stdout and "done  assets@ball" not in second.stdout
+    assert "done  report" in second.stdout and "done  inputs@ball" not in second.stdout
     assert not (tmp_path / "b/grid/data").exists()  # no input remade
     assert (tmp_path / "b/grid/runs/ball/nclaw@seed1/train.json").is_file()
     assert any((tmp_path / "b/grid/reports/ci").glob("table1*"))
@@ -693,7 +693,7 @@ def test_table_bundle_starts_no_run_the_machine_would_cut_off(tmp_path):
     call = subprocess.run(["sh", "benchmarks/table_bundle.sh"], cwd=ROOT, capture_output=True, text=True, timeout=600,
                           env=env)
     log = (tmp_path / "a/grid/.grid/grid.log").read_text()
-    assert "done  preprocess@ball" in log and "start train@" not in log, call.stdout + log
+    assert "done  inputs@ball" in log and "start train@" not in log, call.stdout + log  # the chain, assets to preprocess
     assert "'todo': 3" in log and "run the same command again" in log  # train, evaluate, report
     assert (tmp_path / "a/machine_start").is_file()
 

@@ -69,6 +69,13 @@ def _ignore_usr_signal() -> None:
     parent_death_signal(signal.SIGTERM)
 
 
+def write_done(work: Path, name: str, took: float, stamp: str = "") -> None:
+    """Write job ``name``'s ``.done`` marker: its seconds ``took`` and the ``stamp`` of its inputs (:func:`is_done`)."""
+    done = marker(work, name)
+    done.parent.mkdir(parents=True, exist_ok=True)
+    done.write_text(f"{took:.1f}\n{stamp}\n")
+
+
 def is_done(work: Path, name: str, stamp: str = "") -> bool:
     """The job left its ``.done`` marker, with ``stamp`` in it when one is given (a marker of a run with
     other inputs does not count)."""
@@ -144,9 +151,7 @@ class StageCommand:
         if rc != 0:
             raise StageFailed(f"{self.name}: exit {rc}")
         took = time.monotonic() - t0
-        done = marker(Path(self.work), self.name)
-        done.parent.mkdir(parents=True, exist_ok=True)
-        done.write_text(f"{took:.1f}\n{self.stamp}\n")
+        write_done(Path(self.work), self.name, took, self.stamp)
         return took
 
     def stop(self) -> None:
