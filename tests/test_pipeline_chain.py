@@ -4,6 +4,7 @@ chained stages' outputs byte for byte against each stage in its own process (CI 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import shlex
@@ -46,6 +47,26 @@ def test_a_scenes_inputs_are_one_chain_job_and_its_readers_wait_on_it():
     assert prio["inputs@ball"] > prio["train@ball:gca"] > prio["report"]
     # negative control: the jobs given are not changed in place
     assert "assets@ball" in jobs["train@ball:gca"].after and jobs["train@ball:gca"].after != chained["train@ball:gca"].after
+
+
+def test_the_first_seeds_velocity_fit_ends_the_chain_where_the_prior_is_there_already():
+    """With the priors given (no prior job: Table 1's grid), the chain ends with the first seed's launch-velocity fit
+    (NCLaw's training job); the other seeds' fits stay their own jobs, run beside each other."""
+    params = grid.grid_params("ci", ["ball"], ["gca", "nclaw"], ["train.seeds=[0,1]"])
+    _, jobs = _jobs(params=params)
+    without_prior = {n: dataclasses.replace(j, after={a for a in j.after if not a.startswith("prior@")})
+                     for n, j in jobs.items() if not n.startswith("prior@")}  # as the grid's --priors leaves them
+    chained = grid.chain_inputs(without_prior, params)
+    assert chained["inputs@ball"].members == ["assets@ball", "particles@ball", "ground_truth@ball", "preprocess@ball",
+                                             "train@ball:nclaw"]
+    assert "runs/ball/velocity.json" in chained["inputs@ball"].outs
+    assert chained["train@ball:gca"].after == {"inputs@ball"}
+    assert chained["train@ball:nclaw@seed1"].after == {"inputs@ball"}  # its own fit, beside the chain's next jobs
+    assert chained["train@ball:gca@seed1"].after == {"inputs@ball", "train@ball:nclaw@seed1"}
+    assert grid.velocity_job(without_prior, "ball") == "train@ball:nclaw" and grid.velocity_job(without_prior, "cat") is None
+    # negative control: the prior still to be made, the fit waits on it: the chain ends at the preprocessing
+    with_prior = grid.chain_inputs(jobs, params)
+    assert with_prior["inputs@ball"].members[-1] == "preprocess@ball" and "train@ball:nclaw" in with_prior
 
 
 def test_done_members_stay_out_and_a_chain_of_one_is_no_chain():

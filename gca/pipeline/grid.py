@@ -4,7 +4,9 @@ What ``dvc repro`` runs, as separate jobs: the stage commands are read from ``dv
 the scenes, their objects and prior families; the order comes from the stages' deps and outs. A scene's
 ``train`` stage is split into one job per (method, seed) run (each seed's first estimates its launch velocity, the
 seed's others reuse it with ``--velocity``; ``--runs-per-job N`` puts N runs in one job), so one scene's runs
-train on several GPUs at once. Each job runs through the engine (``--engine``): ``local`` (submitit's local
+train on several GPUs at once. A scene's input stages (assets, particles, ground_truth, preprocess, then its first
+seed's launch-velocity fit where the prior is made already) run as one job in one process (:func:`chain_inputs`,
+``gca.pipeline.chain``; ``--no-chain``: one job each). Each job runs through the engine (``--engine``): ``local`` (submitit's local
 executor: one process per GPU slot, ``--slots`` jobs per GPU, pinned with ``CUDA_VISIBLE_DEVICES``) or
 ``slurm`` (one SLURM job of one GPU per stage command, ordered by ``afterok`` dependencies). The outputs
 land where ``dvc repro`` puts them:
@@ -247,10 +249,21 @@ OBJECT_CHAIN = ("assets", "particles")  # an object's input stages, one after th
 SCENE_CHAIN = ("ground_truth", "preprocess")  # then its scene's
 
 
-def input_chains(params: dict) -> list[tuple[str, list[str]]]:
+def velocity_job(jobs, scene: str) -> str | None:
+    """The training job that estimates ``scene``'s launch velocity for its first seed (:func:`split_train`: the seed's
+    cheapest run, NCLaw's in Table 1, with ``runs/<scene>/velocity.json`` among its outs); None where there is none."""
+    for name, job in jobs.items():
+        if name.startswith(f"train@{scene}:") and any(o.endswith(f"{scene}/velocity.json") for o in job.outs):
+            return name
+    return None
+
+
+def input_chains(params: dict, jobs=None) -> list[tuple[str, list[str]]]:
     """The grid's chains of input jobs, ``(name, member jobs in order)``: ``inputs@<scene>`` for a scene whose object
     no other scene of the grid has (its object's :data:`OBJECT_CHAIN` then its :data:`SCENE_CHAIN`); where scenes share
-    an object, ``object@<object>`` (its object stages, once) and each scene's ``inputs@<scene>`` (its scene stages)."""
+    an object, ``object@<object>`` (its object stages, once) and each scene's ``inputs@<scene>`` (its scene stages).
+    A scene's chain ends with its first seed's launch-velocity job (:func:`velocity_job` among ``jobs``): the ~30-s
+    fit every run of that seed waits on, a training job started by its own process otherwise (session 47)."""
     by_object: dict[str, list[str]] = {}
     scenes = params.get("scenes") if isinstance(params, dict) else None
     for scene, spec in (scenes if isinstance(scenes, dict) else {}).items():  # --repo: maybe not this project's
@@ -259,7 +272,8 @@ def input_chains(params: dict) -> list[tuple[str, list[str]]]:
     chains = []
     for obj, scenes in by_object.items():
         head = [f"{stage}@{obj}" for stage in OBJECT_CHAIN]
-        tails = {s: [f"{stage}@{s}" for stage in SCENE_CHAIN] for s in scenes}
+        tails = {s: [f"{stage}@{s}" for stage in SCENE_CHAIN] + [v for v in [velocity_job(jobs or {}, s)] if v]
+                 for s in scenes}
         if len(scenes) == 1:
             chains.append((f"inputs@{scenes[0]}", head + tails[scenes[0]]))
         else:
@@ -273,12 +287,14 @@ def chain_inputs(jobs: dict[str, Job], params: dict, done=frozenset(), stamp: st
     a data stage on the H200 spent ~10 s starting (imports, CUDA, warp) for 1.4-11.4 s of work, four of them one
     after the other before a scene's first training (NOTES session 47). A member joins its chain only while each
     job it waits on is in the chain or waited on by the chain already (so the chain's job waits on nothing its
-    members make); a chain of one job is left as it was. The jobs after a member wait on the chain's job instead."""
+    members make); a chain of one job is left as it was. The jobs after a member wait on the chain's job instead. A
+    launch-velocity fit in a chain runs at MPS's normal priority whatever its unit's (:func:`below_normal` judges
+    per-run jobs; the fit runs before any training, on a GPU the inputs leave mostly idle)."""
     from gca.pipeline import chain
 
     out = dict(jobs)
     renamed: dict[str, str] = {}
-    for name, names in input_chains(params):
+    for name, names in input_chains(params, jobs):
         members: list[Job] = []
         needs: set[str] = set()
         for m in names:
