@@ -167,6 +167,27 @@ def test_cuda_graphs_match_eager_on_gpu():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_forward_captured_alone_then_its_backward_match_eager_on_gpu():
+    """On a GPU: a rollout without gradients first (an evaluation's: the forward graph captured alone), then one with
+    gradients (its backward graphs captured then): values and gradients as the eager rollout's."""
+    material = _law(dtype=torch.float32).cuda()
+    solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1), "cuda")
+    scene = [t.cuda() for t in _scene(n=500, dtype=torch.float32)]
+    with torch.no_grad():
+        first = rollout(solver, material, *scene, 8, 2, graph=True)
+    runner = solver.frame_graphs(material, 2, 500)
+    assert runner.capture and runner._fwd_graph is not None and runner._bwd_graph is None
+    ref, g_ref = _loss_and_grads(material, solver, False, *scene)
+    out, g = _loss_and_grads(material, solver, True, *scene)
+    assert solver.frame_graphs(material, 2, 500) is runner and runner._bwd_graph is not None
+    torch.testing.assert_close(first.x, ref.x, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.x, ref.x, atol=1e-5, rtol=1e-5)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_capture_survives_unreachable_warp_memory():
     """An unreachable solver (a reference cycle holding warp-owned grid buffers) must not be collected
     inside a capture: warp would free its memory while torch captures, and the capture would fail.
@@ -246,3 +267,63 @@ def test_runs_rolled_out_together_equal_each_run_alone(graph, build):
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-16)
     shared = rollout(solver.with_runs(torch.zeros_like(run), 1), both, *cat, 8, 2, graph=graph)  # control: one grid
     assert not torch.equal(shared.x[-1, :counts[0]], alone[0][0].x[-1])
+
+
+class _FakeGraph:
+    """torch.cuda.CUDAGraph's stand-in on the CPU: its capture runs the body eagerly (a context of its own below)."""
+
+    def replay(self):
+        pass
+
+    def pool(self):
+        return None
+
+
+def test_a_rollout_without_gradients_captures_the_forward_graph_alone(monkeypatch):
+    """An evaluation's rollout (no gradient) captures no backward graph; a later rollout with gradients captures it
+    then, once; a frame runner's own forward (the reverse sweep's) captures both at once, as before. CUDA's graph API
+    is faked (the capture's bodies run eagerly) to count the passes each capture runs on the CPU."""
+    import contextlib
+
+    monkeypatch.setattr(torch.cuda, "Stream", lambda *a, **k: type("S", (), {"wait_stream": lambda self, s: None})())
+    monkeypatch.setattr(torch.cuda, "current_stream", lambda *a, **k: type("S", (), {"wait_stream": lambda self, s: None})())
+    monkeypatch.setattr(torch.cuda, "stream", lambda s: contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", _FakeGraph)
+    monkeypatch.setattr(torch.cuda, "graph", lambda g, **k: contextlib.nullcontext())
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, dtype="float64", boundary="sticky", friction=0.0,
+                                 max_refine=1))
+    x0, v0, vol, mass = _scene(n=4)
+    C, F = torch.zeros(4, 3, 3, dtype=F64), torch.eye(3, dtype=F64).expand(4, 3, 3).clone()
+
+    def runner_counting():
+        runner = FrameGraphs(solver, _law(), n_steps=2, n=4, capture=False)
+        runner.capture = True  # as on a GPU, with the fake graph API above
+        runner.bind(vol, mass)
+        calls = {"forward": 0, "backward": 0}
+        for name in calls:
+            real = getattr(runner, f"_run_{name}")
+
+            def counted(*a, _real=real, _name=name, **k):
+                calls[_name] += 1
+                return _real(*a, **k)
+            setattr(runner, f"_run_{name}", counted)
+        return runner, calls
+
+    runner, calls = runner_counting()
+    with torch.no_grad():
+        graphed_frame(runner, x0, v0, C, F)
+        graphed_frame(runner, x0, v0, C, F)
+    assert calls == {"forward": 2, "backward": 0}  # warm-up + capture of the forward only; replays run nothing
+    assert runner._fwd_graph is not None and runner._bwd_graph is None
+    v = v0.clone().requires_grad_(True)
+    out = graphed_frame(runner, x0, v, C, F)
+    torch.autograd.grad(out[0].sum(), v)
+    backward_runs = 2 * (2 if runner.stashes else 1)  # warm-up + capture (and the stash's replay graph)
+    assert calls == {"forward": 2, "backward": backward_runs} and runner._bwd_graph is not None
+    out = graphed_frame(runner, x0, v, C, F)
+    torch.autograd.grad(out[0].sum(), v)
+    assert calls == {"forward": 2, "backward": backward_runs}  # captured once
+    # negative control: the runner's forward as the reverse sweep calls it captures both passes at once
+    sweep, calls = runner_counting()
+    sweep.forward(x0, v0, C, F)
+    assert calls == {"forward": 2, "backward": backward_runs} and sweep._bwd_graph is not None

@@ -125,7 +125,6 @@ class FrameGraphs:
         self.fwd_grids, self.bwd_grids = (grid(), grid()) if self.stashes else (None, None)
         self.fwd_out = self.bwd_grads = self.rep_grads = None
         self._fwd_graph = self._bwd_graph = self._rep_graph = None
-        self._captured = False
 
     @property
     def stash_bytes(self) -> int:
@@ -170,44 +169,57 @@ class FrameGraphs:
 
     # -- capture ------------------------------------------------------------------------------------
 
-    def _ensure_captured(self) -> None:
-        if not self.capture or self._captured:
+    def _ensure_captured(self, backward: bool = True) -> None:
+        """Capture the forward graph if not yet, and (``backward``) the backward graphs (the recompute and, where the
+        frame stashes, the replay) if not yet, each after a warm-up run on a side stream (lazy inits, warp module
+        loads, cuBLAS handles). A rollout without gradients (an evaluation's) captures the forward alone: the
+        backward's warm-up and capture were ~3-4 s of an evaluation's ~20 s on the H200 (NOTES session 48)."""
+        if not self.capture:
+            return
+        fwd, bwd = self._fwd_graph is None, backward and self._bwd_graph is None
+        if not (fwd or bwd):
             return
         side = torch.cuda.Stream(self.solver.device)
         side.wait_stream(torch.cuda.current_stream(self.solver.device))
         try:
-            with torch.cuda.stream(side):  # warm-up: lazy inits, warp module loads, cuBLAS handles
-                self._run_forward()
-                self._run_backward()
-                if self.stashes:
-                    self._run_backward(replay=True)
+            with torch.cuda.stream(side):  # warm-up
+                if fwd:
+                    self._run_forward()
+                if bwd:
+                    self._run_backward()
+                    if self.stashes:
+                        self._run_backward(replay=True)
             torch.cuda.current_stream(self.solver.device).wait_stream(side)
-            self._fwd_graph, self._bwd_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
-            self._rep_graph = torch.cuda.CUDAGraph() if self.stashes else None
             with _collector_paused():
-                with torch.cuda.graph(self._fwd_graph, capture_error_mode="thread_local"):
-                    self.fwd_out = self._run_forward()
-                with torch.cuda.graph(self._bwd_graph, capture_error_mode="thread_local"):
-                    self.bwd_grads = self._run_backward()
-                if self.stashes:  # the replay shares the recompute's pool: only one runs at a time, on one stream,
-                    # and each one's outputs are copied out at once (backward)
-                    with torch.cuda.graph(self._rep_graph, pool=self._bwd_graph.pool(),
-                                          capture_error_mode="thread_local"):
-                        self.rep_grads = self._run_backward(replay=True)
+                if fwd:
+                    graph = torch.cuda.CUDAGraph()
+                    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                        self.fwd_out = self._run_forward()
+                    self._fwd_graph = graph
+                if bwd:
+                    graph, replay = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph() if self.stashes else None
+                    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                        self.bwd_grads = self._run_backward()
+                    if self.stashes:  # the replay shares the recompute's pool: only one runs at a time, on one
+                        # stream, and each one's outputs are copied out at once (backward)
+                        with torch.cuda.graph(replay, pool=graph.pool(), capture_error_mode="thread_local"):
+                            self.rep_grads = self._run_backward(replay=True)
+                    self._bwd_graph, self._rep_graph = graph, replay
         except RuntimeError as err:  # a host sync inside the law: run eagerly instead
             warnings.warn(f"{_WHERE}: CUDA graph capture of {type(self.material).__name__} failed, running "
                           f"eagerly ({str(err).splitlines()[0]})", RuntimeWarning, stacklevel=3)
             self.capture, self._fwd_graph, self._bwd_graph, self._rep_graph = False, None, None, None
             torch.cuda.synchronize(self.solver.device)
-        self._captured = True
 
     # -- public passes ----------------------------------------------------------------------------
 
-    def forward(self, x, v, C, F):
-        """New (x, v, C, F, F_trial) after ``n_steps`` steps, without autograd (fresh tensors)."""
+    def forward(self, x, v, C, F, backward: bool = True):
+        """New (x, v, C, F, F_trial) after ``n_steps`` steps, without autograd (fresh tensors). ``backward``: a
+        :meth:`backward` of this frame may follow (its graphs are captured with the forward's, before the caller's
+        backward pass: a reverse sweep, autograd); False captures the forward's graph alone (no gradient asked)."""
         for k, t in zip(_STATE, (x, v, C, F)):
             self.fwd_in[k].copy_(t)
-        self._ensure_captured()
+        self._ensure_captured(backward)
         if self.capture:
             self._fwd_graph.replay()
             out = self.fwd_out
@@ -271,7 +283,7 @@ def graphed_frame(runner: FrameGraphs, x, v, C, F, stash: bool = False):
     replays the forward's grid stash (the runner must stash: :attr:`FrameGraphs.stashes`)."""
     if torch.is_grad_enabled():
         return _GraphedFrame.apply(runner, bool(stash and runner.stashes), x, v, C, F, *runner.params)
-    return runner.forward(x, v, C, F)
+    return runner.forward(x, v, C, F, backward=False)  # no gradient: no backward graph captured
 
 
 class GraphCache:
