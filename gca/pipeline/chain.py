@@ -53,6 +53,7 @@ def run_here(script: Path, argv: list[str]) -> int:
         sys.path.insert(0, folder)
     spec = importlib.util.spec_from_file_location(f"_gca_stage_{script.stem}", script)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # as an import would (a dataclass or pickle in the script looks its module up)
     spec.loader.exec_module(module)  # its `if __name__ == "__main__"` does not run: the module is not __main__
     saved = sys.argv
     sys.argv = [str(script), *argv]  # what a stage reads of its own command line (its name, argparse's prog)
