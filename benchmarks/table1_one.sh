@@ -12,6 +12,7 @@
 #   GRID_ARGS   more grid options, e.g. "--no-mps-priority" (session 47: the control; by default under --mps the lighter
 #       units' jobs start at MPS's below-normal client priority, gca.pipeline.grid.below_normal), or
 #       "--set train.seeds=[0,1,2]" (issue 20's three-seed table: 54 runs, ~3x the GPU work; not yet run this way)
+#   Session 48 (code 4d82e7c, the input chain and the MPS priority): 549 s + the report's 14 s in the resume = 9.4 min.
 #   GCA_COMMIT  required for the grid: the commit sent (`git rev-parse --short HEAD` here; the copy there carries a stale
 #       .git, and session 32's runs recorded 4d7bdae+dirty without it)
 set -u
@@ -21,6 +22,9 @@ export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1
 . benchmarks/gpu_wheels.sh && install_wheels
 if [ "$PART" = build ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  # session 48: an evaluation there spent 6.9 s compiling Python source (no .pyc cached): say whether bytecode is written
+  python3 -c "import sys, torch; print('dont_write_bytecode', sys.flags.dont_write_bytecode, 'pycache_prefix', sys.pycache_prefix, 'torch at', torch.__file__)"
+  env | grep -i "pythondontwrite\|pycache" || echo "no PYTHONDONTWRITEBYTECODE / PYTHONPYCACHEPREFIX set"
   t0=$(date +%s); timeout 300 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1
   echo "gsplat build rc=$? in $(( $(date +%s) - t0 )) s"
 fi
