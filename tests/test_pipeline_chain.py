@@ -117,6 +117,12 @@ def test_a_chains_state_goes_to_its_members_for_dvc_commit():
     stages = dispatch.dvc_stages(members)
     assert {"assets@ball", "particles@ball", "ground_truth@ball", "preprocess@ball"} <= set(stages)
     assert "train@ball" not in stages and "inputs@ball" not in dispatch.dvc_stages(members)
+    # a chain failed at its ground truth: the members before it finished (their own markers), so their stages commit
+    state["inputs@ball"] = "failed"
+    cut = grid.members_state(state, chained, lambda m: m in {"assets@ball", "particles@ball"})
+    assert cut["assets@ball"] == cut["particles@ball"] == "done" and cut["ground_truth@ball"] == "failed"
+    assert {"assets@ball", "particles@ball"} <= set(dispatch.dvc_stages(cut))
+    assert not {"ground_truth@ball", "preprocess@ball"} & set(dispatch.dvc_stages(cut))
 
 
 STAGE = """

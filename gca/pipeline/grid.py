@@ -323,13 +323,14 @@ def chain_inputs(jobs: dict[str, Job], params: dict, done=frozenset(), stamp: st
     return out
 
 
-def members_state(state: dict[str, str], jobs: dict[str, Job]) -> dict[str, str]:
-    """A grid's job states with each chain's (:func:`chain_inputs`) given to its members (``dvc commit`` of a stage
-    whose jobs are all done)."""
+def members_state(state: dict[str, str], jobs: dict[str, Job], done: Callable[[str], bool] = lambda m: False) -> dict[str, str]:
+    """A grid's job states with each chain's (:func:`chain_inputs`) given to its members, a member that ``done(m)``
+    says finished (its own ``.done`` marker: the members before a failed or stopped one) done (``dvc commit`` of a
+    stage whose jobs are all done)."""
     out = {}
     for name, s in state.items():
         members = jobs[name].members if name in jobs else []
-        out.update({m: s for m in members} if members else {name: s})
+        out.update({m: dispatch.DONE if done(m) else s for m in members} if members else {name: s})
     return out
 
 
@@ -1019,8 +1020,8 @@ def main(argv=None) -> dict[str, str]:
                                                         "start at MPS's below-normal client priority (not with "
                                                         "--machine-left)")
     ap.add_argument("--no-chain", action="store_true",
-                    help="run each input stage as its own job (default: a scene's chain of input stages, assets to "
-                         "preprocess, in one process: one start-up, not four)")
+                    help="run each input stage as its own job (default: a scene's input stages, assets to preprocess "
+                         "and, the prior there already, its first launch-velocity fit, as one job in one process)")
     ap.add_argument("--no-mps-priority", action="store_true",
                     help="--mps: every job at normal priority (the control of an A/B)")
     dispatch.add_engine_args(ap, slots=2)
@@ -1137,7 +1138,7 @@ def main(argv=None) -> dict[str, str]:
         if state[name] != "done":
             log(f"  {state[name]:>8}  {name}")
     if args.commit and args.repo is not None:
-        finished = dispatch.dvc_stages(members_state(state, jobs))
+        finished = dispatch.dvc_stages(members_state(state, jobs, lambda m: dispatch.is_done(work, m, stamp)))
         if finished:
             log(f"dvc commit -f {' '.join(finished)}")
             subprocess.run([sys.executable, "-m", "dvc", "commit", "-f", *finished], cwd=work, check=True)
