@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-PYTHON = ("python", "python3")
+from gca.pipeline.dispatch import PYTHON, is_done, python_argv, write_done
 
 
 def stage_script(cmd: str) -> tuple[Path, list[str]] | None:
@@ -67,10 +67,7 @@ def run_one(cmd: str) -> int:
     """One member's exit status: a stage script here (:func:`run_here`), anything else as a subprocess."""
     found = stage_script(cmd)
     if found is None:
-        argv = shlex.split(cmd)
-        if argv and argv[0] in PYTHON:
-            argv[0] = sys.executable
-        return subprocess.run(argv).returncode
+        return subprocess.run(python_argv(cmd)).returncode
     return run_here(*found)
 
 
@@ -88,8 +85,6 @@ def command(members: list[tuple[str, str]], stamp: str = "") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from gca.pipeline.dispatch import is_done, write_done
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stamp", default="", help="what each member's .done marker holds (the grid's inputs stamp)")
     ap.add_argument("members", nargs="+", metavar="NAME CMD", help="pairs: a job name and its stage command")

@@ -69,6 +69,18 @@ def _ignore_usr_signal() -> None:
     parent_death_signal(signal.SIGTERM)
 
 
+PYTHON = ("python", "python3")  # a stage command's interpreter names, run as this process's own
+
+
+def python_argv(cmd: str) -> list[str]:
+    """A stage command's argv, its ``python``/``python3`` replaced by this process's interpreter (the job's: the one
+    the engine started)."""
+    argv = shlex.split(cmd)
+    if argv and argv[0] in PYTHON:
+        argv[0] = sys.executable
+    return argv
+
+
 def write_done(work: Path, name: str, took: float, stamp: str = "") -> None:
     """Write job ``name``'s ``.done`` marker: its seconds ``took`` and the ``stamp`` of its inputs (:func:`is_done`)."""
     done = marker(work, name)
@@ -108,10 +120,7 @@ class StageCommand:
         self._proc = None
 
     def argv(self) -> list[str]:
-        argv = shlex.split(self.cmd)
-        if argv and argv[0] in ("python", "python3"):
-            argv[0] = sys.executable  # the job's interpreter: the one the engine started
-        return argv
+        return python_argv(self.cmd)
 
     def stop_file(self) -> Path:
         """``<work>/.grid/<job>.stop``: its existence asks the stage to stop (``gca.stop``: a training stage
