@@ -25,11 +25,21 @@ if [ "$PART" = build ]; then
   # session 48: an evaluation there spent 6.9 s compiling Python source (no .pyc cached): say whether bytecode is written
   python3 -c "import sys, torch; print('dont_write_bytecode', sys.flags.dont_write_bytecode, 'pycache_prefix', sys.pycache_prefix, 'torch at', torch.__file__)"
   env | grep -i "pythondontwrite\|pycache" || echo "no PYTHONDONTWRITEBYTECODE / PYTHONPYCACHEPREFIX set"
+  # session 49: a stage process's imports before and after compile_bytecode (each twice: the second shows whether the
+  # first wrote any .pyc)
+  imports() { python3 -c "import time; t = time.perf_counter(); import gca.pipeline.train, gca.pipeline.evaluate, gca.pipeline.chain, warp, gsplat; print(f'{time.perf_counter() - t:.2f}')"; }
+  echo "imports before: $(imports) s, $(imports) s"; compile_bytecode "$OUT/compileall.log"; echo "imports after: $(imports) s, $(imports) s"
   t0=$(date +%s); timeout 300 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1
   echo "gsplat build rc=$? in $(( $(date +%s) - t0 )) s"
 fi
 if [ "$PART" = grid ]; then
   need_commit table1_one.sh
+  compile_bytecode "$OUT/compileall.log"
+  # session 49: GPU and CPU use beside the grid, every 5 s: time, cpu busy and idle jiffies (/proc/stat), GPU
+  # utilisation [%] and memory [MiB] (is a packed table GPU- or CPU-bound?)
+  (while :; do echo "$(date +%s) $(awk '/^cpu /{print $2+$3+$4+$7+$8, $5+$6}' /proc/stat) $(nvidia-smi \
+     --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits | tr -d ,)"; sleep 5; done >> "$OUT/util.txt") &
+  sampler=$!
   t0=$(date +%s)
   # shellcheck disable=SC2086
   python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
@@ -37,6 +47,7 @@ if [ "$PART" = grid ]; then
       --stages assets particles ground_truth preprocess nuisance train evaluate report --deadline "${DEADLINE:-560}" \
       ${GRID_ARGS:-} >> "$W/grid.log" 2>&1
   rc=$?
+  kill "$sampler" 2> /dev/null
   echo "call: grid rc=$rc, $(( $(date +%s) - t0 )) s (SLOTS=${SLOTS:-12}, DEADLINE=${DEADLINE:-560})" | tee -a "$OUT/timing.txt"
   cp "$W/grid.log" "$OUT/grid.log"
   grep -E "done|stop|FAIL|after|left|took|mps" "$W/grid.log" | tail -n 30

@@ -67,10 +67,11 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout: params.yaml, dvc.yam
 # first) and --deadline. From benchmarks/NOTES.md; a job that takes longer only delays the grid. The trained
 # methods' ratios to GCA from the tuning's 24 units each under 8-way MPS (tuning/record.json: mean train_seconds GCA
 # 628, NeuMA 562, PAC-NeRF-style 579); multi-view rows render three views: ~1.3x their monocular row (a guess).
+# The report: 11-14 s on the H200 with its process start (session 48; 0.3 had its deadline estimate at 23 s).
 COST = {"assets": 0.4, "particles": 0.8, "prior": 6.0, "ground_truth": 0.6, "preprocess": 0.1,
         "train": 0.6, "train:gca": 4.5, "train:neuma": 4.0, "train:neuma_multiview": 5.5,
         "train:pacnerf_depth": 4.2, "train:pacnerf_depth_aligned": 4.2, "train:pacnerf_multiview": 5.5,
-        "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.3, "demo": 1.0}
+        "train:gca_full_ft": 6.0, "evaluate": 0.8, "report": 0.2, "demo": 1.0}
 
 
 def train_cost(method: str) -> float:
