@@ -192,6 +192,38 @@ def test_training_resumes_from_its_checkpoint(scene, tmp_path):
     assert any(moved), "the resumed run should have taken one more optimiser step"
 
 
+def test_a_resumed_run_keeps_every_process_that_trained_it(scene, tmp_path):
+    """A run stopped after 2 of 3 iterations by one process and resumed by another lists both, each with the
+    iteration it started at and what its caller said of it (``process``: the grid's MPS priority, say); the checkpoint
+    carries the earlier ones. A fresh run lists itself alone (control)."""
+    ckpt = tmp_path / "checkpoint.pt"
+
+    def run(iterations, process):
+        return _neuma_run(scene, checkpoint_path=ckpt, process=process, iterations=iterations, checkpoint_every=1)[1]()
+
+    first = run(2, {"mps_priority": "below_normal"})
+    assert first.processes == [{"resumed_at": 0, "mps_priority": "below_normal"}]
+    assert torch.load(ckpt, weights_only=False)["processes"] == first.processes
+    resumed = run(3, {"mps_priority": "normal"})
+    assert resumed.resumed_at == 2 and resumed.iterations == 3
+    assert resumed.processes == [{"resumed_at": 0, "mps_priority": "below_normal"},
+                                 {"resumed_at": 2, "mps_priority": "normal"}]
+    assert torch.load(ckpt, weights_only=False)["processes"] == resumed.processes  # written at iteration 3
+
+
+def test_a_checkpoint_from_before_processes_were_kept_resumes(scene, tmp_path):
+    """A checkpoint written before it kept its processes (no ``processes`` key) resumes where it stopped, its
+    earlier processes unknown: only the resuming one is listed."""
+    ckpt = tmp_path / "checkpoint.pt"
+    _neuma_run(scene, checkpoint_path=ckpt, iterations=2, checkpoint_every=1)[1]()
+    old = torch.load(ckpt, weights_only=False)
+    del old["processes"]
+    torch.save(old, ckpt)
+    resumed = _neuma_run(scene, checkpoint_path=ckpt, iterations=3, checkpoint_every=1)[1]()
+    assert resumed.status == "ok" and resumed.resumed_at == 2 and [h["iteration"] for h in resumed.history] == [0, 1, 2]
+    assert resumed.processes == [{"resumed_at": 2}]
+
+
 def test_a_stop_file_checkpoints_the_iteration_in_progress_and_stops(scene, tmp_path, monkeypatch):
     """NOTES session 42 (packed runs under CUDA MPS are stopped with a file, not a signal): the file written during
     iteration 1 of 3 stops the run after that iteration, checkpointed there though ``checkpoint_every`` is far; the
@@ -494,15 +526,16 @@ def _diverging_simulate(monkeypatch, fail_calls, error=None):
     return seen
 
 
-def _neuma_run(scene, checkpoint_path=None, **cfg_kw):
-    """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``)."""
+def _neuma_run(scene, checkpoint_path=None, process=None, **cfg_kw):
+    """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``; ``process``:
+    train's)."""
     method = get_method("neuma")
     cfg = TrainConfig(**{"curriculum_start": 1.0, "keep": "last", **cfg_kw})
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())
     return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg,
-                               checkpoint_path=checkpoint_path))
+                               checkpoint_path=checkpoint_path, process=process))
 
 
 @pytest.mark.parametrize("level", ["high", "highest"])
