@@ -316,6 +316,19 @@ def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
     assert gpu_sharing()["mps_priority"] is None
 
 
+def test_a_runs_gpu_sharing_merges_the_processes_that_trained_it():
+    """A run stopped and resumed at another MPS priority is "mixed" (Table 4's note and the grid's estimates read
+    it); one priority throughout stays that one (negative control); the most runs per GPU and any MPS count; an
+    entry without the fields (a process that gave train none) counts as alone."""
+    from gca.pipeline.train import merged_sharing
+
+    low, normal = ({"runs_per_gpu": n, "mps": True, "mps_priority": p} for n, p in ((8, "below_normal"), (4, "normal")))
+    assert merged_sharing([low, normal]) == {"runs_per_gpu": 8, "mps": True, "mps_priority": "mixed"}
+    assert merged_sharing([low, {**low, "runs_per_gpu": 2}])["mps_priority"] == "below_normal"
+    assert merged_sharing([{"resumed_at": 0}, {**low, "resumed_at": 5}])["mps_priority"] == "mixed"  # partly below
+    assert merged_sharing([{"resumed_at": 2}]) == {"runs_per_gpu": 1, "mps": False, "mps_priority": None}
+
+
 def test_a_run_is_evaluated_with_the_launch_velocity_it_trained_with(tmp_path):
     """A grid going on on another machine may estimate a seed's shared velocity.json again (its remade inputs differ
     in float32 noise, session 20); a run trained before keeps its own estimate in train.json, and evaluation uses

@@ -211,6 +211,46 @@ def test_a_resumed_run_keeps_every_process_that_trained_it(scene, tmp_path):
     assert torch.load(ckpt, weights_only=False)["processes"] == resumed.processes  # written at iteration 3
 
 
+@pytest.mark.parametrize("second", ["normal", "below_normal"])
+def test_train_json_merges_the_gpu_sharing_of_every_process(scene, tmp_path, monkeypatch, second):
+    """train_method on a run trained to iteration 2 by a process the grid put below normal under MPS (4 runs per GPU)
+    and finished by one at ``second`` priority (8 runs per GPU): train.json lists both processes and merges them,
+    ``mps_priority`` "mixed" where they differ and below-normal where both were (negative control); ``runs_per_gpu``
+    the larger."""
+    import types
+
+    import gca.pipeline.train as pipeline_train
+    from gca import gpu_slot
+    from gca.io import read_json
+
+    def job(iterations):
+        law, _ = _neuma_run(scene)
+        method = get_method("neuma")
+        cfg = TrainConfig(curriculum_start=1.0, keep="last", iterations=iterations, checkpoint_every=1)
+        objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
+                              CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+        return pipeline_train.TrainJob(cfg, _data(scene, method), law, objective, tiny_solver())
+
+    def train_method(iterations, priority, per_gpu):
+        monkeypatch.setattr(pipeline_train, "train_job", lambda *a, **kw: job(iterations))
+        for name, value in ((gpu_slot.MPS_ENV, "1"), (gpu_slot.PRIORITY_GRID_ENV, "1"), (gpu_slot.RUNS_ENV, per_gpu),
+                            (gpu_slot.MPS_PRIORITY_ENV, gpu_slot.MPS_BELOW_NORMAL if priority == "below_normal" else "0")):
+            monkeypatch.setenv(name, value)
+        settings = types.SimpleNamespace(scene=lambda name: types.SimpleNamespace(prior="jelly"))
+        return pipeline_train.train_method(settings, "tiny", get_method("neuma"), None, ([0.5, -2.0, 0.0], [0.0] * 3),
+                                           tmp_path / "neuma", keep_checkpoint=True)
+
+    first = train_method(2, "below_normal", "4")
+    assert first["mps_priority"] == "below_normal" and first["runs_per_gpu"] == 4
+    train_method(3, second, "8")
+    record = read_json(tmp_path / "neuma" / "train.json")
+    assert record["resumed_at"] == 2 and record["iterations"] == 3
+    assert [(p["resumed_at"], p["mps_priority"], p["runs_per_gpu"]) for p in record["processes"]] == \
+        [(0, "below_normal", 4), (2, second, 8)]
+    assert record["mps_priority"] == ("mixed" if second == "normal" else "below_normal")
+    assert record["runs_per_gpu"] == 8 and record["mps"] is True
+
+
 def test_a_checkpoint_from_before_processes_were_kept_resumes(scene, tmp_path):
     """A checkpoint written before it kept its processes (no ``processes`` key) resumes where it stopped, its
     earlier processes unknown: only the resuming one is listed."""
