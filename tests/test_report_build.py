@@ -291,7 +291,15 @@ def test_table4_says_when_its_times_are_packed(tmp_path):
                             runs_per_gpu=8, mps=True, mps_priority="below_normal" if method == "gca" else "normal"))
     (note,) = [n for n in tables.table4_efficiency(load_runs(low)).notes if "packed" in n]
     assert note.startswith("2 of 2 runs trained with up to 8 runs on one GPU (under CUDA MPS, 1 of them at MPS's "
-                           "below-normal priority")
+                           "below-normal priority (")
+    assert "more than one" not in note  # no run was stopped and resumed at another priority
+    for seed, priority in ((1, "mixed"), (2, "mixed")):  # stopped and resumed at another priority (merged_sharing)
+        _write(low, _record("ball", "gca", seed=seed, chamfer_mean=0.1, train_seconds=60.0, peak_memory_gib=1.0,
+                            runs_per_gpu=8, mps=True, mps_priority=priority), name=f"gca@seed{seed}.json")
+    (note,) = [n for n in tables.table4_efficiency(load_runs(low)).notes if "packed" in n]
+    assert note.startswith("4 of 4 runs trained with up to 8 runs on one GPU (under CUDA MPS, 1 of them at MPS's "
+                           "below-normal priority and 2 at more than one MPS priority, stopped and resumed at "
+                           "another (")
 
 
 def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
