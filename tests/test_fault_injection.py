@@ -73,7 +73,7 @@ SHRINK = {
     "demo.new_shape.law_scene": SCENE, "demo.new_shape.object": SCENE, "demo.interaction.b.scene": SCENE,
 }
 # JSON keys that measure the run, not its result; files made of them (compared for presence only)
-VOLATILE = re.compile(r"seconds|^time/|^mlflow_run_id$|^peak_memory_gib$|^resumed_at$")
+VOLATILE = re.compile(r"seconds|^time/|^mlflow_run_id$|^peak_memory_gib$|^resumed_at$|^processes$")
 VOLATILE_FILES = {"table4_efficiency.md", "table4_efficiency.csv"}
 INCREMENTAL = {"train", "evaluate"}  # their folders fill file by file (each file atomic), not as one folder
 KILL_WITHIN = {"train": 0.35}  # SIGKILL before training ends (its checkpoint would make the SIGTERM run resume past it)
@@ -359,7 +359,10 @@ def test_a_killed_stage_reruns_to_the_uninterrupted_outputs(pipeline, stage, tmp
     assert _litter(work, roots) == []
     assert _outputs(work, job.outs) == _outputs(reference, job.outs)
     if stage == "train":  # it went on from the checkpoint, to the same law
-        assert json.loads((run / "train.json").read_text())["resumed_at"] == checkpoint["iteration"]
+        record = json.loads((run / "train.json").read_text())
+        assert record["resumed_at"] == checkpoint["iteration"]
+        started = [process["resumed_at"] for process in record["processes"]]  # each process's first iteration
+        assert started[0] == 0 and started[-1] == record["resumed_at"]
         assert not (run / "checkpoint.pt").exists() and not (run / "checkpoint.pt.stamp").exists()
     if stage == "prior":  # a stop in teacher forcing left a checkpoint, which the re-run used and removed
         out = work / job.outs[0]

@@ -776,9 +776,10 @@ def test_the_lighter_units_jobs_start_below_normal_and_the_heaviest_and_the_inpu
 
 def test_a_priority_calls_times_teach_no_estimate(tmp_path):
     """Review, session 47: a run timed in a call that gave MPS priorities is no equal share of its GPU (a below-normal
-    run slower, a normal one beside it faster), so ``--machine-left``'s estimates leave it out; the same record
-    without the field counts (negative control)."""
-    for scene, priority in (("ball", "normal"), ("pawn", None), ("cat", "below_normal")):
+    run slower, a normal one beside it faster), so ``--machine-left``'s estimates leave it out, and so a run stopped
+    and resumed at another priority ("mixed", ``gca.pipeline.train.merged_sharing``); the same record without the
+    field counts (negative control)."""
+    for scene, priority in (("ball", "normal"), ("pawn", None), ("cat", "below_normal"), ("duck", "mixed")):
         _write(tmp_path, [f"runs/{scene}/gca/train.json"])
         record = {"status": "ok", "train_seconds": 100.0, **({"mps_priority": priority} if priority else {})}
         (tmp_path / f"runs/{scene}/gca/train.json").write_text(json.dumps(record))

@@ -291,7 +291,15 @@ def test_table4_says_when_its_times_are_packed(tmp_path):
                             runs_per_gpu=8, mps=True, mps_priority="below_normal" if method == "gca" else "normal"))
     (note,) = [n for n in tables.table4_efficiency(load_runs(low)).notes if "packed" in n]
     assert note.startswith("2 of 2 runs trained with up to 8 runs on one GPU (under CUDA MPS, 1 of them at MPS's "
-                           "below-normal priority")
+                           "below-normal priority (")
+    assert "more than one" not in note  # no run was stopped and resumed at another priority
+    for seed, priority in ((1, "mixed"), (2, "mixed")):  # stopped and resumed at another priority (merged_sharing)
+        _write(low, _record("ball", "gca", seed=seed, chamfer_mean=0.1, train_seconds=60.0, peak_memory_gib=1.0,
+                            runs_per_gpu=8, mps=True, mps_priority=priority), name=f"gca@seed{seed}.json")
+    (note,) = [n for n in tables.table4_efficiency(load_runs(low)).notes if "packed" in n]
+    assert note.startswith("4 of 4 runs trained with up to 8 runs on one GPU (under CUDA MPS, 1 of them at MPS's "
+                           "below-normal priority and 2 at more than one MPS priority, stopped and resumed at "
+                           "another (")
 
 
 def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
@@ -314,6 +322,19 @@ def test_a_runs_gpu_sharing_comes_from_its_launcher(monkeypatch):
     assert gpu_sharing()["mps_priority"] == "normal"
     monkeypatch.setenv("GCA_MPS", "0")  # without MPS no priority acts
     assert gpu_sharing()["mps_priority"] is None
+
+
+def test_a_runs_gpu_sharing_merges_the_processes_that_trained_it():
+    """A run stopped and resumed at another MPS priority is "mixed" (Table 4's note and the grid's estimates read
+    it); one priority throughout stays that one (negative control); the most runs per GPU and any MPS count; an
+    entry without the fields (a process that gave train none) counts as alone."""
+    from gca.pipeline.train import merged_sharing
+
+    low, normal = ({"runs_per_gpu": n, "mps": True, "mps_priority": p} for n, p in ((8, "below_normal"), (4, "normal")))
+    assert merged_sharing([low, normal]) == {"runs_per_gpu": 8, "mps": True, "mps_priority": "mixed"}
+    assert merged_sharing([low, {**low, "runs_per_gpu": 2}])["mps_priority"] == "below_normal"
+    assert merged_sharing([{"resumed_at": 0}, {**low, "resumed_at": 5}])["mps_priority"] == "mixed"  # partly below
+    assert merged_sharing([{"resumed_at": 2}]) == {"runs_per_gpu": 1, "mps": False, "mps_priority": None}
 
 
 def test_a_run_is_evaluated_with_the_launch_velocity_it_trained_with(tmp_path):

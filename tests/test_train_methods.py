@@ -192,6 +192,78 @@ def test_training_resumes_from_its_checkpoint(scene, tmp_path):
     assert any(moved), "the resumed run should have taken one more optimiser step"
 
 
+def test_a_resumed_run_keeps_every_process_that_trained_it(scene, tmp_path):
+    """A run stopped after 2 of 3 iterations by one process and resumed by another lists both, each with the
+    iteration it started at and what its caller said of it (``process``: the grid's MPS priority, say); the checkpoint
+    carries the earlier ones. A fresh run lists itself alone (control)."""
+    ckpt = tmp_path / "checkpoint.pt"
+
+    def run(iterations, process):
+        return _neuma_run(scene, checkpoint_path=ckpt, process=process, iterations=iterations, checkpoint_every=1)[1]()
+
+    first = run(2, {"mps_priority": "below_normal"})
+    assert first.processes == [{"resumed_at": 0, "mps_priority": "below_normal"}]
+    assert torch.load(ckpt, weights_only=False)["processes"] == first.processes
+    resumed = run(3, {"mps_priority": "normal"})
+    assert resumed.resumed_at == 2 and resumed.iterations == 3
+    assert resumed.processes == [{"resumed_at": 0, "mps_priority": "below_normal"},
+                                 {"resumed_at": 2, "mps_priority": "normal"}]
+    assert torch.load(ckpt, weights_only=False)["processes"] == resumed.processes  # written at iteration 3
+
+
+@pytest.mark.parametrize("second", ["normal", "below_normal"])
+def test_train_json_merges_the_gpu_sharing_of_every_process(scene, tmp_path, monkeypatch, second):
+    """train_method on a run trained to iteration 2 by a process the grid put below normal under MPS (4 runs per GPU)
+    and finished by one at ``second`` priority (8 runs per GPU): train.json lists both processes and merges them,
+    ``mps_priority`` "mixed" where they differ and below-normal where both were (negative control); ``runs_per_gpu``
+    the larger."""
+    import types
+
+    import gca.pipeline.train as pipeline_train
+    from gca import gpu_slot
+    from gca.io import read_json
+
+    def job(iterations):
+        law, _ = _neuma_run(scene)
+        method = get_method("neuma")
+        cfg = TrainConfig(curriculum_start=1.0, keep="last", iterations=iterations, checkpoint_every=1)
+        objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
+                              CPRConfig(subset_size=16, n_groups=2), MatchConfig())
+        return pipeline_train.TrainJob(cfg, _data(scene, method), law, objective, tiny_solver())
+
+    def train_method(iterations, priority, per_gpu):
+        monkeypatch.setattr(pipeline_train, "train_job", lambda *a, **kw: job(iterations))
+        for name, value in ((gpu_slot.MPS_ENV, "1"), (gpu_slot.PRIORITY_GRID_ENV, "1"), (gpu_slot.RUNS_ENV, per_gpu),
+                            (gpu_slot.MPS_PRIORITY_ENV, gpu_slot.MPS_BELOW_NORMAL if priority == "below_normal" else "0")):
+            monkeypatch.setenv(name, value)
+        settings = types.SimpleNamespace(scene=lambda name: types.SimpleNamespace(prior="jelly"))
+        return pipeline_train.train_method(settings, "tiny", get_method("neuma"), None, ([0.5, -2.0, 0.0], [0.0] * 3),
+                                           tmp_path / "neuma", keep_checkpoint=True)
+
+    first = train_method(2, "below_normal", "4")
+    assert first["mps_priority"] == "below_normal" and first["runs_per_gpu"] == 4
+    train_method(3, second, "8")
+    record = read_json(tmp_path / "neuma" / "train.json")
+    assert record["resumed_at"] == 2 and record["iterations"] == 3
+    assert [(p["resumed_at"], p["mps_priority"], p["runs_per_gpu"]) for p in record["processes"]] == \
+        [(0, "below_normal", 4), (2, second, 8)]
+    assert record["mps_priority"] == ("mixed" if second == "normal" else "below_normal")
+    assert record["runs_per_gpu"] == 8 and record["mps"] is True
+
+
+def test_a_checkpoint_from_before_processes_were_kept_resumes(scene, tmp_path):
+    """A checkpoint written before it kept its processes (no ``processes`` key) resumes where it stopped, its
+    earlier processes unknown: only the resuming one is listed."""
+    ckpt = tmp_path / "checkpoint.pt"
+    _neuma_run(scene, checkpoint_path=ckpt, iterations=2, checkpoint_every=1)[1]()
+    old = torch.load(ckpt, weights_only=False)
+    del old["processes"]
+    torch.save(old, ckpt)
+    resumed = _neuma_run(scene, checkpoint_path=ckpt, iterations=3, checkpoint_every=1)[1]()
+    assert resumed.status == "ok" and resumed.resumed_at == 2 and [h["iteration"] for h in resumed.history] == [0, 1, 2]
+    assert resumed.processes == [{"resumed_at": 2}]
+
+
 def test_a_stop_file_checkpoints_the_iteration_in_progress_and_stops(scene, tmp_path, monkeypatch):
     """NOTES session 42 (packed runs under CUDA MPS are stopped with a file, not a signal): the file written during
     iteration 1 of 3 stops the run after that iteration, checkpointed there though ``checkpoint_every`` is far; the
@@ -494,15 +566,16 @@ def _diverging_simulate(monkeypatch, fail_calls, error=None):
     return seen
 
 
-def _neuma_run(scene, checkpoint_path=None, **cfg_kw):
-    """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``)."""
+def _neuma_run(scene, checkpoint_path=None, process=None, **cfg_kw):
+    """A NeuMA law on the tiny scene and a no-argument call that trains it (TrainConfig ``cfg_kw``; ``process``:
+    train's)."""
     method = get_method("neuma")
     cfg = TrainConfig(**{"curriculum_start": 1.0, "keep": "last", **cfg_kw})
     law = build_law(method, scene[5], "jelly", 1000.0, LoRAConfig(rank=4, alpha=4.0), 1e-2, 1e-3, 1e-2)
     objective = Objective(method, _data(scene, method), cfg, RDGAConfig(r=5, k=5),
                           CPRConfig(subset_size=16, n_groups=2), MatchConfig())
     return law, (lambda: train(tiny_solver(), law, _data(scene, method), objective, cfg,
-                               checkpoint_path=checkpoint_path))
+                               checkpoint_path=checkpoint_path, process=process))
 
 
 @pytest.mark.parametrize("level", ["high", "highest"])

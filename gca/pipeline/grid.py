@@ -708,8 +708,9 @@ def finished_train_seconds(work: Path, slots: int | None = None) -> dict[str, di
     one stops early); with ``slots``, each as if packed ``slots``-way (:func:`packed_seconds`, from the sharing its
     training job's marker records: ``dispatch.record_sharing``; none recorded: taken as packed so). Session 21: a
     run timed 5-way (310 s) set the expectation of runs that then ran 8-way and outlasted the machine. A run timed
-    in a call that gave MPS priorities (``mps_priority`` in its record: :func:`below_normal`) is left out: its time
-    is no equal share of the GPU."""
+    in a call that gave MPS priorities (``mps_priority`` in its record: :func:`below_normal`; ``"mixed"`` for one
+    stopped and resumed at another, ``gca.pipeline.train.merged_sharing``) is left out: its time is no equal share of
+    the GPU."""
     shares = {}
     if slots:
         for path in (work / ".grid").glob("train@*:*.done"):

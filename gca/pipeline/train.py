@@ -228,7 +228,12 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     (:func:`gca.train.loop.train`), instead of training anew.
 
     ``inputs`` are the scene's (seed 0's directories); the run reads its seed's observations
-    (:func:`observed_inputs`), and ``velocity`` must be its seed's estimate (:func:`velocity_path`)."""
+    (:func:`observed_inputs`), and ``velocity`` must be its seed's estimate (:func:`velocity_path`).
+
+    A run stopped (its deadline, checkpointed) and resumed by a later process may have shared its GPU otherwise in
+    each: train.json's ``processes`` lists every process that trained it (:func:`gpu_sharing`'s fields and the
+    iteration it ``resumed_at``, from the checkpoint), and its ``runs_per_gpu``, ``mps`` and ``mps_priority`` merge
+    them (:func:`merged_sharing`: ``"mixed"`` for priorities that differ)."""
     scene = settings.scene(scene_name)
     job = train_job(settings, scene_name, method, inputs, velocity, device, seed)
     tcfg, data, law = job.cfg, job.data, job.law
@@ -236,7 +241,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
     log = (lambda it, rec: run.log_metrics({k: v for k, v in rec.items() if k != "iteration"}, step=it)) if run else None
     with measure(device) as cost:
         result: TrainResult = train(job.solver, law, data, job.objective, tcfg,
-                                    checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log)
+                                    checkpoint_path=out_dir / "checkpoint.pt", on_iteration=log, process=gpu_sharing())
     save_law(out_dir / "law.pt", law, scene.prior, {"method": method.name, "scene": scene_name})
     write_json(out_dir / "history.json", {"history": result.history})
     if not keep_checkpoint:
@@ -246,7 +251,8 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                "iterations": result.iterations, "train_seconds": cost.wall_s + result.seconds_before,
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "matmul_precision": tcfg.matmul_precision, "mlp_kernel": tcfg.mlp_kernel, "mlflow_run_id": run.run_id if run else None,
-               "rejected_updates": result.rejected, "selected": result.selected, **gpu_sharing(),
+               "rejected_updates": result.rejected, "selected": result.selected,
+               **merged_sharing(result.processes or [gpu_sharing()]), "processes": result.processes,
                "commit": git_commit(), "device": device_name(device),  # what made it (a resumed run: what finished it)
                "velocity": {"v0": list(map(float, velocity[0])), "w0": list(map(float, velocity[1]))},  # it trained with
                "term_shares": mean_term_shares(result.history),
@@ -262,13 +268,25 @@ def gpu_sharing() -> dict:
     finds): ``runs_per_gpu`` [count] and ``mps`` [bool], and ``mps_priority``: None where the grid gave no priorities,
     else ``"below_normal"`` (its unit yielded the GPU to heavier ones: ``gca.pipeline.grid.below_normal``) or
     ``"normal"`` (beside such runs: faster than an equal share). A time measured with 8 runs on one GPU is not a solo
-    time (Table 4 says so); a run started otherwise (dvc repro, by hand) counts as alone."""
+    time (Table 4 says so); a run started otherwise (dvc repro, by hand) counts as alone. This process's only: a run
+    that several processes trained records them all, merged (:func:`merged_sharing`)."""
     mps = os.environ.get(gpu_slot.MPS_ENV) == "1"
     priority = None
     if mps and os.environ.get(gpu_slot.PRIORITY_GRID_ENV) == "1":
         low = os.environ.get(gpu_slot.MPS_PRIORITY_ENV) == gpu_slot.MPS_BELOW_NORMAL
         priority = "below_normal" if low else "normal"
     return {"runs_per_gpu": gpu_slot.runs_per_gpu(), "mps": mps, "mps_priority": priority}
+
+
+def merged_sharing(processes: list[dict]) -> dict:
+    """The GPU sharing of a run that ``processes`` trained (each with :func:`gpu_sharing`'s fields; a field missing:
+    alone, no MPS, no priority): ``runs_per_gpu`` their largest [count], ``mps`` whether any ran under MPS [bool],
+    ``mps_priority`` theirs where all had the same, else ``"mixed"`` (say 90 % of the iterations below normal, the
+    rest at normal after a resume: neither an equal share nor a yielding one throughout)."""
+    priorities = {p.get("mps_priority") for p in processes}
+    return {"runs_per_gpu": max(int(p.get("runs_per_gpu") or 1) for p in processes),
+            "mps": any(bool(p.get("mps")) for p in processes),
+            "mps_priority": priorities.pop() if len(priorities) == 1 else "mixed"}
 
 
 def mean_term_shares(history: list[dict]) -> dict[str, float]:

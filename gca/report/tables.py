@@ -170,12 +170,25 @@ def _sharing_note(runs: Runs) -> tuple[str, ...]:
         return ()
     most = max(int(r["runs_per_gpu"]) for r in shared)
     mps = "under CUDA MPS" if any(r.get("mps") for r in shared) else "time-sliced, without MPS"
-    low = sum(1 for r in shared if r.get("mps_priority") == "below_normal")
-    low = (f", {low} of them at MPS's below-normal priority (the grid's lighter runs yield the GPU to its heaviest)"
-           if low else "")
-    return (f"{len(shared)} of {len(records)} runs trained with up to {most} runs on one GPU ({mps}{low}): their "
+    return (f"{len(shared)} of {len(records)} runs trained with up to {most} runs on one GPU ({mps}"
+            f"{_priority_clause(shared)}): their "
             "training times are packed times, not solo ones; LoRA vs full fine-tuning compares fairly only between runs "
             "packed alike. Solo timings: `benchmarks/harness.py`.",)
+
+
+def _priority_clause(shared: list[dict]) -> str:
+    """How many of the ``shared`` runs' records trained at MPS's below-normal priority (``mps_priority``) and how many
+    at more than one (``"mixed"``: stopped and resumed at another priority, ``gca.pipeline.train.merged_sharing``;
+    not necessarily below normal in part: normal and none mix too); "" if none of either."""
+    low = sum(1 for r in shared if r.get("mps_priority") == "below_normal")
+    mixed = sum(1 for r in shared if r.get("mps_priority") == "mixed")
+    if not low and not mixed:
+        return ""
+    parts = [f"{low} of them at MPS's below-normal priority"] if low else []
+    if mixed:
+        of_them = "" if low else "of them "
+        parts.append(f"{mixed} {of_them}at more than one MPS priority, stopped and resumed at another")
+    return f", {' and '.join(parts)} (the grid's lighter runs yield the GPU to its heaviest)"
 
 
 def _n_scenes(runs: Runs, method: str) -> int:

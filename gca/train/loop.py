@@ -60,6 +60,8 @@ class TrainResult:
     selected: dict = dataclasses.field(default_factory=dict)  # which law was kept (:class:`BestLaw`)
     resumed_at: int = 0  # the iteration this process resumed from (0: a fresh run)
     seconds_before: float = 0.0  # training time of the earlier processes of a resumed run [s]
+    # every process that trained the run, this one last: {"resumed_at": <its first iteration>, **train's ``process``}
+    processes: list[dict] = dataclasses.field(default_factory=list)
 
 
 def horizon(cfg: TrainConfig, it: int, n_video: int) -> int:
@@ -114,22 +116,30 @@ def run_settings(cfg: TrainConfig, law: LearnedLaw):
 
 
 def train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
-          checkpoint_path: Path | None = None, on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
+          checkpoint_path: Path | None = None, on_iteration: Callable[[int, dict], None] | None = None,
+          process: dict | None = None) -> TrainResult:
     """Run the optimisation under :func:`run_settings`; returns the status, the per-iteration history and the
-    rejected updates."""
+    rejected updates.
+
+    ``process``: what the caller says of this process (JSON-able values, no ``resumed_at`` key; the loop reads none
+    of it), kept in the checkpoint with the iteration it started at, after the earlier processes'
+    (``TrainResult.processes``), so a run stopped and resumed elsewhere or otherwise says how each part trained."""
     with run_settings(cfg, law):
-        return _train(solver, law, data, objective, cfg, checkpoint_path, on_iteration)
+        return _train(solver, law, data, objective, cfg, checkpoint_path, on_iteration, process or {})
 
 
 def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objective, cfg: TrainConfig,
-           checkpoint_path: Path | None, on_iteration: Callable[[int, dict], None] | None) -> TrainResult:
+           checkpoint_path: Path | None, on_iteration: Callable[[int, dict], None] | None,
+           process: dict) -> TrainResult:
     start = time.perf_counter()
     if not law.trainable():
-        return TrainResult("ok", 0, [], "nothing to train", 0.0)
+        return TrainResult("ok", 0, [], "nothing to train", 0.0, processes=[{"resumed_at": 0, **process}])
     opt, sched = make_optimizer(law, cfg)
     best = BestLaw()
-    it0, history, rejected, seconds_before, undo = resume_checkpoint(checkpoint_path, law, opt, sched, best, objective)
-    resumed = {"resumed_at": it0, "seconds_before": seconds_before}
+    it0, history, rejected, seconds_before, undo, processes = resume_checkpoint(checkpoint_path, law, opt, sched, best,
+                                                                                objective)
+    processes = [*processes, {"resumed_at": it0, **process}]
+    resumed = {"resumed_at": it0, "seconds_before": seconds_before, "processes": processes}
     n_video = len(data.video_frames)
     in_a_row = 0  # rejected updates in a row: none at a checkpoint (it follows an accepted update, whose Undo it holds)
     bar = tqdm(total=cfg.iterations, desc="train", unit="it", initial=it0)
@@ -177,7 +187,7 @@ def _train(solver: MPMSolver, law: LearnedLaw, data: TrainData, objective: Objec
         stopping = stop.requested()  # read once: a stop asked between two reads would go uncheckpointed
         if checkpoint_path is not None and (it % cfg.checkpoint_every == 0 or it == cfg.iterations or stopping):
             save_checkpoint(checkpoint_path, law, opt, sched, it, history, rejected, best,
-                             seconds_before + time.perf_counter() - start, objective, undo)
+                             seconds_before + time.perf_counter() - start, objective, undo, processes)
         if stopping:  # SIGTERM under gca.stop.deferred, the stop file or the deadline: stop here, checkpointed
             stop.check()
     bar.close()

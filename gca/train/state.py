@@ -135,22 +135,27 @@ class BestLaw:
 
 
 def save_checkpoint(path: Path, law: LearnedLaw, opt, sched, it: int, history: list, rejected: list,
-                     best: BestLaw, seconds: float, objective=None, undo: Undo | None = None) -> None:
+                     best: BestLaw, seconds: float, objective=None, undo: Undo | None = None,
+                     processes: list[dict] | None = None) -> None:
     """Everything a resumed run needs to go on as the uninterrupted one would (``objective``: an
     :class:`gca.train.objective.Objective`, whose CPR fits carry over between iterations; ``undo``: the last
-    update's :class:`Undo`, small: the LoRA parameters and their Adam state)."""
+    update's :class:`Undo`, small: the LoRA parameters and their Adam state; ``processes``: one dict per process
+    that trained the run so far, ``{"resumed_at": <its first iteration>, **<its caller's metadata>}``, the last
+    one's last)."""
     save_torch({"law": law.state(), "opt": opt.state_dict(), "sched": sched.state_dict(), "iteration": it,
                 "history": history, "rejected": rejected, "best": best.state(), "seconds": seconds,
                 "objective": None if objective is None else objective.state(),
-                "undo": None if undo is None else undo.state()}, path)
+                "undo": None if undo is None else undo.state(), "processes": list(processes or [])}, path)
 
 
 def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: BestLaw,
-                      objective=None) -> tuple[int, list, list, float, Undo | None]:
+                      objective=None) -> tuple[int, list, list, float, Undo | None, list[dict]]:
     """Load a checkpoint into the law, optimiser, schedule, best-law tracker and (given) the objective;
-    returns ``(iteration, history, rejected updates, training seconds spent before it, the last update's Undo)``."""
+    returns ``(iteration, history, rejected updates, training seconds spent before it, the last update's Undo,
+    the processes that trained it)``: :func:`save_checkpoint`'s ``processes``, ``[]`` for a checkpoint written
+    before they were kept (its earlier processes unknown)."""
     if path is None or not path.is_file():
-        return 0, [], [], 0.0, None
+        return 0, [], [], 0.0, None, []
     ckpt = torch.load(path, weights_only=False, map_location=law.trainable()[0].device)
     law.load_state(ckpt["law"])
     opt.load_state_dict(ckpt["opt"])
@@ -159,4 +164,5 @@ def resume_checkpoint(path: Path | None, law: LearnedLaw, opt, sched, best: Best
     if objective is not None:
         objective.load_state(ckpt.get("objective"))
     return (int(ckpt["iteration"]), list(ckpt["history"]), list(ckpt.get("rejected", [])),
-            float(ckpt.get("seconds", 0.0)), Undo.load(ckpt.get("undo")))
+            float(ckpt.get("seconds", 0.0)), Undo.load(ckpt.get("undo")),
+            [dict(p) for p in ckpt.get("processes") or []])
