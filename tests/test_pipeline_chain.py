@@ -80,6 +80,15 @@ def test_done_members_stay_out_and_a_chain_of_one_is_no_chain():
     assert one["train@ball:gca"].after == jobs["train@ball:gca"].after
 
 
+def test_chain_undone_reads_the_markers_of_this_stamp_only(tmp_path):
+    params, jobs = _jobs(("ball",))
+    dispatch.write_done(tmp_path, "assets@ball", 1.0, "abc")
+    dispatch.write_done(tmp_path, "particles@ball", 1.0, "old")  # another grid's inputs: not done here
+    chained = grid.chain_undone(jobs, params, tmp_path, "abc")
+    assert chained["inputs@ball"].members == ["particles@ball", "ground_truth@ball", "preprocess@ball"]
+    assert chained == grid.chain_inputs(jobs, params, done={"assets@ball"}, stamp="abc")
+
+
 def test_scenes_sharing_an_object_make_it_once_then_each_scene_its_own():
     params = grid.grid_params("ci", ["ball", "cat"], ["nclaw"], [])
     params["scenes"]["cat"]["object"] = "ball"  # two scenes of one object

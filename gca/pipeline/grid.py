@@ -282,6 +282,12 @@ def input_chains(params: dict, jobs=None) -> list[tuple[str, list[str]]]:
     return chains
 
 
+def chain_undone(jobs: dict[str, Job], params: dict, work: Path, stamp: str) -> dict[str, Job]:
+    """:func:`chain_inputs` of ``jobs`` in work folder ``work``: the jobs whose ``.done`` marker holds ``stamp`` count
+    done (the grid's and the tuning's calibration inputs, ``gca.pipeline.tune.prepare_inputs``)."""
+    return chain_inputs(jobs, params, {n for n in jobs if dispatch.is_done(work, n, stamp)}, stamp)
+
+
 def chain_inputs(jobs: dict[str, Job], params: dict, done=frozenset(), stamp: str = "") -> dict[str, Job]:
     """``jobs`` (linked) with each of :func:`input_chains`' chains of jobs not ``done`` put in one job that runs them
     one after the other in one process (``gca.pipeline.chain``; ``stamp``: what its members' ``.done`` markers hold):
@@ -1077,7 +1083,7 @@ def main(argv=None) -> dict[str, str]:
         jobs = {n: j for n, j in jobs.items() if n in keep or n in done}
     if not args.no_chain:
         chained = params if args.repo is None else yaml.safe_load((work / "params.yaml").read_text())
-        jobs = chain_inputs(jobs, chained, {n for n in jobs if dispatch.is_done(work, n, stamp)}, stamp)
+        jobs = chain_undone(jobs, chained, work, stamp)
     (work / ".grid").mkdir(parents=True, exist_ok=True)
     logfile = open(work / ".grid" / "grid.log", "a")
 

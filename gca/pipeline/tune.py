@@ -101,7 +101,7 @@ def prepare_inputs(work: Path, params: dict, priors: Path | None, log=print, wor
             jobs.pop(f"prior@{family}", None)
         for job in jobs.values():
             job.after = {a for a in job.after if a in jobs}
-    jobs = grid.chain_inputs(jobs, params, {n for n in jobs if dispatch.is_done(work, n, stamp)}, stamp)
+    jobs = grid.chain_undone(jobs, params, work, stamp)
     run_stages(jobs, work, stamp, workers, log)
 
 
