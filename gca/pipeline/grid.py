@@ -57,7 +57,7 @@ from typing import Callable
 import yaml
 
 from gca import gpu_slot
-from gca.pipeline import dispatch
+from gca.pipeline import dispatch, timeline
 from gca.stamp import fingerprint
 from gca.pipeline.dispatch import critical_path, gpu_ids  # noqa: F401 (this module's API before the engine)
 
@@ -468,7 +468,8 @@ def prepare(work: Path, params: dict) -> None:
 def collect(work: Path, out: Path) -> Path:
     """The small results of a grid in one archive: metrics, reports, train/eval summaries, the learned laws
     (~40 kB each: a run can be evaluated again elsewhere), priors, logs. Also of a grid that runs meanwhile
-    (:func:`_listed`, ``gca.io.add_file``)."""
+    (:func:`_listed`, ``gca.io.add_file``). Beside it ``timeline.png``, when each job ran (:mod:`gca.pipeline.timeline`).
+    """
     from gca.io import add_file
 
     out.mkdir(parents=True, exist_ok=True)
@@ -479,6 +480,12 @@ def collect(work: Path, out: Path) -> Path:
         for f, rel, size in _listed(work):
             if keep.match(rel) and size < 8 * 2 ** 20:
                 add_file(tar, f, rel)  # passes over a file gone since the listing
+    log = work / ".grid" / "grid.log"
+    if log.is_file():  # where the grid's time went: gca.pipeline.timeline's plot beside the archive
+        try:
+            timeline.from_log(log, out / "timeline.png")
+        except ValueError as err:  # a log without grid lines yet: no plot, the archive stands
+            print(f"[grid] timeline: {err}")
     return path
 
 
