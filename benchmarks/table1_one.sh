@@ -13,6 +13,9 @@
 #       units' jobs start at MPS's below-normal client priority, gca.pipeline.grid.below_normal), or
 #       "--set train.seeds=[0,1,2]" (issue 20's three-seed table: 54 runs, ~3x the GPU work; not yet run this way)
 #   Session 48 (code 4d82e7c, the input chain and the MPS priority): 549 s + the report's 14 s in the resume = 9.4 min.
+#   STATE       a grid state to go on from (`grid --save-state`; restored on a machine's first grid call only): session
+#       49's three-seed table, stopped with 25 of its 139 jobs left, is benchmarks/results/table1_three_s49/state.tgz
+#       (its finished runs; the inputs and the runs cut off are made again; carry it as an untracked file in the tree)
 #   GCA_COMMIT  required for the grid: the commit sent (`git rev-parse --short HEAD` here; the copy there carries a stale
 #       .git, and session 32's runs recorded 4d7bdae+dirty without it)
 set -u
@@ -45,7 +48,7 @@ if [ "$PART" = grid ]; then
   python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
       --profile paper --gpus 1 --slots "${SLOTS:-12}" --mps --priors benchmarks/results/priors_paper \
       --stages assets particles ground_truth preprocess nuisance train evaluate report --deadline "${DEADLINE:-560}" \
-      ${GRID_ARGS:-} >> "$W/grid.log" 2>&1
+      ${GRID_ARGS:-} $([ -z "${STATE:-}" ] || restore_once "$STATE" "$W") >> "$W/grid.log" 2>&1
   rc=$?
   kill "$sampler" 2> /dev/null
   echo "call: grid rc=$rc, $(( $(date +%s) - t0 )) s (SLOTS=${SLOTS:-12}, DEADLINE=${DEADLINE:-560})" | tee -a "$OUT/timing.txt"
