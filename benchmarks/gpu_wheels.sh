@@ -17,7 +17,8 @@ compile_bytecode() {
   t=$(date +%s); dirs="gca stages benchmarks"; [ -f /tmp/gca-warp/pyc.done ] || dirs="$dirs /tmp/gca-warp/site"
   # shellcheck disable=SC2086
   python3 -m compileall -q -j 16 --invalidation-mode checked-hash $dirs > "$1" 2>&1
-  echo "[bytecode] compileall rc=$? ($dirs) in $(( $(date +%s) - t )) s"; touch /tmp/gca-warp/pyc.done
+  echo "[bytecode] compileall rc=$? ($dirs) in $(( $(date +%s) - t )) s"
+  [ ! -d /tmp/gca-warp/site ] || touch /tmp/gca-warp/pyc.done  # compileall's rc is 1 for any one file it cannot compile
 }
 # build_gsplat DIR LOG: compile gsplat's CUDA extension once per machine (DIR/gsplat.done marks it; ~100 s), output in
 # LOG. Fine in the background beside the stages: a process that renders meanwhile waits on gca.render.backend's build

@@ -15,7 +15,8 @@
 #   Session 48 (code 4d82e7c, the input chain and the MPS priority): 549 s + the report's 14 s in the resume = 9.4 min.
 #   STATE       a grid state to go on from (`grid --save-state`; restored on a machine's first grid call only): session
 #       49's three-seed table, stopped with 25 of its 139 jobs left, is benchmarks/results/table1_three_s49/state.tgz
-#       (its finished runs; the inputs and the runs cut off are made again; carry it as an untracked file in the tree)
+#       (its finished runs; the inputs and the runs cut off are made again; carry it as an untracked file in the tree;
+#       restored by the first grid call that exits 0, W/.restored marks it)
 #   GCA_COMMIT  required for the grid: the commit sent (`git rev-parse --short HEAD` here; the copy there carries a stale
 #       .git, and session 32's runs recorded 4d7bdae+dirty without it)
 set -u
@@ -43,13 +44,22 @@ if [ "$PART" = grid ]; then
   (while :; do echo "$(date +%s) $(awk '/^cpu /{print $2+$3+$4+$7+$8, $5+$6}' /proc/stat) $(nvidia-smi \
      --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits | tr -d ,)"; sleep 5; done >> "$OUT/util.txt") &
   sampler=$!
+  trap 'kill "$sampler" 2> /dev/null' EXIT; trap 'exit 143' TERM; trap 'exit 130' INT  # the sampler ends with the script
+  restore=""  # STATE: restored on this machine's first grid call that succeeds (W/.restored marks it)
+  if [ -n "${STATE:-}" ]; then
+    [ -f "$STATE" ] || { echo "table1_one.sh: STATE=$STATE: no such file (carry it as an untracked file)"; exit 2; }
+    [ -f "$W/.restored" ] || restore="--restore-state $STATE"
+  fi
   t0=$(date +%s)
+  set -f  # GRID_ARGS unquoted for its words, not for globs: "--set train.seeds=[0,1,2]" is no pattern
   # shellcheck disable=SC2086
   python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
       --profile paper --gpus 1 --slots "${SLOTS:-12}" --mps --priors benchmarks/results/priors_paper \
       --stages assets particles ground_truth preprocess nuisance train evaluate report --deadline "${DEADLINE:-560}" \
-      ${GRID_ARGS:-} $([ -z "${STATE:-}" ] || restore_once "$STATE" "$W") >> "$W/grid.log" 2>&1
+      ${GRID_ARGS:-} $restore >> "$W/grid.log" 2>&1
   rc=$?
+  set +f
+  [ -z "$restore" ] || [ "$rc" != 0 ] || touch "$W/.restored"
   kill "$sampler" 2> /dev/null
   echo "call: grid rc=$rc, $(( $(date +%s) - t0 )) s (SLOTS=${SLOTS:-12}, DEADLINE=${DEADLINE:-560})" | tee -a "$OUT/timing.txt"
   cp "$W/grid.log" "$OUT/grid.log"

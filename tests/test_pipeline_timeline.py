@@ -77,3 +77,46 @@ def test_collect_writes_the_timeline_beside_the_archive(tmp_path):
     (tmp_path / ".grid" / "grid.log").write_text("")  # a grid that logged nothing yet: the archive, no plot
     grid.collect(tmp_path, tmp_path / "out2")
     assert (tmp_path / "out2" / "grid_results.tar.gz").is_file() and not (tmp_path / "out2" / "timeline.png").exists()
+
+
+def test_slurm_lines_before_commands_a_killed_call_and_a_job_done_as_it_was_stopped():
+    """SLURM's start lines lack " on <place>" (and a re-attached job logs "attach"); --before's line precedes its
+    call's "N jobs" line (its time is not grid time, and it ends a call killed without its "after" line); a job
+    that finished on the stop's signal ("done X as it was stopped") counts done; a skipped job's span ends there."""
+    log = """\
+[grid 10:00:00] before: make something
+[grid 10:00:30] 3 jobs (3 to run) through slurm on SLURM, profile paper
+[grid 10:00:30] start train@ball:gca (log /l/1)
+[grid 10:00:31] attach train@ball:neuma (log /l/2)
+[grid 10:00:32] start evaluate@ball:nclaw (log /l/3)
+[grid 10:01:00] FAIL  train@ball:neuma (exit 1) after 29 s; log: /l/2
+[grid 10:01:00] skip  evaluate@ball:neuma: train@ball:neuma failed
+[grid 10:01:10] stop  train@ball:gca at the deadline (resumes next time)
+[grid 10:01:12] done  train@ball:gca as it was stopped
+[grid 15:00:00] before: make something
+[grid 15:00:20] 3 jobs (1 to run) through slurm on SLURM, profile paper
+[grid 15:00:20] start report (log /l/4)
+[grid 15:00:50] done  report in 30 s
+[grid 15:00:51] after 31 s: {'done': 3}; nothing left to run
+"""
+    tl = timeline.parse(log.splitlines())
+    assert tl.calls == [(0.0, 42.0), (42.0, 73.0)]  # killed at 10:01:12; the 5-h gap and --before's 20-30 s left out
+    got = [(s.job, s.start, s.end, s.how) for s in tl.spans]
+    assert got == [("train@ball:gca", 0.0, 40.0, "done"), ("train@ball:neuma", 1.0, 30.0, "FAIL"),
+                   ("evaluate@ball:nclaw", 2.0, 42.0, "open"), ("report", 42.0, 72.0, "done")]
+    assert timeline.summary(tl)["stopped"] == 0
+
+
+def test_a_log_of_calls_without_jobs_plots_and_collect_survives_a_plot_that_fails(tmp_path, monkeypatch, capsys):
+    log = tmp_path / "grid.log"
+    log.write_text("[grid 10:00:00] 3 jobs (0 to run) through local on GPU(s) 1 x 2 slots, profile paper\n"
+                   "[grid 10:00:00] after 0 s: {'done': 3}; nothing left to run\n")
+    assert timeline.from_log(log, tmp_path / "t.png")["jobs"] == 0 and (tmp_path / "t.png").is_file()
+    (tmp_path / ".grid").mkdir()
+    (tmp_path / ".grid" / "grid.log").write_text(LOG)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no display")
+    monkeypatch.setattr(timeline, "plot", broken)
+    assert grid.collect(tmp_path, tmp_path / "out").is_file()
+    assert "timeline: no plot (RuntimeError: no display)" in capsys.readouterr().out

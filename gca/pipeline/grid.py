@@ -484,8 +484,8 @@ def collect(work: Path, out: Path) -> Path:
     if log.is_file():  # where the grid's time went: gca.pipeline.timeline's plot beside the archive
         try:
             timeline.from_log(log, out / "timeline.png")
-        except ValueError as err:  # a log without grid lines yet: no plot, the archive stands
-            print(f"[grid] timeline: {err}")
+        except Exception as err:  # noqa: BLE001 (a plot is no result: a log without grid lines yet, matplotlib's
+            print(f"[grid] timeline: no plot ({type(err).__name__}: {err})")  # own errors; the archive stands)
     return path
 
 

@@ -22,8 +22,9 @@ from pathlib import Path
 
 LINE_RE = re.compile(r"^\[grid (\d\d):(\d\d):(\d\d)\] (.*)$")
 CALL_RE = re.compile(r"^\d+ jobs \(\d+ to run\)")
-START_RE = re.compile(r"^start (\S+) on ")
-END_RE = re.compile(r"^(done|stop|FAIL)\s+(\S+)")
+START_RE = re.compile(r"^(?:start|attach) (\S+)(?= on | \(log |$)")  # one machine: "... on gpu 0 (log L)"; SLURM: "(log L)"
+BEFORE_RE = re.compile(r"^before: ")  # grid --before: logged ahead of its call's "N jobs" line
+END_RE = re.compile(r"^(done|stop|FAIL|skip)\s+(\S+?):?(?=\s|$)")  # skip: "skip  X: Y failed" (cancelled)
 AFTER_RE = re.compile(r"^after \d+ s:")
 INPUT_STAGES = ("inputs", "object", "assets", "particles", "prior", "ground_truth", "preprocess")
 COLORS = {"inputs": "#7f7f7f", "fit": "#bcbd22", "train:gca": "#d62728", "train:neuma": "#1f77b4",
@@ -33,7 +34,7 @@ COLORS = {"inputs": "#7f7f7f", "fit": "#bcbd22", "train:gca": "#d62728", "train:
 @dataclasses.dataclass
 class Span:
     """One job's run in one call: ``start``, ``end`` [s of grid time]; ``how`` it ended: done, stop (a deadline),
-    FAIL, or open (the log ends with it running)."""
+    FAIL, skip (cancelled: a job it waits on failed), or open (the log ends with it running)."""
 
     job: str
     start: float
@@ -69,7 +70,7 @@ def parse(lines, where: str = "grid.log") -> Timeline:
     spans: list[Span] = []
     calls: list[tuple[float, float]] = []
     open_: dict[str, Span] = {}
-    day, last_clock, call_wall, offset, now = 0, None, None, 0.0, 0.0
+    day, last_clock, call_wall, offset, now, before = 0, None, None, 0.0, 0.0, False
 
     def close_call() -> None:
         nonlocal offset
@@ -88,12 +89,18 @@ def parse(lines, where: str = "grid.log") -> Timeline:
             day += 1
         last_clock = clock
         wall, msg = clock + 86400 * day, m.group(4)
-        if CALL_RE.match(msg) or (call_wall is None and not calls):  # a call's first line (or the log's)
+        if BEFORE_RE.match(msg):  # a call's --before command: the call starts at its "N jobs" line
+            if call_wall is not None:  # the call before it ended without its "after" line (killed)
+                close_call()
+                call_wall = None
+            before = True
+            continue
+        if CALL_RE.match(msg) or (call_wall is None and not calls and not before):  # a call's first line (or the log's)
             if call_wall is not None:
                 close_call()
-            call_wall = wall
+            call_wall, before = wall, False
             calls.append((offset, offset))
-        elif call_wall is None:  # between a call's "after" and the next call: its results, the MPS daemon
+        elif call_wall is None:  # between a call's "after" and the next call: its results, the MPS daemon, --before
             continue
         now = offset + wall - call_wall
         if (s := START_RE.match(msg)) is not None:
@@ -103,6 +110,10 @@ def parse(lines, where: str = "grid.log") -> Timeline:
         elif (e := END_RE.match(msg)) is not None and e.group(2) in open_:
             span = open_.pop(e.group(2))
             span.end, span.how = now, e.group(1)
+        elif e is not None and e.group(1) == "done" and msg.endswith("as it was stopped"):  # it ended on the stop's
+            last = next((x for x in reversed(spans) if x.job == e.group(2)), None)  # signal, its work finished
+            if last is not None and last.how == "stop" and last.call == len(calls) - 1:
+                last.how = "done"
         elif AFTER_RE.match(msg):
             close_call()
             call_wall = None
@@ -159,8 +170,9 @@ def plot(timeline: Timeline, path: Path, title: str = "grid timeline") -> None:
     top.set(ylim=(len(rows), -1), ylabel="job (by first start)", title=title)
     top.set_yticks([])
     used = sorted({kind(s.job) for s in timeline.spans}, key=list(COLORS).index)
-    top.legend(handles=[matplotlib.patches.Patch(color=COLORS[k], label=k) for k in used], fontsize=7, ncol=len(used),
-               loc="lower right")
+    if used:
+        top.legend(handles=[matplotlib.patches.Patch(color=COLORS[k], label=k) for k in used], fontsize=7,
+                   ncol=len(used), loc="lower right")
     end = timeline.calls[-1][1]
     ts = [i * end / 400 for i in range(401)]
     low.step([t / 60 for t in ts], [running(timeline, t) for t in ts], where="post", label="jobs running")
@@ -168,16 +180,18 @@ def plot(timeline: Timeline, path: Path, title: str = "grid timeline") -> None:
              label="GCA + NeuMA trainings")
     low.set(xlabel="grid time [min] (calls summed; dashed: a new call)", ylabel="count")
     low.legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
-    with atomic_path(Path(path)) as tmp:
-        fig.savefig(tmp, format="png", metadata={"Software": None})
-    plt.close(fig)
+    try:
+        fig.tight_layout()
+        with atomic_path(Path(path)) as tmp:
+            fig.savefig(tmp, format="png", metadata={"Software": None})
+    finally:
+        plt.close(fig)
 
 
 def from_log(log: Path, png: Path, title: str | None = None) -> dict:
     """Parse grid log ``log``, plot it to ``png``; returns :func:`summary`. Raises ValueError naming ``log``."""
     timeline = parse(Path(log).read_text(errors="replace").splitlines(), str(log))
-    plot(timeline, png, title or f"grid timeline: {log}")
+    plot(timeline, png, title or "grid timeline: " + str(log).replace("$", r"\$"))  # a path's "$" is no mathtext
     return summary(timeline)
 
 
