@@ -252,7 +252,7 @@ def train_method(settings: Settings, scene_name: str, method: Method, inputs: Sc
                "resumed_at": result.resumed_at, "peak_memory_gib": cost.peak_bytes / 2 ** 30,
                "memory_source": cost.source, "render_backend": data.body.backend, "matmul_precision": tcfg.matmul_precision, "mlp_kernel": tcfg.mlp_kernel, "mlflow_run_id": run.run_id if run else None,
                "rejected_updates": result.rejected, "selected": result.selected,
-               **merged_sharing(result.processes or [gpu_sharing()]), "processes": result.processes,
+               **merged_sharing(result.processes), "processes": result.processes,  # this process last
                "commit": git_commit(), "device": device_name(device),  # what made it (a resumed run: what finished it)
                "velocity": {"v0": list(map(float, velocity[0])), "w0": list(map(float, velocity[1]))},  # it trained with
                "term_shares": mean_term_shares(result.history),
