@@ -17,6 +17,10 @@ times on one device, side by side in one run:
 - ``p2g_nodes``: one thread per (particle, node) pair (an option, off since session 13),
 - ``p2g_agg``: warp-aggregated atomics (``kernels.p2g_agg``: a warp's particles of one stencil base summed by
   shuffles, one atomic per node and base; an option, off until measured, session 45),
+- ``p2g_v4``: the scatter onto the interleaved (mv, m) grid, one 16-byte vector atomic a node on sm_90+
+  (``kernels.p2g4``; the fused analytic step's ``MPMSolver.vec4_p2g``, an option, off until measured, session 50),
+  with ``p2g_v4_dev``: its grid's largest deviation from ``p2g``'s after one launch each from zero, relative to the
+  largest momentum or mass,
 - ``p2g_block``: the block-summed scatter (``kernels.scatter_block``; an option, off: slower, session 32),
   with the share of blocks that took the shared window,
 - ``p2g_indirect``: the per-particle scatter reading its particle through an index array (thread t scatters particle
@@ -183,6 +187,16 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
                                        iters, repeats)
     row["p2g_agg_us"] = best_time_us(lambda: wp.launch(k.p2g_agg, dim=n, inputs=args, device=wd), device, iters,
                                      repeats)
+    mvm = wp.zeros((G, G, G), dtype=k.vec4, device=wd)
+    args4 = [*args[:-2], mvm]
+    mv.zero_()
+    m.zero_()
+    wp.launch(k.p2g, dim=n, inputs=args, device=wd)
+    wp.launch(k.p2g4, dim=n, inputs=args4, device=wd)
+    t_mv, t_m, t_mvm = wp.to_torch(mv), wp.to_torch(m), wp.to_torch(mvm)
+    row["p2g_v4_dev"] = max(float((t_mvm[..., :3] - t_mv).abs().max() / t_mv.abs().max()),
+                            float((t_mvm[..., 3] - t_m).abs().max() / t_m.abs().max()))
+    row["p2g_v4_us"] = best_time_us(lambda: wp.launch(k.p2g4, dim=n, inputs=args4, device=wd), device, iters, repeats)
     windows = wp.zeros(1, dtype=int, device=wd)
     row["p2g_block_us"] = best_time_us(lambda: launch_blocks(k.p2g_block, n, [*args, windows], wd), device, iters,
                                        repeats)
@@ -220,15 +234,16 @@ def main(argv=None) -> list[dict]:
     if device.type == "cuda" and device.index is None:  # warp needs an explicit ordinal
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    print("| particles | grid | order | p2g us | p2g_agg us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
+    print("| particles | grid | order | p2g us | p2g_v4 us (dev) | p2g_agg us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
           "p2g_block us (window share) | g2p us | g2p adjoint us | g2p_agg adjoint us |\n"
-          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:
             r = measure(n, n_grid, order, device, a.iters, a.repeats, a.block_dims)
             rows.append(r)
-            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_agg_us']:.1f} | "
+            print(f"| {r['particles']} | {n_grid}^3 | {order} | {r['p2g_us']:.1f} | {r['p2g_v4_us']:.1f} "
+                  f"({r['p2g_v4_dev']:.1e}) | {r['p2g_agg_us']:.1f} | "
                   f"{r['p2g_indirect_us']:.1f} | "
                   f"{r['p2g_interleaved_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
                   f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} | "

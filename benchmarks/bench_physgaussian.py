@@ -17,7 +17,9 @@ For each ``particles:n_grid`` size it runs, in one process on one device:
   graphs on a GPU; on the CPU the eager twin); ``ours_graph_generic``: its frames through the generic step (law, then
   transfers); ``ours_graph_block``: its forward P2G summed per thread block in shared memory first
   (``MPMSolver.block_p2g`` True; off by default: slower on the H100, session 32); ``ours_graph_agg``: its scatters'
-  atomics aggregated per warp (``MPMSolver.agg_p2g`` True; off until measured, session 45);
+  atomics aggregated per warp (``MPMSolver.agg_p2g`` True; off: slower at 30k on the H200, session 46);
+  ``ours_graph_v4``: its fused frames on the interleaved (mv, m) grid, one 16-byte vector atomic a node
+  (``MPMSolver.vec4_p2g`` True; off until measured, session 50);
 - ``theirs``: ``MPM_Simulator_WARP.p2g2p`` exactly as published (it wraps every kernel in
   ``wp.ScopedTimer(synchronize=True)``, i.e. five host syncs per step);
 - ``theirs_nosync``: the same ``p2g2p`` with ``wp.ScopedTimer`` temporarily replaced by a no-op while
@@ -169,13 +171,13 @@ def initial_state(n: int, n_grid: int, dt: float, device: torch.device, v_drop: 
 
 
 def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solver_cache: dict, fuse: bool = True,
-             block: bool | None = None, agg: bool | None = None):
+             block: bool | None = None, agg: bool | None = None, vec4: bool | None = None):
     """Final positions after ``steps`` steps, and a closure that re-runs them (for timing). ``fuse``: graphed frames
     take the fused analytic step (``MPMSolver.step_fused``, the default); False: the generic step (law, then
     transfers; the default before session 30). ``block``: ``MPMSolver.block_p2g``, ``agg``: ``MPMSolver.agg_p2g``
-    (None: their defaults, off)."""
+    ``vec4``: ``MPMSolver.vec4_p2g`` (None: their defaults, off)."""
     cfg, x0, v0, C0, F0, vol, mass, _ = state
-    key = f"solver_{fuse}_{block}_{agg}"
+    key = f"solver_{fuse}_{block}_{agg}_{vec4}"
     if key not in solver_cache:
         solver_cache[key] = MPMSolver(cfg, device)
         solver_cache[key].fuse_analytic = fuse
@@ -183,6 +185,8 @@ def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solve
             solver_cache[key].block_p2g = block
         if agg is not None:
             solver_cache[key].agg_p2g = agg
+        if vec4 is not None:
+            solver_cache[key].vec4_p2g = vec4
         solver_cache[key + "_material"] = Material(CorotatedElasticity(E, NU), IdentityPlasticity(), RHO).to(
             device=device, dtype=cfg.torch_dtype)
     solver, material = solver_cache[key], solver_cache[key + "_material"]
@@ -272,8 +276,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
     row = {"particles": int(x0.shape[0]), "n_grid": n_grid, "steps": args.steps, "dt": args.dt, "block_side": side,
            "ms_per_step": {}, "final_x": {}}
     cache: dict = {}
-    variants = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph", "theirs",
-                "theirs_nosync"] + \
+    variants = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph_v4", "ours_graph",
+                "theirs", "theirs_nosync"] + \
         (["theirs_graph"] if device.type == "cuda" else [])
     finals = {}
     for name in variants:
@@ -282,7 +286,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
                 go, info = run_ours(state, args.steps, device, name != "ours", args.steps_per_frame, cache,
                                     fuse=name != "ours_graph_generic",
                                     block=True if name == "ours_graph_block" else None,
-                                    agg=True if name == "ours_graph_agg" else None)
+                                    agg=True if name == "ours_graph_agg" else None,
+                                    vec4=True if name == "ours_graph_v4" else None)
                 finals[name] = go()  # warm-up + trajectory
                 best = float("inf")
                 for _ in range(args.repeats):
@@ -312,6 +317,7 @@ def measure(mod, n, n_grid, args, device) -> dict:
                          "ours_graph_vs_ours_graph_generic": diff("ours_graph", "ours_graph_generic"),
                          "ours_graph_vs_ours_graph_block": diff("ours_graph", "ours_graph_block"),
                          "ours_graph_vs_ours_graph_agg": diff("ours_graph", "ours_graph_agg"),
+                         "ours_graph_vs_ours_graph_v4": diff("ours_graph", "ours_graph_v4"),
                          "theirs_vs_theirs_nosync": diff("theirs", "theirs_nosync"),
                          "theirs_vs_theirs_graph": diff("theirs", "theirs_graph")}
     if "ours" in finals:
@@ -321,6 +327,10 @@ def measure(mod, n, n_grid, args, device) -> dict:
     theirs_best = min((ms[k] for k in ms if k.startswith("theirs")), default=None)
     if theirs_best and "ours_graph" in ms:
         row["speedup_ours_graph_vs_best_theirs"] = theirs_best / ms["ours_graph"]
+    ours_best = min((k for k in ms if k.startswith("ours_graph")), key=ms.get, default=None)  # any option of ours
+    if theirs_best and ours_best:
+        row["best_ours"] = ours_best
+        row["speedup_best_ours_vs_best_theirs"] = theirs_best / ms[ours_best]
     if "theirs" in ms and "ours_graph" in ms:
         row["speedup_ours_graph_vs_theirs_published"] = ms["theirs"] / ms["ours_graph"]
     del row["final_x"]
@@ -328,8 +338,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
 
 
 def _table(results: dict) -> str:
-    names = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph", "theirs", "theirs_nosync",
-             "theirs_graph"]
+    names = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph_v4", "ours_graph", "theirs",
+             "theirs_nosync", "theirs_graph"]
     lines = ["| particles | grid | " + " | ".join(f"{k} ms/step" for k in names)
              + " | speed-up (ours_graph / best theirs) | max / mean |dx| ours vs theirs (block sides) | mean displacement |",
              "|" + " --- |" * (len(names) + 5)]

@@ -25,6 +25,9 @@ mu and lam are formed once per frame, not per step (:func:`gca.sim.frame.simulat
 buffers are the solver's own (:meth:`gca.sim.solver.MPMSolver._zeroed_grid`): zero when made and zero again
 after every grid update. Same values as the generic step to rounding (tested on the CPU in float64 and
 float32); gradients never go through here (the backward recompute of a frame takes the generic step).
+
+The ``*4`` variants (``MPMSolver.vec4_p2g``) keep the grid's momentum and mass interleaved as one vec4 a node, so a
+node's share is one 16-byte vector atomic on sm_90+ (``gca.sim.kernels.atomic_add4``); the same sums otherwise.
 """
 
 # no `from __future__ import annotations`: warp resolves the kernels' annotations (closure types) eagerly
@@ -41,8 +44,8 @@ from gca.sim.kernels import KERNELS
 
 @functools.cache
 def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
-    """Build ``p2g_stress``, ``grid_update_zero`` and ``g2p_p2g`` (and their block-summed and warp-aggregated
-    variants) for ``torch.float32`` or ``torch.float64``."""
+    """Build ``p2g_stress``, ``grid_update_zero`` and ``g2p_p2g`` (and their block-summed, warp-aggregated and
+    interleaved-grid ``*4`` variants) for ``torch.float32`` or ``torch.float64``."""
     T = WARP_FLOATS[dtype]
     k = KERNELS[T.__name__]
     law = make_law_kernels(dtype)
@@ -147,6 +150,85 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
     p2g_stress, p2g_stress_agg = make_p2g_stress(False), make_p2g_stress(True)
     g2p_p2g, g2p_p2g_agg = make_g2p_p2g(False), make_g2p_p2g(True)
 
+    scatter4, vec4 = k.scatter4, k.vec4
+    v4_module = f"gca_sim_fused_step_v4_{T.__name__}"  # the interleaved (mv, m) grid's variants: compiled where launched
+
+    @wp.kernel(module=v4_module)
+    def p2g_stress4(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        kind: int,
+        mu: wp.array(dtype=T),
+        lam: wp.array(dtype=T),
+        per: int,
+        j_min: T,
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid: wp.array3d(dtype=vec4),
+    ):
+        """``p2g_stress`` onto the interleaved grid (``kernels.scatter4``: mv in components 0-2, m in 3)."""
+        p = wp.tid()
+        tau = analytic_stress(kind, F[p], mu[p * per], lam[p * per], j_min)
+        scatter4(x[p], v[p], C[p], tau, vol[p], mass[p], run_offset(run, p, n_grid, grid.shape[0]), dt, inv_dx, n_grid,
+                 grid)
+
+    @wp.kernel(module=v4_module)
+    def grid_update_zero4(
+        grid: wp.array3d(dtype=vec4),
+        gravity: vec3,
+        dt: T,
+        eps: T,
+        m_min: T,
+        n_grid: int,
+        bound: int,
+        kind: int,
+        mu_b: T,
+        grid_v: wp.array3d(dtype=vec3),
+    ):
+        """``grid_update_zero`` of the interleaved grid: the node's velocity, then its (mv, m) set to zero."""
+        s0, s1, s2 = wp.tid()
+        g = grid[s0, s1, s2]
+        grid_v[s0, s1, s2] = node_velocity(vec3(g[0], g[1], g[2]), g[3], s0, s1, s2, gravity, dt, eps, m_min, n_grid,
+                                           bound, kind, mu_b)
+        grid[s0, s1, s2] = vec4(T(0.0))
+
+    @wp.kernel(module=v4_module)
+    def g2p_p2g4(
+        x_src: wp.array(dtype=vec3),
+        F_src: wp.array(dtype=mat33),
+        run: wp.array(dtype=int),
+        grid_v: wp.array3d(dtype=vec3),
+        kind: int,
+        mu: wp.array(dtype=T),
+        lam: wp.array(dtype=T),
+        per: int,
+        j_min: T,
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        lo: T,
+        hi: T,
+        x_dst: wp.array(dtype=vec3),
+        F_dst: wp.array(dtype=mat33),
+        grid: wp.array3d(dtype=vec4),
+    ):
+        """``g2p_p2g`` whose scatter goes onto the interleaved grid (``kernels.scatter4``)."""
+        p = wp.tid()
+        off = run_offset(run, p, n_grid, grid_v.shape[0])
+        x1, v1, C1, F1 = gather(x_src[p], F_src[p], off, grid_v, dt, inv_dx, n_grid, lo, hi)
+        x_dst[p] = x1
+        F_dst[p] = F1
+        tau = analytic_stress(kind, F1, mu[p * per], lam[p * per], j_min)
+        scatter4(x1, v1, C1, tau, vol[p], mass[p], off, dt, inv_dx, n_grid, grid)
+
     scatter_block = k.scatter_block
     block_module = f"gca_sim_fused_step_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
 
@@ -221,4 +303,5 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(p2g_stress=p2g_stress, grid_update_zero=grid_update_zero, g2p=k.g2p, g2p_p2g=g2p_p2g,
                                  p2g_stress_block=p2g_stress_block, g2p_p2g_block=g2p_p2g_block,
-                                 p2g_stress_agg=p2g_stress_agg, g2p_p2g_agg=g2p_p2g_agg)
+                                 p2g_stress_agg=p2g_stress_agg, g2p_p2g_agg=g2p_p2g_agg,
+                                 p2g_stress4=p2g_stress4, grid_update_zero4=grid_update_zero4, g2p_p2g4=g2p_p2g4)

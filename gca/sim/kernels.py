@@ -22,6 +22,10 @@ uses ``lo = clip * dx``, ``hi = 1 - clip * dx``) and the base index is additiona
 integer, so even a non-finite position cannot index out of bounds (it produces non-finite state,
 which the rollout driver detects instead).
 
+Interleaved grid (an option, ``MPMSolver.vec4_p2g``). The forward-only scatter ``scatter4`` (``p2g4``, the fused
+analytic step's ``*4`` kernels) keeps a node's momentum and mass as one vec4 (mv in components 0-2, m in 3), so a
+node's share is one 16-byte vector atomic on sm_90+ (``atomic_add4``); same layout and indices otherwise.
+
 Runs. Several independent simulations (runs) can share one launch: ``run[p]`` is particle ``p``'s run, and
 the runs' grids are stacked along the first axis (run ``r``'s node ``(I, J, K)`` at index ``I + PAD + r G``,
 ``G = n_grid + 1 + 2 PAD``), so no particle ever reaches another run's nodes. One run: ``run`` all zeros and
@@ -122,6 +126,23 @@ wp::adj_address(a, i, j, k, adj_a, adj_i, adj_j, adj_k, adj_ret);
 """
 
 
+# One node's (mv, m) share as ONE vector atomic (``scatter4``; ``MPMSolver.vec4_p2g``): the grid's momentum and mass
+# interleaved as a vec4 a node (16 bytes, aligned), added by Hopper's vector reduction (sm_90+, PTX ISA 8.1:
+# ``red.global.add.v4.f32``: one instruction and one L2 request for the four floats, where warp's atomic_add of a vec3
+# and a scalar are four). Float64, older GPUs and the CPU take warp's own atomic_add of the vec4 (component-wise, the
+# same sums in the same order as the four scalar adds of ``scatter``).
+_ATOMIC_ADD4 = "wp::atomic_add(&wp::index(a, i, j, k), v);"
+_ATOMIC_ADD4_F32 = f"""
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+float* ptr = &wp::index(a, i, j, k).c[0];
+asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(ptr), "f"(v.c[0]), "f"(v.c[1]), "f"(v.c[2]),
+             "f"(v.c[3]) : "memory");
+#else
+{_ATOMIC_ADD4}
+#endif
+"""
+
+
 @wp.func_native(_PEERS)
 def warp_peers(key: int) -> int:
     """Bit mask of the lanes of this thread's warp (among those active) whose ``key`` equals this one's; 1 off CUDA."""
@@ -169,6 +190,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     module = f"gca_sim_mpm_{T.__name__}"
     block_module = f"gca_sim_mpm_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
     agg_module = f"gca_sim_mpm_agg_{T.__name__}"  # warp-aggregated kernels (options): compiled only where launched
+    v4_module = f"gca_sim_mpm_v4_{T.__name__}"  # the vec4 grid's kernels (an option): compiled only where launched
 
     @wp.func
     def stencil(x: vec3, inv_dx: T, n_grid: int):
@@ -304,6 +326,48 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         p = wp.tid()
         scatter_agg(x[p], v[p], C[p], tau[p], vol[p], mass[p], run_offset(run, p, n_grid, grid_m.shape[0]), dt, inv_dx,
                     n_grid, grid_mv, grid_m)
+
+    @wp.func_native(_ATOMIC_ADD4_F32 if T is wp.float32 else _ATOMIC_ADD4)
+    def atomic_add4(a: wp.array3d(dtype=vec4), i: int, j: int, k: int, v: vec4):
+        """``a[i, j, k] += v`` atomically: one vector reduction on sm_90+ in float32, else component-wise."""
+        ...
+
+    @wp.func
+    def scatter4(x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int, dt: T, inv_dx: T,
+                 n_grid: int, grid: wp.array3d(dtype=vec4)):
+        """:func:`scatter` onto the interleaved grid ``grid`` [.., .., ..] of vec4 (mv [kg m/s] in components 0-2, m
+        [kg] in 3): a node's share is one :func:`atomic_add4`. Forward only."""
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        affine = (-dt * vol_p * T(4.0) * inv_dx * inv_dx) * tau_p + m_p * C_p
+        mv_p = m_p * v_p
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    share = w * (mv_p + affine @ dpos)
+                    atomic_add4(grid, base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD,
+                                vec4(share[0], share[1], share[2], w * m_p))
+
+    @wp.kernel(module=v4_module)
+    def p2g4(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        tau: wp.array(dtype=mat33),
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        grid: wp.array3d(dtype=vec4),
+    ):
+        """:func:`p2g` through :func:`scatter4` onto the interleaved (mv, m) grid. Forward only (``bench_p2g``'s
+        ``p2g_v4``; the fused analytic step's kernels take the same ``scatter4``)."""
+        p = wp.tid()
+        scatter4(x[p], v[p], C[p], tau[p], vol[p], mass[p], run_offset(run, p, n_grid, grid.shape[0]), dt, inv_dx,
+                 n_grid, grid)
 
     @wp.func
     def scatter_block(valid: bool, x_p: vec3, v_p: vec3, C_p: mat33, tau_p: mat33, vol_p: T, m_p: T, off: int,
@@ -551,9 +615,10 @@ def make_kernels(T: type) -> types.SimpleNamespace:
 
     g2p, g2p_agg = make_g2p(False), make_g2p(True)
 
-    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg,
+    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
-                                 vec3=vec3, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,
+                                 vec3=vec3, vec4=vec4, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,
+                                 scatter4=scatter4,
                                  scatter_block=scatter_block, gather=gather, run_offset=run_offset,
                                  node_velocity=node_velocity)
 

@@ -153,6 +153,11 @@ class MPMSolver:
     # forward is g2p's plus one __match_any_sync), True / False, or None: on CUDA only. Off: measured slower on every
     # order and size (NOTES session 46: +12 to +167 %)
     agg_g2p: bool | None = False
+    # the fused analytic step (frame_fused, step_fused) on a grid whose momentum and mass are interleaved as one vec4 a
+    # node, each node's share one 16-byte vector atomic on sm_90+ in float32 (kernels.scatter4, red.global.add.v4.f32;
+    # component-wise elsewhere: the same sums), True / False, or None: on CUDA only. block_p2g and agg_p2g, where on,
+    # take precedence. Off until measured (NOTES session 50)
+    vec4_p2g: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -165,6 +170,7 @@ class MPMSolver:
         self.dtype = cfg.torch_dtype
         self._grids: dict[tuple, tuple] = {}
         self._zero_grids: dict[int, tuple] = {}
+        self._zero_grids4: dict[int, tuple] = {}
         self._zero_runs: dict[int, torch.Tensor] = {}
         self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
@@ -181,7 +187,7 @@ class MPMSolver:
         fine = self._refined[k]  # the path switches follow this solver's (a captured CUDA graph keeps its own)
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
-        fine.agg_g2p, fine.stash_mib = self.agg_g2p, self.stash_mib
+        fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -293,6 +299,12 @@ class MPMSolver:
         device)."""
         return self._resolve(self.agg_g2p)
 
+    @property
+    def vec4s_p2g(self) -> bool:
+        """Whether the fused analytic step scatters onto the interleaved vec4 grid (``vec4_p2g``, resolved for this
+        device)."""
+        return self._resolve(self.vec4_p2g)
+
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
         ``reset``) summed their particles in the shared window rather than scattering directly (a host read)."""
@@ -329,16 +341,23 @@ class MPMSolver:
         with torch.no_grad(), _stream(self.device):
             wx, wv, wC, wF, _, wvol, wmass = self._wrap(x, v, C, F, F, vol, mass)
             wrun = wp.from_torch(run, dtype=wp.int32)
-            mv, m, gv = self._zeroed_grid(n_runs)
             wouts = [wp.from_torch(o, dtype=ty, requires_grad=False)
                      for o, ty in zip(outs, (self.k.vec3, self.k.vec3, self.k.mat33, self.k.mat33))]
             lo, hi = cfg.clamp_range
             inv_dx, T = 1.0 / cfg.dx, self.k.T
             moduli = [law.kind, wp.from_torch(law.mu, dtype=T), wp.from_torch(law.lam, dtype=T), law.per, law.j_min]
-            update = self._update_args(mv, m, gv)
-            blocks = self.blocks_p2g
-            p2g_stress, g2p_p2g = ((k.p2g_stress_block, k.g2p_p2g_block) if blocks else
-                                   (k.p2g_stress_agg, k.g2p_p2g_agg) if self.aggs_p2g else (k.p2g_stress, k.g2p_p2g))
+            blocks, aggs = self.blocks_p2g, self.aggs_p2g
+            vec4 = self.vec4s_p2g and not (blocks or aggs)
+            if vec4:  # the interleaved grid: (mv, m) one vec4 a node
+                mvm, gv = self._zeroed_grid4(n_runs)
+                grid, update_kernel = [mvm], k.grid_update_zero4
+                p2g_stress, g2p_p2g = k.p2g_stress4, k.g2p_p2g4
+            else:
+                mv, m, gv = self._zeroed_grid(n_runs)
+                grid, update_kernel = [mv, m], k.grid_update_zero
+                p2g_stress, g2p_p2g = ((k.p2g_stress_block, k.g2p_p2g_block) if blocks else
+                                       (k.p2g_stress_agg, k.g2p_p2g_agg) if aggs else (k.p2g_stress, k.g2p_p2g))
+            update = [*grid, *self._update_consts(), gv]
 
             def scatter(kernel, inputs):
                 if blocks:
@@ -347,19 +366,19 @@ class MPMSolver:
                     wp.launch(kernel, dim=n, inputs=inputs, device=self.wp_device)
 
             try:
-                scatter(p2g_stress, [wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, mv, m])
-                wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
+                scatter(p2g_stress, [wx, wv, wC, wF, *moduli, wvol, wmass, wrun, cfg.dt, inv_dx, cfg.n_grid, *grid])
+                wp.launch(update_kernel, dim=gv.shape, inputs=update, device=self.wp_device)
                 src = (wx, wF)
                 for _ in range(int(n_steps) - 1):
                     scatter(g2p_p2g, [*src, wrun, gv, *moduli, wvol, wmass, cfg.dt, inv_dx, cfg.n_grid, lo, hi,
-                                      wouts[0], wouts[3], mv, m])
-                    wp.launch(k.grid_update_zero, dim=mv.shape, inputs=update, device=self.wp_device)
+                                      wouts[0], wouts[3], *grid])
+                    wp.launch(update_kernel, dim=gv.shape, inputs=update, device=self.wp_device)
                     src = (wouts[0], wouts[3])
                 wp.launch(k.g2p, dim=n, device=self.wp_device,
                           inputs=[src[0], src[1], wrun, gv, cfg.dt, inv_dx, cfg.n_grid, lo, hi, *wouts])
             except BaseException:  # stopped between a scatter and its zeroing update (Ctrl-C, SIGTERM): re-zero
-                mv.zero_()
-                m.zero_()
+                for a in grid:
+                    a.zero_()
                 raise
         return tuple(outs)
 
@@ -445,12 +464,26 @@ class MPMSolver:
                                              for ty in (self.k.vec3, self.k.T, self.k.vec3))
         return self._zero_grids[n_runs]
 
+    def _zeroed_grid4(self, n_runs: int):
+        """:meth:`_zeroed_grid` of the interleaved layout (``vec4_p2g``): (mvm [n_runs G, G, G] vec4: mv in components
+        0-2, m in 3; v [n_runs G, G, G] vec3), mvm zero when made and left zero by ``grid_update_zero4``."""
+        if n_runs not in self._zero_grids4:
+            G = grid_size(self.cfg.n_grid)
+            self._zero_grids4[n_runs] = tuple(wp.zeros((n_runs * G, G, G), dtype=ty, device=self.wp_device)
+                                              for ty in (self.k.vec4, self.k.vec3))
+        return self._zero_grids4[n_runs]
+
+    def _update_consts(self) -> list:
+        """The grid update's arguments between the grid and the velocities: gravity, dt, eps, m_min, n_grid, bound,
+        the wall kind and its friction."""
+        cfg = self.cfg
+        return [self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid, cfg.bound,
+                BOUNDARY_KINDS[cfg.boundary], cfg.friction]
+
     def _update_args(self, mv, m, gv) -> list:
         """Arguments of the grid update (``grid_update``, or ``grid_update_zero`` of the fused step) on the wrapped
         grid (mv, m) into velocities ``gv``."""
-        cfg = self.cfg
-        return [mv, m, self.k.vec3(*cfg.gravity), cfg.dt, cfg.eps_mass, cfg.min_node_mass, cfg.n_grid, cfg.bound,
-                BOUNDARY_KINDS[cfg.boundary], cfg.friction, gv]
+        return [mv, m, *self._update_consts(), gv]
 
     def _p2g_args(self, args, run, mv, m):
         x, v, C, _, tau, vol, mass = args
