@@ -19,7 +19,8 @@ For each ``particles:n_grid`` size it runs, in one process on one device:
   (``MPMSolver.block_p2g`` True; off by default: slower on the H100, session 32); ``ours_graph_agg``: its scatters'
   atomics aggregated per warp (``MPMSolver.agg_p2g`` True; off: slower at 30k on the H200, session 46);
   ``ours_graph_v4``: its fused frames on the interleaved (mv, m) grid, one 16-byte vector atomic a node
-  (``MPMSolver.vec4_p2g`` True; off until measured, session 50);
+  (``MPMSolver.vec4_p2g`` True; on CUDA by default since session 50, so ``ours_graph`` takes it there too), and
+  ``ours_graph_scalar`` the control: ``vec4_p2g`` False, the scalar atomics of the default before session 50;
 - ``theirs``: ``MPM_Simulator_WARP.p2g2p`` exactly as published (it wraps every kernel in
   ``wp.ScopedTimer(synchronize=True)``, i.e. five host syncs per step);
 - ``theirs_nosync``: the same ``p2g2p`` with ``wp.ScopedTimer`` temporarily replaced by a no-op while
@@ -63,10 +64,10 @@ GPU (device tool, after the warp staging; carry the ignored folder ``.physgaussi
     PYTHONPATH=. python benchmarks/bench_physgaussian.py --device cuda --sizes 30000:32 100000:64 \
         --steps 200 --repeats 2 --json $OUT/physgaussian_cuda.json
 
-Expected on an H100: about a minute or less with a cold warp kernel cache (the NVRTC compiles of both
-solvers' modules dominate; the timed work is 2 sizes x 5 variants x 3 runs x 200 steps). Not yet run on
-a GPU when committed: ``theirs_graph`` (warp graph capture of their step) is untested; any variant that
-fails is recorded under ``errors`` in the JSON and the others still run.
+Measured on the H200 (session 50, ``--order lattice --repeats 3``): ~180 s with a cold warp kernel cache (the NVRTC
+compiles of both solvers' modules dominate); ``ours_graph_v4`` 2.09x their best at 30k / 32^3 and 2.69x at 100k / 64^3
+(``benchmarks/results/vec4_s50/``). Any variant that fails is recorded under ``errors`` in the JSON and the others
+still run.
 
 CPU check (2 shared cores; 2000 particles on 16^3, dt 2e-4): after 20 steps ours vs theirs differ by
 max 2.3e-5 / mean 4.2e-6 block sides (mean displacement 2.7e-2); after 200 steps by max 1.0e-3 /
@@ -175,7 +176,7 @@ def run_ours(state, steps: int, device, graph: bool, steps_per_frame: int, solve
     """Final positions after ``steps`` steps, and a closure that re-runs them (for timing). ``fuse``: graphed frames
     take the fused analytic step (``MPMSolver.step_fused``, the default); False: the generic step (law, then
     transfers; the default before session 30). ``block``: ``MPMSolver.block_p2g``, ``agg``: ``MPMSolver.agg_p2g``
-    ``vec4``: ``MPMSolver.vec4_p2g`` (None: their defaults, off)."""
+    ``vec4``: ``MPMSolver.vec4_p2g`` (None: their defaults: block and agg off, vec4 on CUDA)."""
     cfg, x0, v0, C0, F0, vol, mass, _ = state
     key = f"solver_{fuse}_{block}_{agg}_{vec4}"
     if key not in solver_cache:
@@ -276,8 +277,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
     row = {"particles": int(x0.shape[0]), "n_grid": n_grid, "steps": args.steps, "dt": args.dt, "block_side": side,
            "ms_per_step": {}, "final_x": {}}
     cache: dict = {}
-    variants = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph_v4", "ours_graph",
-                "theirs", "theirs_nosync"] + \
+    variants = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph_scalar",
+                "ours_graph_v4", "ours_graph", "theirs", "theirs_nosync"] + \
         (["theirs_graph"] if device.type == "cuda" else [])
     finals = {}
     for name in variants:
@@ -287,7 +288,7 @@ def measure(mod, n, n_grid, args, device) -> dict:
                                     fuse=name != "ours_graph_generic",
                                     block=True if name == "ours_graph_block" else None,
                                     agg=True if name == "ours_graph_agg" else None,
-                                    vec4=True if name == "ours_graph_v4" else None)
+                                    vec4={"ours_graph_v4": True, "ours_graph_scalar": False}.get(name))
                 finals[name] = go()  # warm-up + trajectory
                 best = float("inf")
                 for _ in range(args.repeats):
@@ -318,6 +319,7 @@ def measure(mod, n, n_grid, args, device) -> dict:
                          "ours_graph_vs_ours_graph_block": diff("ours_graph", "ours_graph_block"),
                          "ours_graph_vs_ours_graph_agg": diff("ours_graph", "ours_graph_agg"),
                          "ours_graph_vs_ours_graph_v4": diff("ours_graph", "ours_graph_v4"),
+                         "ours_graph_vs_ours_graph_scalar": diff("ours_graph", "ours_graph_scalar"),
                          "theirs_vs_theirs_nosync": diff("theirs", "theirs_nosync"),
                          "theirs_vs_theirs_graph": diff("theirs", "theirs_graph")}
     if "ours" in finals:
@@ -338,8 +340,8 @@ def measure(mod, n, n_grid, args, device) -> dict:
 
 
 def _table(results: dict) -> str:
-    names = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph_v4", "ours_graph", "theirs",
-             "theirs_nosync", "theirs_graph"]
+    names = ["ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg", "ours_graph_scalar", "ours_graph_v4",
+             "ours_graph", "theirs", "theirs_nosync", "theirs_graph"]
     lines = ["| particles | grid | " + " | ".join(f"{k} ms/step" for k in names)
              + " | speed-up (ours_graph / best theirs) | max / mean |dx| ours vs theirs (block sides) | mean displacement |",
              "|" + " --- |" * (len(names) + 5)]

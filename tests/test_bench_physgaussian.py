@@ -40,7 +40,7 @@ def test_same_job_same_trajectories_on_cpu(tmp_path, order):
     (run,) = res["runs"]
     assert "errors" not in run, run.get("errors")
     assert set(run["ms_per_step"]) == {"ours", "ours_graph_generic", "ours_graph_block", "ours_graph_agg",
-                                       "ours_graph_v4", "ours_graph", "theirs", "theirs_nosync"}
+                                       "ours_graph_scalar", "ours_graph_v4", "ours_graph", "theirs", "theirs_nosync"}
     assert run["best_ours"].startswith("ours_graph") and run["speedup_best_ours_vs_best_theirs"] > 0
     t = run["trajectory"]
     assert t["finite"]
@@ -51,4 +51,5 @@ def test_same_job_same_trajectories_on_cpu(tmp_path, order):
     assert t["ours_graph_vs_ours_graph_block"]["max"] < 1e-6  # the block-summed P2G (session 32)
     assert t["ours_graph_vs_ours_graph_agg"]["max"] < 1e-6  # the warp-aggregated scatters (session 45)
     assert t["ours_graph_vs_ours_graph_v4"]["max"] < 1e-6  # the interleaved grid's vector atomics (session 50)
+    assert t["ours_graph_vs_ours_graph_scalar"]["max"] < 1e-6  # its control, the scalar atomics
     assert t["theirs_vs_theirs_nosync"]["max"] < 1e-6
