@@ -146,7 +146,7 @@ def test_the_vector_reduction_compiles_for_sm_90(tmp_path, module, vector):
     assert paths and all(p.exists() for p in paths)
     src = "".join(p.read_text() for p in tmp_path.glob("*.cu"))
     assert ("red.global.add.v4.f32" in src) == vector
-    assert "scatter4" in src
+    assert "scatter4" in src and ("grid_update_unpack4" in src) == module.startswith("gca_sim_mpm")
 
 
 def test_ptxas_refuses_a_vector_reduction_it_does_not_know(tmp_path, monkeypatch):
@@ -215,5 +215,106 @@ def test_the_interleaved_fused_frame_equals_the_plain_one_on_cuda():
             results.append(simulate_frame(solver, material, 20, x, 0.1 * v, 0.1 * C, F, vol, mass))
     assert float((results[0][0] - x).abs().max()) > 0
     for a, b in zip(*results):
+        assert torch.isfinite(b).all()
+        assert float((b - a).abs().max()) <= 1e-4 * float(a.abs().max())
+
+
+# -- the generic step's forward P2G on the interleaved scratch (MPMSolver.vec4_step) ------------------------------
+
+
+def _spy_launches(calls):
+    real = wp.launch
+
+    def spy(*a, **kw):  # the tape's replay names the kernel by keyword
+        k = a[0] if a else kw["kernel"]
+        calls.append((k.key.rsplit("__", 1)[-1], bool(kw.get("adjoint"))))
+        return real(*a, **kw)
+
+    return real, spy
+
+
+@pytest.mark.parametrize("keep_grid", [True, False], ids=["kept_grid", "recomputed"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_vec4_step_is_the_plain_step_off_cuda(dtype, keep_grid):
+    # a step's values and gradients bitwise the plain step's (0 + the sums is the sums), the forward through p2g4 and
+    # grid_update_unpack4 (a switch that did nothing would fail), the backward unchanged, the scratch left zero
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, boundary="friction", friction=0.5, dtype=str(dtype)[6:], max_refine=1)
+    x, v, C, F, tau, vol, mass = _state(300, seed=31, lo=0.02, hi=0.98, dtype=dtype)
+    outs, calls = {}, []
+    for vec4 in (True, False):
+        solver = MPMSolver(cfg)
+        solver.vec4_step, solver.keep_grid = vec4, keep_grid
+        inputs = [t.clone().requires_grad_() for t in (x, v, C, F, tau)]
+        calls.clear()
+        real, spy = _spy_launches(calls)
+        wp.launch = spy
+        try:
+            step = solver.step(*inputs, vol, mass)
+            forward = {name for name, _ in calls}  # the step's own launches (a recompute's tape relaunches p2g)
+            outs[vec4] = (*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step]))
+        finally:
+            wp.launch = real
+        assert ({"p2g4", "grid_update_unpack4"} <= forward and "p2g" not in forward) if vec4 else \
+            ("p2g" in forward and "p2g4" not in forward)
+        if vec4:
+            assert not solver._step_grid4(1).numpy().any()
+    assert float(outs[True][0].detach().sub(x).abs().max()) > 0
+    for a, b in zip(outs[True], outs[False]):
+        assert torch.equal(a, b)
+
+
+def test_vec4_step_gives_a_swept_rollouts_gradients_bitwise():
+    # training's path (graphed frames' eager twin, the grid stash, the reverse sweep) with the switch on and off
+    from test_sim_stash import _solver, _swept
+    from test_sim_graph import _law, _scene
+
+    material, scene = _law(), _scene()
+    results = {}
+    for vec4 in (True, False):
+        solver = _solver()
+        solver.vec4_step = vec4
+        results[vec4] = _swept(solver, material, scene)
+    (x1, g1, s1), (x0, g0, s0) = results[True], results[False]
+    assert torch.equal(x1, x0) and s1 is not None
+    for a, b in zip(s1, s0):  # the stash keeps the unpacked grid
+        assert all(torch.equal(p, q) for p, q in zip(a, b))
+    for a, b in zip(g1, g0):
+        assert float(b.abs().max()) > 0 and torch.equal(a, b)
+
+
+def test_vec4_step_is_off_by_default_and_yields_to_the_other_p2g_options():
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, dtype="float64", max_refine=1))
+    assert solver.vec4_step is False and not solver.vec4s_step  # not measured in training yet (session 50)
+    solver.vec4_step = None
+    assert not solver.vec4s_step  # a CPU solver
+    solver.vec4_step, solver.agg_p2g = True, True
+    assert solver.refined(2).vec4_step is True
+    x, v, C, F, tau, vol, mass = _state(50, seed=32)
+    calls = []
+    real, spy = _spy_launches(calls)
+    wp.launch = spy
+    try:
+        with torch.no_grad():
+            solver.step(x, v, C, F, tau, vol, mass)
+    finally:
+        wp.launch = real
+    names = {name for name, _ in calls}
+    assert "p2g_agg" in names and "p2g4" not in names
+
+
+@pytest.mark.gpu
+def test_vec4_step_matches_the_plain_step_on_cuda():
+    # float32 on the GPU at the duck's density: a step's values and gradients to float32 rounding
+    cfg = SimConfig(n_grid=32, dt=2e-4, bound=2, boundary="friction", friction=0.3, dtype="float32", max_refine=1)
+    x = _lattice_ball(3.76, 32, 30000, torch.float32, "cuda")
+    _, v, C, F, tau, vol, mass = _state(x.shape[0], seed=33, dtype=torch.float32, device="cuda")
+    outs = []
+    for vec4 in (False, True):
+        solver = MPMSolver(cfg, "cuda")
+        solver.vec4_step = vec4
+        inputs = [t.clone().requires_grad_() for t in (x, 0.1 * v, 0.1 * C, F, tau)]
+        step = solver.step(*inputs, vol, mass)
+        outs.append((*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step])))
+    for a, b in zip(*outs):
         assert torch.isfinite(b).all()
         assert float((b - a).abs().max()) <= 1e-4 * float(a.abs().max())

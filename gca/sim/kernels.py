@@ -545,6 +545,34 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         grid_v[s0, s1, s2] = node_velocity(grid_mv[s0, s1, s2], grid_m[s0, s1, s2], s0, s1, s2, gravity, dt, eps,
                                            m_min, n_grid, bound, kind, mu_b)
 
+    @wp.kernel(module=v4_module)
+    def grid_update_unpack4(
+        grid: wp.array3d(dtype=vec4),
+        grid_mv: wp.array3d(dtype=vec3),
+        grid_m: wp.array3d(dtype=T),
+        gravity: vec3,
+        dt: T,
+        eps: T,
+        m_min: T,
+        n_grid: int,
+        bound: int,
+        kind: int,
+        mu_b: T,
+        grid_v: wp.array3d(dtype=vec3),
+    ):
+        """``grid_update`` after :func:`p2g4`: the interleaved node (mv, m) of ``grid`` added to ``grid_mv`` and
+        ``grid_m`` (as ``p2g``'s atomics would have added it: zero there, bitwise its sums), the node's velocity from
+        them, and ``grid`` set back to zero for the next step (``MPMSolver.vec4_step``). Forward only: the step's
+        backward runs ``grid_update``'s adjoint on (mv, m)."""
+        s0, s1, s2 = wp.tid()
+        g = grid[s0, s1, s2]
+        mv = grid_mv[s0, s1, s2] + vec3(g[0], g[1], g[2])
+        m = grid_m[s0, s1, s2] + g[3]
+        grid_mv[s0, s1, s2] = mv
+        grid_m[s0, s1, s2] = m
+        grid_v[s0, s1, s2] = node_velocity(mv, m, s0, s1, s2, gravity, dt, eps, m_min, n_grid, bound, kind, mu_b)
+        grid[s0, s1, s2] = vec4(T(0.0))
+
     @wp.func_native(_LOAD_AGG, adj_snippet=_LOAD_AGG_ADJ)
     def node_read_agg(a: wp.array3d(dtype=vec3), i: int, j: int, k: int, peers: int) -> vec3:
         """``a[i, j, k]``; its adjoint sums the cotangents of ``peers`` (:func:`warp_peers`) and adds them once."""
@@ -616,6 +644,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     g2p, g2p_agg = make_g2p(False), make_g2p(True)
 
     return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
+                                 grid_update_unpack4=grid_update_unpack4,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
                                  vec3=vec3, vec4=vec4, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,
                                  scatter4=scatter4,

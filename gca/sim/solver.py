@@ -160,6 +160,12 @@ class MPMSolver:
     # faster on every order but the 30k lattice (-4 %), PhysGaussian's job 0.046 -> 0.029 ms/step at 30k / 32^3 and
     # 0.105 -> 0.047 at 100k / 64^3, the same trajectories to 7e-7 (float32 rounding: the atomics' order)
     vec4_p2g: bool | None = None
+    # the generic step's forward P2G (a training frame's forward pass, a recompute without the stash; not under a
+    # tape) through kernels.p2g4 onto an interleaved vec4 scratch, unpacked into (mv, m) by the grid update
+    # (kernels.grid_update_unpack4): the vector atomics of vec4_p2g for the neural laws. True / False, or None: on
+    # CUDA only. block_p2g, split_p2g and agg_p2g, where on, take precedence. Off until measured in training (NOTES
+    # session 50: the scatter alone 2.5x faster on the duck's order on the H200)
+    vec4_step: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -173,6 +179,7 @@ class MPMSolver:
         self._grids: dict[tuple, tuple] = {}
         self._zero_grids: dict[int, tuple] = {}
         self._zero_grids4: dict[int, tuple] = {}
+        self._step_grids4: dict[tuple, wp.array] = {}
         self._zero_runs: dict[int, torch.Tensor] = {}
         self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
@@ -190,6 +197,7 @@ class MPMSolver:
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
         fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
+        fine.vec4_step = self.vec4_step
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -306,6 +314,12 @@ class MPMSolver:
         """Whether the fused analytic step scatters onto the interleaved vec4 grid (``vec4_p2g``, resolved for this
         device)."""
         return self._resolve(self.vec4_p2g)
+
+    @property
+    def vec4s_step(self) -> bool:
+        """Whether the generic step's forward P2G takes the interleaved scratch (``vec4_step``, resolved for this
+        device)."""
+        return self._resolve(self.vec4_step)
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
@@ -475,6 +489,17 @@ class MPMSolver:
                                               for ty in (self.k.vec4, self.k.vec3))
         return self._zero_grids4[n_runs]
 
+    def _step_grid4(self, n_runs: int):
+        """The interleaved (mv, m) scratch [n_runs G, G, G] vec4 of ``vec4_step``, zero when made and left zero by
+        ``grid_update_unpack4``; one per torch CUDA stream (a graph captured on one stream and a rollout on another
+        never share it)."""
+        stream = torch.cuda.current_stream(self.device).cuda_stream if self.device.type == "cuda" else 0
+        key = (n_runs, stream)
+        if key not in self._step_grids4:
+            G = grid_size(self.cfg.n_grid)
+            self._step_grids4[key] = wp.zeros((n_runs * G, G, G), dtype=self.k.vec4, device=self.wp_device)
+        return self._step_grids4[key]
+
     def _update_consts(self) -> list:
         """The grid update's arguments between the grid and the velocities: gravity, dt, eps, m_min, n_grid, bound,
         the wall kind and its friction."""
@@ -515,7 +540,19 @@ class MPMSolver:
         per-particle kernel, whose adjoint the tape replays. ``p2g`` False: the grid's (mv, m) are given (a
         stash), the grid update and G2P only."""
         grid = self._scratch(requires_grad, n_runs) if grid is None else grid
-        for kernel, dim, kargs in self._kernel_args(args, run, grid, outs)[0 if p2g else 1:]:
+        launches = self._kernel_args(args, run, grid, outs)
+        if p2g and not requires_grad and self.vec4s_step and not (self.blocks_p2g or self.split_p2g or self.aggs_p2g):
+            (_, dim, p2g_args), (_, nodes, update_args), (g2p, _, g2p_args) = launches
+            mvm = self._step_grid4(n_runs)  # P2G onto the interleaved scratch, unpacked by the grid update
+            try:
+                wp.launch(self.k.p2g4, dim=dim, inputs=[*p2g_args[:-2], mvm], device=self.wp_device)
+                wp.launch(self.k.grid_update_unpack4, dim=nodes, inputs=[mvm, *update_args], device=self.wp_device)
+            except BaseException:  # stopped between the scatter and its unpacking (Ctrl-C, SIGTERM): re-zero
+                mvm.zero_()
+                raise
+            wp.launch(g2p, dim=dim, inputs=g2p_args, device=self.wp_device)
+            return
+        for kernel, dim, kargs in launches[0 if p2g else 1:]:
             if kernel is self.k.p2g and not requires_grad and self.blocks_p2g:
                 launch_blocks(self.k.p2g_block, dim, [*kargs, self._windows], self.wp_device)  # summed per block first
                 continue
