@@ -28,7 +28,9 @@ times on one device, side by side in one run:
   order (:func:`interleaved`: each cell's first particle, cells in grid order, then each cell's second, ...), which a
   solver could compute from x0 instead of reordering the data,
 - ``g2p``: the per-particle gather, and its adjoint (``g2p_adj``: warp's, scattering the grid's velocity gradient
-  with atomics; ``g2p_agg_adj``: ``kernels.g2p_agg``'s, that scatter aggregated per warp like ``p2g_agg``),
+  with atomics; ``g2p_agg_adj``: ``kernels.g2p_agg``'s, that scatter aggregated per warp like ``p2g_agg``;
+  ``g2p4_adj``: ``kernels.g2p4``'s, one vector atomic a node into an interleaved accumulator, plus its unpacking
+  ``grid_unpack_adj4``: ``MPMSolver.vec4_g2p_adj``, an option, off until measured, session 50),
 
 as the best of ``--repeats`` averages over ``--iters`` launches (CUDA events around the loop).
 
@@ -206,6 +208,15 @@ def measure(n: int, n_grid: int, order: str, device, iters: int, repeats: int, b
     adj = [wp.zeros_like(a) if isinstance(a, wp.array) else None for a in g2p_args]
     row["g2p_adj_us"] = best_time_us(lambda: wp.launch(k.g2p, dim=n, inputs=g2p_args, adj_inputs=adj, adjoint=True,
                                                        device=wd), device, iters, repeats)
+    acc = wp.zeros((G, G, G), dtype=k.vec4, device=wd)
+    args4 = [*g2p_args[:4], acc, *g2p_args[4:]]
+    adj4 = [wp.zeros_like(a) if isinstance(a, wp.array) and a is not acc else None for a in args4]
+
+    def g2p4_adj():
+        wp.launch(k.g2p4, dim=n, inputs=args4, adj_inputs=adj4, adjoint=True, device=wd)
+        wp.launch(k.grid_unpack_adj4, dim=(G, G, G), inputs=[acc, adj4[3]], device=wd)
+
+    row["g2p4_adj_us"] = best_time_us(g2p4_adj, device, iters, repeats)
     row["g2p_agg_adj_us"] = best_time_us(lambda: wp.launch(k.g2p_agg, dim=n, inputs=g2p_args, adj_inputs=adj,
                                                            adjoint=True, device=wd), device, iters, repeats)
     for bd in block_dims:
@@ -234,9 +245,10 @@ def main(argv=None) -> list[dict]:
     if device.type == "cuda" and device.index is None:  # warp needs an explicit ordinal
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    print("| particles | grid | order | p2g us | p2g_v4 us (dev) | p2g_agg us | p2g indirect us | p2g interleaved us | p2g_nodes us | "
-          "p2g_block us (window share) | g2p us | g2p adjoint us | g2p_agg adjoint us |\n"
-          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| particles | grid | order | p2g us | p2g_v4 us (dev) | p2g_agg us | p2g indirect us | p2g interleaved us | "
+          "p2g_nodes us | "
+          "p2g_block us (window share) | g2p us | g2p adjoint us | g2p_agg adjoint us | g2p4 adjoint + unpack us |\n"
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for spec in a.sizes:
         n, n_grid = (int(s) for s in spec.split(":"))
         for order in a.orders:
@@ -247,7 +259,7 @@ def main(argv=None) -> list[dict]:
                   f"{r['p2g_indirect_us']:.1f} | "
                   f"{r['p2g_interleaved_us']:.1f} | {r['p2g_nodes_us']:.1f} | "
                   f"{r['p2g_block_us']:.1f} ({r['window_share']:.2f}) | {r['g2p_us']:.1f} | {r['g2p_adj_us']:.1f} | "
-                  f"{r['g2p_agg_adj_us']:.1f} |",
+                  f"{r['g2p_agg_adj_us']:.1f} | {r['g2p4_adj_us']:.1f} |",
                   flush=True)
             if a.block_dims:
                 print("|   block dims " + ", ".join(f"{bd}: p2g {r[f'p2g_bd{bd}_us']:.1f} g2p {r[f'g2p_bd{bd}_us']:.1f} "

@@ -48,7 +48,7 @@ def test_bench_p2g_times_every_order_and_kernel_on_the_cpu():
     assert rows[4]["particles"] == rows[5]["particles"] == rows[6]["particles"]  # the same ball reordered
     assert all(r[k] > 0 for r in rows for k in ("p2g_us", "p2g_agg_us", "p2g_indirect_us", "p2g_interleaved_us",
                                                 "p2g_nodes_us", "p2g_block_us", "g2p_us", "g2p_adj_us",
-                                                "g2p_agg_adj_us", "p2g_v4_us"))
+                                                "g2p_agg_adj_us", "p2g_v4_us", "g2p4_adj_us"))
     assert all(r["p2g_v4_dev"] == 0.0 for r in rows)  # on a CPU the interleaved grid is p2g's bitwise
 
 

@@ -147,6 +147,9 @@ def test_the_vector_reduction_compiles_for_sm_90(tmp_path, module, vector):
     src = "".join(p.read_text() for p in tmp_path.glob("*.cu"))
     assert ("red.global.add.v4.f32" in src) == vector
     assert "scatter4" in src and ("grid_update_unpack4" in src) == module.startswith("gca_sim_mpm")
+    if module.startswith("gca_sim_mpm"):  # G2P's adjoint into the accumulator: the vector reduction in its adjoint
+        adj = src[src.index("void adj_make_kernels__locals__node_read4"):]
+        assert ("red.global.add.v4.f32" in adj[:adj.index("}\n\n")]) == vector
 
 
 def test_ptxas_refuses_a_vector_reduction_it_does_not_know(tmp_path, monkeypatch):
@@ -257,7 +260,7 @@ def test_vec4_step_is_the_plain_step_off_cuda(dtype, keep_grid):
         assert ({"p2g4", "grid_update_unpack4"} <= forward and "p2g" not in forward) if vec4 else \
             ("p2g" in forward and "p2g4" not in forward)
         if vec4:
-            assert not solver._step_grid4(1).numpy().any()
+            assert not solver._scratch4("p2g", 1).numpy().any()
     assert float(outs[True][0].detach().sub(x).abs().max()) > 0
     for a, b in zip(outs[True], outs[False]):
         assert torch.equal(a, b)
@@ -315,6 +318,106 @@ def test_vec4_step_matches_the_plain_step_on_cuda():
         inputs = [t.clone().requires_grad_() for t in (x, 0.1 * v, 0.1 * C, F, tau)]
         step = solver.step(*inputs, vol, mass)
         outs.append((*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step])))
+    for a, b in zip(*outs):
+        assert torch.isfinite(b).all()
+        assert float((b - a).abs().max()) <= 1e-4 * float(a.abs().max())
+
+
+# -- G2P's adjoint into an interleaved accumulator (MPMSolver.vec4_g2p_adj) -----------------------------------------
+
+
+def _step_with_grads(solver, state, skip_unpack=False):
+    """(outputs and input gradients of one step with sum-of-outputs cotangents, the kernels launched as (name,
+    adjoint)); ``skip_unpack``: ``grid_unpack_adj4`` not launched (the negative control)."""
+    x, v, C, F, tau, vol, mass = state
+    inputs = [t.clone().requires_grad_() for t in (x, v, C, F, tau)]
+    calls = []
+    real, spy = _spy_launches(calls)
+
+    def launch(*a, **kw):
+        k = a[0] if a else kw["kernel"]
+        if skip_unpack and k.key.endswith("grid_unpack_adj4"):
+            return None
+        return spy(*a, **kw)
+
+    wp.launch = launch
+    try:
+        step = solver.step(*inputs, vol, mass)
+        out = (*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step]))
+    finally:
+        wp.launch = real
+    return out, calls
+
+
+@pytest.mark.parametrize("with_step", [False, True], ids=["adjoint_alone", "with_vec4_step"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_vec4_g2p_adj_gives_the_plain_gradients_off_cuda(dtype, with_step):
+    # on a kept grid (training's backward): values and gradients bitwise the plain step's, G2P's adjoint through g2p4
+    # and the unpacking (a switch that did nothing would fail), the accumulator left zero; without the unpacking the
+    # gradients change (the negative control: they flow through the accumulator)
+    cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, boundary="friction", friction=0.5, dtype=str(dtype)[6:], max_refine=1)
+    state = _state(300, seed=34, lo=0.02, hi=0.98, dtype=dtype)
+    results = {}
+    for vec4 in (True, False):
+        solver = MPMSolver(cfg)
+        solver.keep_grid, solver.vec4_g2p_adj, solver.vec4_step = True, vec4, vec4 and with_step
+        results[vec4], calls = _step_with_grads(solver, state)
+        adjoints = {name for name, adjoint in calls if adjoint}
+        assert ("g2p4" in adjoints and "g2p" not in adjoints) if vec4 else \
+            ("g2p" in adjoints and "g2p4" not in adjoints)
+        assert (("grid_unpack_adj4", False) in calls) == vec4
+        if vec4:
+            assert not solver._scratch4("g2p_adj", 1).numpy().any()
+    for a, b in zip(results[True], results[False]):
+        assert torch.equal(a, b)
+    solver = MPMSolver(cfg)
+    solver.keep_grid, solver.vec4_g2p_adj = True, True
+    broken, _ = _step_with_grads(solver, state, skip_unpack=True)
+    assert not torch.equal(broken[4], results[False][4])  # the gradient of x
+
+
+def test_vec4_g2p_adj_gives_a_swept_rollouts_gradients_bitwise():
+    # training's path, both vector switches on and off
+    from test_sim_stash import _solver, _swept
+    from test_sim_graph import _law, _scene
+
+    material, scene = _law(), _scene()
+    results = {}
+    for vec4 in (True, False):
+        solver = _solver()
+        solver.vec4_step = solver.vec4_g2p_adj = vec4
+        results[vec4] = _swept(solver, material, scene)
+    (x1, g1, _), (x0, g0, _) = results[True], results[False]
+    assert torch.equal(x1, x0)
+    for a, b in zip(g1, g0):
+        assert float(b.abs().max()) > 0 and torch.equal(a, b)
+
+
+def test_vec4_g2p_adj_is_off_by_default_and_yields_to_agg_g2p():
+    cfg = SimConfig(n_grid=8, dt=1e-3, dtype="float64", max_refine=1)
+    solver = MPMSolver(cfg)
+    assert solver.vec4_g2p_adj is False and not solver.vec4s_g2p_adj
+    solver.vec4_g2p_adj = None
+    assert not solver.vec4s_g2p_adj  # a CPU solver
+    solver.vec4_g2p_adj, solver.agg_g2p, solver.keep_grid = True, True, True
+    assert solver.refined(2).vec4_g2p_adj is True
+    _, calls = _step_with_grads(solver, _state(50, seed=35))
+    adjoints = {name for name, adjoint in calls if adjoint}
+    assert "g2p_agg" in adjoints and "g2p4" not in adjoints
+
+
+@pytest.mark.gpu
+def test_vec4_g2p_adj_matches_the_plain_gradients_on_cuda():
+    # float32 on the GPU at the duck's density, both vector switches: a step's gradients to float32 rounding
+    cfg = SimConfig(n_grid=32, dt=2e-4, bound=2, boundary="friction", friction=0.3, dtype="float32", max_refine=1)
+    x = _lattice_ball(3.76, 32, 30000, torch.float32, "cuda")
+    _, v, C, F, tau, vol, mass = _state(x.shape[0], seed=36, dtype=torch.float32, device="cuda")
+    state = (x, 0.1 * v, 0.1 * C, F, tau, vol, mass)
+    outs = []
+    for vec4 in (False, True):
+        solver = MPMSolver(cfg, "cuda")
+        solver.keep_grid, solver.vec4_step, solver.vec4_g2p_adj = True, vec4, vec4
+        outs.append(_step_with_grads(solver, state)[0])
     for a, b in zip(*outs):
         assert torch.isfinite(b).all()
         assert float((b - a).abs().max()) <= 1e-4 * float(a.abs().max())

@@ -142,6 +142,23 @@ asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(ptr), "f"(
 #endif
 """
 
+# G2P's node read whose adjoint adds the node's velocity cotangent into an interleaved accumulator ``acc`` (vec4 a
+# node, the fourth component 0) with one vector reduction on sm_90+ in float32, instead of warp's three scalar atomics
+# into the velocity grid's gradient (``MPMSolver.vec4_g2p_adj``; ``grid_unpack_adj4`` then adds it there). Elsewhere
+# warp's component-wise atomic add of the vec4 (the same sums in the same order).
+_READ4 = "return wp::index(a, i, j, k);"
+_READ4_ADJ_ANY = ("wp::atomic_add(&wp::index(acc, i, j, k), "
+                  "wp::vec_t<4, {c}>(adj_ret.c[0], adj_ret.c[1], adj_ret.c[2], {zero}));")  # (a literal zero: warp's headers define float(x) and double(x) as casts)
+_READ4_ADJ_F32 = f"""
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+float* ptr = &wp::index(acc, i, j, k).c[0];
+asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(ptr), "f"(adj_ret.c[0]), "f"(adj_ret.c[1]),
+             "f"(adj_ret.c[2]), "f"(0.0f) : "memory");
+#else
+{_READ4_ADJ_ANY.format(c="float", zero="0.0f")}
+#endif
+"""
+
 
 @wp.func_native(_PEERS)
 def warp_peers(key: int) -> int:
@@ -643,8 +660,71 @@ def make_kernels(T: type) -> types.SimpleNamespace:
 
     g2p, g2p_agg = make_g2p(False), make_g2p(True)
 
+    @wp.func_native(_READ4, adj_snippet=_READ4_ADJ_F32 if T is wp.float32 else
+                    _READ4_ADJ_ANY.format(c="double", zero="0.0"))
+    def node_read4(a: wp.array3d(dtype=vec3), i: int, j: int, k: int, acc: wp.array3d(dtype=vec4)) -> vec3:
+        """``a[i, j, k]``; its adjoint adds the cotangent to ``acc[i, j, k]`` (components 0-2) as one vector atomic,
+        and nothing to ``a``'s gradient (:func:`grid_unpack_adj4` moves it there)."""
+        ...
+
+    @wp.func
+    def gather4(x_p: vec3, F_p: mat33, off: int, grid_v: wp.array3d(dtype=vec3), acc: wp.array3d(dtype=vec4), dt: T,
+                inv_dx: T, n_grid: int, lo: T, hi: T):
+        """:func:`gather` whose node reads are :func:`node_read4` (the adjoint's scatter into ``acc``)."""
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        v_new = vec3(T(0.0))
+        B = mat33(T(0.0))
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    v_i = node_read4(grid_v, base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD, acc)
+                    v_new += w * v_i
+                    B += w * wp.outer(v_i, dpos)
+        C_new = (T(4.0) * inv_dx * inv_dx) * B
+        x_new = x_p + dt * v_new
+        x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
+        return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+
+    @wp.kernel(module=v4_module)
+    def g2p4(
+        x: wp.array(dtype=vec3),
+        F: wp.array(dtype=mat33),
+        run: wp.array(dtype=int),
+        grid_v: wp.array3d(dtype=vec3),
+        acc: wp.array3d(dtype=vec4),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        lo: T,
+        hi: T,
+        x_out: wp.array(dtype=vec3),
+        v_out: wp.array(dtype=vec3),
+        C_out: wp.array(dtype=mat33),
+        F_out: wp.array(dtype=mat33),
+    ):
+        """``g2p`` (the same forward) whose adjoint scatters the velocity grid's cotangent into ``acc`` [.., .., ..]
+        vec4 with one vector atomic a node (``MPMSolver.vec4_g2p_adj``); :func:`grid_unpack_adj4` adds it into the
+        velocity grid's gradient before the grid update's adjoint reads it."""
+        p = wp.tid()
+        x_new, v_new, C_new, F_new = gather4(x[p], F[p], run_offset(run, p, n_grid, grid_v.shape[0]), grid_v, acc, dt,
+                                             inv_dx, n_grid, lo, hi)
+        v_out[p] = v_new
+        C_out[p] = C_new
+        F_out[p] = F_new
+        x_out[p] = x_new
+
+    @wp.kernel(module=v4_module)
+    def grid_unpack_adj4(acc: wp.array3d(dtype=vec4), adj_grid_v: wp.array3d(dtype=vec3)):
+        """After ``g2p4``'s adjoint: ``adj_grid_v += acc[..., :3]``, then ``acc`` set back to zero."""
+        s0, s1, s2 = wp.tid()
+        g = acc[s0, s1, s2]
+        adj_grid_v[s0, s1, s2] = adj_grid_v[s0, s1, s2] + vec3(g[0], g[1], g[2])
+        acc[s0, s1, s2] = vec4(T(0.0))
+
     return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
-                                 grid_update_unpack4=grid_update_unpack4,
+                                 grid_update_unpack4=grid_update_unpack4, g2p4=g2p4, grid_unpack_adj4=grid_unpack_adj4,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
                                  vec3=vec3, vec4=vec4, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,
                                  scatter4=scatter4,

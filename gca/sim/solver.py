@@ -166,6 +166,11 @@ class MPMSolver:
     # CUDA only. block_p2g, split_p2g and agg_p2g, where on, take precedence. Off until measured in training (NOTES
     # session 50: the scatter alone 2.5x faster on the duck's order on the H200)
     vec4_step: bool | None = False
+    # the step's backward (on a kept or stashed grid) with G2P's adjoint through kernels.g2p4: each node's velocity
+    # cotangent added to an interleaved vec4 accumulator by one vector atomic (sm_90+, float32) instead of three scalar
+    # atomics, then moved into the velocity grid's gradient by kernels.grid_unpack_adj4. True / False, or None: on CUDA
+    # only; agg_g2p, where on, takes precedence. Off until measured (G2P's adjoint: 65-70 us a launch on the duck)
+    vec4_g2p_adj: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -179,7 +184,7 @@ class MPMSolver:
         self._grids: dict[tuple, tuple] = {}
         self._zero_grids: dict[int, tuple] = {}
         self._zero_grids4: dict[int, tuple] = {}
-        self._step_grids4: dict[tuple, wp.array] = {}
+        self._scratches4: dict[tuple, wp.array] = {}
         self._zero_runs: dict[int, torch.Tensor] = {}
         self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
@@ -197,7 +202,7 @@ class MPMSolver:
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
         fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
-        fine.vec4_step = self.vec4_step
+        fine.vec4_step, fine.vec4_g2p_adj = self.vec4_step, self.vec4_g2p_adj
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -320,6 +325,11 @@ class MPMSolver:
         """Whether the generic step's forward P2G takes the interleaved scratch (``vec4_step``, resolved for this
         device)."""
         return self._resolve(self.vec4_step)
+
+    @property
+    def vec4s_g2p_adj(self) -> bool:
+        """Whether the step's backward takes ``g2p4``'s adjoint (``vec4_g2p_adj``, resolved for this device)."""
+        return self._resolve(self.vec4_g2p_adj)
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
@@ -489,16 +499,17 @@ class MPMSolver:
                                               for ty in (self.k.vec4, self.k.vec3))
         return self._zero_grids4[n_runs]
 
-    def _step_grid4(self, n_runs: int):
-        """The interleaved (mv, m) scratch [n_runs G, G, G] vec4 of ``vec4_step``, zero when made and left zero by
-        ``grid_update_unpack4``; one per torch CUDA stream (a graph captured on one stream and a rollout on another
-        never share it)."""
+    def _scratch4(self, use: str, n_runs: int):
+        """An interleaved scratch grid [n_runs G, G, G] vec4, zero when made and left zero by its user: ``"p2g"``,
+        the forward's (mv, m) of ``vec4_step`` (zeroed by ``grid_update_unpack4``), ``"g2p_adj"``, the backward's
+        velocity cotangents of ``vec4_g2p_adj`` (zeroed by ``grid_unpack_adj4``); one per torch CUDA stream (a graph
+        captured on one stream and a rollout on another never share one)."""
         stream = torch.cuda.current_stream(self.device).cuda_stream if self.device.type == "cuda" else 0
-        key = (n_runs, stream)
-        if key not in self._step_grids4:
+        key = (use, n_runs, stream)
+        if key not in self._scratches4:
             G = grid_size(self.cfg.n_grid)
-            self._step_grids4[key] = wp.zeros((n_runs * G, G, G), dtype=self.k.vec4, device=self.wp_device)
-        return self._step_grids4[key]
+            self._scratches4[key] = wp.zeros((n_runs * G, G, G), dtype=self.k.vec4, device=self.wp_device)
+        return self._scratches4[key]
 
     def _update_consts(self) -> list:
         """The grid update's arguments between the grid and the velocities: gravity, dt, eps, m_min, n_grid, bound,
@@ -543,7 +554,7 @@ class MPMSolver:
         launches = self._kernel_args(args, run, grid, outs)
         if p2g and not requires_grad and self.vec4s_step and not (self.blocks_p2g or self.split_p2g or self.aggs_p2g):
             (_, dim, p2g_args), (_, nodes, update_args), (g2p, _, g2p_args) = launches
-            mvm = self._step_grid4(n_runs)  # P2G onto the interleaved scratch, unpacked by the grid update
+            mvm = self._scratch4("p2g", n_runs)  # P2G onto the interleaved scratch, unpacked by the grid update
             try:
                 wp.launch(self.k.p2g4, dim=dim, inputs=[*p2g_args[:-2], mvm], device=self.wp_device)
                 wp.launch(self.k.grid_update_unpack4, dim=nodes, inputs=[mvm, *update_args], device=self.wp_device)
@@ -617,7 +628,21 @@ class MPMSolver:
                     for t, ty, g in zip((x, v, C, F), types, cots)]
             wgrid = self._wrap_grid(grid, grads=v_grid)
             wrun = wp.from_torch(run, dtype=wp.int32)
-            for kernel, dim, kargs in reversed(self._kernel_args(args, wrun, wgrid, outs)):
+            launches = list(reversed(self._kernel_args(args, wrun, wgrid, outs)))
+            if self.vec4s_g2p_adj and not self.aggs_g2p:  # G2P's adjoint scatters into the interleaved accumulator
+                (_, dim, g2p_args), rest = launches[0], launches[1:]
+                gv = wgrid[2]
+                acc = self._scratch4("g2p_adj", gv.shape[0] // grid_size(self.cfg.n_grid))
+                kargs = [*g2p_args[:4], acc, *g2p_args[4:]]
+                try:
+                    wp.launch(self.k.g2p4, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs],
+                              adjoint=True, device=self.wp_device)
+                    wp.launch(self.k.grid_unpack_adj4, dim=gv.shape, inputs=[acc, gv.grad], device=self.wp_device)
+                except BaseException:  # stopped between the scatter and its unpacking: re-zero
+                    acc.zero_()
+                    raise
+                launches = rest
+            for kernel, dim, kargs in launches:
                 wp.launch(kernel, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs], adjoint=True,
                           device=self.wp_device)
         return tuple(v_ins)
