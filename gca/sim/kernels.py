@@ -595,6 +595,15 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         """``a[i, j, k]``; its adjoint sums the cotangents of ``peers`` (:func:`warp_peers`) and adds them once."""
         ...
 
+    @wp.func
+    def gathered(x_p: vec3, F_p: mat33, v_new: vec3, B: mat33, dt: T, inv_dx: T, lo: T, hi: T):
+        """A particle's (x' clamped to [lo, hi], v', C', F_trial) from its gathered velocity ``v_new`` and
+        ``B = sum_i w_ip v_i (x_i - x_p)^T``."""
+        C_new = (T(4.0) * inv_dx * inv_dx) * B
+        x_new = x_p + dt * v_new
+        x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
+        return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+
     def make_gather(agg: bool):
         """The G2P of one particle; ``agg``: the grid's cotangent summed over the warp's lanes of the same stencil
         base (:func:`base_peers`) before its atomic adds (the adjoint's scatter), else each lane adds its own."""
@@ -619,10 +628,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                             v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
                         v_new += w * v_i
                         B += w * wp.outer(v_i, dpos)
-            C_new = (T(4.0) * inv_dx * inv_dx) * B
-            x_new = x_p + dt * v_new
-            x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
-            return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+            return gathered(x_p, F_p, v_new, B, dt, inv_dx, lo, hi)
 
         gather.__qualname__ += "_agg" if agg else ""
         return wp.func(gather)
@@ -682,10 +688,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                     v_i = node_read4(grid_v, base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD, acc)
                     v_new += w * v_i
                     B += w * wp.outer(v_i, dpos)
-        C_new = (T(4.0) * inv_dx * inv_dx) * B
-        x_new = x_p + dt * v_new
-        x_new = vec3(wp.clamp(x_new[0], lo, hi), wp.clamp(x_new[1], lo, hi), wp.clamp(x_new[2], lo, hi))
-        return x_new, v_new, C_new, (wp.identity(3, dtype=T) + dt * C_new) @ F_p
+        return gathered(x_p, F_p, v_new, B, dt, inv_dx, lo, hi)
 
     @wp.kernel(module=v4_module)
     def g2p4(
