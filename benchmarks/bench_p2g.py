@@ -18,7 +18,7 @@ times on one device, side by side in one run:
 - ``p2g_agg``: warp-aggregated atomics (``kernels.p2g_agg``: a warp's particles of one stencil base summed by
   shuffles, one atomic per node and base; an option, off until measured, session 45),
 - ``p2g_v4``: the scatter onto the interleaved (mv, m) grid, one 16-byte vector atomic a node on sm_90+
-  (``kernels.p2g4``; the fused analytic step's ``MPMSolver.vec4_p2g``, an option, off until measured, session 50),
+  (``kernels.p2g4``; the fused analytic step's ``MPMSolver.vec4_p2g``, on CUDA by default since session 50),
   with ``p2g_v4_dev``: its grid's largest deviation from ``p2g``'s after one launch each from zero, relative to the
   largest momentum or mass,
 - ``p2g_block``: the block-summed scatter (``kernels.scatter_block``; an option, off: slower, session 32),

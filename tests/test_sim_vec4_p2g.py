@@ -276,7 +276,14 @@ def test_vec4_step_gives_a_swept_rollouts_gradients_bitwise():
     for vec4 in (True, False):
         solver = _solver()
         solver.vec4_step = vec4
-        results[vec4] = _swept(solver, material, scene)
+        calls = []
+        real, spy = _spy_launches(calls)
+        wp.launch = spy
+        try:
+            results[vec4] = _swept(solver, material, scene)
+        finally:
+            wp.launch = real
+        assert (("p2g4", False) in calls) == vec4  # the rollout's frames took the switch
     (x1, g1, s1), (x0, g0, s0) = results[True], results[False]
     assert torch.equal(x1, x0) and s1 is not None
     for a, b in zip(s1, s0):  # the stash keeps the unpacked grid
@@ -386,7 +393,14 @@ def test_vec4_g2p_adj_gives_a_swept_rollouts_gradients_bitwise():
     for vec4 in (True, False):
         solver = _solver()
         solver.vec4_step = solver.vec4_g2p_adj = vec4
-        results[vec4] = _swept(solver, material, scene)
+        calls = []
+        real, spy = _spy_launches(calls)
+        wp.launch = spy
+        try:
+            results[vec4] = _swept(solver, material, scene)
+        finally:
+            wp.launch = real
+        assert (("p2g4", False) in calls and ("g2p4", True) in calls) == vec4  # the sweep's frames took both
     (x1, g1, _), (x0, g0, _) = results[True], results[False]
     assert torch.equal(x1, x0)
     for a, b in zip(g1, g0):
@@ -421,3 +435,43 @@ def test_vec4_g2p_adj_matches_the_plain_gradients_on_cuda():
     for a, b in zip(*outs):
         assert torch.isfinite(b).all()
         assert float((b - a).abs().max()) <= 1e-4 * float(a.abs().max())
+
+
+@pytest.mark.gpu
+def test_both_training_switches_through_captured_frames_on_cuda():
+    # training's path on a GPU: graphed frames (warm-up, then capture), the stash and the reverse sweep, float32, both
+    # vector switches against none: trajectories and gradients to float32 rounding; the scratches made by the warm-ups
+    # (before any capture) and left zero
+    from test_sim_graph import _law, _scene
+    from test_sim_stash import _swept
+
+    cfg = SimConfig(n_grid=12, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float32", max_refine=1)
+    material = _law(dtype=torch.float32).cuda()
+    scene = tuple(t.cuda() for t in _scene(n=400, dtype=torch.float32))
+    results = {}
+    for vec4 in (False, True):
+        solver = MPMSolver(cfg, "cuda")
+        solver.stash_mib, solver.vec4_step, solver.vec4_g2p_adj = 1536.0, vec4, vec4
+        results[vec4] = _swept(solver, material, scene)
+        if vec4:
+            assert {k[0] for k in solver._scratches4} == {"p2g", "g2p_adj"}
+            assert all(not t.numpy().any() for t in solver._scratches4.values())
+    (x1, g1, _), (x0, g0, _) = results[True], results[False]
+    assert float((x1 - x0).abs().max()) <= 1e-4 * float(x0.abs().max())
+    for a, b in zip(g1, g0):
+        assert torch.isfinite(a).all() and float(b.abs().max()) > 0
+        assert float((a - b).abs().max()) <= 1e-3 * float(b.abs().max())
+
+
+@pytest.mark.parametrize("dtype, arch, on", [("float32", 90, True), ("float32", 80, False), ("float64", 90, False)])
+def test_the_vector_switches_default_to_where_the_vector_reduction_runs(dtype, arch, on):
+    # None: float32 on sm_90+ only (elsewhere the interleaved kernels add component-wise, never measured); a device
+    # faked on a CPU solver
+    import types
+
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, dtype=dtype, max_refine=1))
+    solver.device, solver.wp_device = torch.device("cuda", 0), types.SimpleNamespace(arch=arch)
+    solver.vec4_p2g = solver.vec4_step = solver.vec4_g2p_adj = None
+    assert (solver.vec4s_p2g, solver.vec4s_step, solver.vec4s_g2p_adj) == (on, on, on)
+    solver.vec4_step = False
+    assert not solver.vec4s_step

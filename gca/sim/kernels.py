@@ -22,9 +22,12 @@ uses ``lo = clip * dx``, ``hi = 1 - clip * dx``) and the base index is additiona
 integer, so even a non-finite position cannot index out of bounds (it produces non-finite state,
 which the rollout driver detects instead).
 
-Interleaved grid (an option, ``MPMSolver.vec4_p2g``). The forward-only scatter ``scatter4`` (``p2g4``, the fused
-analytic step's ``*4`` kernels) keeps a node's momentum and mass as one vec4 (mv in components 0-2, m in 3), so a
-node's share is one 16-byte vector atomic on sm_90+ (``atomic_add4``); same layout and indices otherwise.
+Interleaved grids (``MPMSolver.vec4_p2g``, ``vec4_step``, ``vec4_g2p_adj``). The forward-only scatter ``scatter4``
+(``p2g4``, the fused analytic step's ``*4`` kernels) keeps a node's momentum and mass as one vec4 (mv in components
+0-2, m in 3), so a node's share is one 16-byte vector atomic in float32 on sm_90+ (``atomic_add4``; component-wise
+elsewhere); ``grid_update_unpack4`` moves it into a step's (mv, m). ``g2p4``'s adjoint adds each node's velocity
+cotangent into a vec4 accumulator the same way (``node_read4``), which ``grid_unpack_adj4`` moves into the velocity
+grid's gradient. Same layout and indices otherwise.
 
 Runs. Several independent simulations (runs) can share one launch: ``run[p]`` is particle ``p``'s run, and
 the runs' grids are stacked along the first axis (run ``r``'s node ``(I, J, K)`` at index ``I + PAD + r G``,
@@ -135,8 +138,8 @@ _ATOMIC_ADD4 = "wp::atomic_add(&wp::index(a, i, j, k), v);"
 _ATOMIC_ADD4_F32 = f"""
 #if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
 float* ptr = &wp::index(a, i, j, k).c[0];
-asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(ptr), "f"(v.c[0]), "f"(v.c[1]), "f"(v.c[2]),
-             "f"(v.c[3]) : "memory");
+asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(__cvta_generic_to_global(ptr)),
+             "f"(v.c[0]), "f"(v.c[1]), "f"(v.c[2]), "f"(v.c[3]) : "memory");
 #else
 {_ATOMIC_ADD4}
 #endif
@@ -152,8 +155,8 @@ _READ4_ADJ_ANY = ("wp::atomic_add(&wp::index(acc, i, j, k), "
 _READ4_ADJ_F32 = f"""
 #if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
 float* ptr = &wp::index(acc, i, j, k).c[0];
-asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(ptr), "f"(adj_ret.c[0]), "f"(adj_ret.c[1]),
-             "f"(adj_ret.c[2]), "f"(0.0f) : "memory");
+asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(__cvta_generic_to_global(ptr)),
+             "f"(adj_ret.c[0]), "f"(adj_ret.c[1]), "f"(adj_ret.c[2]), "f"(0.0f) : "memory");
 #else
 {_READ4_ADJ_ANY.format(c="float", zero="0.0f")}
 #endif
@@ -669,8 +672,9 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     @wp.func_native(_READ4, adj_snippet=_READ4_ADJ_F32 if T is wp.float32 else
                     _READ4_ADJ_ANY.format(c="double", zero="0.0"))
     def node_read4(a: wp.array3d(dtype=vec3), i: int, j: int, k: int, acc: wp.array3d(dtype=vec4)) -> vec3:
-        """``a[i, j, k]``; its adjoint adds the cotangent to ``acc[i, j, k]`` (components 0-2) as one vector atomic,
-        and nothing to ``a``'s gradient (:func:`grid_unpack_adj4` moves it there)."""
+        """``a[i, j, k]``; its adjoint adds the cotangent to ``acc[i, j, k]`` (components 0-2; one vector atomic in
+        float32 on sm_90+, else component-wise), and nothing to ``a``'s gradient (:func:`grid_unpack_adj4` moves it
+        there)."""
         ...
 
     @wp.func

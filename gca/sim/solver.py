@@ -293,6 +293,13 @@ class MPMSolver:
         """A path switch for this solver's device: True / False as set, None: on CUDA only."""
         return self.device.type == "cuda" if switch is None else bool(switch)
 
+    def _resolve_vector(self, switch: bool | None) -> bool:
+        """A vector-atomic switch (``vec4_*``): True / False as set, None: where the vector reduction runs (float32 on
+        a CUDA device of sm_90 or later; elsewhere the interleaved kernels add component-wise, never measured)."""
+        if switch is not None:
+            return bool(switch)
+        return self.device.type == "cuda" and self.k.T is wp.float32 and self.wp_device.arch >= 90
+
     @property
     def frames_fused(self) -> bool:
         """Whether a purely elastic frame takes :meth:`frame_fused` (``fuse_frames``, resolved for this device)."""
@@ -318,18 +325,18 @@ class MPMSolver:
     def vec4s_p2g(self) -> bool:
         """Whether the fused analytic step scatters onto the interleaved vec4 grid (``vec4_p2g``, resolved for this
         device)."""
-        return self._resolve(self.vec4_p2g)
+        return self._resolve_vector(self.vec4_p2g)
 
     @property
     def vec4s_step(self) -> bool:
         """Whether the generic step's forward P2G takes the interleaved scratch (``vec4_step``, resolved for this
         device)."""
-        return self._resolve(self.vec4_step)
+        return self._resolve_vector(self.vec4_step)
 
     @property
     def vec4s_g2p_adj(self) -> bool:
         """Whether the step's backward takes ``g2p4``'s adjoint (``vec4_g2p_adj``, resolved for this device)."""
-        return self._resolve(self.vec4_g2p_adj)
+        return self._resolve_vector(self.vec4_g2p_adj)
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
@@ -502,11 +509,15 @@ class MPMSolver:
     def _scratch4(self, use: str, n_runs: int):
         """An interleaved scratch grid [n_runs G, G, G] vec4, zero when made and left zero by its user: ``"p2g"``,
         the forward's (mv, m) of ``vec4_step`` (zeroed by ``grid_update_unpack4``), ``"g2p_adj"``, the backward's
-        velocity cotangents of ``vec4_g2p_adj`` (zeroed by ``grid_unpack_adj4``); one per torch CUDA stream (a graph
-        captured on one stream and a rollout on another never share one)."""
-        stream = torch.cuda.current_stream(self.device).cuda_stream if self.device.type == "cuda" else 0
-        key = (use, n_runs, stream)
+        velocity cotangents of ``vec4_g2p_adj`` (zeroed by ``grid_unpack_adj4``). One per use and run count, like
+        :meth:`_zeroed_grid`, whatever the stream: a frame's warm-up (``gca.sim.graph``) makes it before its capture,
+        so no CUDA graph owns it, and the graphs that replay it run one after another. Made during a capture it would
+        belong to that graph: refused."""
+        key = (use, n_runs)
         if key not in self._scratches4:
+            if self.device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+                raise RuntimeError(f"{_WHERE}: the interleaved scratch {key} would be made inside a CUDA graph capture "
+                                   "(its warm-up did not run this path); run the frame once eagerly first")
             G = grid_size(self.cfg.n_grid)
             self._scratches4[key] = wp.zeros((n_runs * G, G, G), dtype=self.k.vec4, device=self.wp_device)
         return self._scratches4[key]
