@@ -312,24 +312,6 @@ def test_vec4_step_is_off_by_default_and_yields_to_the_other_p2g_options():
     assert "p2g_agg" in names and "p2g4" not in names
 
 
-@pytest.mark.gpu
-def test_vec4_step_matches_the_plain_step_on_cuda():
-    # float32 on the GPU at the duck's density: a step's values and gradients to float32 rounding
-    cfg = SimConfig(n_grid=32, dt=2e-4, bound=2, boundary="friction", friction=0.3, dtype="float32", max_refine=1)
-    x = _lattice_ball(3.76, 32, 30000, torch.float32, "cuda")
-    _, v, C, F, tau, vol, mass = _state(x.shape[0], seed=33, dtype=torch.float32, device="cuda")
-    outs = []
-    for vec4 in (False, True):
-        solver = MPMSolver(cfg, "cuda")
-        solver.vec4_step = vec4
-        inputs = [t.clone().requires_grad_() for t in (x, 0.1 * v, 0.1 * C, F, tau)]
-        step = solver.step(*inputs, vol, mass)
-        outs.append((*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step])))
-    for a, b in zip(*outs):
-        assert torch.isfinite(b).all()
-        assert float((b - a).abs().max()) <= 1e-4 * float(a.abs().max())
-
-
 # -- G2P's adjoint into an interleaved accumulator (MPMSolver.vec4_g2p_adj) -----------------------------------------
 
 
@@ -421,8 +403,10 @@ def test_vec4_g2p_adj_is_off_by_default_and_yields_to_agg_g2p():
 
 
 @pytest.mark.gpu
-def test_vec4_g2p_adj_matches_the_plain_gradients_on_cuda():
-    # float32 on the GPU at the duck's density, both vector switches: a step's gradients to float32 rounding
+@pytest.mark.parametrize("keep_grid, adj", [(False, False), (True, False), (True, True)],
+                         ids=["vec4_step_recomputed", "vec4_step_kept", "both_kept"])
+def test_the_training_switches_match_the_plain_step_on_cuda(keep_grid, adj):
+    # float32 on the GPU at the duck's density: a step's values and gradients to float32 rounding
     cfg = SimConfig(n_grid=32, dt=2e-4, bound=2, boundary="friction", friction=0.3, dtype="float32", max_refine=1)
     x = _lattice_ball(3.76, 32, 30000, torch.float32, "cuda")
     _, v, C, F, tau, vol, mass = _state(x.shape[0], seed=36, dtype=torch.float32, device="cuda")
@@ -430,7 +414,7 @@ def test_vec4_g2p_adj_matches_the_plain_gradients_on_cuda():
     outs = []
     for vec4 in (False, True):
         solver = MPMSolver(cfg, "cuda")
-        solver.keep_grid, solver.vec4_step, solver.vec4_g2p_adj = True, vec4, vec4
+        solver.keep_grid, solver.vec4_step, solver.vec4_g2p_adj = keep_grid, vec4, vec4 and adj
         outs.append(_step_with_grads(solver, state)[0])
     for a, b in zip(*outs):
         assert torch.isfinite(b).all()
