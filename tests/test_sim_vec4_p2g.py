@@ -8,6 +8,7 @@ ptxas (no GPU needed; a PTX modifier ptxas refuses fails the same compile: the n
 present, against the plain kernels in float32 on the pipeline's particle orders.
 """
 
+import contextlib
 import importlib.util
 import sys
 
@@ -43,6 +44,26 @@ def _p2g_grids(dtype: str, x, v, C, tau, vol, mass, run, n_runs: int, n_grid: in
     return wp.to_torch(mv), wp.to_torch(m), wp.to_torch(mvm)
 
 
+@contextlib.contextmanager
+def _recorded_launches(skip: str | None = None):
+    """The warp launches inside, as a list of (kernel name, adjoint); ``skip``: a kernel name not launched (a
+    negative control)."""
+    calls, real = [], wp.launch
+
+    def spy(*a, **kw):  # the tape's replay names the kernel by keyword
+        name = (a[0] if a else kw["kernel"]).key.rsplit("__", 1)[-1]
+        if name == skip:
+            return None
+        calls.append((name, bool(kw.get("adjoint"))))
+        return real(*a, **kw)
+
+    wp.launch = spy
+    try:
+        yield calls
+    finally:
+        wp.launch = real
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_p2g4_is_p2g_interleaved_off_cuda(dtype):
     # two runs in one launch: bitwise the plain kernel's momentum and mass, each run's mass on its own grid
@@ -68,24 +89,20 @@ def test_the_fused_analytic_step_takes_the_interleaved_grid(frames):
     # fused frame, within rounding of the generic step; agg_p2g, where also on, takes precedence; the grid is left zero
     cfg = SimConfig(n_grid=16, dt=5e-4, bound=2, boundary="friction", friction=0.3, dtype="float64", max_refine=1)
     x, v, C, F, _, vol, mass = _state(400, seed=23, lo=0.05, hi=0.95)
-    calls, real, results = [], wp.launch, {}
+    results = {}
     four = {"p2g_stress4", "grid_update_zero4", "g2p_p2g4"}
     for path in ("vec4", "vec4_and_agg", "fused", "generic"):
         solver = MPMSolver(cfg)
         solver.fuse_frames, solver.fuse_analytic = frames, path != "generic"
         solver.vec4_p2g, solver.agg_p2g = path.startswith("vec4"), path == "vec4_and_agg"
-        calls.clear()
-        wp.launch = lambda k, *a, **kw: (calls.append(k.key.rsplit("__", 1)[-1]), real(k, *a, **kw))[1]
-        try:
-            with torch.no_grad():
-                results[path] = simulate_frame(solver, _material(), 4, x, v, C, F, vol, mass)
-        finally:
-            wp.launch = real
-        took = {c for c in calls if c in four}
+        with _recorded_launches() as calls, torch.no_grad():
+            results[path] = simulate_frame(solver, _material(), 4, x, v, C, F, vol, mass)
+        names = [name for name, _ in calls]
+        took = {c for c in names if c in four}
         assert took == ((four if frames else four - {"g2p_p2g4"}) if path == "vec4" else set())  # a switch that did
         # nothing would fail
         if path == "vec4_and_agg":
-            assert "p2g_stress_agg" in calls
+            assert "p2g_stress_agg" in names
         if path == "vec4":
             mvm, _ = solver._zeroed_grid4(1)
             assert not mvm.numpy().any()  # grid_update_zero4 leaves the grid zero for the next frame
@@ -225,17 +242,6 @@ def test_the_interleaved_fused_frame_equals_the_plain_one_on_cuda():
 # -- the generic step's forward P2G on the interleaved scratch (MPMSolver.vec4_step) ------------------------------
 
 
-def _spy_launches(calls):
-    real = wp.launch
-
-    def spy(*a, **kw):  # the tape's replay names the kernel by keyword
-        k = a[0] if a else kw["kernel"]
-        calls.append((k.key.rsplit("__", 1)[-1], bool(kw.get("adjoint"))))
-        return real(*a, **kw)
-
-    return real, spy
-
-
 @pytest.mark.parametrize("keep_grid", [True, False], ids=["kept_grid", "recomputed"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_vec4_step_is_the_plain_step_off_cuda(dtype, keep_grid):
@@ -243,31 +249,30 @@ def test_vec4_step_is_the_plain_step_off_cuda(dtype, keep_grid):
     # grid_update_unpack4 (a switch that did nothing would fail), the backward unchanged, the scratch left zero
     cfg = SimConfig(n_grid=16, dt=1e-3, bound=2, boundary="friction", friction=0.5, dtype=str(dtype)[6:], max_refine=1)
     x, v, C, F, tau, vol, mass = _state(300, seed=31, lo=0.02, hi=0.98, dtype=dtype)
-    outs, calls = {}, []
+    outs = {}
     for vec4 in (True, False):
         solver = MPMSolver(cfg)
         solver.vec4_step, solver.keep_grid = vec4, keep_grid
         inputs = [t.clone().requires_grad_() for t in (x, v, C, F, tau)]
-        calls.clear()
-        real, spy = _spy_launches(calls)
-        wp.launch = spy
-        try:
+        with _recorded_launches() as calls:
             step = solver.step(*inputs, vol, mass)
             forward = {name for name, _ in calls}  # the step's own launches (a recompute's tape relaunches p2g)
             outs[vec4] = (*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step]))
-        finally:
-            wp.launch = real
         assert ({"p2g4", "grid_update_unpack4"} <= forward and "p2g" not in forward) if vec4 else \
             ("p2g" in forward and "p2g4" not in forward)
         if vec4:
-            assert not solver._scratch4("p2g", 1).numpy().any()
+            assert not solver._scratch_grid("p2g", 1).numpy().any()
     assert float(outs[True][0].detach().sub(x).abs().max()) > 0
     for a, b in zip(outs[True], outs[False]):
         assert torch.equal(a, b)
 
 
-def test_vec4_step_gives_a_swept_rollouts_gradients_bitwise():
-    # training's path (graphed frames' eager twin, the grid stash, the reverse sweep) with the switch on and off
+@pytest.mark.parametrize("switches, taken", [(("vec4_step",), {("p2g4", False)}),
+                                             (("vec4_step", "vec4_g2p_adj"), {("p2g4", False), ("g2p4", True)})],
+                         ids=["vec4_step", "both"])
+def test_the_training_switches_give_a_swept_rollouts_results_bitwise(switches, taken):
+    # training's path (graphed frames' eager twin, the grid stash, the reverse sweep) with the switches on and off:
+    # trajectories, stashes and gradients bitwise, the sweep's frames through the switches' kernels
     from test_sim_stash import _solver, _swept
     from test_sim_graph import _law, _scene
 
@@ -275,15 +280,11 @@ def test_vec4_step_gives_a_swept_rollouts_gradients_bitwise():
     results = {}
     for vec4 in (True, False):
         solver = _solver()
-        solver.vec4_step = vec4
-        calls = []
-        real, spy = _spy_launches(calls)
-        wp.launch = spy
-        try:
+        for switch in switches:
+            setattr(solver, switch, vec4)
+        with _recorded_launches() as calls:
             results[vec4] = _swept(solver, material, scene)
-        finally:
-            wp.launch = real
-        assert (("p2g4", False) in calls) == vec4  # the rollout's frames took the switch
+        assert taken <= set(calls) if vec4 else not taken & set(calls)
     (x1, g1, s1), (x0, g0, s0) = results[True], results[False]
     assert torch.equal(x1, x0) and s1 is not None
     for a, b in zip(s1, s0):  # the stash keeps the unpacked grid
@@ -300,14 +301,8 @@ def test_vec4_step_is_off_by_default_and_yields_to_the_other_p2g_options():
     solver.vec4_step, solver.agg_p2g = True, True
     assert solver.refined(2).vec4_step is True
     x, v, C, F, tau, vol, mass = _state(50, seed=32)
-    calls = []
-    real, spy = _spy_launches(calls)
-    wp.launch = spy
-    try:
-        with torch.no_grad():
-            solver.step(x, v, C, F, tau, vol, mass)
-    finally:
-        wp.launch = real
+    with _recorded_launches() as calls, torch.no_grad():
+        solver.step(x, v, C, F, tau, vol, mass)
     names = {name for name, _ in calls}
     assert "p2g_agg" in names and "p2g4" not in names
 
@@ -320,21 +315,9 @@ def _step_with_grads(solver, state, skip_unpack=False):
     adjoint)); ``skip_unpack``: ``grid_unpack_adj4`` not launched (the negative control)."""
     x, v, C, F, tau, vol, mass = state
     inputs = [t.clone().requires_grad_() for t in (x, v, C, F, tau)]
-    calls = []
-    real, spy = _spy_launches(calls)
-
-    def launch(*a, **kw):
-        k = a[0] if a else kw["kernel"]
-        if skip_unpack and k.key.endswith("grid_unpack_adj4"):
-            return None
-        return spy(*a, **kw)
-
-    wp.launch = launch
-    try:
+    with _recorded_launches(skip="grid_unpack_adj4" if skip_unpack else None) as calls:
         step = solver.step(*inputs, vol, mass)
         out = (*step, *torch.autograd.grad(step, inputs, [torch.ones_like(o) for o in step]))
-    finally:
-        wp.launch = real
     return out, calls
 
 
@@ -356,37 +339,13 @@ def test_vec4_g2p_adj_gives_the_plain_gradients_off_cuda(dtype, with_step):
             ("g2p" in adjoints and "g2p4" not in adjoints)
         assert (("grid_unpack_adj4", False) in calls) == vec4
         if vec4:
-            assert not solver._scratch4("g2p_adj", 1).numpy().any()
+            assert not solver._scratch_grid("g2p_adj", 1).numpy().any()
     for a, b in zip(results[True], results[False]):
         assert torch.equal(a, b)
     solver = MPMSolver(cfg)
     solver.keep_grid, solver.vec4_g2p_adj = True, True
     broken, _ = _step_with_grads(solver, state, skip_unpack=True)
     assert not torch.equal(broken[4], results[False][4])  # the gradient of x
-
-
-def test_vec4_g2p_adj_gives_a_swept_rollouts_gradients_bitwise():
-    # training's path, both vector switches on and off
-    from test_sim_stash import _solver, _swept
-    from test_sim_graph import _law, _scene
-
-    material, scene = _law(), _scene()
-    results = {}
-    for vec4 in (True, False):
-        solver = _solver()
-        solver.vec4_step = solver.vec4_g2p_adj = vec4
-        calls = []
-        real, spy = _spy_launches(calls)
-        wp.launch = spy
-        try:
-            results[vec4] = _swept(solver, material, scene)
-        finally:
-            wp.launch = real
-        assert (("p2g4", False) in calls and ("g2p4", True) in calls) == vec4  # the sweep's frames took both
-    (x1, g1, _), (x0, g0, _) = results[True], results[False]
-    assert torch.equal(x1, x0)
-    for a, b in zip(g1, g0):
-        assert float(b.abs().max()) > 0 and torch.equal(a, b)
 
 
 def test_vec4_g2p_adj_is_off_by_default_and_yields_to_agg_g2p():
@@ -438,8 +397,8 @@ def test_both_training_switches_through_captured_frames_on_cuda():
         solver.stash_mib, solver.vec4_step, solver.vec4_g2p_adj = 1536.0, vec4, vec4
         results[vec4] = _swept(solver, material, scene)
         if vec4:
-            assert {k[0] for k in solver._scratches4} == {"p2g", "g2p_adj"}
-            assert all(not t.numpy().any() for t in solver._scratches4.values())
+            assert {k[0] for k in solver._scratch_grids} == {"p2g", "g2p_adj"}
+            assert all(not t.numpy().any() for t in solver._scratch_grids.values())
     (x1, g1, _), (x0, g0, _) = results[True], results[False]
     assert float((x1 - x0).abs().max()) <= 1e-4 * float(x0.abs().max())
     for a, b in zip(g1, g0):

@@ -151,7 +151,8 @@ def make_fused_step_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
     g2p_p2g, g2p_p2g_agg = make_g2p_p2g(False), make_g2p_p2g(True)
 
     scatter4, vec4 = k.scatter4, k.vec4
-    v4_module = f"gca_sim_fused_step_v4_{T.__name__}"  # the interleaved (mv, m) grid's variants: compiled where launched
+    v4_module = f"gca_sim_fused_step_v4_{T.__name__}"  # the interleaved (mv, m) grid's variants, compiled where
+    # launched
 
     @wp.kernel(module=v4_module)
     def p2g_stress4(

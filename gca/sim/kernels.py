@@ -149,9 +149,10 @@ asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};" :: "l"(__cvta_gen
 # node, the fourth component 0) with one vector reduction on sm_90+ in float32, instead of warp's three scalar atomics
 # into the velocity grid's gradient (``MPMSolver.vec4_g2p_adj``; ``grid_unpack_adj4`` then adds it there). Elsewhere
 # warp's component-wise atomic add of the vec4 (the same sums in the same order).
+# ({zero}: a literal, as warp's headers define float(x) and double(x) as casts)
 _READ4 = "return wp::index(a, i, j, k);"
 _READ4_ADJ_ANY = ("wp::atomic_add(&wp::index(acc, i, j, k), "
-                  "wp::vec_t<4, {c}>(adj_ret.c[0], adj_ret.c[1], adj_ret.c[2], {zero}));")  # (a literal zero: warp's headers define float(x) and double(x) as casts)
+                  "wp::vec_t<4, {c}>(adj_ret.c[0], adj_ret.c[1], adj_ret.c[2], {zero}));")
 _READ4_ADJ_F32 = f"""
 #if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
 float* ptr = &wp::index(acc, i, j, k).c[0];

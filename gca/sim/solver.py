@@ -155,21 +155,22 @@ class MPMSolver:
     agg_g2p: bool | None = False
     # the fused analytic step (frame_fused, step_fused) on a grid whose momentum and mass are interleaved as one vec4 a
     # node, each node's share one 16-byte vector atomic on sm_90+ in float32 (kernels.scatter4, red.global.add.v4.f32;
-    # component-wise elsewhere: the same sums), True / False, or None: on CUDA only. block_p2g and agg_p2g, where on,
-    # take precedence. On CUDA by default: measured on the H200 (NOTES session 50, bench_p2g) the scatter 2.5-3.9x
-    # faster on every order but the 30k lattice (-4 %), PhysGaussian's job 0.046 -> 0.029 ms/step at 30k / 32^3 and
-    # 0.105 -> 0.047 at 100k / 64^3, the same trajectories to 7e-7 (float32 rounding: the atomics' order)
+    # component-wise elsewhere: the same sums), True / False, or None: where the vector reduction runs (float32 on sm_90
+    # or later, _resolve_vector). block_p2g and agg_p2g, where on, take precedence. On there by default: measured on
+    # the H200 (NOTES session 50, bench_p2g) the scatter 2.5-3.9x faster on every order but the 30k lattice (-4 %),
+    # PhysGaussian's job 0.046 -> 0.029 ms/step at 30k / 32^3 and 0.105 -> 0.047 at 100k / 64^3, the same trajectories
+    # to 7e-7 (float32 rounding: the atomics' order)
     vec4_p2g: bool | None = None
     # the generic step's forward P2G (a training frame's forward pass, a recompute without the stash; not under a
     # tape) through kernels.p2g4 onto an interleaved vec4 scratch, unpacked into (mv, m) by the grid update
-    # (kernels.grid_update_unpack4): the vector atomics of vec4_p2g for the neural laws. True / False, or None: on
-    # CUDA only. block_p2g, split_p2g and agg_p2g, where on, take precedence. Off until measured in training (NOTES
+    # (kernels.grid_update_unpack4): the vector atomics of vec4_p2g for the neural laws. True / False, or None: as
+    # vec4_p2g's. block_p2g, split_p2g and agg_p2g, where on, take precedence. Off until measured in training (NOTES
     # session 50: the scatter alone 2.5x faster on the duck's order on the H200)
     vec4_step: bool | None = False
     # the step's backward (on a kept or stashed grid) with G2P's adjoint through kernels.g2p4: each node's velocity
     # cotangent added to an interleaved vec4 accumulator by one vector atomic (sm_90+, float32) instead of three scalar
-    # atomics, then moved into the velocity grid's gradient by kernels.grid_unpack_adj4. True / False, or None: on CUDA
-    # only; agg_g2p, where on, takes precedence. Off until measured (G2P's adjoint: 65-70 us a launch on the duck)
+    # atomics, then moved into the velocity grid's gradient by kernels.grid_unpack_adj4. True / False, or None: as
+    # vec4_p2g's; agg_g2p, where on, takes precedence. Off until measured (G2P's adjoint: 65-70 us a launch on the duck)
     vec4_g2p_adj: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
@@ -183,8 +184,7 @@ class MPMSolver:
         self.dtype = cfg.torch_dtype
         self._grids: dict[tuple, tuple] = {}
         self._zero_grids: dict[int, tuple] = {}
-        self._zero_grids4: dict[int, tuple] = {}
-        self._scratches4: dict[tuple, wp.array] = {}
+        self._scratch_grids: dict[tuple, wp.array] = {}
         self._zero_runs: dict[int, torch.Tensor] = {}
         self._batch: tuple[torch.Tensor, int] | None = None  # (run [N] int32, n_runs) of with_runs
         self._graphs = GraphCache()
@@ -500,27 +500,25 @@ class MPMSolver:
     def _zeroed_grid4(self, n_runs: int):
         """:meth:`_zeroed_grid` of the interleaved layout (``vec4_p2g``): (mvm [n_runs G, G, G] vec4: mv in components
         0-2, m in 3; v [n_runs G, G, G] vec3), mvm zero when made and left zero by ``grid_update_zero4``."""
-        if n_runs not in self._zero_grids4:
-            G = grid_size(self.cfg.n_grid)
-            self._zero_grids4[n_runs] = tuple(wp.zeros((n_runs * G, G, G), dtype=ty, device=self.wp_device)
-                                              for ty in (self.k.vec4, self.k.vec3))
-        return self._zero_grids4[n_runs]
+        return self._scratch_grid("fused", n_runs), self._scratch_grid("fused_v", n_runs, self.k.vec3)
 
-    def _scratch4(self, use: str, n_runs: int):
-        """An interleaved scratch grid [n_runs G, G, G] vec4, zero when made and left zero by its user: ``"p2g"``,
-        the forward's (mv, m) of ``vec4_step`` (zeroed by ``grid_update_unpack4``), ``"g2p_adj"``, the backward's
-        velocity cotangents of ``vec4_g2p_adj`` (zeroed by ``grid_unpack_adj4``). One per use and run count, like
-        :meth:`_zeroed_grid`, whatever the stream: a frame's warm-up (``gca.sim.graph``) makes it before its capture,
-        so no CUDA graph owns it, and the graphs that replay it run one after another. Made during a capture it would
-        belong to that graph: refused."""
+    def _scratch_grid(self, use: str, n_runs: int, dtype=None):
+        """A scratch grid [n_runs G, G, G] of ``dtype`` (default: the interleaved vec4), zero when made and left zero
+        by its user: ``"fused"``, ``frame_fused``'s (mv, m) (``grid_update_zero4``), with ``"fused_v"`` its
+        velocities (vec3, overwritten each step); ``"p2g"``, the forward's (mv, m) of ``vec4_step``
+        (``grid_update_unpack4``); ``"g2p_adj"``, the backward's velocity cotangents of ``vec4_g2p_adj``
+        (``grid_unpack_adj4``). One per use and run count, like :meth:`_zeroed_grid`, whatever the stream: a frame's
+        warm-up (``gca.sim.graph``) makes it before its capture, so no CUDA graph owns it, and the graphs that replay
+        it run one after another. Made during a capture it would belong to that graph: refused."""
         key = (use, n_runs)
-        if key not in self._scratches4:
+        if key not in self._scratch_grids:
             if self.device.type == "cuda" and torch.cuda.is_current_stream_capturing():
                 raise RuntimeError(f"{_WHERE}: the interleaved scratch {key} would be made inside a CUDA graph capture "
                                    "(its warm-up did not run this path); run the frame once eagerly first")
             G = grid_size(self.cfg.n_grid)
-            self._scratches4[key] = wp.zeros((n_runs * G, G, G), dtype=self.k.vec4, device=self.wp_device)
-        return self._scratches4[key]
+            self._scratch_grids[key] = wp.zeros((n_runs * G, G, G), dtype=dtype or self.k.vec4,
+                                                device=self.wp_device)
+        return self._scratch_grids[key]
 
     def _update_consts(self) -> list:
         """The grid update's arguments between the grid and the velocities: gravity, dt, eps, m_min, n_grid, bound,
@@ -565,7 +563,7 @@ class MPMSolver:
         launches = self._kernel_args(args, run, grid, outs)
         if p2g and not requires_grad and self.vec4s_step and not (self.blocks_p2g or self.split_p2g or self.aggs_p2g):
             (_, dim, p2g_args), (_, nodes, update_args), (g2p, _, g2p_args) = launches
-            mvm = self._scratch4("p2g", n_runs)  # P2G onto the interleaved scratch, unpacked by the grid update
+            mvm = self._scratch_grid("p2g", n_runs)  # P2G onto the interleaved scratch, unpacked by the grid update
             try:
                 wp.launch(self.k.p2g4, dim=dim, inputs=[*p2g_args[:-2], mvm], device=self.wp_device)
                 wp.launch(self.k.grid_update_unpack4, dim=nodes, inputs=[mvm, *update_args], device=self.wp_device)
@@ -643,7 +641,7 @@ class MPMSolver:
             if self.vec4s_g2p_adj and not self.aggs_g2p:  # G2P's adjoint scatters into the interleaved accumulator
                 (_, dim, g2p_args), rest = launches[0], launches[1:]
                 gv = wgrid[2]
-                acc = self._scratch4("g2p_adj", gv.shape[0] // grid_size(self.cfg.n_grid))
+                acc = self._scratch_grid("g2p_adj", gv.shape[0] // grid_size(self.cfg.n_grid))
                 kargs = [*g2p_args[:4], acc, *g2p_args[4:]]
                 try:
                     wp.launch(self.k.g2p4, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs],
