@@ -51,6 +51,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--copies", type=int, default=3)
     ap.add_argument("--profile", default="paper")
     ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--solver", dest="solver", action="append", default=[], metavar="SWITCH=yaml_value",
+                    help="an MPMSolver switch for every copy (harness.py --solver; session 51: a packed A/B of a kernel path)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--device", default="cuda", help="as given to the harness (names its JSON files)")
     args = ap.parse_args(argv)
@@ -64,7 +66,8 @@ def main(argv=None) -> dict:
     for i, w in enumerate(works):
         cmd = [sys.executable, str(ROOT / "benchmarks" / "harness.py"), "--scene", args.scene, "--profile", args.profile,
                "--work", str(w), "--out", str(args.out), "--device", args.device, "--tag", f"_pack{i}", "--reuse-prior", "--reuse-data",
-               "--methods", *args.methods] + [a for s in args.overrides for a in ("--set", s)]
+               "--methods", *args.methods] + [a for s in args.overrides for a in ("--set", s)] \
+            + [a for s in args.solver for a in ("--solver", s)]
         log = open(args.out / f"pack_{args.scene}_copy{i}.log", "w")
         procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT), log))
     codes = []
@@ -84,7 +87,7 @@ def main(argv=None) -> dict:
     solo_train = sum(solo[m]["train_seconds"] for m in args.methods)
     packed_train = max((sum(r["train_seconds"] for r in rows if r["copy"] == i) for i in range(args.copies)), default=float("nan"))
     result = {"scene": args.scene, "methods": args.methods, "copies": args.copies, "exit_codes": codes,
-              "overrides": args.overrides, "device": solo[args.methods[0]]["device"], "wall_seconds": wall,
+              "overrides": args.overrides, "solver": args.solver, "device": solo[args.methods[0]]["device"], "wall_seconds": wall,
               "solo_train_seconds": solo_train, "packed_train_seconds_slowest": packed_train,
               "packing_gain": args.copies * solo_train / packed_train if rows else None, "rows": rows,
               "solo": {m: {k: solo[m][k] for k in ("seconds_per_iteration", "train_seconds", "peak_memory_gib")}

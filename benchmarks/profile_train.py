@@ -82,7 +82,13 @@ def main(argv=None) -> None:
     ap.add_argument("--top", type=int, default=35)
     ap.add_argument("--torch-profile", action="store_true", help="also torch.profiler off CUDA (on CUDA always)")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--solver", action="append", default=[], metavar="SWITCH=yaml_value",
+                    help="an MPMSolver switch, as harness.py --solver (session 51: the profile of a kernel path)")
     args = ap.parse_args(argv)
+    if args.solver:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from harness import set_solver_switches
+        set_solver_switches(args.solver)
     from gca.train import loop
     solver, law, data, objective, cfg, opt = build(args.work, args.scene, args.method, args.device)
     n_video = args.horizon or len(data.video_frames)

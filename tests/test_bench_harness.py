@@ -91,3 +91,34 @@ def test_a_harness_row_names_its_host_cpu(tmp_path):
         got = harness.host_cpu(path)
         assert got.endswith(f", {cores} cores") and "Platinum" not in got
         assert got.split(",")[0].strip()
+
+
+def test_pack_passes_the_solver_switches_to_every_copy(tmp_path, monkeypatch):
+    """benchmarks/pack.py --solver reaches each copy's harness command (session 51's packed A/B of a kernel path),
+    and the copies without it get none (the control arm)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    pack = _load("pack")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / pack.result_name("paper", "duck", "gca", "cuda")).write_text(json.dumps(
+        {"train_seconds": 10.0, "seconds_per_iteration": 1.0, "peak_memory_gib": 1.0, "status": "ok", "device": "x"}))
+    work = tmp_path / "w"
+    (work / "prep").mkdir(parents=True)
+    cmds = []
+
+    class Fake:  # a copy that ends at once, writing nothing
+        def __init__(self, cmd, **kw):
+            cmds.append(cmd)
+
+        def wait(self):
+            return 0
+    monkeypatch.setattr(pack.subprocess, "Popen", Fake)
+    r = pack.main(["--work", str(work), "--scene", "duck", "--methods", "gca", "--copies", "2", "--out", str(out),
+                   "--solver", "vec4_step=true", "--solver", "vec4_g2p_adj=true"])
+    assert len(cmds) == 2 and r["solver"] == ["vec4_step=true", "vec4_g2p_adj=true"]
+    for c in cmds:
+        i = c.index("--solver")
+        assert c[i:i + 4] == ["--solver", "vec4_step=true", "--solver", "vec4_g2p_adj=true"]
+    cmds.clear()
+    pack.main(["--work", str(work), "--scene", "duck", "--methods", "gca", "--copies", "1", "--out", str(out)])
+    assert "--solver" not in cmds[0]
