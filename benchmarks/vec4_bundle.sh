@@ -28,18 +28,19 @@ if [ "$PART" = solo ]; then
   build_gsplat "$W" "$OUT/gsplat_build.log"
   cp "benchmarks/results/priors_paper/$(prior_of "$SCENE").pt" "$W/h/prior/"
   for arm in plain v4; do
-    stamp "solo $arm ($ITS iterations)"; mkdir -p "$OUT/$arm"
+    stamp "solo $arm ($ITS iterations)"; mkdir -p "$OUT/$arm" "$W/solo/$arm"
     # shellcheck disable=SC2046,SC2086
     GCA_STOP_AT=$(( $(date +%s) + 250 )) timeout 270 python3 benchmarks/harness.py --scene "$SCENE" --methods gca \
         --profile paper --work "$W/h" --out "$OUT/$arm" --reuse-prior --reuse-data $SETS $(switches $arm) \
         > "$OUT/solo_$arm.log" 2>&1
     echo "solo $arm rc=$?"; sed 's/\r/\n/g' "$OUT/solo_$arm.log" | grep -v "^train:\|^velocity:" | tail -n 2
+    cp "$OUT/$arm"/harness_*.json "$W/solo/$arm/"  # $OUT is a fresh folder each call: PART=pack finds them here
   done
 fi
 if [ "$PART" = pack ]; then
   start_mps
   for arm in $ARMS; do
-    base=${arm%2}; mkdir -p "$OUT/$arm"; [ "$arm" = "$base" ] || cp "$OUT/$base"/harness_*.json "$OUT/$arm/"
+    base=${arm%2}; mkdir -p "$OUT/$arm"; cp "$W/solo/$base"/harness_*.json "$OUT/$arm/"  # the arm's solo
     stamp "$N copies at once under MPS: $arm"
     # every copy stops itself (GCA_STOP_AT) before `timeout`: a SIGTERM under MPS ends every process on the GPU
     # shellcheck disable=SC2046,SC2086
