@@ -30,7 +30,7 @@ times on one device, side by side in one run:
 - ``g2p``: the per-particle gather, and its adjoint (``g2p_adj``: warp's, scattering the grid's velocity gradient
   with atomics; ``g2p_agg_adj``: ``kernels.g2p_agg``'s, that scatter aggregated per warp like ``p2g_agg``;
   ``g2p4_adj``: ``kernels.g2p4``'s, one vector atomic a node into an interleaved accumulator, plus its unpacking
-  ``grid_unpack_adj4``: ``MPMSolver.vec4_g2p_adj``, an option, off until measured, session 50),
+  ``grid_unpack_adj4``: ``MPMSolver.vec4_g2p_adj``, on CUDA by default since session 51),
 
 as the best of ``--repeats`` averages over ``--iters`` launches (CUDA events around the loop).
 

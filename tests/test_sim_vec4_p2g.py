@@ -293,11 +293,9 @@ def test_the_training_switches_give_a_swept_rollouts_results_bitwise(switches, t
         assert float(b.abs().max()) > 0 and torch.equal(a, b)
 
 
-def test_vec4_step_is_off_by_default_and_yields_to_the_other_p2g_options():
+def test_vec4_step_defaults_to_the_gpu_and_yields_to_the_other_p2g_options():
     solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, dtype="float64", max_refine=1))
-    assert solver.vec4_step is False and not solver.vec4s_step  # not measured in training yet (session 50)
-    solver.vec4_step = None
-    assert not solver.vec4s_step  # a CPU solver
+    assert solver.vec4_step is None and not solver.vec4s_step  # where the vector reduction runs (session 51); a CPU solver
     solver.vec4_step, solver.agg_p2g = True, True
     assert solver.refined(2).vec4_step is True
     x, v, C, F, tau, vol, mass = _state(50, seed=32)
@@ -348,12 +346,10 @@ def test_vec4_g2p_adj_gives_the_plain_gradients_off_cuda(dtype, with_step):
     assert not torch.equal(broken[4], results[False][4])  # the gradient of x
 
 
-def test_vec4_g2p_adj_is_off_by_default_and_yields_to_agg_g2p():
+def test_vec4_g2p_adj_defaults_to_the_gpu_and_yields_to_agg_g2p():
     cfg = SimConfig(n_grid=8, dt=1e-3, dtype="float64", max_refine=1)
     solver = MPMSolver(cfg)
-    assert solver.vec4_g2p_adj is False and not solver.vec4s_g2p_adj
-    solver.vec4_g2p_adj = None
-    assert not solver.vec4s_g2p_adj  # a CPU solver
+    assert solver.vec4_g2p_adj is None and not solver.vec4s_g2p_adj  # session 51; a CPU solver
     solver.vec4_g2p_adj, solver.agg_g2p, solver.keep_grid = True, True, True
     assert solver.refined(2).vec4_g2p_adj is True
     _, calls = _step_with_grads(solver, _state(50, seed=35))
@@ -414,7 +410,7 @@ def test_the_vector_switches_default_to_where_the_vector_reduction_runs(dtype, a
 
     solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, dtype=dtype, max_refine=1))
     solver.device, solver.wp_device = torch.device("cuda", 0), types.SimpleNamespace(arch=arch)
-    solver.vec4_p2g = solver.vec4_step = solver.vec4_g2p_adj = None
+    assert (solver.vec4_p2g, solver.vec4_step, solver.vec4_g2p_adj) == (None, None, None)  # the defaults
     assert (solver.vec4s_p2g, solver.vec4s_step, solver.vec4s_g2p_adj) == (on, on, on)
     solver.vec4_step = False
     assert not solver.vec4s_step

@@ -164,14 +164,17 @@ class MPMSolver:
     # the generic step's forward P2G (a training frame's forward pass, a recompute without the stash; not under a
     # tape) through kernels.p2g4 onto an interleaved vec4 scratch, unpacked into (mv, m) by the grid update
     # (kernels.grid_update_unpack4): the vector atomics of vec4_p2g for the neural laws. True / False, or None: as
-    # vec4_p2g's. block_p2g, split_p2g and agg_p2g, where on, take precedence. Off until measured in training (NOTES
-    # session 50: the scatter alone 2.5x faster on the duck's order on the H200)
-    vec4_step: bool | None = False
+    # vec4_p2g's. block_p2g, split_p2g and agg_p2g, where on, take precedence. On there by default with vec4_g2p_adj,
+    # by the rule written before their measurement (NOTES session 51, H200, the duck's GCA training with both against
+    # neither: 200 iterations solo 113.6 -> 93.7 s, twelve 20-iteration copies packed under MPS 69.4 -> 60.5 s each,
+    # the same CD to 2e-6; each switch's own share not measured)
+    vec4_step: bool | None = None
     # the step's backward (on a kept or stashed grid) with G2P's adjoint through kernels.g2p4: each node's velocity
     # cotangent added to an interleaved vec4 accumulator by one vector atomic (sm_90+, float32) instead of three scalar
     # atomics, then moved into the velocity grid's gradient by kernels.grid_unpack_adj4. True / False, or None: as
-    # vec4_p2g's; agg_g2p, where on, takes precedence. Off until measured (G2P's adjoint: 65-70 us a launch on the duck)
-    vec4_g2p_adj: bool | None = False
+    # vec4_p2g's; agg_g2p, where on, takes precedence. On there by default with vec4_step (NOTES session 51; alone in
+    # bench_p2g at 30k particles it was no faster than warp's adjoint, 51-82 -> 69-81 us, and faster at 100k)
+    vec4_g2p_adj: bool | None = None
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
