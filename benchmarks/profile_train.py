@@ -44,6 +44,18 @@ def build(work: Path, scene: str, method_name: str, device: str):
     return job.solver, job.law, job.data, job.objective, job.cfg, opt
 
 
+def kernel_rows(events) -> str:
+    """Every profiled event's own device time as TSV (``name, self_us, calls, us_per_call``; the whole names, which
+    the printed table cuts at 60 characters), the largest first: the kernels' table a bundle reads whole (session 51
+    lost the top of it to a reply's length)."""
+    def own(e) -> float:
+        return float(getattr(e, "self_device_time_total", None) or getattr(e, "self_cuda_time_total", 0.0) or 0.0)
+    rows = sorted((e for e in events if own(e) > 0), key=own, reverse=True)
+    lines = ["name\tself_us\tcalls\tus_per_call"]
+    lines += [f"{e.key}\t{own(e):.1f}\t{e.count}\t{own(e) / max(e.count, 1):.2f}" for e in rows]
+    return "\n".join(lines) + "\n"
+
+
 @contextlib.contextmanager
 def labelled(objective, loop):
     """Name the iteration's parts in the torch.profiler trace (``phase/...`` ranges): the rollout, the frames'
@@ -125,6 +137,7 @@ def main(argv=None) -> None:
         if args.out:
             args.out.mkdir(parents=True, exist_ok=True)
             (args.out / f"profile_train_{args.method}_cuda.txt").write_text(table + "\n\n" + ranges)
+            (args.out / f"profile_train_{args.method}_kernels.tsv").write_text(kernel_rows(events))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"profile_train_{args.method}_cprofile.txt").write_text(text.getvalue())

@@ -122,3 +122,18 @@ def test_pack_passes_the_solver_switches_to_every_copy(tmp_path, monkeypatch):
     cmds.clear()
     pack.main(["--work", str(work), "--scene", "duck", "--methods", "gca", "--copies", "1", "--out", str(out)])
     assert "--solver" not in cmds[0]
+
+
+def test_profile_kernel_rows_keep_whole_names_largest_first():
+    from types import SimpleNamespace as E
+
+    profile_train = _load("profile_train")
+    long = "make_kernels__locals__g2p_adjoint_" + "x" * 80  # past the printed table's 60 characters
+    events = [E(key="aten::mul", self_device_time_total=10.0, count=4),
+              E(key=long, self_device_time_total=300.0, count=3),
+              E(key="old_torch_name", self_cuda_time_total=50.0, count=1),  # a torch without the device name
+              E(key="host_only", self_device_time_total=0.0, count=7)]
+    lines = profile_train.kernel_rows(events).splitlines()
+    assert lines[0] == "name\tself_us\tcalls\tus_per_call"
+    assert [line.split("\t")[0] for line in lines[1:]] == [long, "old_torch_name", "aten::mul"]  # no host-only row
+    assert lines[1].split("\t")[1:] == ["300.0", "3", "100.00"]
