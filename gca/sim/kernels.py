@@ -212,6 +212,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
     block_module = f"gca_sim_mpm_block_{T.__name__}"  # block-cooperative (tile) kernels, compiled apart
     agg_module = f"gca_sim_mpm_agg_{T.__name__}"  # warp-aggregated kernels (options): compiled only where launched
     v4_module = f"gca_sim_mpm_v4_{T.__name__}"  # the vec4 grid's kernels (an option): compiled only where launched
+    adj_module = f"gca_sim_mpm_adj_{T.__name__}"  # adjoints written out (options): compiled only where launched
 
     @wp.func
     def stencil(x: vec3, inv_dx: T, n_grid: int):
@@ -731,7 +732,72 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         adj_grid_v[s0, s1, s2] = adj_grid_v[s0, s1, s2] + vec3(g[0], g[1], g[2])
         acc[s0, s1, s2] = vec4(T(0.0))
 
-    return types.SimpleNamespace(p2g=p2g, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
+    @wp.kernel(module=adj_module)
+    def p2g_adj(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        C: wp.array(dtype=mat33),
+        tau: wp.array(dtype=mat33),
+        vol: wp.array(dtype=T),
+        mass: wp.array(dtype=T),
+        run: wp.array(dtype=int),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        adj_mv: wp.array3d(dtype=vec3),
+        adj_m: wp.array3d(dtype=T),
+        adj_x: wp.array(dtype=vec3),
+        adj_v: wp.array(dtype=vec3),
+        adj_C: wp.array(dtype=mat33),
+        adj_tau: wp.array(dtype=mat33),
+    ):
+        """The adjoint of :func:`p2g` written out (``MPMSolver.hand_p2g_adj``): from the grid's cotangents ``adj_mv``
+        [.., .., ..] vec3 and ``adj_m`` (of the nodes' momentum and mass), ADDED to the particles' ``adj_x``,
+        ``adj_v``, ``adj_C``, ``adj_tau`` (vol and mass get none: constants of a rollout). A gather, one thread per
+        particle; warp's generated adjoint replays the 27 unrolled node updates and differentiates every temporary.
+
+        With ``A = k tau + m C``, ``k = -4 dt vol / dx^2`` (MLS-MPM's affine momentum with the Kirchhoff stress, Hu et
+        al. 2018, as :func:`p2g` adds it) and node i's share ``w_i (m v + A dpos_i)`` and ``w_i m``, ``dpos_i = x_i - x_p``,
+        ``g_i = adj_mv[i]``, ``h_i = adj_m[i]``, ``s_i = g_i . (m v + A dpos_i) + h_i m``:
+
+            adj_v += m sum_i w_i g_i,     adj_A = sum_i w_i g_i dpos_i^T  (adj_C += m adj_A, adj_tau += k adj_A),
+            adj_x += sum_i (s_i dw_i/dx - w_i A^T g_i)
+
+        (``dpos_i`` falls as ``x_p`` moves; ``dw_i/dx = inv_dx dw_i/dfx`` with the B-spline's derivatives ``fx - 1.5``,
+        ``-2 (fx - 1)``, ``fx - 0.5``; the floor of the stencil base has none)."""
+        p = wp.tid()
+        base, fx, W = stencil(x[p], inv_dx, n_grid)
+        off = run_offset(run, p, n_grid, adj_m.shape[0])
+        m_p = mass[p]
+        k_s = -dt * vol[p] * T(4.0) * inv_dx * inv_dx
+        A = k_s * tau[p] + m_p * C[p]
+        At = wp.transpose(A)
+        mv_p = m_p * v[p]
+        dW = wp.matrix_from_rows(fx - vec3(T(1.5)), T(-2.0) * (fx - vec3(T(1.0))), fx - vec3(T(0.5)))
+        g_v = vec3(T(0.0))
+        g_A = mat33(T(0.0))
+        g_fx = vec3(T(0.0))
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dw = vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    I = base[0] + i + PAD + off
+                    J = base[1] + j + PAD
+                    K = base[2] + k + PAD
+                    g = adj_mv[I, J, K]
+                    s = wp.dot(g, mv_p + A @ dpos) + adj_m[I, J, K] * m_p
+                    wg = w * g
+                    g_v += wg
+                    g_A += wp.outer(wg, dpos)
+                    g_fx += s * dw - (At @ wg) / inv_dx
+        adj_v[p] = adj_v[p] + m_p * g_v
+        adj_C[p] = adj_C[p] + m_p * g_A
+        adj_tau[p] = adj_tau[p] + k_s * g_A
+        adj_x[p] = adj_x[p] + inv_dx * g_fx
+
+    return types.SimpleNamespace(p2g=p2g, p2g_adj=p2g_adj, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
                                  grid_update_unpack4=grid_update_unpack4, g2p4=g2p4, grid_unpack_adj4=grid_unpack_adj4,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
                                  vec3=vec3, vec4=vec4, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,

@@ -175,6 +175,12 @@ class MPMSolver:
     # vec4_p2g's; agg_g2p, where on, takes precedence. On there by default with vec4_step (NOTES session 51; alone in
     # bench_p2g at 30k particles it was no faster than warp's adjoint, 51-82 -> 69-81 us, and faster at 100k)
     vec4_g2p_adj: bool | None = None
+    # the step's backward (on a kept or stashed grid) with P2G's adjoint written out (kernels.p2g_adj: a gather of the
+    # grid's cotangents, one thread a particle) instead of warp's generated adjoint of kernels.p2g, which replays the
+    # 27 unrolled node updates and differentiates every temporary (34 us a launch of the duck's 30k particles, the
+    # fifth kernel of its iteration: NOTES session 52). The same gradients to rounding (another summation order).
+    # True / False, or None: on CUDA only. Off until measured on a GPU
+    hand_p2g_adj: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -205,7 +211,7 @@ class MPMSolver:
         fine.keep_grid, fine.split_p2g, fine.fuse_analytic = self.keep_grid, self.split_p2g, self.fuse_analytic
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
         fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
-        fine.vec4_step, fine.vec4_g2p_adj = self.vec4_step, self.vec4_g2p_adj
+        fine.vec4_step, fine.vec4_g2p_adj, fine.hand_p2g_adj = self.vec4_step, self.vec4_g2p_adj, self.hand_p2g_adj
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -340,6 +346,12 @@ class MPMSolver:
     def vec4s_g2p_adj(self) -> bool:
         """Whether the step's backward takes ``g2p4``'s adjoint (``vec4_g2p_adj``, resolved for this device)."""
         return self._resolve_vector(self.vec4_g2p_adj)
+
+    @property
+    def hands_p2g_adj(self) -> bool:
+        """Whether the step's backward takes P2G's written-out adjoint ``p2g_adj`` (``hand_p2g_adj``, resolved for
+        this device)."""
+        return self._resolve(self.hand_p2g_adj)
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
@@ -654,9 +666,15 @@ class MPMSolver:
                     acc.zero_()
                     raise
                 launches = rest
-            for kernel, dim, kargs in launches:
-                wp.launch(kernel, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs], adjoint=True,
+            if self.hands_p2g_adj:  # P2G's adjoint last, written out: the gather adds into the inputs' gradients
+                (_, dim, p2g_args), launches = launches[-1], launches[:-1]
+            for kernel, dim_k, kargs in launches:
+                wp.launch(kernel, dim=dim_k, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs], adjoint=True,
                           device=self.wp_device)
+            if self.hands_p2g_adj:
+                wx, wv, wC, wtau, *_, wmv, wm = p2g_args
+                wp.launch(self.k.p2g_adj, dim=dim, inputs=[*p2g_args[:-2], wmv.grad, wm.grad, wx.grad, wv.grad,
+                                                           wC.grad, wtau.grad], device=self.wp_device)
         return tuple(v_ins)
 
     def _backward(self, inputs, run, v_outs, n_runs: int = 1):
