@@ -7,9 +7,10 @@
 #   call 1 carry [".wpa"]:                         sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:  . .wpb/activate.sh && OUT=$OUT sh benchmarks/profile_bundle.sh
 #       gsplat's build, each scene's data (harness stages to a 2-iteration train, for velocity.json), then PROFILES:
-#       "scene:method:arm" (arm: on = the defaults, step = vec4_step alone, plain = neither); everything returns as
-#       $OUT/prof.tgz (one file) and the top ROWS kernels of each profile are printed
-#   SCENES ("duck ball"), PROFILES (below), W (/tmp/pbw), ROWS (14)
+#       "scene:method:arm" (arm: on = the defaults, step = vec4_step alone, plain = neither, hand = the defaults and
+#       the written-out adjoints hand_p2g_adj + hand_g2p_adj); everything returns as $OUT/prof.tgz (one file) and the
+#       top ROWS kernels of each profile are printed; TESTS: pytest files run with -m gpu first (none by default)
+#   SCENES ("duck ball"), PROFILES (below), W (/tmp/pbw), ROWS (14), TESTS ("")
 set -u
 OUT=${OUT:-/tmp/pb_out}; W=${W:-/tmp/pbw}; SCENES=${SCENES:-"duck ball"}; ROWS=${ROWS:-14}
 PROFILES=${PROFILES:-"duck:gca:on duck:gca:step ball:gca:on ball:gca:step duck:neuma:on"}
@@ -24,11 +25,18 @@ switches() {
     on) echo "";;
     step) echo "--solver vec4_step=true --solver vec4_g2p_adj=false";;
     plain) echo "--solver vec4_step=false --solver vec4_g2p_adj=false";;
+    hand) echo "--solver hand_p2g_adj=true --solver hand_g2p_adj=true";;
     *) echo "profile_bundle.sh: unknown arm $1" >&2; exit 2;;
   esac
 }
+for p in $PROFILES; do switches "${p##*:}" > /dev/null || exit 2; done  # every arm known before any work
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 compile_bytecode "$W/compileall.log"
+if [ -n "${TESTS:-}" ]; then
+  stamp "gpu tests: $TESTS"
+  # shellcheck disable=SC2086
+  timeout 150 python3 -m pytest -q -p no:cacheprovider -m gpu $TESTS > "$W/pytest_gpu.txt" 2>&1; tail -n 3 "$W/pytest_gpu.txt"
+fi
 build_gsplat "$W" "$W/gsplat_build.log"
 for scene in $SCENES; do
   stamp "data: $scene"; mkdir -p "$W/$scene/prior"
@@ -51,5 +59,6 @@ for p in $PROFILES; do
            for (i = 2; i <= n + 1 && i in r; i++) {split(r[i], c, "\t"); printf "  %8.2f ms %6d x %8.2f us  %s\n",
                c[2] / 1000, c[3], c[4], substr(c[1], 1, 70)}}' "$f"
 done
-tar czf "$OUT/prof.tgz" -C "$W" prof compileall.log gsplat_build.log $(cd "$W" && ls data_*.log)
+# shellcheck disable=SC2046
+tar czf "$OUT/prof.tgz" -C "$W" prof compileall.log gsplat_build.log $(cd "$W" && ls data_*.log pytest_gpu.txt 2> /dev/null)
 stamp "end"

@@ -10,7 +10,7 @@
 #       N copies at once under MPS per arm, in the order ARMS (default "plain v4 plain2": the control twice, for the
 #       order a machine warms up in), then the summary table
 #   call 4:  PART=full: the GPU tests of the switches, bench_p2g's columns, the 200-iteration solo pair and one profile
-#   SCENE (duck), ITS (20), N (12), W (/tmp/v4w)
+#   SCENE (duck), ITS (20), N (12), W (/tmp/v4w), SOLO_ARMS ("plain v4"), ARMS, FULL_ARMS: arms of switches() below
 set -u
 OUT=${OUT:-/tmp/v4_out}; PART=${PART:-solo}; W=${W:-/tmp/v4w}; SCENE=${SCENE:-duck}; ITS=${ITS:-20}; N=${N:-12}
 ARMS=${ARMS:-"plain v4 plain2"}
@@ -21,13 +21,24 @@ export PYTHONPATH=/tmp/gca-warp/site:.:${PYTHONPATH:-} PYTHONUNBUFFERED=1 MLFLOW
 T0=$(date +%s)
 stamp() { echo "[v4 $(( $(date +%s) - T0 )) s] $1"; }
 SETS="--set train.iterations=$ITS --set velocity.iterations=20 --set render.backend=gsplat"
-switches() { case "$1" in v4*) echo "--solver vec4_step=true --solver vec4_g2p_adj=true";; *) echo "";; esac; }
+# arms: v4 both vector switches, plain neither (explicit: both are on by default on CUDA since session 51), on the
+# defaults, hand the defaults and the written-out adjoints (session 52); a trailing 2 repeats an arm (the control)
+switches() {
+  case "${1%2}" in
+    v4) echo "--solver vec4_step=true --solver vec4_g2p_adj=true";;
+    plain) echo "--solver vec4_step=false --solver vec4_g2p_adj=false";;
+    on) echo "";;
+    hand) echo "--solver hand_p2g_adj=true --solver hand_g2p_adj=true";;
+    *) echo "vec4_bundle.sh: unknown arm $1" >&2; exit 2;;
+  esac
+}
+for a in ${SOLO_ARMS:-plain v4} $ARMS ${FULL_ARMS:-v4 plain}; do switches "$a" > /dev/null || exit 2; done  # before any work
 if [ "$PART" = solo ]; then
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
   compile_bytecode "$OUT/compileall.log"
   build_gsplat "$W" "$OUT/gsplat_build.log"
   cp "benchmarks/results/priors_paper/$(prior_of "$SCENE").pt" "$W/h/prior/"
-  for arm in plain v4; do
+  for arm in ${SOLO_ARMS:-plain v4}; do
     stamp "solo $arm ($ITS iterations)"; mkdir -p "$OUT/$arm" "$W/solo/$arm"
     # shellcheck disable=SC2046,SC2086
     GCA_STOP_AT=$(( $(date +%s) + 250 )) timeout 270 python3 benchmarks/harness.py --scene "$SCENE" --methods gca \

@@ -797,7 +797,84 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         adj_tau[p] = adj_tau[p] + k_s * g_A
         adj_x[p] = adj_x[p] + inv_dx * g_fx
 
-    return types.SimpleNamespace(p2g=p2g, p2g_adj=p2g_adj, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
+    @wp.kernel(module=adj_module)
+    def g2p4_adj(
+        x: wp.array(dtype=vec3),
+        F: wp.array(dtype=mat33),
+        run: wp.array(dtype=int),
+        grid_v: wp.array3d(dtype=vec3),
+        acc: wp.array3d(dtype=vec4),
+        dt: T,
+        inv_dx: T,
+        n_grid: int,
+        lo: T,
+        hi: T,
+        adj_x_out: wp.array(dtype=vec3),
+        adj_v_out: wp.array(dtype=vec3),
+        adj_C_out: wp.array(dtype=mat33),
+        adj_F_out: wp.array(dtype=mat33),
+        adj_x: wp.array(dtype=vec3),
+        adj_F: wp.array(dtype=mat33),
+    ):
+        """The adjoint of :func:`g2p4` (and :func:`g2p`) written out (``MPMSolver.hand_g2p_adj``): from the outputs'
+        cotangents, the nodes' velocity cotangents added to ``acc`` (one vector atomic a node, as ``g2p4``'s adjoint;
+        :func:`grid_unpack_adj4` moves them into the velocity grid's gradient) and the particles' ``adj_x``, ``adj_F``
+        ADDED to. The output cotangents are read, not zeroed (warp's adjoint of a store zeroes them).
+
+        Forward (:func:`gathered`): ``v' = sum_i w_i v_i``, ``B = sum_i w_i v_i dpos_i^T``, ``C' = c B`` with
+        ``c = 4 / dx^2`` (APIC, Jiang et al. 2015, with the quadratic B-spline's ``D^-1``), ``y = x_p + dt v'``,
+        ``x' = clamp(y, lo, hi)``, ``F' = (I + dt C') F``. Backward, with ``g_y = adj_x'`` where ``lo <= y < hi``
+        (as warp's adjoint of the clamp routes it) else 0:
+
+            g_v = adj_v' + dt g_y,   G_B = c (adj_C' + dt adj_F' F^T),   adj_F += (I + dt C')^T adj_F',
+            node i: adj_v_i = w_i (g_v + G_B dpos_i),   adj_x += g_y + sum_i (a_i dw_i/dx - w_i G_B^T v_i)
+                    with a_i = v_i . (g_v + G_B dpos_i)."""
+        p = wp.tid()
+        x_p = x[p]
+        F_p = F[p]
+        base, fx, W = stencil(x_p, inv_dx, n_grid)
+        off = run_offset(run, p, n_grid, grid_v.shape[0])
+        v_new = vec3(T(0.0))
+        B = mat33(T(0.0))
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    v_i = grid_v[base[0] + i + PAD + off, base[1] + j + PAD, base[2] + k + PAD]
+                    v_new += w * v_i
+                    B += w * wp.outer(v_i, dpos)
+        c = T(4.0) * inv_dx * inv_dx
+        y = x_p + dt * v_new
+        gx = adj_x_out[p]
+        g_y = vec3(T(0.0))
+        for a in range(3):
+            if y[a] >= lo and y[a] < hi:  # as warp's adjoint of clamp = min(max(lo, y), hi) routes it
+                g_y[a] = gx[a]
+        gF = adj_F_out[p]
+        g_v = adj_v_out[p] + dt * g_y
+        G_B = c * (adj_C_out[p] + dt * gF @ wp.transpose(F_p))
+        G_Bt = wp.transpose(G_B)
+        adj_F[p] = adj_F[p] + wp.transpose(wp.identity(3, dtype=T) + (dt * c) * B) @ gF
+        dW = wp.matrix_from_rows(fx - vec3(T(1.5)), T(-2.0) * (fx - vec3(T(1.0))), fx - vec3(T(0.5)))
+        g_fx = vec3(T(0.0))
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = W[i, 0] * W[j, 1] * W[k, 2]
+                    dw = vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+                    dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
+                    I = base[0] + i + PAD + off
+                    J = base[1] + j + PAD
+                    K = base[2] + k + PAD
+                    v_i = grid_v[I, J, K]
+                    u = g_v + G_B @ dpos
+                    wu = w * u
+                    atomic_add4(acc, I, J, K, vec4(wu[0], wu[1], wu[2], T(0.0)))
+                    g_fx += wp.dot(v_i, u) * dw - (w / inv_dx) * (G_Bt @ v_i)
+        adj_x[p] = adj_x[p] + g_y + inv_dx * g_fx
+
+    return types.SimpleNamespace(p2g=p2g, p2g_adj=p2g_adj, g2p4_adj=g2p4_adj, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
                                  grid_update_unpack4=grid_update_unpack4, g2p4=g2p4, grid_unpack_adj4=grid_unpack_adj4,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
                                  vec3=vec3, vec4=vec4, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,

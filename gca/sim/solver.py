@@ -181,6 +181,11 @@ class MPMSolver:
     # fifth kernel of its iteration: NOTES session 52). The same gradients to rounding (another summation order).
     # True / False, or None: on CUDA only. Off until measured on a GPU
     hand_p2g_adj: bool | None = False
+    # the step's backward with G2P's adjoint written out (kernels.g2p4_adj) where it scatters into the interleaved
+    # accumulator (vec4_g2p_adj on, agg_g2p off; elsewhere no effect): warp's generated adjoint of g2p4 was 47.5 us a
+    # launch on the duck, the second kernel of its iteration (NOTES session 52). The same gradients to rounding.
+    # True / False, or None: on CUDA only. Off until measured on a GPU
+    hand_g2p_adj: bool | None = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -212,6 +217,7 @@ class MPMSolver:
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
         fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
         fine.vec4_step, fine.vec4_g2p_adj, fine.hand_p2g_adj = self.vec4_step, self.vec4_g2p_adj, self.hand_p2g_adj
+        fine.hand_g2p_adj = self.hand_g2p_adj
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
@@ -352,6 +358,12 @@ class MPMSolver:
         """Whether the step's backward takes P2G's written-out adjoint ``p2g_adj`` (``hand_p2g_adj``, resolved for
         this device)."""
         return self._resolve(self.hand_p2g_adj)
+
+    @property
+    def hands_g2p_adj(self) -> bool:
+        """Whether the step's backward takes G2P's written-out adjoint ``g2p4_adj`` (``hand_g2p_adj``, resolved for
+        this device; only where :attr:`vec4s_g2p_adj` and not :attr:`aggs_g2p`)."""
+        return self._resolve(self.hand_g2p_adj) and self.vec4s_g2p_adj and not self.aggs_g2p
 
     def block_windows(self, reset: bool = False) -> int:
         """How many thread blocks of the block-summed P2G (this solver's launches so far, or since the last
@@ -659,8 +671,14 @@ class MPMSolver:
                 acc = self._scratch_grid("g2p_adj", gv.shape[0] // grid_size(self.cfg.n_grid))
                 kargs = [*g2p_args[:4], acc, *g2p_args[4:]]
                 try:
-                    wp.launch(self.k.g2p4, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs],
-                              adjoint=True, device=self.wp_device)
+                    if self.hands_g2p_adj:  # written out: (x, F, run, grid_v, acc, dt, inv_dx, n_grid, lo, hi), the
+                        # outputs' cotangents, then the gradients of x and F it adds to
+                        wx, wF = kargs[0], kargs[1]
+                        wp.launch(self.k.g2p4_adj, dim=dim, inputs=[*kargs[:10], *(o.grad for o in kargs[10:]),
+                                                                    wx.grad, wF.grad], device=self.wp_device)
+                    else:
+                        wp.launch(self.k.g2p4, dim=dim, inputs=kargs, adj_inputs=[_adjoint(a) for a in kargs],
+                                  adjoint=True, device=self.wp_device)
                     wp.launch(self.k.grid_unpack_adj4, dim=gv.shape, inputs=[acc, gv.grad], device=self.wp_device)
                 except BaseException:  # stopped between the scatter and its unpacking: re-zero
                     acc.zero_()
