@@ -127,12 +127,17 @@ def test_the_training_path_with_the_written_out_adjoints_matches_warps():
         _close(a, b, torch.float64)
 
 
-def test_the_hand_switches_are_off_by_default_and_follow_refinement():
-    solver = MPMSolver(_cfg(torch.float64))
-    assert solver.hand_p2g_adj is False and not solver.hands_p2g_adj  # off until measured on a GPU
-    assert solver.hand_g2p_adj is False and not solver.hands_g2p_adj
-    solver.hand_p2g_adj = solver.hand_g2p_adj = None
+def test_the_hand_switches_default_to_cuda_and_follow_refinement():
+    import types
+
+    solver = MPMSolver(_cfg(torch.float32))
+    assert solver.hand_p2g_adj is None and solver.hand_g2p_adj is None  # on CUDA since session 52's measurement
     assert not solver.hands_p2g_adj and not solver.hands_g2p_adj  # None: CUDA only; this solver runs on the CPU
+    cuda = MPMSolver(_cfg(torch.float32))
+    cuda.device, cuda.wp_device = torch.device("cuda", 0), types.SimpleNamespace(arch=90)  # a device faked
+    assert cuda.hands_p2g_adj and cuda.hands_g2p_adj  # with vec4_g2p_adj's default there
+    cuda.vec4_g2p_adj = False
+    assert not cuda.hands_g2p_adj and cuda.hands_p2g_adj
     solver.hand_p2g_adj = solver.hand_g2p_adj = True
     assert solver.hands_p2g_adj and not solver.hands_g2p_adj  # G2P's needs the accumulator (vec4_g2p_adj: CUDA)
     solver.vec4_g2p_adj = True

@@ -179,13 +179,17 @@ class MPMSolver:
     # grid's cotangents, one thread a particle) instead of warp's generated adjoint of kernels.p2g, which replays the
     # 27 unrolled node updates and differentiates every temporary (34 us a launch of the duck's 30k particles, the
     # fifth kernel of its iteration: NOTES session 52). The same gradients to rounding (another summation order).
-    # True / False, or None: on CUDA only. Off until measured on a GPU
-    hand_p2g_adj: bool | None = False
+    # True / False, or None: on CUDA only. On there by default by the rule written before its measurement (NOTES
+    # session 52, H200: 34.4 -> 15.4 us a launch on the duck, 33.8 -> 16.4 on the ball; with hand_g2p_adj a
+    # full-horizon iteration's kernels 387 -> 357 ms on the duck, 356 -> 331 on the ball, twelve packed duck trainings
+    # -9.5 %, the solo duck 95.2 -> 92.7 s, the same CD to 1e-6)
+    hand_p2g_adj: bool | None = None
     # the step's backward with G2P's adjoint written out (kernels.g2p4_adj) where it scatters into the interleaved
     # accumulator (vec4_g2p_adj on, agg_g2p off; elsewhere no effect): warp's generated adjoint of g2p4 was 47.5 us a
     # launch on the duck, the second kernel of its iteration (NOTES session 52). The same gradients to rounding.
-    # True / False, or None: on CUDA only. Off until measured on a GPU
-    hand_g2p_adj: bool | None = False
+    # True / False, or None: on CUDA only. On there by default with hand_p2g_adj (NOTES session 52, H200: 48.2 -> 37.6
+    # us a launch on the duck, 37.1 -> 25.2 on the ball)
+    hand_g2p_adj: bool | None = None
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
