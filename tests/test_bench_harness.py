@@ -137,3 +137,12 @@ def test_profile_kernel_rows_keep_whole_names_largest_first():
     assert lines[0] == "name\tself_us\tcalls\tus_per_call"
     assert [line.split("\t")[0] for line in lines[1:]] == [long, "old_torch_name", "aten::mul"]  # no host-only row
     assert lines[1].split("\t")[1:] == ["300.0", "3", "100.00"]
+
+
+def test_bench_features_rows_on_the_cpu(tmp_path):
+    # the GPU bench's CPU twin: three rows timed, the one-kernel paths' outputs bitwise the two kernels', the JSON
+    bench = _load("bench_features")
+    rows = bench.main(["--device", "cpu", "--n", "64", "--reps", "2", "--json", str(tmp_path / "f.json")])
+    assert [r["row"] for r in rows] == ["two_kernels", "one_kernel_forward", "one_kernel_kept"]
+    assert all(r["equal"] and r["us"] > 0 for r in rows)
+    assert json.loads((tmp_path / "f.json").read_text())["n"] == 64

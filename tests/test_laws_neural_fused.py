@@ -69,6 +69,35 @@ def test_features_and_heads_equal_the_torch_formulas():
     torch.testing.assert_close(fused.plastic_head(X, R, F, 0.1), F + 0.1 * bmm3(R, S))
 
 
+@pytest.mark.parametrize("dtype", [f64, torch.float32])
+def test_the_svd_and_the_features_in_one_kernel_equal_the_two_kernels(dtype):
+    # session 52: _Features runs svd_features (the SVD inlined) instead of the SVD kernel then features: R and z
+    # bitwise the two kernels' on the CPU, the SVD stored only where ``keep`` (its NaN-filled buffers untouched
+    # otherwise), and a forward with gradients saves the SVD the backward reads
+    from gca.laws.svd import _svd_rotations
+
+    F = hard_F(dtype=dtype)
+    n, k = F.shape[0], fused.make_law_kernels(dtype)
+    U, sigma, Vh = _svd_rotations(F)
+    R0, z0 = torch.empty_like(F), torch.empty(n, fused.N_FEATURES, dtype=dtype)
+    fused._launch(k.features, n, F.device, [fused._m(F, k), fused._m(U, k), fused._v(sigma, k), fused._m(Vh, k),
+                                            fused._m(R0, k), fused._a(z0)])
+    for keep in (0, 1):
+        out = [torch.full_like(t, float("nan")) for t in (U, sigma, Vh, R0, z0)]
+        fused._launch(k.svd_features, n, F.device, [fused._m(F, k), keep, fused._m(out[0], k), fused._v(out[1], k),
+                                                    fused._m(out[2], k), fused._m(out[3], k), fused._a(out[4])])
+        assert torch.equal(out[3], R0) and torch.equal(out[4], z0)
+        for a, b in zip(out[:3], (U, sigma, Vh)):
+            assert torch.equal(a, b) if keep else torch.isnan(a).all()
+    with torch.no_grad():
+        R1, z1 = fused.features(F)
+    assert torch.equal(R1, R0) and torch.equal(z1, z0)
+    Fg = F.clone().requires_grad_(True)
+    R2, z2 = fused.features(Fg)
+    saved = R2.grad_fn.saved_tensors
+    assert torch.equal(saved[1], U) and torch.equal(saved[2], sigma) and torch.equal(saved[3], Vh)
+
+
 @pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
 @pytest.mark.parametrize("dtype, tol", [(f64, 1e-12), (torch.float32, 2e-5)])
 def test_fast_path_equals_reference_values_and_gradients(law_cls, dtype, tol):

@@ -32,7 +32,7 @@ import torch
 import warp as wp
 from torch.autograd.function import once_differentiable
 
-from gca.laws.svd import _svd_rotations, default_eps
+from gca.laws.svd import _svd_rotations, default_eps, warp_runs
 from gca.laws.svd_kernel import WARP_FLOATS, make_svd_kernel
 from gca.warp_stream import on_torch_stream
 
@@ -81,13 +81,11 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
             for j in range(3):
                 out[p, 3 * i + j] = S[i, j]
 
-    @wp.kernel(module=module)
-    def features(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
-                 Vh: wp.array(dtype=mat33), R: wp.array(dtype=mat33), z: wp.array2d(dtype=T)):
-        p = wp.tid()
-        f = F[p]
-        R[p] = U[p] @ Vh[p]
-        sv = s[p]
+    @wp.func
+    def store_features(f: mat33, u: mat33, sv: vec3, vh: mat33, p: int, R: wp.array(dtype=mat33),
+                       z: wp.array2d(dtype=T)):
+        """Particle ``p``'s R = U Vh and z = [sigma - 1, vec(F^T F - I), det F - 1] from its SVD."""
+        R[p] = u @ vh
         C = wp.transpose(f) @ f
         for i in range(3):
             z[p, i] = sv[i] - T(1.0)
@@ -97,6 +95,12 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
                     shift = T(1.0)
                 z[p, 3 + 3 * i + j] = C[i, j] - shift
         z[p, 12] = wp.determinant(f) - T(1.0)
+
+    @wp.kernel(module=module)
+    def features(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
+                 Vh: wp.array(dtype=mat33), R: wp.array(dtype=mat33), z: wp.array2d(dtype=T)):
+        p = wp.tid()
+        store_features(F[p], U[p], s[p], Vh[p], p, R, z)
 
     @wp.kernel(module=module)
     def features_adjoint(F: wp.array(dtype=mat33), U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
@@ -204,6 +208,21 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
 
     svd3 = make_svd_kernel(dtype).svd3
 
+    @wp.kernel(module=module)
+    def svd_features(F: wp.array(dtype=mat33), keep: int, U: wp.array(dtype=mat33), s: wp.array(dtype=vec3),
+                     Vh: wp.array(dtype=mat33), R: wp.array(dtype=mat33), z: wp.array2d(dtype=T)):
+        """The SVD kernel and :func:`features` in one pass (``_Features``'s forward since session 52: one launch, F
+        read once, the SVD kept in registers); (U, sigma, Vh) stored only where ``keep`` (a backward will read them:
+        a rollout's forward without gradients stores none)."""
+        p = wp.tid()
+        f = F[p]
+        u, sv, vh = svd3(f)
+        if keep != 0:
+            U[p] = u
+            s[p] = sv
+            Vh[p] = vh
+        store_features(f, u, sv, vh, p, R, z)
+
     @wp.func
     def analytic_stress(kind: int, f: mat33, mu: T, lam: T, j_min: T):
         """Kirchhoff stress of the analytic law ``kind`` (:data:`ANALYTIC_KINDS`) of one particle, the SVD inlined:
@@ -240,7 +259,8 @@ def make_law_kernels(dtype: torch.dtype) -> types.SimpleNamespace:
         v_mu[p] = acc - trG
         v_lam[p] = trG * wp.log(wp.max(J, j_min))
 
-    return types.SimpleNamespace(features=features, features_adjoint=features_adjoint, elastic_head=elastic_head,
+    return types.SimpleNamespace(features=features, svd_features=svd_features, features_adjoint=features_adjoint,
+                                 elastic_head=elastic_head,
                                  corotated=corotated, corotated_adjoint=corotated_adjoint,
                                  neo_hookean=neo_hookean, neo_hookean_adjoint=neo_hookean_adjoint,
                                  elastic_head_adjoint=elastic_head_adjoint, plastic_head=plastic_head,
@@ -273,12 +293,22 @@ class _Features(torch.autograd.Function):
     @staticmethod
     def forward(ctx, F):
         F = F.detach().contiguous()
-        U, sigma, Vh = _svd_rotations(F)
         k = make_law_kernels(F.dtype)
+        n = F.shape[0]
         R = torch.empty_like(F)
-        z = torch.empty(F.shape[0], N_FEATURES, dtype=F.dtype, device=F.device)
-        if F.shape[0]:
-            _launch(k.features, F.shape[0], F.device, [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _m(R, k), _a(z)])
+        z = torch.empty(n, N_FEATURES, dtype=F.dtype, device=F.device)
+        if warp_runs(F):  # the SVD and the features in one kernel; the SVD stored only for a backward
+            keep = bool(ctx.needs_input_grad[0])
+            m = n if keep else 1
+            U, Vh = (torch.empty(m, 3, 3, dtype=F.dtype, device=F.device) for _ in range(2))
+            sigma = torch.empty(m, 3, dtype=F.dtype, device=F.device)
+            if n:
+                _launch(k.svd_features, n, F.device, [_m(F, k), int(keep), _m(U, k), _v(sigma, k), _m(Vh, k),
+                                                       _m(R, k), _a(z)])
+        else:  # torch's SVD (a CPU where warp has no compiler: gca.laws.svd), then the features kernel
+            U, sigma, Vh = _svd_rotations(F)
+            if n:
+                _launch(k.features, n, F.device, [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _m(R, k), _a(z)])
         ctx.save_for_backward(F, U, sigma, Vh)
         return R, z
 

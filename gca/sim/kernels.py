@@ -732,6 +732,16 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         adj_grid_v[s0, s1, s2] = adj_grid_v[s0, s1, s2] + vec3(g[0], g[1], g[2])
         acc[s0, s1, s2] = vec4(T(0.0))
 
+    @wp.func
+    def spline_slopes(fx: vec3):
+        """d W[k, axis] / d fx[axis] of :func:`stencil`'s quadratic B-spline weights, rows k = 0, 1, 2."""
+        return wp.matrix_from_rows(fx - vec3(T(1.5)), T(-2.0) * (fx - vec3(T(1.0))), fx - vec3(T(0.5)))
+
+    @wp.func
+    def weight_slope(W: mat33, dW: mat33, i: int, j: int, k: int):
+        """d w / d fx of node (i, j, k)'s weight ``w = W[i, 0] W[j, 1] W[k, 2]``."""
+        return vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+
     @wp.kernel(module=adj_module)
     def p2g_adj(
         x: wp.array(dtype=vec3),
@@ -773,7 +783,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         A = k_s * tau[p] + m_p * C[p]
         At = wp.transpose(A)
         mv_p = m_p * v[p]
-        dW = wp.matrix_from_rows(fx - vec3(T(1.5)), T(-2.0) * (fx - vec3(T(1.0))), fx - vec3(T(0.5)))
+        dW = spline_slopes(fx)
         g_v = vec3(T(0.0))
         g_A = mat33(T(0.0))
         g_fx = vec3(T(0.0))
@@ -781,7 +791,7 @@ def make_kernels(T: type) -> types.SimpleNamespace:
             for j in range(3):
                 for k in range(3):
                     w = W[i, 0] * W[j, 1] * W[k, 2]
-                    dw = vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+                    dw = weight_slope(W, dW, i, j, k)
                     dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
                     I = base[0] + i + PAD + off
                     J = base[1] + j + PAD
@@ -856,13 +866,13 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         G_B = c * (adj_C_out[p] + dt * gF @ wp.transpose(F_p))
         G_Bt = wp.transpose(G_B)
         adj_F[p] = adj_F[p] + wp.transpose(wp.identity(3, dtype=T) + (dt * c) * B) @ gF
-        dW = wp.matrix_from_rows(fx - vec3(T(1.5)), T(-2.0) * (fx - vec3(T(1.0))), fx - vec3(T(0.5)))
+        dW = spline_slopes(fx)
         g_fx = vec3(T(0.0))
         for i in range(3):
             for j in range(3):
                 for k in range(3):
                     w = W[i, 0] * W[j, 1] * W[k, 2]
-                    dw = vec3(dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2])
+                    dw = weight_slope(W, dW, i, j, k)
                     dpos = (vec3(T(int(i)), T(int(j)), T(int(k))) - fx) / inv_dx
                     I = base[0] + i + PAD + off
                     J = base[1] + j + PAD
