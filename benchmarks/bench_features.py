@@ -9,7 +9,9 @@ Rows: ``two_kernels`` (``gca.laws.svd._svd_rotations`` then ``features``: the pa
 ``one_kernel_forward`` (``gca.laws.fused.features`` without gradients: the SVD not stored, a rollout's forward),
 ``one_kernel_kept`` (with gradients asked: the SVD stored for the backward, a replay's forward). F near the identity
 (the duck's training states are within ~10 % of it). Timed by CUDA events on a GPU (the mean of ``--reps`` launches
-after a warm-up), by the wall clock elsewhere; the three rows' R and z must be equal (checked, bitwise).
+after a warm-up; each call captured in a CUDA graph and replayed, as training replays its frames), by the wall clock
+elsewhere; the three rows' R and z must be equal (checked, bitwise). Session 52's first run timed eager calls (the
+host's launch rate, ~250-300 us a call) and found the three paths' outputs bitwise equal on the H200.
 """
 
 from __future__ import annotations
@@ -26,13 +28,20 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _timed(fn, reps: int, device: torch.device) -> float:
-    """Mean seconds of ``fn()`` over ``reps`` calls after one warm-up call."""
+    """Mean seconds of ``fn()`` over ``reps`` calls after one warm-up call; on a GPU ``fn`` captured in a CUDA graph
+    and the graph replayed (eager calls time the host's launches: ~250-300 us a call on the H200 in session 52, for
+    kernels of ~10 us)."""
     fn()
     if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            fn()
+        graph.replay()
         start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         start.record()
         for _ in range(reps):
-            fn()
+            graph.replay()
         end.record()
         end.synchronize()
         return start.elapsed_time(end) / 1e3 / reps
@@ -47,9 +56,9 @@ def rows(n: int, reps: int, device: str, seed: int = 0) -> list[dict]:
     from gca.laws import fused
     from gca.laws.svd import _svd_rotations
 
-    dev = torch.device(device)
     g = torch.Generator().manual_seed(seed)
-    F = (torch.eye(3) + 0.1 * torch.randn(n, 3, 3, generator=g)).to(dev).contiguous()
+    F = (torch.eye(3) + 0.1 * torch.randn(n, 3, 3, generator=g)).to(device).contiguous()
+    dev = F.device  # with its index (warp needs it: torch.device("cuda") has none)
     k = fused.make_law_kernels(F.dtype)
 
     def two():
