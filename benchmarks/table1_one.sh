@@ -19,6 +19,15 @@
 #       restored by the first grid call that exits 0, W/.restored marks it)
 #   GCA_COMMIT  required for the grid: the commit sent (`git rev-parse --short HEAD` here; the copy there carries a stale
 #       .git, and session 32's runs recorded 4d7bdae+dirty without it)
+#   Session 52: PART=start / PART=watch run ONE grid across device calls: the machine keeps a process that started a
+#   session of its own (setsid) after the call that started it returns (device README), so the grid no longer stops at
+#   each call's deadline and restarts its runs in the next (sessions 49-50: ~1 min of twelve runs restarting a call,
+#   and the slots left idle before each deadline):
+#     . .wpb/activate.sh && GCA_COMMIT=<sha> PART=start DEADLINE=<s the budget allows> OUT=$OUT sh benchmarks/table1_one.sh
+#       (returns at once: the grid, its sampler and their exit status in the background, logs in W), then at once and
+#       again within 30 s of each return:  . .wpb/activate.sh && PART=watch WATCH_S=570 OUT=$OUT sh benchmarks/table1_one.sh
+#       (waits until the grid ends or WATCH_S pass; prints its progress; when it has ended: its seconds, rc, and the
+#       collected results in $OUT as PART=grid leaves them). GRID_MODULE replaces gca.pipeline.grid (the CPU test's)
 set -u
 OUT=${OUT:-/tmp/table1_one_out}; PART=${PART:-grid}; W=${W:-/tmp/t1one}
 mkdir -p "$OUT" "$W"
@@ -36,35 +45,79 @@ if [ "$PART" = build ]; then
   t0=$(date +%s); timeout 300 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1
   echo "gsplat build rc=$? in $(( $(date +%s) - t0 )) s"
 fi
+GRID=${GRID_MODULE:-gca.pipeline.grid}
+# sample: GPU and CPU use beside the grid, every 5 s, appended to $1 (session 49): time, cpu busy and idle jiffies
+# (/proc/stat), GPU utilisation [%] and memory [MiB] (is a packed table GPU- or CPU-bound?)
+sample() {
+  while :; do echo "$(date +%s) $(awk '/^cpu /{print $2+$3+$4+$7+$8, $5+$6}' /proc/stat) $(nvidia-smi \
+    --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits 2> /dev/null | tr -d ,)"; sleep 5; done >> "$1"
+}
+# restore_arg: STATE's --restore-state on this machine's first grid that succeeds (W/.restored marks it), else nothing
+restore_arg() {
+  [ -n "${STATE:-}" ] || return 0
+  [ -f "$STATE" ] || { echo "table1_one.sh: STATE=$STATE: no such file (carry it as an untracked file)" >&2; return 2; }
+  [ -f "$W/.restored" ] || echo "--restore-state $STATE"
+}
+# run_grid RESTORE: the grid (DEADLINE, SLOTS, GRID_ARGS) appended to W/grid.log; its exit status
+run_grid() {
+  set -f  # GRID_ARGS unquoted for its words, not for globs: "--set train.seeds=[0,1,2]" is no pattern
+  # shellcheck disable=SC2086
+  python3 -m "$GRID" --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
+      --profile paper --gpus 1 --slots "${SLOTS:-12}" --mps --priors benchmarks/results/priors_paper \
+      --stages assets particles ground_truth preprocess nuisance train evaluate report --deadline "${DEADLINE:-560}" \
+      ${GRID_ARGS:-} $1 >> "$W/grid.log" 2>&1
+  rc=$?
+  set +f
+  [ -z "$1" ] || [ "$rc" != 0 ] || touch "$W/.restored"
+  return "$rc"
+}
+# collect: the grid's log and small results into OUT
+collect() {
+  cp "$W/grid.log" "$OUT/grid.log"
+  python3 -m "$GRID" --work "$W" --scenes ball duck pawn cat fish bottle --collect "$OUT" --collect-only \
+      > /dev/null 2>&1 || echo "collect failed"
+  ls "$W/reports" 2>/dev/null | head
+}
 if [ "$PART" = grid ]; then
   need_commit table1_one.sh
   compile_bytecode "$OUT/compileall.log"
-  # session 49: GPU and CPU use beside the grid, every 5 s: time, cpu busy and idle jiffies (/proc/stat), GPU
-  # utilisation [%] and memory [MiB] (is a packed table GPU- or CPU-bound?)
-  (while :; do echo "$(date +%s) $(awk '/^cpu /{print $2+$3+$4+$7+$8, $5+$6}' /proc/stat) $(nvidia-smi \
-     --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits | tr -d ,)"; sleep 5; done >> "$OUT/util.txt") &
+  sample "$OUT/util.txt" &
   sampler=$!
   trap 'kill "$sampler" 2> /dev/null' EXIT; trap 'exit 143' TERM; trap 'exit 130' INT  # the sampler ends with the script
-  restore=""  # STATE: restored on this machine's first grid call that succeeds (W/.restored marks it)
-  if [ -n "${STATE:-}" ]; then
-    [ -f "$STATE" ] || { echo "table1_one.sh: STATE=$STATE: no such file (carry it as an untracked file)"; exit 2; }
-    [ -f "$W/.restored" ] || restore="--restore-state $STATE"
-  fi
+  restore=$(restore_arg) || exit 2
   t0=$(date +%s)
-  set -f  # GRID_ARGS unquoted for its words, not for globs: "--set train.seeds=[0,1,2]" is no pattern
-  # shellcheck disable=SC2086
-  python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --methods nclaw neuma gca \
-      --profile paper --gpus 1 --slots "${SLOTS:-12}" --mps --priors benchmarks/results/priors_paper \
-      --stages assets particles ground_truth preprocess nuisance train evaluate report --deadline "${DEADLINE:-560}" \
-      ${GRID_ARGS:-} $restore >> "$W/grid.log" 2>&1
+  run_grid "$restore"
   rc=$?
-  set +f
-  [ -z "$restore" ] || [ "$rc" != 0 ] || touch "$W/.restored"
   kill "$sampler" 2> /dev/null
   echo "call: grid rc=$rc, $(( $(date +%s) - t0 )) s (SLOTS=${SLOTS:-12}, DEADLINE=${DEADLINE:-560})" | tee -a "$OUT/timing.txt"
-  cp "$W/grid.log" "$OUT/grid.log"
   grep -E "done|stop|FAIL|after|left|took|mps" "$W/grid.log" | tail -n 30
-  python3 -m gca.pipeline.grid --work "$W" --scenes ball duck pawn cat fish bottle --collect "$OUT" --collect-only \
-      > /dev/null 2>&1 || echo "collect failed"
-  ls "$W/reports" 2>/dev/null | head
+  collect
+fi
+if [ "$PART" = start ]; then  # the grid in a process session of its own: it outlives this call (device README)
+  need_commit table1_one.sh
+  [ ! -f "$W/bg.t0" ] || { echo "table1_one.sh: a grid was started in $W already (PART=watch follows it)"; exit 2; }
+  compile_bytecode "$OUT/compileall.log"
+  restore=$(restore_arg) || exit 2
+  date +%s > "$W/bg.t0"
+  # the background's stdio on files: the device tool would wait for a pipe the grid held open
+  # (PART=lib: this script's settings and functions only)
+  ( trap '' HUP; PART=lib setsid sh -c '. benchmarks/table1_one.sh; sample "$W/util.txt" & s=$!; run_grid "$0"; rc=$?
+      kill $s 2> /dev/null; echo "$rc $(date +%s)" > "$W/bg.rc"' "$restore" < /dev/null > "$W/bg.out" 2>&1 & )
+  echo "grid started in the background ($(date +%T); DEADLINE=${DEADLINE:-560} s, SLOTS=${SLOTS:-12}): PART=watch follows it"
+fi
+if [ "$PART" = watch ]; then
+  [ -f "$W/bg.t0" ] || { echo "table1_one.sh: no grid started in $W (PART=start first; a machine gone cold loses it)"; exit 2; }
+  t=$(date +%s)
+  while [ ! -f "$W/bg.rc" ] && [ $(( $(date +%s) - t )) -lt "${WATCH_S:-560}" ]; do sleep 5; done
+  t0=$(cat "$W/bg.t0")
+  grep -E "done|stop|FAIL|after|left|took|mps" "$W/grid.log" 2> /dev/null | tail -n "${LINES_SHOWN:-12}"
+  if [ -f "$W/bg.rc" ]; then
+    read -r rc t1 < "$W/bg.rc"
+    echo "grid ended: rc=$rc, $(( t1 - t0 )) s of grid time in one run (SLOTS=${SLOTS:-12})" | tee -a "$OUT/timing.txt"
+    cp "$W/util.txt" "$OUT/util.txt" 2> /dev/null
+    collect
+  else
+    echo "grid running: $(( $(date +%s) - t0 )) s so far; PART=watch again within 30 s"
+    cp "$W/grid.log" "$OUT/grid.log"
+  fi
 fi
