@@ -92,6 +92,7 @@ def test_without_the_written_out_adjoint_the_gradients_change(switch, only):
     assert float((broken[0] - full[0]).abs().max()) > 1e-6 * float(full[0].abs().max())
 
 
+@pytest.mark.grad
 def test_the_step_with_the_written_out_adjoint_passes_a_float64_gradcheck():
     cfg = SimConfig(n_grid=8, dt=1e-3, bound=1, boundary="friction", friction=0.3, dtype="float64", max_refine=1)
     x, v, C, F, tau, vol, mass = _state(24, seed=43, lo=0.3, hi=0.7)
