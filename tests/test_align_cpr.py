@@ -288,6 +288,7 @@ def test_weights_and_residual_follow_the_documented_formula():
     assert all(float(f.weight) == pytest.approx(1 / literal.eps) for f in info["plastic"].values())
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_residuals_synchronise_with_the_host_once_on_cuda():
     """On a GPU a CPR call reads back one number set (the finiteness check): fits, weights and the

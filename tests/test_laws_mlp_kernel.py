@@ -118,8 +118,8 @@ def test_gradcheck_catches_a_wrong_activation_derivative(monkeypatch):
         mk.make_mlp_kernels.cache_clear()
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
-    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device")])])
 def test_weight_gradients_repeat_bit_for_bit(device):
     # the backward's blocks each sum their tiles' weight gradients on chip and the partials are summed in a fixed
     # order: the same inputs give the same bits. On the CPU warp runs blocks one after another, so any version
@@ -251,6 +251,7 @@ def test_rollout_with_the_tile_mlp_equals_the_torch_mlp():
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-9)
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("kind", ["simt", "warp"])
 def test_frames_with_a_warp_mlp_are_captured_on_cuda(kind):

@@ -137,6 +137,7 @@ def test_wrong_dtype_is_refused():
         fused.features(torch.eye(3, dtype=torch.float16)[None])
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("law_cls", [NeuralElasticity, NeuralPlasticity])
 def test_fast_path_on_cuda_equals_the_cpu(law_cls):

@@ -1,6 +1,8 @@
 """The pytest markers are applied by rule, not by memory: every test that runs a float64 gradcheck (directly or
-through a helper of its file) carries ``grad``; only registered markers exist (``--strict-markers``); the slow
-list (``tests/slow.txt``, measured) names tests that exist."""
+through a helper of its file) carries ``grad``; every test skipped where torch sees no CUDA device carries ``gpu``
+(the device bundles select the CUDA tests with ``-m gpu``; session 52's selected none of a file whose CUDA tests were
+only skipped); only registered markers exist (``--strict-markers``); the slow list (``tests/slow.txt``, measured)
+names tests that exist."""
 
 import ast
 from pathlib import Path
@@ -38,6 +40,32 @@ def test_the_rule_sees_a_gradcheck_behind_a_helper():
     tree = ast.parse("def _check(f):\n    gradcheck(f, ())\n\ndef test_a():\n    _check(None)\n\n"
                      "@pytest.mark.grad\ndef test_b():\n    gradcheck(None, ())\n\ndef test_c():\n    pass\n")
     assert grad_tests(tree) == {"test_a": False, "test_b": True}
+
+
+def cuda_skipped_tests(tree: ast.Module) -> dict[str, bool]:
+    """Test name -> whether it is marked ``gpu``, for the tests of a module skipped whole by a ``skipif`` on
+    ``torch.cuda.is_available()`` (a CUDA case among parameters carries its marks itself: ``pytest.param``)."""
+    return {f.name: any("mark.gpu" in ast.unparse(d) for d in f.decorator_list)
+            for f in tree.body if isinstance(f, ast.FunctionDef) and f.name.startswith("test_")
+            and any(ast.unparse(d).startswith("pytest.mark.skipif") and "cuda.is_available" in ast.unparse(d)
+                    for d in f.decorator_list)}
+
+
+def test_every_test_skipped_without_cuda_is_marked_gpu():
+    unmarked = [f"{p.name}::{name}" for p in sorted(TESTS.glob("test_*.py"))
+                for name, marked in cuda_skipped_tests(ast.parse(p.read_text())).items() if not marked]
+    assert unmarked == []
+
+
+def test_the_gpu_rule_sees_an_unmarked_cuda_test():
+    """Negative control: a CUDA-skipped test without ``gpu`` is found, a marked one and a plain one are not, nor one
+    whose CUDA case is a parameter's."""
+    skip = '@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")\n'
+    param = ('@pytest.mark.parametrize("d", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif('
+             'not torch.cuda.is_available(), reason="x"))])\n')
+    tree = ast.parse(f"{skip}def test_a():\n    pass\n\n@pytest.mark.gpu\n{skip}def test_b():\n    pass\n\n"
+                     f"def test_c():\n    pass\n\n{param}def test_d(d):\n    pass\n")
+    assert cuda_skipped_tests(tree) == {"test_a": False, "test_b": True}
 
 
 def test_markers_are_strict_and_the_slow_list_is_real(pytestconfig):
