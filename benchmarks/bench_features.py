@@ -59,14 +59,9 @@ def rows(n: int, reps: int, device: str, seed: int = 0) -> list[dict]:
     g = torch.Generator().manual_seed(seed)
     F = (torch.eye(3) + 0.1 * torch.randn(n, 3, 3, generator=g)).to(device).contiguous()
     dev = F.device  # with its index (warp needs it: torch.device("cuda") has none)
-    k = fused.make_law_kernels(F.dtype)
 
     def two():
-        U, s, Vh = _svd_rotations(F)
-        R, z = torch.empty_like(F), torch.empty(n, fused.N_FEATURES, device=dev)
-        fused._launch(k.features, n, dev, [fused._m(F, k), fused._m(U, k), fused._v(s, k), fused._m(Vh, k),
-                                           fused._m(R, k), fused._a(z)])
-        return R, z
+        return fused.features_of_svd(F, *_svd_rotations(F))
 
     def forward():
         with torch.no_grad():

@@ -79,9 +79,7 @@ def test_the_svd_and_the_features_in_one_kernel_equal_the_two_kernels(dtype):
     F = hard_F(dtype=dtype)
     n, k = F.shape[0], fused.make_law_kernels(dtype)
     U, sigma, Vh = _svd_rotations(F)
-    R0, z0 = torch.empty_like(F), torch.empty(n, fused.N_FEATURES, dtype=dtype)
-    fused._launch(k.features, n, F.device, [fused._m(F, k), fused._m(U, k), fused._v(sigma, k), fused._m(Vh, k),
-                                            fused._m(R0, k), fused._a(z0)])
+    R0, z0 = fused.features_of_svd(F, U, sigma, Vh)
     for keep in (0, 1):
         out = [torch.full_like(t, float("nan")) for t in (U, sigma, Vh, R0, z0)]
         fused._launch(k.svd_features, n, F.device, [fused._m(F, k), keep, fused._m(out[0], k), fused._v(out[1], k),

@@ -287,17 +287,28 @@ def _a(t: torch.Tensor) -> wp.array:
     return wp.from_torch(t.contiguous())
 
 
+def features_of_svd(F: torch.Tensor, U: torch.Tensor, sigma: torch.Tensor, Vh: torch.Tensor):
+    """(R [N,3,3], z [N,13]) of F [N,3,3] from its SVD (U, sigma [N,3], Vh) by the ``features`` kernel, no autograd:
+    the two-kernel path (the SVD kernel, then this) that ``svd_features`` fuses."""
+    k = make_law_kernels(F.dtype)
+    R = torch.empty_like(F)
+    z = torch.empty(F.shape[0], N_FEATURES, dtype=F.dtype, device=F.device)
+    if F.shape[0]:
+        _launch(k.features, F.shape[0], F.device, [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _m(R, k), _a(z)])
+    return R, z
+
+
 class _Features(torch.autograd.Function):
     """F [N,3,3] -> (R [N,3,3] polar rotation, z [N,13] rest-shifted invariants)."""
 
     @staticmethod
     def forward(ctx, F):
         F = F.detach().contiguous()
-        k = make_law_kernels(F.dtype)
         n = F.shape[0]
-        R = torch.empty_like(F)
-        z = torch.empty(n, N_FEATURES, dtype=F.dtype, device=F.device)
         if warp_runs(F):  # the SVD and the features in one kernel; the SVD stored only for a backward
+            k = make_law_kernels(F.dtype)
+            R = torch.empty_like(F)
+            z = torch.empty(n, N_FEATURES, dtype=F.dtype, device=F.device)
             keep = bool(ctx.needs_input_grad[0])
             m = n if keep else 1
             U, Vh = (torch.empty(m, 3, 3, dtype=F.dtype, device=F.device) for _ in range(2))
@@ -307,8 +318,7 @@ class _Features(torch.autograd.Function):
                                                        _m(R, k), _a(z)])
         else:  # torch's SVD (a CPU where warp has no compiler: gca.laws.svd), then the features kernel
             U, sigma, Vh = _svd_rotations(F)
-            if n:
-                _launch(k.features, n, F.device, [_m(F, k), _m(U, k), _v(sigma, k), _m(Vh, k), _m(R, k), _a(z)])
+            R, z = features_of_svd(F, U, sigma, Vh)
         ctx.save_for_backward(F, U, sigma, Vh)
         return R, z
 

@@ -767,8 +767,8 @@ def make_kernels(T: type) -> types.SimpleNamespace:
         particle; warp's generated adjoint replays the 27 unrolled node updates and differentiates every temporary.
 
         With ``A = k tau + m C``, ``k = -4 dt vol / dx^2`` (MLS-MPM's affine momentum with the Kirchhoff stress, Hu et
-        al. 2018, as :func:`p2g` adds it) and node i's share ``w_i (m v + A dpos_i)`` and ``w_i m``, ``dpos_i = x_i - x_p``,
-        ``g_i = adj_mv[i]``, ``h_i = adj_m[i]``, ``s_i = g_i . (m v + A dpos_i) + h_i m``:
+        al. 2018, as :func:`p2g` adds it) and node i's share ``w_i (m v + A dpos_i)`` and ``w_i m``,
+        ``dpos_i = x_i - x_p``, ``g_i = adj_mv[i]``, ``h_i = adj_m[i]``, ``s_i = g_i . (m v + A dpos_i) + h_i m``:
 
             adj_v += m sum_i w_i g_i,     adj_A = sum_i w_i g_i dpos_i^T  (adj_C += m adj_A, adj_tau += k adj_A),
             adj_x += sum_i (s_i dw_i/dx - w_i A^T g_i)
@@ -884,7 +884,8 @@ def make_kernels(T: type) -> types.SimpleNamespace:
                     g_fx += wp.dot(v_i, u) * dw - (w / inv_dx) * (G_Bt @ v_i)
         adj_x[p] = adj_x[p] + g_y + inv_dx * g_fx
 
-    return types.SimpleNamespace(p2g=p2g, p2g_adj=p2g_adj, g2p4_adj=g2p4_adj, p2g_nodes=p2g_nodes, p2g_block=p2g_block, p2g_agg=p2g_agg, p2g4=p2g4,
+    return types.SimpleNamespace(p2g=p2g, p2g_adj=p2g_adj, g2p4_adj=g2p4_adj, p2g_nodes=p2g_nodes, p2g_block=p2g_block,
+                                 p2g_agg=p2g_agg, p2g4=p2g4,
                                  grid_update_unpack4=grid_update_unpack4, g2p4=g2p4, grid_unpack_adj4=grid_unpack_adj4,
                                  grid_update=grid_update, g2p=g2p, g2p_agg=g2p_agg,
                                  vec3=vec3, vec4=vec4, mat33=mat33, T=T, scatter=scatter, scatter_agg=scatter_agg,
