@@ -5,7 +5,8 @@
 #
 #   call 1 carry [".wpa"]:                          sh .wpa/stage.sh
 #   call 2 carry [".wpb", ".whl", ".whl_render"]:   . .wpb/activate.sh && PART=build OUT=$OUT sh benchmarks/table1_one.sh
-#       the wheels beside warp and gsplat's JIT build (the install `make pipeline` does once; not timed)
+#       the wheels beside warp, gsplat's JIT build (the install `make pipeline` does once; not timed) and, since
+#       session 53, warp's kernel compiles by a short warm-up training (WARM_ITERS; once a machine: cached there)
 #   call 3 (no carry, within 30 s):  . .wpb/activate.sh && GCA_COMMIT=<sha> PART=grid DEADLINE=560 OUT=$OUT sh benchmarks/table1_one.sh
 #       the grid, stopped at DEADLINE s (its jobs checkpoint); the same command again resumes it until "nothing left".
 #       $OUT/timing.txt: each call's grid seconds; $OUT/grid_results.tar.gz: the small results; $OUT/grid.log
@@ -28,6 +29,8 @@
 #       again within 30 s of each return:  . .wpb/activate.sh && PART=watch WATCH_S=570 OUT=$OUT sh benchmarks/table1_one.sh
 #       (waits until the grid ends or WATCH_S pass; prints its progress; when it has ended: its seconds, rc, and the
 #       collected results in $OUT as PART=grid leaves them). GRID_MODULE replaces gca.pipeline.grid (the CPU test's)
+#       Session 53: every watch also brings back a snapshot, running or ended: grid.log, grid_results.tar.gz,
+#       timeline.png, util.txt and the state of what has finished (state.tgz, for STATE= on another machine)
 set -u
 OUT=${OUT:-/tmp/table1_one_out}; PART=${PART:-grid}; W=${W:-/tmp/t1one}
 mkdir -p "$OUT" "$W"
@@ -44,6 +47,15 @@ if [ "$PART" = build ]; then
   echo "imports before: $(imports) s, $(imports) s"; compile_bytecode "$OUT/compileall.log"; echo "imports after: $(imports) s, $(imports) s"
   t0=$(date +%s); timeout 300 python3 -m gca.render.backend --build > "$OUT/gsplat_build.log" 2>&1
   echo "gsplat build rc=$? in $(( $(date +%s) - t0 )) s"
+  # session 53: warp compiles the project's kernels at their first use and caches them on the machine; with a cold
+  # cache the three-seed grid's six input jobs took 105-109 s, against 42-79 s in sessions 48-50, whose calls had run a
+  # warm-up training first (session 52's plan left it out). The one-time install compiles them here, timed, as it
+  # builds gsplat: WARM_ITERS GCA iterations on the pawn (default 10; 0: none, the grid then pays the compiles)
+  if [ "${WARM_ITERS:-10}" -gt 0 ]; then
+    t0=$(date +%s)
+    (OUT=/tmp/warm_out && mkdir -p "$OUT" && . benchmarks/harness_runs.sh && run warm pawn /tmp/warm "${WARM_ITERS:-10}" 240)
+    echo "kernel warm-up (${WARM_ITERS:-10} pawn GCA iterations) in $(( $(date +%s) - t0 )) s"
+  fi
 fi
 GRID=${GRID_MODULE:-gca.pipeline.grid}
 # sample: GPU and CPU use beside the grid, every 5 s, appended to $1 (session 49): time, cpu busy and idle jiffies
@@ -71,11 +83,15 @@ run_grid() {
   [ -z "$1" ] || [ "$rc" != 0 ] || touch "$W/.restored"
   return "$rc"
 }
-# collect: the grid's log and small results into OUT
+# collect [STATE]: the grid's log and small results into OUT; with STATE also the grid's state (`--save-state`) as
+# OUT/state.tgz: PART=watch takes both while the grid runs, so a machine lost between calls (session 53: one went
+# cold after 1065 s of a three-seed grid, and the 81 finished jobs with it) leaves the finished runs here (STATE= on
+# the next machine goes on from them)
 collect() {
   cp "$W/grid.log" "$OUT/grid.log"
+  # shellcheck disable=SC2046
   python3 -m "$GRID" --work "$W" --scenes ball duck pawn cat fish bottle --collect "$OUT" --collect-only \
-      > /dev/null 2>&1 || echo "collect failed"
+      $( [ -z "${1:-}" ] || echo "--save-state $OUT/state.tgz") > "$W/collect.log" 2>&1 || echo "collect failed: $(tail -n 1 "$W/collect.log")"
   ls "$W/reports" 2>/dev/null | head
 }
 if [ "$PART" = grid ]; then
@@ -115,9 +131,10 @@ if [ "$PART" = watch ]; then
     read -r rc t1 < "$W/bg.rc"
     echo "grid ended: rc=$rc, $(( t1 - t0 )) s of grid time in one run (SLOTS=${SLOTS:-12})" | tee -a "$OUT/timing.txt"
     cp "$W/util.txt" "$OUT/util.txt" 2> /dev/null
-    collect
+    collect state  # a grid stopped at its deadline goes on from it (STATE=)
   else
     echo "grid running: $(( $(date +%s) - t0 )) s so far; PART=watch again within 30 s"
-    cp "$W/grid.log" "$OUT/grid.log"
+    cp "$W/util.txt" "$OUT/util.txt" 2> /dev/null
+    collect state  # the snapshot: the results and the state of what has finished
   fi
 fi
