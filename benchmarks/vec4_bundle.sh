@@ -29,6 +29,7 @@ switches() {
     plain) echo "--solver vec4_step=false --solver vec4_g2p_adj=false";;
     on) echo "";;
     hand) echo "--solver hand_p2g_adj=true --solver hand_g2p_adj=true";;
+    sum) echo "--solver frame_mlp_grads=true";;  # session 56: the fused MLP's weight gradients summed once a frame
     *) echo "vec4_bundle.sh: unknown arm $1" >&2; exit 2;;
   esac
 }

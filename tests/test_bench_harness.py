@@ -62,6 +62,13 @@ def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one
     monkeypatch.setattr(MPMSolver, "block_p2g", MPMSolver.block_p2g)  # restored after the test
     harness.set_solver_switches(["block_p2g=true"])
     assert MPMSolver(SimConfig(n_grid=8)).blocks_p2g  # on even on a CPU, where its default is off
+    monkeypatch.setattr(MPMSolver, "frame_mlp_grads", MPMSolver.frame_mlp_grads)
+    harness.set_solver_switches(["frame_mlp_grads=true"])  # session 56's switch: the frame's MLP gradient sums
+    assert MPMSolver(SimConfig(n_grid=8)).frame_mlp_grads is True
+    monkeypatch.setattr(MPMSolver, "frame_mlp_grads", False)
+    coarse = MPMSolver(SimConfig(n_grid=8))
+    coarse.frame_mlp_grads = True  # one solver's switch reaches its refined solvers (a CFL refinement's frames)
+    assert coarse.refined(2).frame_mlp_grads is True and MPMSolver(SimConfig(n_grid=8)).frame_mlp_grads is False
     with pytest.raises(SystemExit, match="--solver 'n_grid=4'"):
         harness.set_solver_switches(["n_grid=4"])
     with pytest.raises(SystemExit, match="=true|false|null"):  # Python's spelling is a string here, and a true one

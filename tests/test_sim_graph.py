@@ -188,6 +188,40 @@ def test_a_forward_captured_alone_then_its_backward_match_eager_on_gpu():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_frame_mlp_sums_under_cuda_graphs_match_the_plain_frames_on_gpu():
+    """On a GPU: the fused Triton MLP's weight gradients summed a frame (``MPMSolver.frame_mlp_grads``) inside the
+    captured frames give the plain captured frames' trajectory and gradients (float32, TF32 products: the same
+    products, another summation order); the runner is not reused across the switch."""
+    pytest.importorskip("triton")
+    from gca.laws import mlp_triton
+
+    material = _law(dtype=torch.float32).cuda()
+    for net in (material.elasticity, material.plasticity):
+        net.mlp_kernel = "triton_tf32"
+    scene = [t.cuda() for t in _scene(n=500, dtype=torch.float32)]
+    made = []
+    init = mlp_triton.FrameSum.__init__
+    results = {}
+    try:
+        mlp_triton.FrameSum.__init__ = lambda self, *a: (made.append(1), init(self, *a))[1]
+        for on in (False, True):
+            solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0,
+                                         max_refine=1), "cuda")
+            solver.frame_mlp_grads = on
+            results[on] = _loss_and_grads(material, solver, True, *scene)
+            assert solver.frame_graphs(material, 2, 500).capture, "capture fell back to eager"
+            assert bool(made) == on
+    finally:
+        mlp_triton.FrameSum.__init__ = init
+    (ref, g_ref), (out, g) = results[False], results[True]
+    torch.testing.assert_close(out.x, ref.x, atol=1e-6, rtol=1e-6)
+    assert all(float(t.abs().max()) > 0 for t in g)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_capture_survives_unreachable_warp_memory():
     """An unreachable solver (a reference cycle holding warp-owned grid buffers) must not be collected
     inside a capture: warp would free its memory while torch captures, and the capture would fail.

@@ -12,7 +12,9 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
   tile's forward on chip, stores dz per
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
   in a fixed order (no atomics: deterministic), the three in one reduction (since session 45: the duck's profile
-  had the three sums at 30.7 ms of a 563-ms iteration, 6.4 us each, latency-bound).
+  had the three sums at 30.7 ms of a 563-ms iteration, 6.4 us each, latency-bound);
+- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, off until measured): each backward adds
+  its programs' partials to the frame's rows in place (:class:`FrameSum`), and the rows are summed once a frame.
 
 Measured (NVIDIA H200, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``, session 37): at
 30k particles TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9, at 8
@@ -83,7 +85,7 @@ def _gelu_and_grad(x):
 def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, part_stride, n,
                    n_programs, per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr,
                    N_OUT: tl.constexpr, OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                   INTERPRETED_PER: tl.constexpr):
+                   INTERPRETED_PER: tl.constexpr, ACCUMULATE: tl.constexpr):
     """One persistent program: for its per_program tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
     recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
     particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
@@ -93,7 +95,10 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
 
     per_program is a runtime count, so one compiled kernel serves every particle count. Compiled, the loop runs to it
     (INTERPRETED_PER 0). Triton's interpreter cannot loop to a runtime bound, so there INTERPRETED_PER repeats it as a
-    compile-time count (:func:`_bwd_launch`)."""
+    compile-time count (:func:`_bwd_launch`).
+
+    ACCUMULATE: the program adds its partials to what its row holds (a frame's running sum, :class:`FrameSum`)
+    instead of overwriting it; the row is this program's alone, so the sum stays free of atomics."""
     pid = tl.program_id(0)
     k = tl.arange(0, K_PAD)
     h = tl.arange(0, H)
@@ -120,9 +125,16 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
         dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
         dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
         tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
-    tl.store(dw1_ptr + pid * part_stride + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
-    tl.store(dw2_ptr + pid * part_stride + h[:, None] * H + h[None, :], dw2)
-    tl.store(dw3_ptr + pid * part_stride + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
+    p1 = dw1_ptr + pid * part_stride + h[:, None] * K_IN + k[None, :]
+    p2 = dw2_ptr + pid * part_stride + h[:, None] * H + h[None, :]
+    p3 = dw3_ptr + pid * part_stride + o[:, None] * H + h[None, :]
+    if ACCUMULATE:
+        dw1 += tl.load(p1, mask=k[None, :] < K_IN, other=0.0)
+        dw2 += tl.load(p2)
+        dw3 += tl.load(p3, mask=o[:, None] < N_OUT, other=0.0)
+    tl.store(p1, dw1, mask=k[None, :] < K_IN)
+    tl.store(p2, dw2)
+    tl.store(p3, dw3, mask=o[:, None] < N_OUT)
 
 
 
@@ -181,12 +193,72 @@ def _bwd_launch(n: int, k_in: int, h: int, n_out: int, block: int, precision: st
     per = max(1, triton.cdiv(tiles, max(1, programs)))  # tiles per program: the grid then wastes < per tile iterations
     p = max(1, triton.cdiv(tiles, per))
     consts = dict(K_IN=k_in, K_PAD=_pad(k_in), H=h, N_OUT=n_out, OUT_PAD=_pad(n_out), BLOCK=block, PRECISION=precision,
-                  INTERPRETED_PER=per if interpreted else 0)
+                  INTERPRETED_PER=per if interpreted else 0, ACCUMULATE=False)
     return p, (n, p, per), consts
 
 
 BWD_PROGRAMS_PER_SM = 2  # the backward's persistent programs per SM (on a CPU: 8 programs in all)
 BWD_WARPS = 4  # the backward's warps per program; both from session 39's sweep (the module docstring)
+
+
+class FrameSum:
+    """A frame's running sum of the fused backward's weight-gradient partials (``MPMSolver.frame_mlp_grads``): one
+    row of ``programs`` per backward program, each row that program's partials of every backward of the frame added
+    in place (the kernel's ACCUMULATE), summed over the rows once, when autograd reaches :class:`_FrameWeights`.
+
+    Why: a training frame evaluates each network once a step (20 steps a frame at the paper profile), and each
+    backward summed its ~235 programs' partials (one reduction launch, 7.0 us on the duck, H200) before autograd added
+    the step's three weight gradients to the frame's (three adds, 1.6 us each): 1604 reductions and ~4800 adds of a
+    full-horizon iteration's ~383 ms (NOTES session 52's profile). With the sum: one reduction per network a frame,
+    no adds; each backward reads its rows before it writes them (~5.8 MB more read a call). The same gradient to
+    float rounding (another summation order: each program's steps first, then the programs).
+
+    ``acc`` [programs, |W1| + |W2| + |W3|] (the dtype and device of the weights), zero when the frame's weights are
+    formed; ``sizes`` the three weights' element counts."""
+
+    def __init__(self, weights: list[torch.Tensor], programs: int):
+        self.sizes = [w.numel() for w in weights]
+        self.programs = int(programs)
+        self.acc = torch.zeros(self.programs, sum(self.sizes), device=weights[0].device, dtype=weights[0].dtype)
+
+
+class _FrameWeights(torch.autograd.Function):
+    """(W1, W2, W3) -> the same values, whose gradient is the frame's :class:`FrameSum` (summed over its rows) plus
+    whatever other uses of the outputs contribute. Autograd runs this backward after every use's (the outputs were
+    formed before all of them), so the sum is complete when it is read."""
+
+    @staticmethod
+    def forward(ctx, sink: FrameSum, w1, w2, w3):
+        ctx.sink, ctx.shapes = sink, [w.shape for w in (w1, w2, w3)]
+        ctx.set_materialize_grads(False)
+        return w1.view_as(w1), w2.view_as(w2), w3.view_as(w3)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        sink = ctx.sink
+        sums = sink.acc.sum(0).split(sink.sizes)  # one reduction launch a network a frame
+        out = [s.view(shape) if g is None else g + s.view(shape) for g, s, shape in zip(grads, sums, ctx.shapes)]
+        return (None, *out)
+
+
+def frame_weights(weights: list[torch.Tensor], programs: int | None = None) -> tuple[FrameSum, list[torch.Tensor]]:
+    """A frame's weights for :func:`mlp` ``sink``: ``(sink, [W1', W2', W3'])``, W' the values of ``weights`` (torch's
+    layouts, as :func:`mlp` takes them) through :class:`_FrameWeights`. Every :func:`mlp` call given both adds its
+    weight gradients to ``sink`` instead of returning them; autograd takes the frame's sum to ``weights`` once.
+    ``programs``: as :func:`mlp`'s (default ``BWD_PROGRAMS_PER_SM`` per SM; 8 on a CPU); the calls must use the same."""
+    w = [t.contiguous() for t in weights]
+    sink = FrameSum(w, _programs(w[0], programs))
+    out = _FrameWeights.apply(sink, *w)
+    return sink, list(out)
+
+
+def _programs(z: torch.Tensor, programs: int | None) -> int:
+    """The backward's persistent programs on ``z``'s device: ``programs``, or ``BWD_PROGRAMS_PER_SM`` per SM (8 on a
+    CPU)."""
+    if programs is not None:
+        return int(programs)
+    return BWD_PROGRAMS_PER_SM * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda else 8
 
 
 class FusedMLP(torch.autograd.Function):
@@ -197,9 +269,10 @@ class FusedMLP(torch.autograd.Function):
     gradcheck)."""
 
     @staticmethod
-    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int, warps: int):
+    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int, warps: int, sink: FrameSum | None):
         ctx.save_for_backward(x, w1, w2, w3)
         ctx.cfg = (block, precision, programs, warps)
+        ctx.sink = sink
         out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
         _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
                                                          K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
@@ -215,11 +288,18 @@ class FusedMLP(torch.autograd.Function):
                                         interpreted=INTERPRETED)
         dx = torch.empty_like(x)
         sizes = [w.numel() for w in (w1, w2, w3)]
-        parts = torch.empty(p, sum(sizes), device=x.device, dtype=x.dtype)  # a program's three partials in one row
+        sink = ctx.sink
+        if sink is not None:  # the frame's rows: this backward's partials added to them, no sum here
+            parts = sink.acc
+            consts["ACCUMULATE"] = True
+        else:
+            parts = torch.empty(p, sum(sizes), device=x.device, dtype=x.dtype)  # a program's three partials in a row
         _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts.split(sizes, dim=1), parts.shape[1], *counts,
                              **consts, num_warps=warps)
+        if sink is not None:
+            return (dx, None, None, None, None, None, None, None, None)
         sums = parts.sum(0).split(sizes)  # one reduction launch, not three (session 45: 3 x 6.4 us per backward)
-        return (dx, *(d.view_as(w) for d, w in zip(sums, (w1, w2, w3))), None, None, None, None)
+        return (dx, *(d.view_as(w) for d, w in zip(sums, (w1, w2, w3))), None, None, None, None, None)
 
 
 def runs_here(z: torch.Tensor) -> bool:
@@ -229,14 +309,16 @@ def runs_here(z: torch.Tensor) -> bool:
 
 
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", block: int = BLOCK,
-        programs: int | None = None, warps: int = BWD_WARPS) -> torch.Tensor:
+        programs: int | None = None, warps: int = BWD_WARPS, sink: FrameSum | None = None) -> torch.Tensor:
     """X [N, N_OUT] = W3 gelu(W2 gelu(W1 z)) for z [N, K_IN] and ``weights`` [W1 [H, K_IN], W2 [H, H], W3 [N_OUT, H]]
     (torch's layouts; the shape :func:`check` accepts), differentiable in z and the weights. ``precision``: ``tf32``
     (TF32 products; float32 only) or ``ieee`` (FP32 or float64 products). ``programs``: the backward's persistent
     programs (default ``BWD_PROGRAMS_PER_SM`` per SM; 8 on a CPU); ``warps``: the backward's warps per program (a
     power of two, 1-16).
     ``block``, ``programs`` and ``warps`` change the launch, not the function: the products' tiles and the order in
-    which the weight gradients' partials are summed change (float rounding only)."""
+    which the weight gradients' partials are summed change (float rounding only).
+    ``sink``: a frame's :class:`FrameSum`, with ``weights`` the outputs of the :func:`frame_weights` that made it: the
+    weight gradients go to the sink (summed once a frame), not back through this call; its programs are the call's."""
     if not runs_here(z):
         raise ValueError(f"{_WHERE}: the fused MLP runs on CUDA, or on a CPU only in Triton's interpreter "
                          f"(TRITON_INTERPRET=1 before the import); got {z.device}")
@@ -253,8 +335,12 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
                          f"{[w.dtype for w in weights]}")
     if precision == "tf32" and z.dtype != torch.float32:
         raise ValueError(f"{_WHERE}: TF32 products take float32, got {z.dtype} (use precision='ieee')")
-    if programs is None:
-        programs = (BWD_PROGRAMS_PER_SM * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda
-                    else 8)
+    programs = _programs(z, programs if sink is None or programs is not None else sink.programs)
+    if sink is not None:
+        if programs != sink.programs or sink.acc.dtype != z.dtype or sink.acc.device != z.device \
+                or sink.sizes != [w.numel() for w in weights]:
+            raise ValueError(f"{_WHERE}: a frame sum of {sink.programs} programs, {sink.acc.dtype} on "
+                             f"{sink.acc.device}, weights of {sink.sizes} elements cannot take a call of {programs} "
+                             f"programs, {z.dtype} on {z.device}, weights of {[w.numel() for w in weights]}")
     return FusedMLP.apply(z.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
-                          programs, warps)
+                          programs, warps, sink)

@@ -25,6 +25,7 @@ Reference: Ma et al. 2023 (NCLaw) ``nclaw/material/meta.py``; notes in shared/re
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 
@@ -98,18 +99,55 @@ def make_mlp(cfg: NeuralLawConfig) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor) -> torch.Tensor:
-    """``mlp_kernel: triton_tf32``: the MLP through ``gca.laws.mlp_triton`` with the layers' effective (LoRA-merged)
-    weights (TF32 products for float32; a float64 law, the interpreter's gradient checks, runs FP64 products),
-    imported here: triton is needed only by this option."""
+def _mlp_triton():
+    """``gca.laws.mlp_triton``, imported where ``triton_tf32`` is used: triton is needed only by this option."""
     try:
         from gca.laws import mlp_triton
     except ImportError as exc:
         raise ImportError(f"gca/laws/neural.py: mlp_kernel='triton_tf32' needs triton ({exc}): a CUDA torch brings it; "
                           "on a CPU, pip install -e .[interp]") from exc
+    return mlp_triton
+
+
+def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor, frame=None) -> torch.Tensor:
+    """``mlp_kernel: triton_tf32``: the MLP through ``gca.laws.mlp_triton`` with the layers' effective (LoRA-merged)
+    weights (TF32 products for float32; a float64 law, the interpreter's gradient checks, runs FP64 products).
+    ``frame``: the network's ``(sink, weights)`` of :func:`frame_mlp_sums` (the weights' gradients summed once a
+    frame), or None."""
+    mlp_triton = _mlp_triton()
     layers = mlp_triton.check(mlp)
-    return mlp_triton.mlp(z, [effective_weight(layer) for layer in layers],
-                          "tf32" if z.dtype == torch.float32 else "ieee")
+    precision = "tf32" if z.dtype == torch.float32 else "ieee"
+    if frame is not None:
+        return mlp_triton.mlp(z, frame[1], precision, sink=frame[0])
+    return mlp_triton.mlp(z, [effective_weight(layer) for layer in layers], precision)
+
+
+@contextlib.contextmanager
+def frame_mlp_sums(material, enabled: bool = True):
+    """Within the block, every neural network of ``material`` whose MLP runs the fused Triton kernels
+    (``mlp_kernel: triton_tf32`` on the fast path) and whose weights take a gradient sums its weight gradients
+    over the block's calls once (``gca.laws.mlp_triton.frame_weights``; ``MPMSolver.frame_mlp_grads``): its
+    effective (merged) weights formed once on entry, each call's backward adding its programs' partials to the
+    frame's rows, one reduction when autograd reaches the weights. Enter it inside :func:`gca.laws.lora.
+    merged_weights` (the merge is then the frame's). The same gradient to float rounding; a no-op where
+    ``enabled`` is False, autograd does not record, or no such network is there. A network evaluated on another
+    device or dtype inside the block raises (the sum's rows are the frame's)."""
+    nets = [] if not enabled or not torch.is_grad_enabled() else [
+        net for net in neural_networks(material) if net.mlp_kernel == "triton_tf32" and net.fast_path
+        and net._frame_mlp is None]
+    formed = []
+    try:
+        for net in nets:
+            layers = _mlp_triton().check(net.mlp)
+            weights = [effective_weight(layer) for layer in layers]
+            if not any(w.requires_grad for w in weights) or not _mlp_triton().runs_here(weights[0]):
+                continue
+            net._frame_mlp = _mlp_triton().frame_weights(weights)
+            formed.append(net)
+        yield material
+    finally:
+        for net in formed:
+            net._frame_mlp = None
 
 
 def mlp_kernel_problem(kind: str, device) -> str | None:
@@ -148,6 +186,7 @@ class _InvariantNetwork(nn.Module):
 
     fast_path: bool = True
     mlp_kernel: str = "torch"
+    _frame_mlp = None  # inside frame_mlp_sums(): (FrameSum, the frame's weights) of gca.laws.mlp_triton
 
     def __init__(self, cfg: NeuralLawConfig | None = None):
         super().__init__()
@@ -178,7 +217,7 @@ class _InvariantNetwork(nn.Module):
         if self.mlp_kernel == "torch":
             return self.mlp(z)
         if self.mlp_kernel == "triton_tf32":  # its own check: the exact GELU only (mlp_triton.check)
-            return _triton_mlp(self.mlp, z)
+            return _triton_mlp(self.mlp, z, self._frame_mlp)
         shape = mlp_kernel.shape_of(self.mlp)
         if shape is None:
             raise ValueError(f"gca/laws/neural.py: mlp_kernel={self.mlp_kernel!r} fuses two hidden layers with one of "

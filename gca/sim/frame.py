@@ -12,6 +12,7 @@ import torch
 
 from gca.laws.base import Material
 from gca.laws.lora import merged_weights
+from gca.laws.neural import frame_mlp_sums
 from gca.laws.plastic import IdentityPlasticity
 
 
@@ -34,7 +35,9 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass, 
     """:func:`simulate_frame` that also returns the last step's trial F [N,3,3] (before plasticity).
 
     A LoRA-adapted law forms its merged weights once for the frame (:func:`gca.laws.lora.merged_weights`),
-    not once per step: same values and gradients, ~60 fewer small kernels per step forward and backward.
+    not once per step: same values and gradients, ~60 fewer small kernels per step forward and backward. With the
+    solver's ``frame_mlp_grads`` (off by default), a network on the fused Triton MLP also sums its weight gradients
+    once for the frame (:func:`gca.laws.neural.frame_mlp_sums`): the same gradients to float rounding.
 
     ``grids``: the frame's grid stash, ``(mv [n_steps, R G, G, G, 3], m [n_steps, R G, G, G])``; step ``i`` records
     its grid into entry ``i`` (no gradient recorded) or replays it (``MPMSolver.step``'s ``grid``). Only a frame
@@ -48,7 +51,7 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass, 
     if law is not None and n_steps >= 1 and solver.frames_fused and _purely_elastic(material):  # a whole frame
         x, v, C, F_trial = solver.frame_fused(x, v, C, F, law, vol, mass, n_steps)
         return x, v, C, material.project(F_trial), F_trial
-    with merged_weights(material):
+    with merged_weights(material), frame_mlp_sums(material, getattr(solver, "frame_mlp_grads", False)):
         for i in range(n_steps):
             if law is not None:
                 x, v, C, F_trial = solver.step_fused(x, v, C, F, law, vol, mass)

@@ -110,6 +110,8 @@ class FrameGraphs:
         # runner made under one is never reused under another
         self.precision = torch.get_float32_matmul_precision()
         self.kernels = _mlp_kernels(material)  # likewise the neural networks' MLP kernels (train.mlp_kernel)
+        # and whether their weight gradients are summed once a frame (MPMSolver.frame_mlp_grads)
+        self.frame_sums = bool(getattr(solver, "frame_mlp_grads", False))
         if self.capture and dev.type != "cuda":
             raise ValueError(f"{_WHERE}: CUDA graph capture needs a CUDA solver, this one runs on {dev}")
         shapes = {"x": (n, 3), "v": (n, 3), "C": (n, 3, 3), "F": (n, 3, 3)}
@@ -136,6 +138,7 @@ class FrameGraphs:
                 and (capture is None or self.capture_asked == capture)
                 and self.precision == torch.get_float32_matmul_precision()
                 and self.kernels == _mlp_kernels(material)
+                and self.frame_sums == bool(getattr(self.solver, "frame_mlp_grads", False))
                 and self.stashes == stashable(self.solver, material)
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 

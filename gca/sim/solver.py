@@ -190,6 +190,12 @@ class MPMSolver:
     # True / False, or None: on CUDA only. On there by default with hand_p2g_adj (NOTES session 52, H200: 48.2 -> 37.6
     # us a launch on the duck, 37.1 -> 25.2 on the ball)
     hand_g2p_adj: bool | None = None
+    # a frame's neural networks on the fused Triton MLP (train.mlp_kernel: triton_tf32) sum their weight gradients once
+    # a frame (gca.laws.neural.frame_mlp_sums, gca.laws.mlp_triton.FrameSum: each step's backward adds its programs'
+    # partials to the frame's rows in place) instead of one reduction and three adds a step (session 52's duck
+    # profile: 1604 reductions of 7.0 us and ~4800 adds of 1.6 us a full-horizon iteration). The same gradients to
+    # float rounding. Off (False) until measured; True / False (not device-resolved: the kernels say where they run)
+    frame_mlp_grads: bool = False
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -221,7 +227,7 @@ class MPMSolver:
         fine.fuse_frames, fine.block_p2g, fine.agg_p2g = self.fuse_frames, self.block_p2g, self.agg_p2g
         fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
         fine.vec4_step, fine.vec4_g2p_adj, fine.hand_p2g_adj = self.vec4_step, self.vec4_g2p_adj, self.hand_p2g_adj
-        fine.hand_g2p_adj = self.hand_g2p_adj
+        fine.hand_g2p_adj, fine.frame_mlp_grads = self.hand_g2p_adj, self.frame_mlp_grads
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":

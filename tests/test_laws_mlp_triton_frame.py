@@ -1,0 +1,181 @@
+"""A frame's weight-gradient sum of the fused Triton MLP (``MPMSolver.frame_mlp_grads``,
+``gca.laws.neural.frame_mlp_sums``, ``gca.laws.mlp_triton.FrameSum``), in Triton's CPU interpreter (its CPU twin):
+within one block, calls of several particle counts give the values of the plain calls bitwise and the same gradients
+to F and to the LoRA factors to rounding (float64 1e-12, float32 1e-5 relative), the frame's rows holding the sum of
+every call's partials; negative controls: a backward that overwrites its rows instead of adding to them, and a block
+whose sum never reaches the weights, change the gradients. A rollout's frames with the switch on and off give the same
+gradients (checkpointed frames, the reverse sweep's recompute). Each case runs in a fresh interpreter process (Triton
+reads TRITON_INTERPRET when the kernels are decorated)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("triton")
+ROOT = Path(__file__).resolve().parents[1]
+
+SETUP = """
+import torch
+from gca.laws import mlp_triton
+from gca.laws.base import Material
+from gca.laws.lora import apply_lora, lora_parameters, merged_weights
+from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity, frame_mlp_sums
+torch.manual_seed(0)
+
+def net_of(cls, dtype, cfg=None):
+    net = cls(cfg)
+    apply_lora(net, 4, 4.0)
+    for name, p in net.named_parameters():
+        if name.endswith("lora_B"):
+            torch.nn.init.normal_(p, std=0.05)  # adapters that move the law
+    net = net.to(dtype)
+    net.mlp_kernel = "triton_tf32"
+    return net
+
+COUNTS = (300, 77, 300)  # one frame's calls: the 77-particle call runs fewer backward programs than the others
+
+def calls(net, dtype, on):
+    g = torch.Generator().manual_seed(3)
+    Fs = [(torch.eye(3, dtype=dtype) + 0.2 * torch.randn(n, 3, 3, generator=g, dtype=dtype)).requires_grad_(True)
+          for n in COUNTS]
+    vs = [torch.randn(n, 9, generator=g, dtype=dtype) for n in COUNTS]
+    with merged_weights(net), frame_mlp_sums(net, on):
+        frame = net._frame_mlp
+        Xs = [net.fused_network(F)[1] for F in Fs]
+    loss = sum((X * v).sum() for X, v in zip(Xs, vs))
+    leaves = [*Fs, *lora_parameters(net)]
+    grads = torch.autograd.grad(loss, leaves, allow_unused=True)  # None (a gradient never arriving) as zeros
+    return [X.detach() for X in Xs], [torch.zeros_like(t) if d is None else d for d, t in zip(grads, leaves)], frame
+
+def rel(a, b):
+    return float((a - b).abs().max() / b.abs().max())
+"""
+
+
+def _run(code: str) -> str:
+    """``SETUP`` + ``code`` in a fresh Python under Triton's CPU interpreter; it must print "ok"."""
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    out = subprocess.run([sys.executable, "-c", SETUP + code], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
+    return out.stdout
+
+
+def test_a_frames_sum_gives_the_plain_calls_values_and_gradients():
+    _run("""
+for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+    net = net_of(NeuralElasticity, dtype)
+    X0, g0, f0 = calls(net, dtype, False)
+    X1, g1, f1 = calls(net, dtype, True)
+    assert f0 is None and f1 is not None and net._frame_mlp is None  # formed in the block only, and left
+    assert all(torch.equal(a, b) for a, b in zip(X1, X0)), "the forward changed"
+    assert len(g1) == 3 + 6 and all(float(t.abs().max()) > 0 for t in g1)
+    worst = max(rel(a, b) for a, b in zip(g1, g0))
+    assert worst < tol, (dtype, worst)
+    # the frame's rows hold every call's partials: their sum is the merged weights' gradient, the whole frame's
+    sink, weights = f1
+    assert sink.acc.shape == (8, sum(w.numel() for w in weights)) and float(sink.acc.abs().max()) > 0
+print("ok")
+""")
+
+
+def test_negative_controls_an_overwriting_backward_and_a_sum_that_never_arrives_change_the_gradients():
+    _run("""
+dtype = torch.float64
+net = net_of(NeuralElasticity, dtype)
+_, g0, _ = calls(net, dtype, False)
+orig = mlp_triton._fused_mlp_bwd
+
+class Overwrite:  # the kernel without ACCUMULATE: each call overwrites the rows, the frame keeps the last call's
+    def __getitem__(self, grid):
+        launch = orig[grid]
+        return lambda *a, **kw: launch(*a, **{**kw, "ACCUMULATE": False})
+
+mlp_triton._fused_mlp_bwd = Overwrite()
+_, g1, _ = calls(net, dtype, True)
+mlp_triton._fused_mlp_bwd = orig
+bad = max(rel(a, b) for a, b in zip(g1[3:], g0[3:]))
+assert bad > 1e-3, bad  # the LoRA gradients lose the earlier calls
+assert max(rel(a, b) for a, b in zip(g1[:3], g0[:3])) < 1e-12  # dz does not go through the rows
+
+backward = mlp_triton._FrameWeights.backward
+mlp_triton._FrameWeights.backward = staticmethod(lambda ctx, *g: (None, *g))  # the rows never summed
+try:
+    _, g2, _ = calls(net, dtype, True)
+finally:
+    mlp_triton._FrameWeights.backward = backward
+assert all(float(t.abs().max()) == 0 for t in g2[3:]), "the LoRA gradients came another way"
+_, g3, _ = calls(net, dtype, True)
+assert max(rel(a, b) for a, b in zip(g3, g0)) < 1e-12  # and restored
+print("ok")
+""")
+
+
+def test_the_block_is_a_noop_without_autograd_for_another_kernel_and_when_off():
+    _run("""
+dtype = torch.float64
+net = net_of(NeuralElasticity, dtype)
+with torch.no_grad(), merged_weights(net), frame_mlp_sums(net):
+    assert net._frame_mlp is None
+with frame_mlp_sums(net, enabled=False):
+    assert net._frame_mlp is None
+net.mlp_kernel = "torch"
+with frame_mlp_sums(net):
+    assert net._frame_mlp is None
+net.mlp_kernel = "triton_tf32"
+with frame_mlp_sums(net):
+    outer = net._frame_mlp
+    with frame_mlp_sums(net):
+        assert net._frame_mlp is outer  # a nested block reuses the outer frame's
+    assert net._frame_mlp is outer
+assert net._frame_mlp is None
+sink, weights = mlp_triton.frame_weights([l.weight for l in mlp_triton.check(net.mlp)])
+z = torch.zeros(10, 13, dtype=dtype)
+try:
+    mlp_triton.mlp(z, weights, "ieee", programs=4, sink=sink)
+except ValueError as exc:
+    assert "frame sum of 8 programs" in str(exc), exc
+else:
+    raise AssertionError("a call of other programs than the frame's was taken")
+print("ok")
+""")
+
+
+def test_a_rollouts_gradients_with_the_frame_sums_equal_the_plain_frames():
+    _run("""
+from gca.sim import MPMSolver, SimConfig, rollout
+dtype = torch.float64
+cfg = NeuralLawConfig(widths=(16, 16), stress_scale=2e3, alpha=1e-2)
+material = Material(net_of(NeuralElasticity, dtype, cfg), net_of(NeuralPlasticity, dtype, cfg), 1000.0).to(dtype)
+g = torch.Generator().manual_seed(1)
+n = 40
+x0 = (0.4 + 0.2 * torch.rand(n, 3, generator=g)).to(dtype)
+v0 = (torch.tensor([0.3, -0.2, 0.1]) + 0.2 * torch.randn(n, 3, generator=g)).to(dtype)
+vol = torch.full((n,), 2e-6, dtype=dtype)
+
+def grads(on):
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, boundary="sticky", friction=0.0, dtype="float64",
+                                 max_refine=1))
+    solver.frame_mlp_grads = on
+    v = v0.clone().requires_grad_(True)
+    out = rollout(solver, material, x0, v, vol, vol * 1000.0, 6, 3, checkpoint=True)
+    loss = (out.x[-1] * torch.linspace(0.5, 1.5, n, dtype=dtype)[:, None]).sum() + (out.F[-1] ** 2).sum()
+    params = [p for p in material.parameters() if p.requires_grad]
+    return out.x.detach(), torch.autograd.grad(loss, [v, *params])
+
+made = []
+init = mlp_triton.FrameSum.__init__
+mlp_triton.FrameSum.__init__ = lambda self, *a: (made.append(1), init(self, *a))[1]
+x0_, g0 = grads(False)
+assert not made
+x1_, g1 = grads(True)
+assert len(made) >= 2 * 2, made  # two networks, each frame's recompute (two frames) at least
+assert torch.equal(x0_, x1_)
+assert len(g1) == 1 + 12 and all(float(t.abs().max()) > 0 for t in g1)
+worst = max(rel(a, b) for a, b in zip(g1, g0))
+assert worst < 1e-10, worst
+print("ok")
+""")
