@@ -269,7 +269,8 @@ class FusedMLP(torch.autograd.Function):
     gradcheck)."""
 
     @staticmethod
-    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int, warps: int, sink: FrameSum | None):
+    def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int, warps: int,
+                sink: FrameSum | None = None):
         ctx.save_for_backward(x, w1, w2, w3)
         ctx.cfg = (block, precision, programs, warps)
         ctx.sink = sink
