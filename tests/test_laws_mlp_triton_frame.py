@@ -4,7 +4,8 @@ within one block, calls of several particle counts give the values of the plain 
 to F and to the LoRA factors to rounding (float64 1e-12, float32 1e-5 relative), the frame's rows holding the sum of
 every call's partials; negative controls: a backward that overwrites its rows instead of adding to them, and a block
 whose sum never reaches the weights, change the gradients. A rollout's frames with the switch on and off give the same
-gradients (checkpointed frames, the reverse sweep's recompute). Each case runs in a fresh interpreter process (Triton
+gradients (checkpointed frames, the reverse sweep's recompute), and so does a kept graph differentiated three times
+(the term shares' way; negative control: rows never zeroed for a new pass count the earlier passes). Each case runs in a fresh interpreter process (Triton
 reads TRITON_INTERPRET when the kernels are decorated)."""
 
 import os
@@ -177,5 +178,32 @@ assert torch.equal(x0_, x1_)
 assert len(g1) == 1 + 12 and all(float(t.abs().max()) > 0 for t in g1)
 worst = max(rel(a, b) for a, b in zip(g1, g0))
 assert worst < 1e-10, worst
+
+def terms(on, checkpoint, reset=True):
+    # the term shares' way (gca.train.objective): one kept graph differentiated per term, then again
+    solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, boundary="sticky", friction=0.0, dtype="float64",
+                                 max_refine=1))
+    solver.frame_mlp_grads = on
+    out = rollout(solver, material, x0, v0, vol, vol * 1000.0, 6, 3, checkpoint=checkpoint)
+    t1 = (out.x[-1] * torch.linspace(0.5, 1.5, n, dtype=dtype)[:, None]).sum()
+    t2 = (out.F[-1] ** 2).sum()
+    params = [p for p in material.parameters() if p.requires_grad]
+    own = mlp_triton.FrameSum.rows_for, mlp_triton.FrameSum.rows_of
+    if not reset:  # the control: rows never zeroed for a new pass
+        mlp_triton.FrameSum.rows_for = lambda self, task: self.acc
+        mlp_triton.FrameSum.rows_of = lambda self, task: self.acc
+    try:
+        return [torch.autograd.grad(t, params, retain_graph=True) for t in (t1, t2, t1)]
+    finally:
+        mlp_triton.FrameSum.rows_for, mlp_triton.FrameSum.rows_of = own
+
+for checkpoint in (True, False):
+    plain = terms(False, checkpoint)
+    summed = terms(True, checkpoint)
+    worst = max(rel(a, b) for A, B in zip(summed, plain) for a, b in zip(A, B))
+    assert worst < 1e-10, (checkpoint, worst)
+    stale = terms(True, checkpoint, reset=False)
+    off = max(rel(a, b) for a, b in zip(stale[1], plain[1]))
+    assert off > 1e-4, (checkpoint, off)  # the second pass counted the first's partials
 print("ok")
 """)

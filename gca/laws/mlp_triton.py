@@ -214,12 +214,32 @@ class FrameSum:
     float rounding (another summation order: each program's steps first, then the programs).
 
     ``acc`` [programs, |W1| + |W2| + |W3|] (the dtype and device of the weights), zero when the frame's weights are
-    formed; ``sizes`` the three weights' element counts."""
+    formed; ``sizes`` the three weights' element counts. The rows are one backward pass's: a graph differentiated
+    again (``retain_graph``: the term shares' per-term gradients, CPR's chunks on a kept graph) starts them from zero
+    at its first accumulation (:meth:`rows_for`), and a pass that accumulated none reads none (:meth:`rows_of`).
+    Session 56's review found the double count without it (a checkpointed frame's second gradient 3e-3 off).
+    Memory: the rows live as long as the frame's graph (a checkpointed rollout keeps every frame's until its backward:
+    ~5.8 MB a network a frame with the H200's 264 programs); the sweep's and the CUDA graphs' forwards make none."""
+
+    FRESH = -2  # the task mark of rows zeroed at the frame's forward, not yet accumulated into
 
     def __init__(self, weights: list[torch.Tensor], programs: int):
         self.sizes = [w.numel() for w in weights]
         self.programs = int(programs)
         self.acc = torch.zeros(self.programs, sum(self.sizes), device=weights[0].device, dtype=weights[0].dtype)
+        self.task = self.FRESH  # the autograd graph task whose partials the rows hold
+
+    def rows_for(self, task: int) -> torch.Tensor:
+        """The rows a backward of graph task ``task`` adds to: zeroed first where they hold another task's."""
+        if self.task != task:
+            if self.task != self.FRESH:
+                self.acc.zero_()
+            self.task = task
+        return self.acc
+
+    def rows_of(self, task: int) -> torch.Tensor | None:
+        """The rows task ``task`` accumulated, or None where it accumulated none."""
+        return self.acc if self.task == task else None
 
 
 class _FrameWeights(torch.autograd.Function):
@@ -236,8 +256,10 @@ class _FrameWeights(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
-        sink = ctx.sink
-        sums = sink.acc.sum(0).split(sink.sizes)  # one reduction launch a network a frame
+        rows = ctx.sink.rows_of(torch._C._current_graph_task_id())
+        if rows is None:  # no fused call of this pass added to the frame's rows
+            return (None, *grads)
+        sums = rows.sum(0).split(ctx.sink.sizes)  # one reduction launch a network a frame
         out = [s.view(shape) if g is None else g + s.view(shape) for g, s, shape in zip(grads, sums, ctx.shapes)]
         return (None, *out)
 
@@ -291,7 +313,7 @@ class FusedMLP(torch.autograd.Function):
         sizes = [w.numel() for w in (w1, w2, w3)]
         sink = ctx.sink
         if sink is not None:  # the frame's rows: this backward's partials added to them, no sum here
-            parts = sink.acc
+            parts = sink.rows_for(torch._C._current_graph_task_id())
             consts["ACCUMULATE"] = True
         else:
             parts = torch.empty(p, sum(sizes), device=x.device, dtype=x.dtype)  # a program's three partials in a row
