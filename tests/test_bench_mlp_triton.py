@@ -12,16 +12,14 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("triton")
+sys.path.insert(0, str(Path(__file__).parent))
+from interpreted import run_interpreted  # noqa: E402
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_mlp_triton.py"
 
 
 def _run(code: str) -> str:
-    """``code`` in a fresh Python under Triton's CPU interpreter; it must print "ok"."""
-    env = {**os.environ, "TRITON_INTERPRET": "1"}
-    out = subprocess.run([sys.executable, "-c", code], cwd=SCRIPT.parents[1], env=env, capture_output=True, text=True,
-                         timeout=600)
-    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
-    return out.stdout
+    """``code`` in a fresh Python under Triton's CPU interpreter, in the repository root."""
+    return run_interpreted(code, cwd=SCRIPT.parents[1])
 
 
 def test_the_fused_forward_equals_torch_and_refuses_other_activations():

@@ -15,6 +15,8 @@ import pytest
 
 pytest.importorskip("triton")
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from interpreted import run_interpreted  # noqa: E402
 
 SETUP = """
 import torch
@@ -50,15 +52,8 @@ def rel(a, b):
 
 
 def _run(code: str, interpret: bool = True) -> str:
-    """``SETUP`` + ``code`` in a fresh Python (under Triton's CPU interpreter unless ``interpret`` is False); it must
-    print "ok"."""
-    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
-    if interpret:
-        env["TRITON_INTERPRET"] = "1"
-    out = subprocess.run([sys.executable, "-c", SETUP + code], cwd=ROOT, env=env, capture_output=True, text=True,
-                         timeout=600)
-    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
-    return out.stdout
+    """``SETUP`` + ``code`` in a fresh Python (under Triton's CPU interpreter unless ``interpret`` is False)."""
+    return run_interpreted(SETUP + code, interpret)
 
 
 def test_the_laws_with_the_fused_mlp_equal_torchs_values_and_lora_gradients():

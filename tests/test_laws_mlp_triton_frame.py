@@ -8,15 +8,14 @@ gradients (checkpointed frames, the reverse sweep's recompute), and so does a ke
 (the term shares' way; negative control: rows never zeroed for a new pass count the earlier passes). Each case runs in a fresh interpreter process (Triton
 reads TRITON_INTERPRET when the kernels are decorated)."""
 
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 pytest.importorskip("triton")
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from interpreted import run_interpreted  # noqa: E402
 
 SETUP = """
 import torch
@@ -57,12 +56,8 @@ def rel(a, b):
 
 
 def _run(code: str) -> str:
-    """``SETUP`` + ``code`` in a fresh Python under Triton's CPU interpreter; it must print "ok"."""
-    env = {**os.environ, "TRITON_INTERPRET": "1"}
-    out = subprocess.run([sys.executable, "-c", SETUP + code], cwd=ROOT, env=env, capture_output=True, text=True,
-                         timeout=600)
-    assert out.returncode == 0 and "ok" in out.stdout, out.stdout + out.stderr
-    return out.stdout
+    """``SETUP`` + ``code`` in a fresh Python under Triton's CPU interpreter."""
+    return run_interpreted(SETUP + code)
 
 
 def test_a_frames_sum_gives_the_plain_calls_values_and_gradients():
