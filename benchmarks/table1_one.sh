@@ -31,6 +31,9 @@
 #       collected results in $OUT as PART=grid leaves them). GRID_MODULE replaces gca.pipeline.grid (the CPU test's)
 #       Session 53: every watch also brings back a snapshot, running or ended: grid.log, grid_results.tar.gz,
 #       timeline.png, util.txt and the state of what has finished (state.tgz, for STATE= on another machine)
+#       Session 56: the evaluations' media in grid_media.tar.gz beside the results (at most 15 MiB: the three-seed
+#       table's GIFs took one archive over the device's 16-MiB files, and the ended grid's results stayed there);
+#       compileall.log in W (the device brings back 8 files)
 set -u
 OUT=${OUT:-/tmp/table1_one_out}; PART=${PART:-grid}; W=${W:-/tmp/t1one}
 mkdir -p "$OUT" "$W"
@@ -44,7 +47,7 @@ if [ "$PART" = build ]; then
   # session 49: a stage process's imports before and after compile_bytecode (each twice: the second shows whether the
   # first wrote any .pyc)
   imports() { python3 -c "import time; t = time.perf_counter(); import gca.pipeline.train, gca.pipeline.evaluate, gca.pipeline.chain, warp, gsplat; print(f'{time.perf_counter() - t:.2f}')"; }
-  echo "imports before: $(imports) s, $(imports) s"; compile_bytecode "$OUT/compileall.log"; echo "imports after: $(imports) s, $(imports) s"
+  echo "imports before: $(imports) s, $(imports) s"; compile_bytecode "$W/compileall.log"; echo "imports after: $(imports) s, $(imports) s"
   # session 53: warp compiles the project's kernels at their first use and caches them on the machine; with a cold
   # cache the three-seed grid's six input jobs took 105-109 s, against 42-79 s in sessions 48-50, whose calls had run a
   # warm-up training first (session 52's plan left it out). The one-time install compiles them here, timed, as it
@@ -104,7 +107,7 @@ collect() {
 }
 if [ "$PART" = grid ]; then
   need_commit table1_one.sh
-  compile_bytecode "$OUT/compileall.log"
+  compile_bytecode "$W/compileall.log"
   sample "$OUT/util.txt" &
   sampler=$!
   trap 'kill "$sampler" 2> /dev/null' EXIT; trap 'exit 143' TERM; trap 'exit 130' INT  # the sampler ends with the script
@@ -120,7 +123,7 @@ fi
 if [ "$PART" = start ]; then  # the grid in a process session of its own: it outlives this call (device README)
   need_commit table1_one.sh
   [ ! -f "$W/bg.t0" ] || { echo "table1_one.sh: a grid was started in $W already (PART=watch follows it)"; exit 2; }
-  compile_bytecode "$OUT/compileall.log"
+  compile_bytecode "$W/compileall.log"
   restore=$(restore_arg) || exit 2
   date +%s > "$W/bg.t0"
   # the background's stdio on files: the device tool would wait for a pipe the grid held open

@@ -119,7 +119,8 @@ else  # session 26: one grid per machine, from its first call to the machine's e
   else
     write_grid_sh
     echo "$OPTIONS" > "$W/grid.options"
-    rm -f "$W/grid.rc" "$W/grid.pid" "$W/final/state.tgz" "$W/final/grid_results.tar.gz" "$W/final/delivered"
+    rm -f "$W/grid.rc" "$W/grid.pid" "$W/final/state.tgz" "$W/final/grid_results.tar.gz" "$W/final/grid_media.tar.gz" \
+        "$W/final/delivered"
     mkdir -p "$W/final"
     setsid sh -c "echo \$\$ > '$W/grid.pid'; timeout $((D + 60)) sh '$W/grid.sh' $D '--machine-left $D' \
 '$W/final/state.tgz' '$W/final' '$W/grid.log'; echo \$? > '$W/grid.rc'" < /dev/null > /dev/null 2>&1 &
@@ -129,7 +130,7 @@ else  # session 26: one grid per machine, from its first call to the machine's e
   while running && [ "$(date +%s)" -lt "$((T0 + LIMIT - 45))" ] && [ "$(date +%s)" -lt "$((T0 + LEFT))" ]; do sleep 2; done
   [ ! -f "$W/grid.log" ] || cp "$W/grid.log" "$OUT/grid.log"
   if [ -f "$W/grid.rc" ]; then
-    for f in state.tgz grid_results.tar.gz; do [ ! -f "$W/final/$f" ] || cp "$W/final/$f" "$OUT/$f"; done
+    for f in state.tgz grid_results.tar.gz grid_media.tar.gz; do [ ! -f "$W/final/$f" ] || cp "$W/final/$f" "$OUT/$f"; done
     touch "$W/final/delivered"
     echo "[table $(($(date +%s) - T0)) s] grid rc=$(cat "$W/grid.rc") (the machine's grid has ended; its final state)"
   elif running; then

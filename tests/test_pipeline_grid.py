@@ -89,6 +89,31 @@ def test_collect_keeps_the_small_results(tmp_path):
         names = set(tar.getnames())
     assert names == {"metrics/eval/ball/gca.json", "reports/ci/table1_synthetic_cd.md", "runs/ball/gca/train.json",
                      "runs/ball/gca/law.pt", "models/prior/jelly.pt"}
+    assert not (tmp_path / "out" / "grid_media.tar.gz").exists()  # no media, no media archive
+
+
+def test_collect_puts_the_media_beside_the_results_under_a_cap(tmp_path, monkeypatch, capsys):
+    """An evaluation's media go to grid_media.tar.gz, the still images first, while their bytes stay under
+    grid.MEDIA_CAP (the device tool's 16-MiB files: session 56's three-seed archive went over and did not come
+    back); the results' archive holds none of them. Control: with the cap above every file, all are packed."""
+    sizes = {"metrics/eval/ball/gca/rollout.gif": 600, "metrics/eval/ball/gca/strip.png": 300,
+             "metrics/eval/cat/gca@seed1/cd_time.png": 300, "metrics/eval/cat/gca@seed1/rollout.gif": 600,
+             "metrics/eval/ball/gca.json": 10, "reports/ci/figures/law_curves.png": 50}
+    for rel, n in sizes.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x" * n)
+    monkeypatch.setattr(grid, "MEDIA_CAP", 1300)
+    with tarfile.open(grid.collect(tmp_path, tmp_path / "out")) as tar:
+        assert set(tar.getnames()) == {"metrics/eval/ball/gca.json", "reports/ci/figures/law_curves.png"}
+    with tarfile.open(tmp_path / "out" / "grid_media.tar.gz") as tar:
+        assert tar.getnames() == ["metrics/eval/ball/gca/strip.png", "metrics/eval/cat/gca@seed1/cd_time.png",
+                                  "metrics/eval/ball/gca/rollout.gif"]  # 1200 bytes: the second GIF over the cap
+    assert "1 of 4 files left out of grid_media.tar.gz" in capsys.readouterr().out
+    monkeypatch.setattr(grid, "MEDIA_CAP", 10 ** 6)
+    grid.collect(tmp_path, tmp_path / "out2")
+    with tarfile.open(tmp_path / "out2" / "grid_media.tar.gz") as tar:
+        assert len(tar.getnames()) == 4
+    assert "left out" not in capsys.readouterr().out
 
 
 def test_collect_passes_over_a_file_a_running_grid_removed(tmp_path, monkeypatch):

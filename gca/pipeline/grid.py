@@ -465,21 +465,47 @@ def prepare(work: Path, params: dict) -> None:
     (work / ".grid").mkdir(exist_ok=True)
 
 
+#: an evaluation's media (``metrics/<eval|demo|...>/<scene>/<run>/*.gif|png|mp4``): :func:`collect` puts them in an
+#: archive of their own, so the results' archive stays small
+MEDIA = re.compile(r"^metrics/.+/[^/]+/[^/]+/[^/]+\.(gif|png|mp4)$")
+#: the media archive's bytes at most: the device tool brings back files of at most 16 MiB (session 56: a three-seed
+#: table's 54 rollout GIFs took one archive over it, and its report, metrics and laws stayed on the machine)
+MEDIA_CAP = 15 * 2 ** 20
+
+
 def collect(work: Path, out: Path) -> Path:
-    """The small results of a grid in one archive: metrics, reports, train/eval summaries, the learned laws
-    (~40 kB each: a run can be evaluated again elsewhere), priors, logs. Also of a grid that runs meanwhile
-    (:func:`_listed`, ``gca.io.add_file``). Beside it ``timeline.png``, when each job ran (:mod:`gca.pipeline.timeline`).
-    """
+    """The small results of a grid in one archive, ``grid_results.tar.gz``: metrics, reports, train/eval summaries,
+    the learned laws (~40 kB each: a run can be evaluated again elsewhere), priors, logs; and the evaluations' media
+    (:data:`MEDIA`) beside it in ``grid_media.tar.gz``, the PNGs first, then the GIFs, added while their bytes stay
+    under :data:`MEDIA_CAP` (the rest left out, counted in a printed line). Also of a grid that runs meanwhile (:func:`_listed`,
+    ``gca.io.add_file``). Beside them ``timeline.png``, when each job ran (:mod:`gca.pipeline.timeline`).
+    Returns the results' archive."""
     from gca.io import add_file
 
     out.mkdir(parents=True, exist_ok=True)
     path = out / "grid_results.tar.gz"
     keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
                       r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/(?!carried/).*|params\.yaml)$")
+    listed = [(f, rel, size) for f, rel, size in _listed(work) if keep.match(rel) and size < 8 * 2 ** 20]
+    # the still images first (a run's strip and CD curve, ~90 kB), then the animations (~250-370 kB a GIF)
+    media = sorted((item for item in listed if MEDIA.match(item[1])),
+                   key=lambda item: (not item[1].endswith(".png"), item[1]))
     with tarfile.open(path, "w:gz") as tar:
-        for f, rel, size in _listed(work):
-            if keep.match(rel) and size < 8 * 2 ** 20:
+        for f, rel, _ in listed:
+            if not MEDIA.match(rel):
                 add_file(tar, f, rel)  # passes over a file gone since the listing
+    if media:
+        added, left = 0, []
+        with tarfile.open(out / "grid_media.tar.gz", "w:gz") as tar:
+            for f, rel, size in media:
+                if added + size > MEDIA_CAP:
+                    left.append(rel)
+                    continue
+                add_file(tar, f, rel)
+                added += size
+        if left:
+            print(f"[grid] media: {len(left)} of {len(media)} files left out of grid_media.tar.gz (over "
+                  f"{MEDIA_CAP // 2 ** 20} MiB), e.g. {left[0]}")
     log = work / ".grid" / "grid.log"
     if log.is_file():  # where the grid's time went: gca.pipeline.timeline's plot beside the archive
         try:
