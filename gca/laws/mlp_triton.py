@@ -358,7 +358,9 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
                          f"{[w.dtype for w in weights]}")
     if precision == "tf32" and z.dtype != torch.float32:
         raise ValueError(f"{_WHERE}: TF32 products take float32, got {z.dtype} (use precision='ieee')")
-    programs = _programs(z, programs if sink is None or programs is not None else sink.programs)
+    if programs is None and sink is not None:
+        programs = sink.programs  # a frame's calls take its programs
+    programs = _programs(z, programs)
     if sink is not None:
         if programs != sink.programs or sink.acc.dtype != z.dtype or sink.acc.device != z.device \
                 or sink.sizes != [w.numel() for w in weights]:

@@ -137,12 +137,12 @@ def frame_mlp_sums(material, enabled: bool = True):
         and net._frame_mlp is None]
     formed = []
     try:
+        mlp_triton = _mlp_triton() if nets else None
         for net in nets:
-            layers = _mlp_triton().check(net.mlp)
-            weights = [effective_weight(layer) for layer in layers]
-            if not any(w.requires_grad for w in weights) or not _mlp_triton().runs_here(weights[0]):
+            weights = [effective_weight(layer) for layer in mlp_triton.check(net.mlp)]
+            if not any(w.requires_grad for w in weights) or not mlp_triton.runs_here(weights[0]):
                 continue
-            net._frame_mlp = _mlp_triton().frame_weights(weights)
+            net._frame_mlp = mlp_triton.frame_weights(weights)
             formed.append(net)
         yield material
     finally:

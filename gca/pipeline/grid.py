@@ -477,23 +477,24 @@ def collect(work: Path, out: Path) -> Path:
     """The small results of a grid in one archive, ``grid_results.tar.gz``: metrics, reports, train/eval summaries,
     the learned laws (~40 kB each: a run can be evaluated again elsewhere), priors, logs; and the evaluations' media
     (:data:`MEDIA`) beside it in ``grid_media.tar.gz``, the PNGs first, then the GIFs, added while their bytes stay
-    under :data:`MEDIA_CAP` (the rest left out, counted in a printed line). Also of a grid that runs meanwhile (:func:`_listed`,
-    ``gca.io.add_file``). Beside them ``timeline.png``, when each job ran (:mod:`gca.pipeline.timeline`).
-    Returns the results' archive."""
+    under :data:`MEDIA_CAP` (the rest left out, counted in a printed line). Also of a grid that runs meanwhile
+    (:func:`_listed`, ``gca.io.add_file``). Beside them ``timeline.png``, when each job ran
+    (:mod:`gca.pipeline.timeline`). Returns the results' archive."""
     from gca.io import add_file
 
     out.mkdir(parents=True, exist_ok=True)
     path = out / "grid_results.tar.gz"
     keep = re.compile(r"^(metrics/.*|reports/.*|models/prior/.*|runs/[^/]+/velocity(@seed[0-9]+)?\.json|"
                       r"runs/[^/]+/[^/]+/(train|history)\.json|runs/[^/]+/[^/]+/(loss\.png|law\.pt)|\.grid/(?!carried/).*|params\.yaml)$")
-    listed = [(f, rel, size) for f, rel, size in _listed(work) if keep.match(rel) and size < 8 * 2 ** 20]
-    # the still images first (a run's strip and CD curve, ~90 kB), then the animations (~250-370 kB a GIF)
-    media = sorted((item for item in listed if MEDIA.match(item[1])),
-                   key=lambda item: (not item[1].endswith(".png"), item[1]))
+    results, media = [], []
+    for item in _listed(work):
+        if keep.match(item[1]) and item[2] < 8 * 2 ** 20:
+            (media if MEDIA.match(item[1]) else results).append(item)
     with tarfile.open(path, "w:gz") as tar:
-        for f, rel, _ in listed:
-            if not MEDIA.match(rel):
-                add_file(tar, f, rel)  # passes over a file gone since the listing
+        for f, rel, _ in results:
+            add_file(tar, f, rel)  # passes over a file gone since the listing
+    # the still images first (a run's strip and CD curve, ~90 kB), then the animations (~250-370 kB a GIF)
+    media.sort(key=lambda item: (not item[1].endswith(".png"), item[1]))
     if media:
         added, left = 0, []
         with tarfile.open(out / "grid_media.tar.gz", "w:gz") as tar:
