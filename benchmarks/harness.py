@@ -169,7 +169,7 @@ def keep_stopped(work: Path, out: Path, tag: str) -> list[Path]:
 
 SOLVER_SWITCHES = ("block_p2g", "agg_p2g", "agg_g2p", "vec4_p2g", "vec4_step", "vec4_g2p_adj", "hand_p2g_adj",
                    "hand_g2p_adj", "frame_mlp_grads", "fuse_frames", "fuse_analytic", "split_p2g", "keep_grid")
-SOLVER_NUMBERS = ("stash_mib",)  # MPMSolver's numeric path settings (>= 0; stash_mib=0: the grid stash off)
+SOLVER_NUMBERS = ("stash_mib", "mlp_stash_mib")  # MPMSolver's numeric path settings (>= 0; 0: that stash off)
 
 
 def set_solver_switches(items: list[str]) -> None:

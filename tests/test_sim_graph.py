@@ -222,6 +222,33 @@ def test_frame_mlp_sums_under_cuda_graphs_match_the_plain_frames_on_gpu():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_mlp_stash_under_cuda_graphs_matches_the_grid_stash_alone_on_gpu():
+    """On a GPU: captured frames that keep their networks' fused-MLP outputs (``MPMSolver.mlp_stash_mib``) and replay
+    them through the third backward graph give the grid stash's trajectory and gradients (the same kernels on the
+    same inputs: equal to rounding at most), through graphed autograd and the reverse sweep."""
+    pytest.importorskip("triton")
+    material = _law(dtype=torch.float32).cuda()
+    for net in (material.elasticity, material.plasticity):
+        net.mlp_kernel = "triton_tf32"
+    scene = [t.cuda() for t in _scene(n=500, dtype=torch.float32)]
+    results = {}
+    for mib in (0.0, 64.0):
+        solver = MPMSolver(SimConfig(n_grid=16, dt=1e-3, bound=1, boundary="sticky", friction=0.0, max_refine=1),
+                           "cuda")
+        solver.mlp_stash_mib = mib
+        results[mib] = _loss_and_grads(material, solver, True, *scene)
+        runner = solver.frame_graphs(material, 2, 500)
+        assert runner.capture, "capture fell back to eager"
+        assert (runner._rpx_graph is not None) == (mib > 0) and len(runner.mlp_nets) == (2 if mib > 0 else 0)
+    (ref, g_ref), (out, g) = results[0.0], results[64.0]
+    torch.testing.assert_close(out.x, ref.x, atol=0, rtol=0)
+    assert all(float(t.abs().max()) > 0 for t in g)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-6 * float(b.abs().max()), rtol=1e-5)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_capture_survives_unreachable_warp_memory():
     """An unreachable solver (a reference cycle holding warp-owned grid buffers) must not be collected
     inside a capture: warp would free its memory while torch captures, and the capture would fail.

@@ -283,6 +283,17 @@ def _programs(z: torch.Tensor, programs: int | None) -> int:
     return BWD_PROGRAMS_PER_SM * torch.cuda.get_device_properties(z.device).multi_processor_count if z.is_cuda else 8
 
 
+def _forward(x, w1, w2, w3, block: int, precision: str, out: torch.Tensor | None = None) -> torch.Tensor:
+    """The forward kernel's launch: out [N, N_OUT] (a fresh tensor, or ``out``'s storage) for contiguous x and
+    weights, no autograd."""
+    if out is None:
+        out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
+    _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
+                                                     K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
+                                                     OUT_PAD=_pad(w3.shape[0]), BLOCK=block, PRECISION=precision)
+    return out
+
+
 class FusedMLP(torch.autograd.Function):
     """out = W3 gelu(W2 gelu(W1 x)) for x [N, K_IN] and weights [H, K_IN], [H, H], [N_OUT, H] (torch's layout): the
     forward one launch with nothing stored but the inputs; the backward one persistent launch of ``programs`` programs
@@ -292,15 +303,13 @@ class FusedMLP(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, w1, w2, w3, block: int, precision: str, programs: int, warps: int,
-                sink: FrameSum | None = None):
+                sink: FrameSum | None = None, given: torch.Tensor | None = None):
         ctx.save_for_backward(x, w1, w2, w3)
         ctx.cfg = (block, precision, programs, warps)
         ctx.sink = sink
-        out = torch.empty(x.shape[0], w3.shape[0], device=x.device, dtype=x.dtype)
-        _fused_mlp_fwd[(triton.cdiv(x.shape[0], block),)](x, w1, w2, w3, out, x.shape[0], K_IN=x.shape[1],
-                                                         K_PAD=_pad(x.shape[1]), H=w2.shape[0], N_OUT=w3.shape[0],
-                                                         OUT_PAD=_pad(w3.shape[0]), BLOCK=block, PRECISION=precision)
-        return out
+        if given is not None:  # the forward's own output, kept by it (a frame's MLP stash): no launch
+            return given.view_as(given)
+        return _forward(x, w1, w2, w3, block, precision)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -320,9 +329,9 @@ class FusedMLP(torch.autograd.Function):
         _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts.split(sizes, dim=1), parts.shape[1], *counts,
                              **consts, num_warps=warps)
         if sink is not None:
-            return (dx, None, None, None, None, None, None, None, None)
+            return (dx, None, None, None, None, None, None, None, None, None)
         sums = parts.sum(0).split(sizes)  # one reduction launch, not three (session 45: 3 x 6.4 us per backward)
-        return (dx, *(d.view_as(w) for d, w in zip(sums, (w1, w2, w3))), None, None, None, None, None)
+        return (dx, *(d.view_as(w) for d, w in zip(sums, (w1, w2, w3))), None, None, None, None, None, None)
 
 
 def runs_here(z: torch.Tensor) -> bool:
@@ -332,7 +341,8 @@ def runs_here(z: torch.Tensor) -> bool:
 
 
 def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", block: int = BLOCK,
-        programs: int | None = None, warps: int = BWD_WARPS, sink: FrameSum | None = None) -> torch.Tensor:
+        programs: int | None = None, warps: int = BWD_WARPS, sink: FrameSum | None = None,
+        out: torch.Tensor | None = None, given: torch.Tensor | None = None) -> torch.Tensor:
     """X [N, N_OUT] = W3 gelu(W2 gelu(W1 z)) for z [N, K_IN] and ``weights`` [W1 [H, K_IN], W2 [H, H], W3 [N_OUT, H]]
     (torch's layouts; the shape :func:`check` accepts), differentiable in z and the weights. ``precision``: ``tf32``
     (TF32 products; float32 only) or ``ieee`` (FP32 or float64 products). ``programs``: the backward's persistent
@@ -341,7 +351,11 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
     ``block``, ``programs`` and ``warps`` change the launch, not the function: the products' tiles and the order in
     which the weight gradients' partials are summed change (float rounding only).
     ``sink``: a frame's :class:`FrameSum`, with ``weights`` the outputs of the :func:`frame_weights` that made it: the
-    weight gradients go to the sink (summed once a frame), not back through this call; its programs are the call's."""
+    weight gradients go to the sink (summed once a frame), not back through this call; its programs are the call's.
+    ``out`` / ``given`` (a frame's MLP stash, ``gca.laws.neural.frame_mlp_stash``): ``out`` [N, N_OUT] takes the
+    forward's output (where no gradient is recorded: a frame's forward pass); ``given`` [N, N_OUT] *is* the output, no
+    launch (a frame's recompute, whose forward pass left it in ``out``: the same kernel on the same inputs gives the
+    same bits), returned as a view; the backward is the plain call's, which recomputes the forward on chip from z."""
     if not runs_here(z):
         raise ValueError(f"{_WHERE}: the fused MLP runs on CUDA, or on a CPU only in Triton's interpreter "
                          f"(TRITON_INTERPRET=1 before the import); got {z.device}")
@@ -367,5 +381,16 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
             raise ValueError(f"{_WHERE}: a frame sum of {sink.programs} programs, {sink.acc.dtype} on "
                              f"{sink.acc.device}, weights of {sink.sizes} elements cannot take a call of {programs} "
                              f"programs, {z.dtype} on {z.device}, weights of {[w.numel() for w in weights]}")
+    for name, t in (("out", out), ("given", given)):
+        if t is not None and (tuple(t.shape) != (z.shape[0], w3.shape[0]) or t.dtype != z.dtype
+                              or t.device != z.device or not t.is_contiguous()):
+            raise ValueError(f"{_WHERE}: {name} must be a contiguous [{z.shape[0]}, {w3.shape[0]}] {z.dtype} tensor on "
+                             f"{z.device}, got {tuple(t.shape)} {t.dtype} on {t.device}")
+    if out is not None:
+        if given is not None:
+            raise ValueError(f"{_WHERE}: out and given together (a call either keeps its output or takes it)")
+        if torch.is_grad_enabled() and (z.requires_grad or any(w.requires_grad for w in weights)):
+            raise ValueError(f"{_WHERE}: out takes a forward's output where no gradient is recorded (no_grad)")
+        return _forward(z.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision, out)
     return FusedMLP.apply(z.contiguous(), w1.contiguous(), w2.contiguous(), w3.contiguous(), block, precision,
-                          programs, warps, sink)
+                          programs, warps, sink, given)

@@ -109,17 +109,74 @@ def _mlp_triton():
     return mlp_triton
 
 
-def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor, frame=None) -> torch.Tensor:
+def _triton_mlp(mlp: nn.Sequential, z: torch.Tensor, frame=None, stash: "MLPStash | None" = None) -> torch.Tensor:
     """``mlp_kernel: triton_tf32``: the MLP through ``gca.laws.mlp_triton`` with the layers' effective (LoRA-merged)
     weights (TF32 products for float32; a float64 law, the interpreter's gradient checks, runs FP64 products).
     ``frame``: the network's ``(sink, weights)`` of :func:`frame_mlp_sums` (the weights' gradients summed once a
-    frame), or None."""
+    frame), or None. ``stash``: the network's :class:`MLPStash` of :func:`frame_mlp_stash` (this call's output kept
+    in, or taken from, the frame's next entry), or None."""
     mlp_triton = _mlp_triton()
     layers = mlp_triton.check(mlp)
     precision = "tf32" if z.dtype == torch.float32 else "ieee"
+    keep = {} if stash is None else {"given" if stash.replay else "out": stash.take()}
     if frame is not None:
-        return mlp_triton.mlp(z, frame[1], precision, sink=frame[0])
-    return mlp_triton.mlp(z, [effective_weight(layer) for layer in layers], precision)
+        return mlp_triton.mlp(z, frame[1], precision, sink=frame[0], **keep)
+    return mlp_triton.mlp(z, [effective_weight(layer) for layer in layers], precision, **keep)
+
+
+class MLPStash:
+    """One network's MLP outputs over a frame's ``n_steps`` calls (``MPMSolver.mlp_stash_mib``): ``buf`` [n_steps, N,
+    N_OUT], entry i the frame's i-th call's X. Recording (``replay`` False: the frame's forward pass, no autograd),
+    each call's fused forward writes its output into its entry; replaying (the frame's recompute for its backward),
+    each call takes its entry as its output and launches no forward (the backward is unchanged: the fused backward
+    recomputes the forward on chip from the inputs). Exact: the recompute's inputs are the forward pass's bit for bit
+    (as the grid stash's, ``gca.sim.graph``), and the kernel is deterministic. ``calls`` counts the frame's calls; a
+    frame that calls the network more than ``n_steps`` times raises, and :func:`frame_mlp_stash` checks on leaving
+    that it called it exactly ``n_steps`` times."""
+
+    def __init__(self, buf: torch.Tensor, replay: bool, name: str = "network"):
+        self.buf, self.replay, self.name, self.calls = buf, bool(replay), name, 0
+
+    def take(self) -> torch.Tensor:
+        """The next call's entry [N, N_OUT]."""
+        if self.calls >= self.buf.shape[0]:
+            raise RuntimeError(f"gca/laws/neural.py: the {self.name}'s MLP stash holds {self.buf.shape[0]} calls a "
+                               f"frame, and the frame called it again (one call a step expected)")
+        self.calls += 1
+        return self.buf[self.calls - 1]
+
+
+def stash_networks(material) -> list["_InvariantNetwork"]:
+    """The neural networks of ``material`` whose MLP can keep a frame's outputs (:class:`MLPStash`): on the fused
+    Triton kernels (``mlp_kernel: triton_tf32``) on the fast path, in module order."""
+    return [net for net in neural_networks(material) if net.mlp_kernel == "triton_tf32" and net.fast_path]
+
+
+@contextlib.contextmanager
+def frame_mlp_stash(material, bufs: list[torch.Tensor] | None, replay: bool):
+    """Within the block, each network of :func:`stash_networks` keeps (``replay`` False) or takes (``replay`` True) its
+    MLP outputs in its buffer of ``bufs`` ([n_steps, N, N_OUT] each, in that order; :class:`MLPStash`). A no-op
+    where ``bufs`` is None. On leaving without an error, every network must have been called once per entry: a
+    frame whose law took another number of calls than its stash holds raises (its recompute would read another
+    call's output)."""
+    nets = [] if bufs is None else stash_networks(material)
+    if len(nets) != (0 if bufs is None else len(bufs)):
+        raise ValueError(f"gca/laws/neural.py: {len(bufs)} MLP stash buffers for {len(nets)} networks on the fused "
+                         f"MLP")
+    stashes = [MLPStash(b, replay, type(net).__name__) for net, b in zip(nets, bufs or [])]
+    for net, st in zip(nets, stashes):
+        if net._mlp_stash is not None:
+            raise RuntimeError("gca/laws/neural.py: a frame's MLP stash entered inside another")
+        net._mlp_stash = st
+    try:
+        yield material
+        for st in stashes:
+            if st.calls != st.buf.shape[0]:
+                raise RuntimeError(f"gca/laws/neural.py: the {st.name}'s MLP stash holds {st.buf.shape[0]} calls a "
+                                   f"frame, and the frame called it {st.calls} times")
+    finally:
+        for net in nets:
+            net._mlp_stash = None
 
 
 @contextlib.contextmanager
@@ -187,6 +244,7 @@ class _InvariantNetwork(nn.Module):
     fast_path: bool = True
     mlp_kernel: str = "torch"
     _frame_mlp = None  # inside frame_mlp_sums(): (FrameSum, the frame's weights) of gca.laws.mlp_triton
+    _mlp_stash = None  # inside frame_mlp_stash(): this network's MLPStash for the frame
 
     def __init__(self, cfg: NeuralLawConfig | None = None):
         super().__init__()
@@ -217,7 +275,7 @@ class _InvariantNetwork(nn.Module):
         if self.mlp_kernel == "torch":
             return self.mlp(z)
         if self.mlp_kernel == "triton_tf32":  # its own check: the exact GELU only (mlp_triton.check)
-            return _triton_mlp(self.mlp, z, self._frame_mlp)
+            return _triton_mlp(self.mlp, z, self._frame_mlp, self._mlp_stash)
         shape = mlp_kernel.shape_of(self.mlp)
         if shape is None:
             raise ValueError(f"gca/laws/neural.py: mlp_kernel={self.mlp_kernel!r} fuses two hidden layers with one of "

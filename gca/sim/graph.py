@@ -15,6 +15,10 @@ With a grid stash (:func:`gca.sim.frame.stashable`: a material whose forward tak
 :meth:`FrameGraphs.stashed` hands out for the caller to keep per frame, and a second backward graph (the
 **replay**) recomputes the frame from such a stash: each step's grid update and G2P from its stashed grid, P2G
 skipped (``MPMSolver.step``'s ``grid``), then the same differentiation. Same gradients (bitwise on the CPU).
+Where the frame's neural networks run the fused Triton MLP and the solver's ``mlp_stash_mib`` is set, the forward
+graph also leaves each step's MLP outputs in static buffers (``gca.laws.neural.frame_mlp_stash``), and a third
+backward graph (the **MLP replay**) replays a frame from its grid and MLP stash together: no P2G and no MLP forward
+in its recompute (a caller keeps the MLP stash for the frames its budget holds: ``gca.sim.rollout``).
 
 :func:`graphed_frame` wraps them in a ``torch.autograd.Function`` that saves only the frame-start
 state, i.e. the same memory profile as per-frame checkpointing (``gca.sim.rollout``), with both
@@ -37,7 +41,8 @@ import warnings
 import torch
 from torch import nn
 
-from gca.laws.neural import neural_networks
+from gca.laws.neural import frame_mlp_stash, neural_networks, stash_networks
+from gca.laws.svd import warp_runs
 from gca.sim.frame import simulate_frame_trial, stashable
 
 _WHERE = "gca/sim/graph.py"
@@ -78,6 +83,21 @@ def _collector_paused():
     finally:
         if was_enabled:
             gc.enable()
+
+
+def mlp_stash_networks(solver, material, stashes: bool) -> list:
+    """The networks whose MLP outputs a frame runner of ``material`` keeps (``MPMSolver.mlp_stash_mib``): those of
+    :func:`gca.laws.neural.stash_networks`, where the frame keeps its grid stash (``stashes``), the budget is set, and
+    the fused kernels (warp's features, Triton's MLP) run on the solver's device; else none."""
+    if not stashes or getattr(solver, "mlp_stash_mib", 0.0) <= 0:
+        return []
+    nets = stash_networks(material)
+    if not nets:
+        return []
+    from gca.laws import mlp_triton  # triton: needed only where a network runs the fused MLP
+
+    probe = torch.empty(0, dtype=solver.dtype, device=solver.device)
+    return nets if warp_runs(probe) and mlp_triton.runs_here(probe) else []
 
 
 def _mlp_kernels(material) -> tuple[str, ...]:
@@ -125,13 +145,24 @@ class FrameGraphs:
         shapes_g = solver.stash_shapes()
         grid = lambda: tuple(torch.zeros((self.n_steps, *s), dtype=dt, device=dev) for s in shapes_g)  # noqa: E731
         self.fwd_grids, self.bwd_grids = (grid(), grid()) if self.stashes else (None, None)
-        self.fwd_out = self.bwd_grads = self.rep_grads = None
-        self._fwd_graph = self._bwd_graph = self._rep_graph = None
+        # the MLP stash: each step's outputs X [n_steps, N, N_OUT] of each such network, as the forward left them,
+        # and the MLP replay's copy of a frame's
+        self.mlp_nets = mlp_stash_networks(solver, material, self.stashes)
+        outs = lambda: [torch.zeros(self.n_steps, n, net.mlp[-1].out_features, dtype=dt, device=dev)  # noqa: E731
+                        for net in self.mlp_nets]
+        self.fwd_mlp, self.bwd_mlp = (outs(), outs()) if self.mlp_nets else (None, None)
+        self.fwd_out = self.bwd_grads = self.rep_grads = self.rpx_grads = None
+        self._fwd_graph = self._bwd_graph = self._rep_graph = self._rpx_graph = None
 
     @property
     def stash_bytes(self) -> int:
         """Bytes of one frame's grid stash (0 where the frame cannot stash)."""
         return sum(t.numel() * t.element_size() for t in self.fwd_grids) if self.stashes else 0
+
+    @property
+    def mlp_stash_bytes(self) -> int:
+        """Bytes of one frame's MLP stash (0 where the frame cannot keep one)."""
+        return sum(t.numel() * t.element_size() for t in self.fwd_mlp) if self.mlp_nets else 0
 
     def matches(self, material, n_steps: int, n: int, capture: bool | None = None) -> bool:
         return (material is self.material and (self.n_steps, self.n) == (n_steps, n)
@@ -140,6 +171,7 @@ class FrameGraphs:
                 and self.kernels == _mlp_kernels(material)
                 and self.frame_sums == bool(getattr(self.solver, "frame_mlp_grads", False))
                 and self.stashes == stashable(self.solver, material)
+                and bool(self.mlp_nets) == bool(mlp_stash_networks(self.solver, material, self.stashes))
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 
     def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:
@@ -151,16 +183,17 @@ class FrameGraphs:
 
     def _run_forward(self):
         s = self.fwd_in
-        with torch.no_grad():
+        with torch.no_grad(), frame_mlp_stash(self.material, self.fwd_mlp, replay=False):
             return self.frame(s["x"], s["v"], s["C"], s["F"], self.vol, self.mass, self.fwd_grids)
 
-    def _run_backward(self, replay: bool = False):
-        """Recompute the frame and differentiate it (``replay``: from the stash in ``bwd_grids``, P2G skipped). The
+    def _run_backward(self, replay: bool = False, mlp: bool = False):
+        """Recompute the frame and differentiate it (``replay``: from the stash in ``bwd_grids``, P2G skipped;
+        ``mlp``: and the MLP outputs in ``bwd_mlp``, no MLP forward launched). The
         trainable parameters enter as fresh aliases
         (same storage, new autograd leaves): differentiating the parameters themselves would touch
         their accumulation nodes, which may belong to a live graph on another stream (e.g. a
         regulariser evaluated before the rollout) and then break the capture."""
-        with torch.enable_grad():
+        with torch.enable_grad(), frame_mlp_stash(self.material, self.bwd_mlp if mlp else None, replay=True):
             ins = [self.bwd_in[k].detach().requires_grad_(True) for k in _STATE]
             alias = {name: p.detach().requires_grad_(True) for name, p in zip(self.param_names, self.params)}
             outs = torch.func.functional_call(self.frame, alias, (*ins, self.vol, self.mass,
@@ -192,6 +225,8 @@ class FrameGraphs:
                     self._run_backward()
                     if self.stashes:
                         self._run_backward(replay=True)
+                    if self.mlp_nets:
+                        self._run_backward(replay=True, mlp=True)
             torch.cuda.current_stream(self.solver.device).wait_stream(side)
             with _collector_paused():
                 if fwd:
@@ -201,17 +236,22 @@ class FrameGraphs:
                     self._fwd_graph = graph
                 if bwd:
                     graph, replay = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph() if self.stashes else None
+                    rpx = torch.cuda.CUDAGraph() if self.mlp_nets else None
                     with torch.cuda.graph(graph, capture_error_mode="thread_local"):
                         self.bwd_grads = self._run_backward()
-                    if self.stashes:  # the replay shares the recompute's pool: only one runs at a time, on one
+                    if self.stashes:  # the replays share the recompute's pool: only one runs at a time, on one
                         # stream, and each one's outputs are copied out at once (backward)
                         with torch.cuda.graph(replay, pool=graph.pool(), capture_error_mode="thread_local"):
                             self.rep_grads = self._run_backward(replay=True)
-                    self._bwd_graph, self._rep_graph = graph, replay
+                    if self.mlp_nets:
+                        with torch.cuda.graph(rpx, pool=graph.pool(), capture_error_mode="thread_local"):
+                            self.rpx_grads = self._run_backward(replay=True, mlp=True)
+                    self._bwd_graph, self._rep_graph, self._rpx_graph = graph, replay, rpx
         except RuntimeError as err:  # a host sync inside the law: run eagerly instead
             warnings.warn(f"{_WHERE}: CUDA graph capture of {type(self.material).__name__} failed, running "
                           f"eagerly ({str(err).splitlines()[0]})", RuntimeWarning, stacklevel=3)
             self.capture, self._fwd_graph, self._bwd_graph, self._rep_graph = False, None, None, None
+            self._rpx_graph = None
             torch.cuda.synchronize(self.solver.device)
 
     # -- public passes ----------------------------------------------------------------------------
@@ -230,10 +270,13 @@ class FrameGraphs:
             out = self._run_forward()
         return tuple(o.clone() for o in out)
 
-    def stashed(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+    def stashed(self, mlp: bool = False) -> tuple[torch.Tensor, ...] | None:
         """The grid stash of the last :meth:`forward` (copies of each step's mv [n_steps, R G, G, G, 3] and m
-        [n_steps, R G, G, G]), for :meth:`backward`'s ``grids``; None where the frame cannot stash."""
-        return tuple(t.clone() for t in self.fwd_grids) if self.stashes else None
+        [n_steps, R G, G, G]), for :meth:`backward`'s ``grids``; None where the frame cannot stash. ``mlp`` (where the
+        frame keeps one, :attr:`mlp_nets`): followed by copies of its MLP stash, one [n_steps, N, N_OUT] a network."""
+        if not self.stashes:
+            return None
+        return tuple(t.clone() for t in (*self.fwd_grids, *(self.fwd_mlp if mlp and self.mlp_nets else ())))
 
     def backward(self, state, cotangents, grids=None):
         """Gradients of the frame-start ``state`` (x, v, C, F) and of the trainable parameters.
@@ -242,36 +285,42 @@ class FrameGraphs:
             state: the frame's inputs (x, v, C, F).
             cotangents: gradients of the frame's outputs (x, v, C, F, F_trial).
             grids: the frame's grid stash from :meth:`stashed` after its :meth:`forward` from ``state`` (the
-                replay: P2G not recomputed), or None (the recompute).
+                replay: P2G not recomputed; with the MLP stash after it, the MLP replay: no MLP forward either), or
+                None (the recompute).
         """
         if grids is not None and not self.stashes:
             raise ValueError(f"{_WHERE}: a grid stash given to a frame runner that cannot stash")
+        mlp = grids is not None and len(grids) > len(self.bwd_grids)
+        if mlp and len(grids) != len(self.bwd_grids) + len(self.mlp_nets or ()):
+            raise ValueError(f"{_WHERE}: a stash of {len(grids)} tensors given to a frame runner that keeps "
+                             f"{len(self.bwd_grids)} grid and {len(self.mlp_nets or ())} MLP tensors")
         for k, t in zip(_STATE, state):
             self.bwd_in[k].copy_(t)
         for k, g in zip((*_STATE, "F_trial"), cotangents):
             self.bwd_cot[k].copy_(g)
         if grids is not None:
-            for buf, g in zip(self.bwd_grids, grids):
+            for buf, g in zip((*self.bwd_grids, *(self.bwd_mlp if mlp else ())), grids):
                 buf.copy_(g)
         self._ensure_captured()
         if self.capture:
-            (self._bwd_graph if grids is None else self._rep_graph).replay()
-            grads = self.bwd_grads if grids is None else self.rep_grads
+            graph, grads = ((self._bwd_graph, self.bwd_grads) if grids is None else
+                            (self._rpx_graph, self.rpx_grads) if mlp else (self._rep_graph, self.rep_grads))
+            graph.replay()
         else:
-            grads = self._run_backward(replay=grids is not None)
+            grads = self._run_backward(replay=grids is not None, mlp=mlp)
         return tuple(g.clone() for g in grads)
 
 
 class _GraphedFrame(torch.autograd.Function):
     """autograd bridge of :class:`FrameGraphs`: saves the frame-start state only (and the frame's grid stash where
-    ``stash``)."""
+    ``stash``, 1, with its MLP stash where 2)."""
 
     @staticmethod
-    def forward(ctx, runner: FrameGraphs, stash: bool, x, v, C, F, *params):
+    def forward(ctx, runner: FrameGraphs, stash: int, x, v, C, F, *params):
         ctx.runner = runner
         out = runner.forward(x, v, C, F)
         # saved, not kept on ctx: autograd frees the stash with the frame's backward (unless the graph is retained)
-        ctx.save_for_backward(x, v, C, F, *(runner.stashed() if stash else ()))
+        ctx.save_for_backward(x, v, C, F, *(runner.stashed(mlp=stash == 2) if stash else ()))
         return out
 
     @staticmethod
@@ -281,11 +330,13 @@ class _GraphedFrame(torch.autograd.Function):
         return (None, None, *grads)
 
 
-def graphed_frame(runner: FrameGraphs, x, v, C, F, stash: bool = False):
+def graphed_frame(runner: FrameGraphs, x, v, C, F, stash: bool = False, mlp: bool = False):
     """Differentiable frame through the runner: (x, v, C, F) -> (x, v, C, F, F_trial); ``stash``: its backward
-    replays the forward's grid stash (the runner must stash: :attr:`FrameGraphs.stashes`)."""
+    replays the forward's grid stash (the runner must stash: :attr:`FrameGraphs.stashes`); ``mlp``: and its MLP stash
+    (where the runner keeps one: :attr:`FrameGraphs.mlp_nets`)."""
     if torch.is_grad_enabled():
-        return _GraphedFrame.apply(runner, bool(stash and runner.stashes), x, v, C, F, *runner.params)
+        level = 0 if not (stash and runner.stashes) else 2 if mlp and runner.mlp_nets else 1
+        return _GraphedFrame.apply(runner, level, x, v, C, F, *runner.params)
     return runner.forward(x, v, C, F, backward=False)  # no gradient: no backward graph captured
 
 

@@ -16,6 +16,8 @@ Speed. With ``graph`` (default on CUDA) each frame's forward and recompute-backw
 from CUDA graphs (``gca.sim.graph``) instead of launching ~40 kernels per step from Python. Where the frames can
 stash their grids (:func:`gca.sim.frame.stashable`) and all of them fit ``MPMSolver.stash_mib``, a frame runner's
 rollout (swept or graphed) keeps each frame's stash from its forward pass, and the frames' recomputes skip P2G.
+Where the runner also keeps its networks' MLP outputs (``MPMSolver.mlp_stash_mib``), the first frames whose MLP
+stashes fit that budget keep them too, and their recomputes launch no MLP forward (:func:`_mlp_frames`).
 """
 
 from __future__ import annotations
@@ -178,6 +180,7 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
     if runner is not None:
         runner.bind(vol, mass)
     stash = runner is not None and _stash_fits(runner, solver, n_steps // steps_per_frame)
+    mlp_frames = _mlp_frames(runner, solver, n_steps // steps_per_frame) if stash else 0
     grids = [] if sweep and stash else None  # each frame's grid stash, for the sweep
     Cs = [C]
     if sweep:
@@ -187,9 +190,9 @@ def rollout(solver: MPMSolver, material, x0, v0, vol, mass, n_steps: int, steps_
         if sweep:
             x, v, C, F, F_trial = runner.forward(x, v, C, F)
             if grids is not None:
-                grids.append(runner.stashed())
+                grids.append(runner.stashed(mlp=frame < mlp_frames))
         elif runner is not None:
-            x, v, C, F, F_trial = graphed_frame(runner, x, v, C, F, stash)
+            x, v, C, F, F_trial = graphed_frame(runner, x, v, C, F, stash, mlp=frame < mlp_frames)
         elif checkpoint and torch.is_grad_enabled():
             x, v, C, F, F_trial = torch_checkpoint(simulate_frame_trial, *args, use_reentrant=False)
         else:
@@ -219,6 +222,16 @@ def _stash_fits(runner, solver: MPMSolver, n_frames: int) -> bool:
     """Whether a rollout of ``n_frames`` frames through ``runner`` keeps its frames' grid stashes: the frames can
     stash (:attr:`gca.sim.graph.FrameGraphs.stashes`) and all of them fit ``solver.stash_mib``."""
     return runner.stashes and n_frames * runner.stash_bytes <= solver.stash_mib * 2 ** 20
+
+
+def _mlp_frames(runner, solver: MPMSolver, n_frames: int) -> int:
+    """How many of a rollout's ``n_frames`` frames (the first ones) keep their MLP stash beside their grid stash: as
+    many as fit ``solver.mlp_stash_mib`` (0 where the runner keeps none: :attr:`gca.sim.graph.FrameGraphs.mlp_nets`).
+    Which frames does not change the peak (every frame's stash is alive when the forward pass ends)."""
+    per = runner.mlp_stash_bytes
+    if per <= 0:
+        return 0
+    return min(n_frames, int(solver.mlp_stash_mib * 2 ** 20 // per))
 
 
 class ReverseSweep:

@@ -196,6 +196,13 @@ class MPMSolver:
     # profile: 1604 reductions of 7.0 us and ~4800 adds of 1.6 us a full-horizon iteration). The same gradients to
     # float rounding. Off (False) until measured; True / False (not device-resolved: the kernels say where they run)
     frame_mlp_grads: bool = False
+    # the MLP stash's budget per rollout [MiB]: where a frame keeps its grid stash (stash_mib) and its neural networks
+    # run the fused Triton MLP (train.mlp_kernel: triton_tf32), the first frames whose networks' outputs X [n_steps, N,
+    # 9] fit also keep them from the forward pass (gca.laws.neural.frame_mlp_stash), and their recomputes launch no MLP
+    # forward (1600 of a full-horizon iteration's 3205 at the paper profile: ~8.4 us each packed, NOTES session 57).
+    # Bitwise the same gradients (the recompute's inputs are the forward's). ~2.2 MB a step at 30k particles (two
+    # networks), ~1.7 GB for the duck's 800 steps: the budget takes the frames that fit. 0 = off, until measured
+    mlp_stash_mib: float = 0.0
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
@@ -228,6 +235,7 @@ class MPMSolver:
         fine.agg_g2p, fine.stash_mib, fine.vec4_p2g = self.agg_g2p, self.stash_mib, self.vec4_p2g
         fine.vec4_step, fine.vec4_g2p_adj, fine.hand_p2g_adj = self.vec4_step, self.vec4_g2p_adj, self.hand_p2g_adj
         fine.hand_g2p_adj, fine.frame_mlp_grads = self.hand_g2p_adj, self.frame_mlp_grads
+        fine.mlp_stash_mib = self.mlp_stash_mib
         return fine
 
     def with_runs(self, run: torch.Tensor, n_runs: int) -> "MPMSolver":
