@@ -473,3 +473,37 @@ def test_frames_at_once_equal_each_frame_alone(depth_term, reduction):
     assert anchors > 0 and stats["n_global"][1] > 0 and float(stats["n_matches"][2]) == 0  # not vacuous
     unpadded, _ = rdga_frames(depth=depth, p=P, q=Q, cfg=cfg, pos_image=pos, K=K, **maps)
     assert not torch.allclose(unpadded[1:], loss[1:])  # control: the padded rows, counted, change frames 1 and 2
+
+
+def test_gather_patches_is_advanced_indexings_patches_with_its_gradient():
+    """Session 57: the patches as one index_select of the flattened frames: the values of ``frames[b, rows, cols]``
+    bitwise and its gradient (float64, overlapping patches summed, points off the border clamped in, two frames);
+    control: every frame read from frame 0 (a flat index without its frame stride) differs here."""
+    from gca.align.rdga import _pixel_indices, gather_patches
+
+    g = torch.Generator().manual_seed(0)
+    B, H, W, M, k = 2, 9, 11, 25, 3
+    image = torch.randn(B, H, W, generator=g, dtype=torch.float64, requires_grad=True)
+    points = torch.rand(B, M, 2, generator=g, dtype=torch.float64) * torch.tensor([W + 2.0, H + 2.0]) - 1.0
+    points[0, :5] = torch.tensor([4.2, 3.9], dtype=torch.float64)  # five points on one pixel: overlapping patches
+    cot = torch.randn(B, M, k * k, generator=g, dtype=torch.float64)
+
+    def reference():
+        half = k // 2
+        pix, inside = _pixel_indices(points, H, W, half)
+        off = torch.arange(-half, half + 1)
+        cols = pix[..., 0].clamp(half, W - 1 - half)[..., None, None] + off
+        rows = pix[..., 1].clamp(half, H - 1 - half)[..., None, None] + off[:, None]
+        return image[torch.arange(B)[:, None, None, None], rows, cols].reshape(B, M, k * k), inside
+
+    patches, inside = gather_patches(image, points, k)
+    ref, ref_inside = reference()
+    assert torch.equal(patches, ref) and torch.equal(inside, ref_inside) and not bool(inside.all())
+    (grad,) = torch.autograd.grad((patches * cot).sum(), image)
+    (grad_ref,) = torch.autograd.grad((ref * cot).sum(), image)
+    torch.testing.assert_close(grad, grad_ref, atol=1e-12, rtol=1e-12)
+    assert float(grad.abs().max()) > 0
+    # negative control: the bug the flat index could have (the frame stride dropped: every frame read from frame 0)
+    # is visible in these data
+    frame0 = gather_patches(image[:1].expand(B, H, W), points, k)[0]
+    assert torch.equal(frame0[0], ref[0]) and not torch.allclose(frame0[1], ref[1])
