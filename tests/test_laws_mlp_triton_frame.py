@@ -1,12 +1,12 @@
 """A frame's weight-gradient sum of the fused Triton MLP (``MPMSolver.frame_mlp_grads``,
 ``gca.laws.neural.frame_mlp_sums``, ``gca.laws.mlp_triton.FrameSum``), in Triton's CPU interpreter (its CPU twin):
 within one block, calls of several particle counts give the values of the plain calls bitwise and the same gradients
-to F and to the LoRA factors to rounding (float64 1e-12, float32 1e-5 relative), the frame's rows holding the sum of
-every call's partials; negative controls: a backward that overwrites its rows instead of adding to them, and a block
-whose sum never reaches the weights, change the gradients. A rollout's frames with the switch on and off give the same
-gradients (checkpointed frames, the reverse sweep's recompute), and so does a kept graph differentiated three times
-(the term shares' way; negative control: rows never zeroed for a new pass count the earlier passes). Each case runs in a fresh interpreter process (Triton
-reads TRITON_INTERPRET when the kernels are decorated)."""
+to F and to the LoRA factors to rounding (float64 1e-12, float32 1e-5 relative), each call's partials in a block of
+the frame's, summed once and freed; negative controls: every call's partials in one block, and a sum that never
+reaches the weights, change the gradients. A rollout's frames with the switch on and off give the same gradients
+(checkpointed frames, the reverse sweep's recompute), and so does a kept graph differentiated three times (the term
+shares' way; negative control: a pass that continues and sums the earlier pass's blocks counts them twice). Each case
+runs in a fresh interpreter process (Triton reads TRITON_INTERPRET when the kernels are decorated)."""
 
 import sys
 from pathlib import Path
@@ -71,9 +71,9 @@ for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
     assert len(g1) == 3 + 6 and all(float(t.abs().max()) > 0 for t in g1)
     worst = max(rel(a, b) for a, b in zip(g1, g0))
     assert worst < tol, (dtype, worst)
-    # the frame's rows hold every call's partials: their sum is the merged weights' gradient, the whole frame's
+    # each call's partials had a block of the frame's, summed once and freed: the merged weights' gradient
     sink, weights = f1
-    assert sink.acc.shape == (8, sum(w.numel() for w in weights)) and float(sink.acc.abs().max()) > 0
+    assert sink.calls == len(COUNTS) and sink.parts is None and sink.taken == 0
 print("ok")
 """)
 
@@ -83,16 +83,18 @@ def test_negative_controls_an_overwriting_backward_and_a_sum_that_never_arrives_
 dtype = torch.float64
 net = net_of(NeuralElasticity, dtype)
 _, g0, _ = calls(net, dtype, False)
-orig = mlp_triton._fused_mlp_bwd
+block_for = mlp_triton.FrameSum.block_for
 
-class Overwrite:  # the kernel without ACCUMULATE: each call overwrites the rows, the frame keeps the last call's
-    def __getitem__(self, grid):
-        launch = orig[grid]
-        return lambda *a, **kw: launch(*a, **{**kw, "ACCUMULATE": False})
+def one_block(self, task):  # every call's partials into the first block: the frame keeps the last call's only
+    block = block_for(self, task)
+    self.taken = 1
+    return self.parts[0]
 
-mlp_triton._fused_mlp_bwd = Overwrite()
-_, g1, _ = calls(net, dtype, True)
-mlp_triton._fused_mlp_bwd = orig
+mlp_triton.FrameSum.block_for = one_block
+try:
+    _, g1, _ = calls(net, dtype, True)
+finally:
+    mlp_triton.FrameSum.block_for = block_for
 bad = max(rel(a, b) for a, b in zip(g1[3:], g0[3:]))
 assert bad > 1e-3, bad  # the LoRA gradients lose the earlier calls
 assert max(rel(a, b) for a, b in zip(g1[:3], g0[:3])) < 1e-12  # dz does not go through the rows
@@ -183,14 +185,23 @@ def terms(on, checkpoint, reset=True):
     t1 = (out.x[-1] * torch.linspace(0.5, 1.5, n, dtype=dtype)[:, None]).sum()
     t2 = (out.F[-1] ** 2).sum()
     params = [p for p in material.parameters() if p.requires_grad]
-    own = mlp_triton.FrameSum.rows_for, mlp_triton.FrameSum.rows_of
-    if not reset:  # the control: rows never zeroed for a new pass
-        mlp_triton.FrameSum.rows_for = lambda self, task: self.acc
-        mlp_triton.FrameSum.rows_of = lambda self, task: self.acc
+    own = mlp_triton.FrameSum.block_for, mlp_triton.FrameSum.sum_of
+    if not reset:  # the control: a new pass continues the earlier pass's blocks and sums them with its own
+        def stale_block(self, task):
+            self.task = task
+            if self.parts is None:
+                self.parts = torch.zeros(4 * self.calls, self.programs, sum(self.sizes), dtype=self.dtype)
+            self.taken += 1
+            return self.parts[self.taken - 1]
+
+        def stale_sum(self, task):
+            return list(self.parts[:self.taken].reshape(-1, self.parts.shape[2]).sum(0).split(self.sizes))
+
+        mlp_triton.FrameSum.block_for, mlp_triton.FrameSum.sum_of = stale_block, stale_sum
     try:
         return [torch.autograd.grad(t, params, retain_graph=True) for t in (t1, t2, t1)]
     finally:
-        mlp_triton.FrameSum.rows_for, mlp_triton.FrameSum.rows_of = own
+        mlp_triton.FrameSum.block_for, mlp_triton.FrameSum.sum_of = own
 
 for checkpoint in (True, False):
     plain = terms(False, checkpoint)

@@ -13,8 +13,9 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
   in a fixed order (no atomics: deterministic), the three in one reduction (since session 45: the duck's profile
   had the three sums at 30.7 ms of a 563-ms iteration, 6.4 us each, latency-bound);
-- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, off until measured): each backward adds
-  its programs' partials to the frame's rows in place (:class:`FrameSum`), and the rows are summed once a frame.
+- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, off until measured): each backward stores
+  its programs' partials in its own block of the frame's rows (:class:`FrameSum`), and the rows are summed once a
+  frame.
 
 Measured (NVIDIA H200, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``, session 37): at
 30k particles TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9, at 8
@@ -85,7 +86,7 @@ def _gelu_and_grad(x):
 def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_ptr, dw3_ptr, part_stride, n,
                    n_programs, per_program, K_IN: tl.constexpr, K_PAD: tl.constexpr, H: tl.constexpr,
                    N_OUT: tl.constexpr, OUT_PAD: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                   INTERPRETED_PER: tl.constexpr, ACCUMULATE: tl.constexpr):
+                   INTERPRETED_PER: tl.constexpr):
     """One persistent program: for its per_program tiles (pid, pid + n_programs, ...) of BLOCK particles, the forward
     recomputed on chip, then the backward of out = W3 gelu(W2 gelu(W1 x)) for the output cotangent g: dx stored per
     particle; the weight gradients summed over the program's tiles in registers and stored once as this program's
@@ -95,10 +96,7 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
 
     per_program is a runtime count, so one compiled kernel serves every particle count. Compiled, the loop runs to it
     (INTERPRETED_PER 0). Triton's interpreter cannot loop to a runtime bound, so there INTERPRETED_PER repeats it as a
-    compile-time count (:func:`_bwd_launch`).
-
-    ACCUMULATE: the program adds its partials to what its row holds (a frame's running sum, :class:`FrameSum`)
-    instead of overwriting it; the row is this program's alone, so the sum stays free of atomics."""
+    compile-time count (:func:`_bwd_launch`)."""
     pid = tl.program_id(0)
     k = tl.arange(0, K_PAD)
     h = tl.arange(0, H)
@@ -125,16 +123,9 @@ def _fused_mlp_bwd(x_ptr, g_ptr, w1_ptr, w2_ptr, w3_ptr, dx_ptr, dw1_ptr, dw2_pt
         dw1 += tl.dot(tl.trans(d1), x, input_precision=PRECISION)  # [H, K_PAD]
         dx = tl.dot(d1, w1, input_precision=PRECISION)  # [BLOCK, K_PAD]
         tl.store(dx_ptr + rows[:, None] * K_IN + k[None, :], dx, mask=live[:, None] & (k[None, :] < K_IN))
-    p1 = dw1_ptr + pid * part_stride + h[:, None] * K_IN + k[None, :]
-    p2 = dw2_ptr + pid * part_stride + h[:, None] * H + h[None, :]
-    p3 = dw3_ptr + pid * part_stride + o[:, None] * H + h[None, :]
-    if ACCUMULATE:
-        dw1 += tl.load(p1, mask=k[None, :] < K_IN, other=0.0)
-        dw2 += tl.load(p2)
-        dw3 += tl.load(p3, mask=o[:, None] < N_OUT, other=0.0)
-    tl.store(p1, dw1, mask=k[None, :] < K_IN)
-    tl.store(p2, dw2)
-    tl.store(p3, dw3, mask=o[:, None] < N_OUT)
+    tl.store(dw1_ptr + pid * part_stride + h[:, None] * K_IN + k[None, :], dw1, mask=k[None, :] < K_IN)
+    tl.store(dw2_ptr + pid * part_stride + h[:, None] * H + h[None, :], dw2)
+    tl.store(dw3_ptr + pid * part_stride + o[:, None] * H + h[None, :], dw3, mask=o[:, None] < N_OUT)
 
 
 
@@ -193,7 +184,7 @@ def _bwd_launch(n: int, k_in: int, h: int, n_out: int, block: int, precision: st
     per = max(1, triton.cdiv(tiles, max(1, programs)))  # tiles per program: the grid then wastes < per tile iterations
     p = max(1, triton.cdiv(tiles, per))
     consts = dict(K_IN=k_in, K_PAD=_pad(k_in), H=h, N_OUT=n_out, OUT_PAD=_pad(n_out), BLOCK=block, PRECISION=precision,
-                  INTERPRETED_PER=per if interpreted else 0, ACCUMULATE=False)
+                  INTERPRETED_PER=per if interpreted else 0)
     return p, (n, p, per), consts
 
 
@@ -202,44 +193,58 @@ BWD_WARPS = 4  # the backward's warps per program; both from session 39's sweep 
 
 
 class FrameSum:
-    """A frame's running sum of the fused backward's weight-gradient partials (``MPMSolver.frame_mlp_grads``): one
-    row of ``programs`` per backward program, each row that program's partials of every backward of the frame added
-    in place (the kernel's ACCUMULATE), summed over the rows once, when autograd reaches :class:`_FrameWeights`.
+    """A frame's weight-gradient partials of the fused backward (``MPMSolver.frame_mlp_grads``): each backward of the
+    frame stores its programs' partials in a block of its own (:meth:`block_for`, the kernel's plain store), and the
+    blocks are summed in one reduction when autograd reaches :class:`_FrameWeights` (:meth:`sum_of`).
 
     Why: a training frame evaluates each network once a step (20 steps a frame at the paper profile), and each
-    backward summed its ~235 programs' partials (one reduction launch, 7.0 us on the duck, H200) before autograd added
-    the step's three weight gradients to the frame's (three adds, 1.6 us each): 1604 reductions and ~4800 adds of a
-    full-horizon iteration's ~383 ms (NOTES session 52's profile). With the sum: one reduction per network a frame,
-    no adds; each backward reads its rows before it writes them (~5.8 MB more read a call). The same gradient to
-    float rounding (another summation order: each program's steps first, then the programs).
+    backward summed its ~264 programs' partials (one reduction launch, ~6.8 us on the duck, H200) before autograd added
+    the step's three weight gradients to the frame's (three adds, ~1.5 us each): 1604 reductions and ~4800 adds of a
+    full-horizon iteration. With the sum: one reduction per network a frame, no adds. Session 56's first form added
+    each backward's partials to one set of rows in place (a read before each write): session 57 measured that backward
+    +10 % (27.1 -> 29.8 us a call), which ate most of the gain (NOTES); a block per call keeps the plain store. The
+    same gradient to float rounding (another summation order: every call's programs at once).
 
-    ``acc`` [programs, |W1| + |W2| + |W3|] (the dtype and device of the weights), zero when the frame's weights are
-    formed; ``sizes`` the three weights' element counts. The rows are one backward pass's: a graph differentiated
-    again (``retain_graph``: the term shares' per-term gradients, CPR's chunks on a kept graph) starts them from zero
-    at its first accumulation (:meth:`rows_for`), and a pass that accumulated none reads none (:meth:`rows_of`).
-    Session 56's review found the double count without it (a checkpointed frame's second gradient 3e-3 off).
-    Memory: the rows live as long as the frame's graph (a checkpointed rollout keeps every frame's until its backward:
-    ~5.8 MB a network a frame with the H200's 264 programs); the sweep's and the CUDA graphs' forwards make none."""
+    ``calls`` counts the frame's forward calls (each backward takes one block); ``parts`` [calls, programs, |W1| +
+    |W2| + |W3|] (the weights' dtype and device) is made at a pass's first backward and freed by its sum. A kept graph
+    differentiated again (``retain_graph``: the term shares' per-term gradients) starts its blocks from the first
+    (:meth:`block_for` names the pass by its autograd graph task): session 56's review found a double count of the
+    first form without that. Memory: ~5.8 MB a call a network with the H200's 264 programs, ~0.1 GB a network while a
+    20-step frame is differentiated (the sweep's and the CUDA graphs' forwards make none)."""
 
-    FRESH = -2  # the task mark of rows zeroed at the frame's forward, not yet accumulated into
+    FRESH = -2  # the task mark of a frame whose blocks no pass has taken yet
 
     def __init__(self, weights: list[torch.Tensor], programs: int):
         self.sizes = [w.numel() for w in weights]
         self.programs = int(programs)
-        self.acc = torch.zeros(self.programs, sum(self.sizes), device=weights[0].device, dtype=weights[0].dtype)
-        self.task = self.FRESH  # the autograd graph task whose partials the rows hold
+        self.dtype, self.device = weights[0].dtype, weights[0].device
+        self.calls = 0  # forward calls of the frame so far
+        self.parts: torch.Tensor | None = None
+        self.taken, self.task = 0, self.FRESH  # blocks taken by the pass of graph task ``task``
 
-    def rows_for(self, task: int) -> torch.Tensor:
-        """The rows a backward of graph task ``task`` adds to: zeroed first where they hold another task's."""
+    def called(self) -> None:
+        """One more forward call of the frame (one more block for each pass)."""
+        self.calls += 1
+
+    def block_for(self, task: int) -> torch.Tensor:
+        """The next block [programs, width] of graph task ``task``'s pass (a new pass starts from the first)."""
         if self.task != task:
-            if self.task != self.FRESH:
-                self.acc.zero_()
-            self.task = task
-        return self.acc
+            self.task, self.taken = task, 0
+        if self.parts is None or self.parts.shape[0] < self.calls:
+            self.parts = torch.empty(self.calls, self.programs, sum(self.sizes), dtype=self.dtype, device=self.device)
+        if self.taken >= self.parts.shape[0]:
+            raise RuntimeError(f"{_WHERE}: a frame's pass took more backward calls than its {self.calls} forward calls")
+        self.taken += 1
+        return self.parts[self.taken - 1]
 
-    def rows_of(self, task: int) -> torch.Tensor | None:
-        """The rows task ``task`` accumulated, or None where it accumulated none."""
-        return self.acc if self.task == task else None
+    def sum_of(self, task: int) -> list[torch.Tensor] | None:
+        """The three weights' gradients (flat) summed over task ``task``'s blocks, which are then freed; None where that
+        pass took none."""
+        if self.task != task or self.taken == 0:
+            return None
+        total = self.parts[:self.taken].reshape(-1, self.parts.shape[2]).sum(0)  # one reduction a network a frame
+        self.parts, self.taken, self.task = None, 0, self.FRESH
+        return list(total.split(self.sizes))
 
 
 class _FrameWeights(torch.autograd.Function):
@@ -256,10 +261,9 @@ class _FrameWeights(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
-        rows = ctx.sink.rows_of(torch._C._current_graph_task_id())
-        if rows is None:  # no fused call of this pass added to the frame's rows
+        sums = ctx.sink.sum_of(torch._C._current_graph_task_id())
+        if sums is None:  # no fused call of this pass stored partials in the frame's blocks
             return (None, *grads)
-        sums = rows.sum(0).split(ctx.sink.sizes)  # one reduction launch a network a frame
         out = [s.view(shape) if g is None else g + s.view(shape) for g, s, shape in zip(grads, sums, ctx.shapes)]
         return (None, *out)
 
@@ -307,6 +311,8 @@ class FusedMLP(torch.autograd.Function):
         ctx.save_for_backward(x, w1, w2, w3)
         ctx.cfg = (block, precision, programs, warps)
         ctx.sink = sink
+        if sink is not None:
+            sink.called()
         if given is not None:  # the forward's own output, kept by it (a frame's MLP stash): no launch
             return given.view_as(given)
         return _forward(x, w1, w2, w3, block, precision)
@@ -321,9 +327,10 @@ class FusedMLP(torch.autograd.Function):
         dx = torch.empty_like(x)
         sizes = [w.numel() for w in (w1, w2, w3)]
         sink = ctx.sink
-        if sink is not None:  # the frame's rows: this backward's partials added to them, no sum here
-            parts = sink.rows_for(torch._C._current_graph_task_id())
-            consts["ACCUMULATE"] = True
+        if sink is not None:  # this call's block of the frame's partials, no sum here
+            parts = sink.block_for(torch._C._current_graph_task_id())
+            if p < parts.shape[0]:  # programs this call does not run: their rows enter the frame's sum as zeros
+                parts[p:].zero_()
         else:
             parts = torch.empty(p, sum(sizes), device=x.device, dtype=x.dtype)  # a program's three partials in a row
         _fused_mlp_bwd[(p,)](x, g.contiguous(), w1, w2, w3, dx, *parts.split(sizes, dim=1), parts.shape[1], *counts,
@@ -376,10 +383,10 @@ def mlp(z: torch.Tensor, weights: list[torch.Tensor], precision: str = "tf32", b
         programs = sink.programs  # a frame's calls take its programs
     programs = _programs(z, programs)
     if sink is not None:
-        if programs != sink.programs or sink.acc.dtype != z.dtype or sink.acc.device != z.device \
+        if programs != sink.programs or sink.dtype != z.dtype or sink.device != z.device \
                 or sink.sizes != [w.numel() for w in weights]:
-            raise ValueError(f"{_WHERE}: a frame sum of {sink.programs} programs, {sink.acc.dtype} on "
-                             f"{sink.acc.device}, weights of {sink.sizes} elements cannot take a call of {programs} "
+            raise ValueError(f"{_WHERE}: a frame sum of {sink.programs} programs, {sink.dtype} on "
+                             f"{sink.device}, weights of {sink.sizes} elements cannot take a call of {programs} "
                              f"programs, {z.dtype} on {z.device}, weights of {[w.numel() for w in weights]}")
     for name, t in (("out", out), ("given", given)):
         if t is not None and (tuple(t.shape) != (z.shape[0], w3.shape[0]) or t.dtype != z.dtype

@@ -184,8 +184,8 @@ def frame_mlp_sums(material, enabled: bool = True):
     """Within the block, every neural network of ``material`` whose MLP runs the fused Triton kernels
     (``mlp_kernel: triton_tf32`` on the fast path) and whose weights take a gradient sums its weight gradients
     over the block's calls once (``gca.laws.mlp_triton.frame_weights``; ``MPMSolver.frame_mlp_grads``): its
-    effective (merged) weights formed once on entry, each call's backward adding its programs' partials to the
-    frame's rows, one reduction when autograd reaches the weights. Enter it inside :func:`gca.laws.lora.
+    effective (merged) weights formed once on entry, each call's backward storing its programs' partials in a block
+    of the frame's, one reduction when autograd reaches the weights. Enter it inside :func:`gca.laws.lora.
     merged_weights` (the merge is then the frame's). The same gradient to float rounding; a no-op where
     ``enabled`` is False, autograd does not record, or no such network is there. A network evaluated on another
     device or dtype inside the block raises (the sum's rows are the frame's)."""

@@ -191,10 +191,12 @@ class MPMSolver:
     # us a launch on the duck, 37.1 -> 25.2 on the ball)
     hand_g2p_adj: bool | None = None
     # a frame's neural networks on the fused Triton MLP (train.mlp_kernel: triton_tf32) sum their weight gradients once
-    # a frame (gca.laws.neural.frame_mlp_sums, gca.laws.mlp_triton.FrameSum: each step's backward adds its programs'
-    # partials to the frame's rows in place) instead of one reduction and three adds a step (session 52's duck
-    # profile: 1604 reductions of 7.0 us and ~4800 adds of 1.6 us a full-horizon iteration). The same gradients to
-    # float rounding. Off (False) until measured; True / False (not device-resolved: the kernels say where they run)
+    # a frame (gca.laws.neural.frame_mlp_sums, gca.laws.mlp_triton.FrameSum: each step's backward stores its programs'
+    # partials in a block of the frame's) instead of one reduction and three adds a step (session 52's duck profile:
+    # 1604 reductions of 7.0 us and ~4800 adds of 1.6 us a full-horizon iteration). The same gradients to float
+    # rounding. Off (False): session 57 measured the first form (partials added in place) at -4.2 ms a duck
+    # iteration, -0.75 % packed, under its rule; the block form is not measured yet. True / False (not
+    # device-resolved: the kernels say where they run)
     frame_mlp_grads: bool = False
     # the MLP stash's budget per rollout [MiB]: where a frame keeps its grid stash (stash_mib) and its neural networks
     # run the fused Triton MLP (train.mlp_kernel: triton_tf32), the first frames whose networks' outputs X [n_steps, N,
