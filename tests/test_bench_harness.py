@@ -78,7 +78,11 @@ def test_harness_sets_a_solver_switch_for_its_solvers_and_refuses_an_unknown_one
     assert MPMSolver(SimConfig(n_grid=8)).stash_mib == 1e9
     harness.set_solver_switches(["stash_mib=0"])  # the grid stash off
     assert MPMSolver(SimConfig(n_grid=8)).stash_mib == 0
-    for bad in ("stash_mib=-1", "stash_mib=true", "stash_mib=many", "block_p2g=3"):
+    monkeypatch.setattr(MPMSolver, "mlp_stash_mib", MPMSolver.mlp_stash_mib)
+    harness.set_solver_switches(["mlp_stash_mib=1024"])  # the MLP stash's budget (session 57), to refined solvers too
+    coarse = MPMSolver(SimConfig(n_grid=8))
+    assert coarse.mlp_stash_mib == 1024 and coarse.refined(2).mlp_stash_mib == 1024
+    for bad in ("stash_mib=-1", "stash_mib=true", "stash_mib=many", "block_p2g=3", "mlp_stash_mib=-2"):
         with pytest.raises(SystemExit, match="a number >= 0"):
             harness.set_solver_switches([bad])
 
