@@ -507,3 +507,5 @@ def test_gather_patches_is_advanced_indexings_patches_with_its_gradient():
     # is visible in these data
     frame0 = gather_patches(image[:1].expand(B, H, W), points, k)[0]
     assert torch.equal(frame0[0], ref[0]) and not torch.allclose(frame0[1], ref[1])
+    with pytest.raises(ValueError, match="at least 3 x 3 pixels, got 2 x 11"):  # a patch larger than the image
+        gather_patches(image[:, :2], points, k)

@@ -191,3 +191,29 @@ else:
 assert material.elasticity._mlp_stash is None and material.plasticity._mlp_stash is None
 print("ok")
 """)
+
+
+def test_a_composite_material_or_a_budget_under_one_frame_keeps_no_mlp_stash():
+    # session 57's review: a composite's networks each run on their slice of the particles (not the stash's [N] rows):
+    # it keeps none, and its rollout runs as with the budget off; a budget under one frame's outputs keeps none either
+    _run("""
+from gca.laws.base import CompositeMaterial
+other = Material(net_of(NeuralElasticity, cfg), net_of(NeuralPlasticity, cfg), 1000.0).to(dtype)
+composite = CompositeMaterial([material, other], [25, 15])
+assert FrameGraphs(solver_of(64.0), composite, PER_FRAME, n, capture=False).mlp_nets == []
+per_mib = 2 * PER_FRAME * n * 9 * 8 / 2 ** 20
+assert FrameGraphs(solver_of(0.9 * per_mib), material, PER_FRAME, n, capture=False).mlp_nets == []
+assert len(FrameGraphs(solver_of(per_mib), material, PER_FRAME, n, capture=False).mlp_nets) == 2
+results = []
+for mib in (0.0, 64.0):
+    v = v0.clone().requires_grad_(True)
+    with torch.no_grad():
+        plain = rollout(solver_of(mib), composite, x0, v0, vol, vol * 1000.0, N_STEPS, PER_FRAME, graph=True)
+    out = rollout(solver_of(mib), composite, x0, v, vol, vol * 1000.0, N_STEPS, PER_FRAME, sweep=True)
+    assert all(len(s) == 2 for s in out.sweep.grids)  # grids only
+    out.sweep.add(out.x.shape[0] - 1, torch.ones_like(out.x[-1]), None)
+    out.sweep.finish()
+    results.append((plain.x, v.grad))
+assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+print("ok")
+""")

@@ -243,6 +243,8 @@ def gather_patches(image: torch.Tensor, points: torch.Tensor, k: int) -> tuple[t
     overlapping patch entries with atomics on CUDA: the same gradient to float rounding, in an order that varies.
     """
     H, W = image.shape[-2:]
+    if H < k or W < k:  # a clamped patch would start before the frame (the flat index: in the previous one)
+        raise ValueError(f"{_WHERE}: {k} x {k} patches need an image of at least {k} x {k} pixels, got {H} x {W}")
     frames, pts = _frames(image, points, 2)
     half = k // 2
     pix, inside = _pixel_indices(pts, H, W, half)  # [B, M, 2], [B, M]

@@ -210,7 +210,10 @@ class FrameSum:
     differentiated again (``retain_graph``: the term shares' per-term gradients) starts its blocks from the first
     (:meth:`block_for` names the pass by its autograd graph task): session 56's review found a double count of the
     first form without that. Memory: ~5.8 MB a call a network with the H200's 264 programs, ~0.1 GB a network while a
-    20-step frame is differentiated (the sweep's and the CUDA graphs' forwards make none)."""
+    20-step frame is differentiated (the sweep's and the CUDA graphs' forwards make none; their frames' graphs live
+    within one backward). A pass that reaches the fused backwards but not the weights (a gradient w.r.t. the state
+    alone, on a kept eager graph) leaves its blocks allocated until the frame's graph is freed or a later pass sums
+    them."""
 
     FRESH = -2  # the task mark of a frame whose blocks no pass has taken yet
 
@@ -231,6 +234,8 @@ class FrameSum:
         if self.task != task:
             self.task, self.taken = task, 0
         if self.parts is None or self.parts.shape[0] < self.calls:
+            if self.taken > 0:  # a pass's stored blocks would be lost
+                raise RuntimeError(f"{_WHERE}: a frame's forward calls grew to {self.calls} during a backward pass")
             self.parts = torch.empty(self.calls, self.programs, sum(self.sizes), dtype=self.dtype, device=self.device)
         if self.taken >= self.parts.shape[0]:
             raise RuntimeError(f"{_WHERE}: a frame's pass took more backward calls than its {self.calls} forward calls")

@@ -163,12 +163,12 @@ def frame_mlp_stash(material, bufs: list[torch.Tensor] | None, replay: bool):
     if len(nets) != (0 if bufs is None else len(bufs)):
         raise ValueError(f"gca/laws/neural.py: {len(bufs)} MLP stash buffers for {len(nets)} networks on the fused "
                          f"MLP")
+    if any(net._mlp_stash is not None for net in nets):
+        raise RuntimeError("gca/laws/neural.py: a frame's MLP stash entered inside another")
     stashes = [MLPStash(b, replay, type(net).__name__) for net, b in zip(nets, bufs or [])]
-    for net, st in zip(nets, stashes):
-        if net._mlp_stash is not None:
-            raise RuntimeError("gca/laws/neural.py: a frame's MLP stash entered inside another")
-        net._mlp_stash = st
     try:
+        for net, st in zip(nets, stashes):
+            net._mlp_stash = st
         yield material
         for st in stashes:
             if st.calls != st.buf.shape[0]:

@@ -41,6 +41,7 @@ import warnings
 import torch
 from torch import nn
 
+from gca.laws.base import Material
 from gca.laws.neural import frame_mlp_stash, neural_networks, stash_networks
 from gca.laws.svd import warp_runs
 from gca.sim.frame import simulate_frame_trial, stashable
@@ -85,15 +86,25 @@ def _collector_paused():
             gc.enable()
 
 
-def mlp_stash_networks(solver, material, stashes: bool) -> list:
-    """The networks whose MLP outputs a frame runner of ``material`` keeps (``MPMSolver.mlp_stash_mib``): those of
-    :func:`gca.laws.neural.stash_networks`, where the frame keeps its grid stash (``stashes``), the budget is set, and
-    the fused kernels (warp's features, Triton's MLP) run on the solver's device; else none."""
+def mlp_stash_networks(solver, material, stashes: bool, n_steps: int, n: int) -> list:
+    """The networks whose MLP outputs a frame runner of ``material`` (``n_steps`` steps of ``n`` particles) keeps
+    (``MPMSolver.mlp_stash_mib``): those of :func:`gca.laws.neural.stash_networks`, where the frame keeps its grid
+    stash (``stashes``), the budget holds one frame's outputs, the fused kernels (warp's features, Triton's MLP) run on
+    the solver's device, and the material is a plain :class:`gca.laws.base.Material` whose neural networks are its own
+    elasticity and plasticity (each called once a step on all n particles, the stash's layout); else none. A
+    composite of parts (each network on its slice of the particles), batched runs' laws (``gca.laws.batched``, whose
+    networks run outside ``run_mlp``) or one network in both roles keep none (session 57's review)."""
     if not stashes or getattr(solver, "mlp_stash_mib", 0.0) <= 0:
         return []
     nets = stash_networks(material)
-    if not nets:
+    own = [getattr(material, "elasticity", None), getattr(material, "plasticity", None)]
+    plain = (type(material).stress is Material.stress and type(material).project is Material.project
+             and own[0] is not own[1] and all(any(net is o for o in own) for net in neural_networks(material)))
+    if not nets or not plain:
         return []
+    width = sum(net.mlp[-1].out_features for net in nets)
+    if n_steps * n * width * torch.empty(0, dtype=solver.dtype).element_size() > solver.mlp_stash_mib * 2 ** 20:
+        return []  # not one frame in budget: no buffers, no third graph
     from gca.laws import mlp_triton  # triton: needed only where a network runs the fused MLP
 
     probe = torch.empty(0, dtype=solver.dtype, device=solver.device)
@@ -147,7 +158,7 @@ class FrameGraphs:
         self.fwd_grids, self.bwd_grids = (grid(), grid()) if self.stashes else (None, None)
         # the MLP stash: each step's outputs X [n_steps, N, N_OUT] of each such network, as the forward left them,
         # and the MLP replay's copy of a frame's
-        self.mlp_nets = mlp_stash_networks(solver, material, self.stashes)
+        self.mlp_nets = mlp_stash_networks(solver, material, self.stashes, self.n_steps, self.n)
         outs = lambda: [torch.zeros(self.n_steps, n, net.mlp[-1].out_features, dtype=dt, device=dev)  # noqa: E731
                         for net in self.mlp_nets]
         self.fwd_mlp, self.bwd_mlp = (outs(), outs()) if self.mlp_nets else (None, None)
@@ -171,7 +182,8 @@ class FrameGraphs:
                 and self.kernels == _mlp_kernels(material)
                 and self.frame_sums == bool(getattr(self.solver, "frame_mlp_grads", False))
                 and self.stashes == stashable(self.solver, material)
-                and bool(self.mlp_nets) == bool(mlp_stash_networks(self.solver, material, self.stashes))
+                and [id(m) for m in self.mlp_nets] == [id(m) for m in mlp_stash_networks(
+                    self.solver, material, self.stashes, self.n_steps, self.n)]
                 and [id(p) for p in _trainable(material)] == [id(p) for p in self.params])
 
     def bind(self, vol: torch.Tensor, mass: torch.Tensor) -> None:
