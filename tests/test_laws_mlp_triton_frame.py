@@ -15,7 +15,7 @@ import pytest
 
 pytest.importorskip("triton")
 sys.path.insert(0, str(Path(__file__).parent))
-from interpreted import run_interpreted  # noqa: E402
+from interpreted import LAW_SCENE, NET_OF, run_interpreted  # noqa: E402
 
 SETUP = """
 import torch
@@ -24,17 +24,7 @@ from gca.laws.base import Material
 from gca.laws.lora import apply_lora, lora_parameters, merged_weights
 from gca.laws.neural import NeuralElasticity, NeuralLawConfig, NeuralPlasticity, frame_mlp_sums
 torch.manual_seed(0)
-
-def net_of(cls, dtype, cfg=None):
-    net = cls(cfg)
-    apply_lora(net, 4, 4.0)
-    for name, p in net.named_parameters():
-        if name.endswith("lora_B"):
-            torch.nn.init.normal_(p, std=0.05)  # adapters that move the law
-    net = net.to(dtype)
-    net.mlp_kernel = "triton_tf32"
-    return net
-
+""" + NET_OF + """
 COUNTS = (300, 77, 300)  # one frame's calls: the 77-particle call runs fewer backward programs than the others
 
 def calls(net, dtype, on):
@@ -146,13 +136,7 @@ def test_a_rollouts_gradients_with_the_frame_sums_equal_the_plain_frames():
     _run("""
 from gca.sim import MPMSolver, SimConfig, rollout
 dtype = torch.float64
-cfg = NeuralLawConfig(widths=(16, 16), stress_scale=2e3, alpha=1e-2)
-material = Material(net_of(NeuralElasticity, dtype, cfg), net_of(NeuralPlasticity, dtype, cfg), 1000.0).to(dtype)
-g = torch.Generator().manual_seed(1)
-n = 40
-x0 = (0.4 + 0.2 * torch.rand(n, 3, generator=g)).to(dtype)
-v0 = (torch.tensor([0.3, -0.2, 0.1]) + 0.2 * torch.randn(n, 3, generator=g)).to(dtype)
-vol = torch.full((n,), 2e-6, dtype=dtype)
+""" + LAW_SCENE + """
 
 def grads(on):
     solver = MPMSolver(SimConfig(n_grid=8, dt=1e-3, bound=1, boundary="sticky", friction=0.0, dtype="float64",

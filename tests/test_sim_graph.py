@@ -186,6 +186,15 @@ def test_a_forward_captured_alone_then_its_backward_match_eager_on_gpu():
         torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
 
 
+def _agree_on_gpu(out, g, ref, g_ref):
+    """Two float32 rollouts on a GPU (trajectory, gradients) against each other: the same to rounding (P2G's atomics
+    sum in another order each run), every gradient exercised."""
+    torch.testing.assert_close(out.x, ref.x, atol=1e-6, rtol=1e-6)
+    assert all(float(t.abs().max()) > 0 for t in g)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_frame_mlp_sums_under_cuda_graphs_match_the_plain_frames_on_gpu():
@@ -214,10 +223,7 @@ def test_frame_mlp_sums_under_cuda_graphs_match_the_plain_frames_on_gpu():
     finally:
         mlp_triton.FrameSum.__init__ = init
     (ref, g_ref), (out, g) = results[False], results[True]
-    torch.testing.assert_close(out.x, ref.x, atol=1e-6, rtol=1e-6)
-    assert all(float(t.abs().max()) > 0 for t in g)
-    for a, b in zip(g, g_ref):
-        torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
+    _agree_on_gpu(out, g, ref, g_ref)
 
 
 @pytest.mark.gpu
@@ -242,10 +248,7 @@ def test_the_mlp_stash_under_cuda_graphs_matches_the_grid_stash_alone_on_gpu():
         assert runner.capture, "capture fell back to eager"
         assert (runner._rpx_graph is not None) == (mib > 0) and len(runner.mlp_nets) == (2 if mib > 0 else 0)
     (ref, g_ref), (out, g) = results[0.0], results[64.0]
-    torch.testing.assert_close(out.x, ref.x, atol=1e-6, rtol=1e-6)
-    assert all(float(t.abs().max()) > 0 for t in g)
-    for a, b in zip(g, g_ref):
-        torch.testing.assert_close(a, b, atol=1e-5 * float(b.abs().max()), rtol=1e-3)
+    _agree_on_gpu(out, g, ref, g_ref)
 
 
 @pytest.mark.gpu

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("triton")
 sys.path.insert(0, str(Path(__file__).parent))
-from interpreted import run_interpreted  # noqa: E402
+from interpreted import LAW_SCENE, NET_OF, run_interpreted  # noqa: E402
 
 SETUP = """
 import torch
@@ -27,23 +27,8 @@ from gca.sim.graph import FrameGraphs
 torch.manual_seed(0)
 dtype = torch.float64
 
-def net_of(cls, cfg):
-    net = cls(cfg)
-    apply_lora(net, 4, 4.0)
-    for name, p in net.named_parameters():
-        if name.endswith("lora_B"):
-            torch.nn.init.normal_(p, std=0.05)  # adapters that move the law
-    net = net.to(dtype)
-    net.mlp_kernel = "triton_tf32"
-    return net
-
-cfg = NeuralLawConfig(widths=(16, 16), stress_scale=2e3, alpha=1e-2)
-material = Material(net_of(NeuralElasticity, cfg), net_of(NeuralPlasticity, cfg), 1000.0).to(dtype)
-g = torch.Generator().manual_seed(1)
-n = 40
-x0 = (0.4 + 0.2 * torch.rand(n, 3, generator=g)).to(dtype)
-v0 = (torch.tensor([0.3, -0.2, 0.1]) + 0.2 * torch.randn(n, 3, generator=g)).to(dtype)
-vol = torch.full((n,), 2e-6, dtype=dtype)
+""" + NET_OF + """
+""" + LAW_SCENE + """
 params = [p for p in material.parameters() if p.requires_grad]
 N_STEPS, PER_FRAME = 6, 3
 
@@ -198,7 +183,7 @@ def test_a_composite_material_or_a_budget_under_one_frame_keeps_no_mlp_stash():
     # it keeps none, and its rollout runs as with the budget off; a budget under one frame's outputs keeps none either
     _run("""
 from gca.laws.base import CompositeMaterial
-other = Material(net_of(NeuralElasticity, cfg), net_of(NeuralPlasticity, cfg), 1000.0).to(dtype)
+other = Material(net_of(NeuralElasticity, dtype, cfg), net_of(NeuralPlasticity, dtype, cfg), 1000.0).to(dtype)
 composite = CompositeMaterial([material, other], [25, 15])
 assert FrameGraphs(solver_of(64.0), composite, PER_FRAME, n, capture=False).mlp_nets == []
 per_mib = 2 * PER_FRAME * n * 9 * 8 / 2 ** 20
