@@ -146,20 +146,21 @@ class MLPStash:
         return self.buf[self.calls - 1]
 
 
-def stash_networks(material) -> list["_InvariantNetwork"]:
-    """The neural networks of ``material`` whose MLP can keep a frame's outputs (:class:`MLPStash`): on the fused
-    Triton kernels (``mlp_kernel: triton_tf32``) on the fast path, in module order."""
+def fused_mlp_networks(material) -> list["_InvariantNetwork"]:
+    """The neural networks of ``material`` whose MLP runs the fused Triton kernels (``mlp_kernel: triton_tf32``) on the
+    fast path, in module order: those a frame can sum the weight gradients of (:func:`frame_mlp_sums`) or keep the
+    outputs of (:class:`MLPStash`)."""
     return [net for net in neural_networks(material) if net.mlp_kernel == "triton_tf32" and net.fast_path]
 
 
 @contextlib.contextmanager
 def frame_mlp_stash(material, bufs: list[torch.Tensor] | None, replay: bool):
-    """Within the block, each network of :func:`stash_networks` keeps (``replay`` False) or takes (``replay`` True) its
-    MLP outputs in its buffer of ``bufs`` ([n_steps, N, N_OUT] each, in that order; :class:`MLPStash`). A no-op
+    """Within the block, each network of :func:`fused_mlp_networks` keeps (``replay`` False) or takes (``replay``
+    True) its MLP outputs in its buffer of ``bufs`` ([n_steps, N, N_OUT] each, in that order; :class:`MLPStash`). A no-op
     where ``bufs`` is None. On leaving without an error, every network must have been called once per entry: a
     frame whose law took another number of calls than its stash holds raises (its recompute would read another
     call's output)."""
-    nets = [] if bufs is None else stash_networks(material)
+    nets = [] if bufs is None else fused_mlp_networks(material)
     if len(nets) != (0 if bufs is None else len(bufs)):
         raise ValueError(f"gca/laws/neural.py: {len(bufs)} MLP stash buffers for {len(nets)} networks on the fused "
                          f"MLP")
@@ -190,8 +191,7 @@ def frame_mlp_sums(material, enabled: bool = True):
     ``enabled`` is False, autograd does not record, or no such network is there. A network evaluated on another
     device or dtype inside the block raises (the sum's rows are the frame's)."""
     nets = [] if not enabled or not torch.is_grad_enabled() else [
-        net for net in neural_networks(material) if net.mlp_kernel == "triton_tf32" and net.fast_path
-        and net._frame_mlp is None]
+        net for net in fused_mlp_networks(material) if net._frame_mlp is None]
     formed = []
     try:
         mlp_triton = _mlp_triton() if nets else None

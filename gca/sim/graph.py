@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from gca.laws.base import Material
-from gca.laws.neural import frame_mlp_stash, neural_networks, stash_networks
+from gca.laws.neural import frame_mlp_stash, fused_mlp_networks, neural_networks
 from gca.laws.svd import warp_runs
 from gca.sim.frame import simulate_frame_trial, stashable
 
@@ -88,7 +88,7 @@ def _collector_paused():
 
 def mlp_stash_networks(solver, material, stashes: bool, n_steps: int, n: int) -> list:
     """The networks whose MLP outputs a frame runner of ``material`` (``n_steps`` steps of ``n`` particles) keeps
-    (``MPMSolver.mlp_stash_mib``): those of :func:`gca.laws.neural.stash_networks`, where the frame keeps its grid
+    (``MPMSolver.mlp_stash_mib``): those of :func:`gca.laws.neural.fused_mlp_networks`, where the frame keeps its grid
     stash (``stashes``), the budget holds one frame's outputs, the fused kernels (warp's features, Triton's MLP) run on
     the solver's device, and the material is a plain :class:`gca.laws.base.Material` whose neural networks are its own
     elasticity and plasticity (each called once a step on all n particles, the stash's layout); else none. A
@@ -96,7 +96,7 @@ def mlp_stash_networks(solver, material, stashes: bool, n_steps: int, n: int) ->
     networks run outside ``run_mlp``) or one network in both roles keep none (session 57's review)."""
     if not stashes or getattr(solver, "mlp_stash_mib", 0.0) <= 0:
         return []
-    nets = stash_networks(material)
+    nets = fused_mlp_networks(material)
     own = [getattr(material, "elasticity", None), getattr(material, "plasticity", None)]
     plain = (type(material).stress is Material.stress and type(material).project is Material.project
              and own[0] is not own[1] and all(any(net is o for o in own) for net in neural_networks(material)))
