@@ -27,11 +27,11 @@ torch.manual_seed(0)
 """ + NET_OF + """
 COUNTS = (300, 77, 300)  # one frame's calls: the 77-particle call runs fewer backward programs than the others
 
-def calls(net, dtype, on):
+def calls(net, dtype, on, counts=COUNTS):
     g = torch.Generator().manual_seed(3)
     Fs = [(torch.eye(3, dtype=dtype) + 0.2 * torch.randn(n, 3, 3, generator=g, dtype=dtype)).requires_grad_(True)
-          for n in COUNTS]
-    vs = [torch.randn(n, 9, generator=g, dtype=dtype) for n in COUNTS]
+          for n in counts]
+    vs = [torch.randn(n, 9, generator=g, dtype=dtype) for n in counts]
     with merged_weights(net), frame_mlp_sums(net, on):
         frame = net._frame_mlp
         Xs = [net.fused_network(F)[1] for F in Fs]
@@ -68,6 +68,33 @@ print("ok")
 """)
 
 
+def test_rows_a_call_does_not_store_are_zeros_in_the_sum_whatever_the_blocks_held():
+    """The blocks are made uninitialised (torch.empty; here full of 7.0), and the rows past a call's programs are zeroed once a pass
+    (past the first call's programs) and in the blocks of calls with fewer: the 77-particle call first, last, in the
+    middle of a frame's backward gives the plain calls' gradients with blocks made full of garbage. Negative control:
+    without the zeroing, the garbage enters the sum."""
+    _run("""
+dtype = torch.float64
+net = net_of(NeuralElasticity, dtype)
+new_parts, zero = mlp_triton.FrameSum._new_parts, mlp_triton.FrameSum.__dict__["_zero"]  # the staticmethod
+def garbage(self):  # what uninitialised blocks may hold
+    return torch.full_like(new_parts(self), 7.0)
+
+for counts in ((300, 77, 300), (77, 300, 300), (300, 300, 77)):
+    _, g0, _ = calls(net, dtype, False, counts)
+    mlp_triton.FrameSum._new_parts = garbage
+    try:
+        _, g1, f1 = calls(net, dtype, True, counts)
+        mlp_triton.FrameSum._zero = staticmethod(lambda rows: None)
+        _, g2, _ = calls(net, dtype, True, counts)
+    finally:
+        mlp_triton.FrameSum._new_parts, mlp_triton.FrameSum._zero = new_parts, zero
+    assert max(rel(a, b) for a, b in zip(g1, g0)) < 1e-12, counts
+    assert max(rel(a, b) for a, b in zip(g2[3:], g0[3:])) > 1e-3, counts  # the garbage rows were summed
+print("ok")
+""")
+
+
 def test_negative_controls_an_overwriting_backward_and_a_sum_that_never_arrives_change_the_gradients():
     _run("""
 dtype = torch.float64
@@ -75,8 +102,8 @@ net = net_of(NeuralElasticity, dtype)
 _, g0, _ = calls(net, dtype, False)
 block_for = mlp_triton.FrameSum.block_for
 
-def one_block(self, task):  # every call's partials into the first block: the frame keeps the last call's only
-    block = block_for(self, task)
+def one_block(self, task, rows):  # every call's partials into the first block: the frame keeps the last call's only
+    block = block_for(self, task, rows)
     self.taken = 1
     return self.parts[0]
 
@@ -171,7 +198,7 @@ def terms(on, checkpoint, reset=True):
     params = [p for p in material.parameters() if p.requires_grad]
     own = mlp_triton.FrameSum.block_for, mlp_triton.FrameSum.sum_of
     if not reset:  # the control: a new pass continues the earlier pass's blocks and sums them with its own
-        def stale_block(self, task):
+        def stale_block(self, task, rows):
             self.task = task
             if self.parts is None:
                 self.parts = torch.zeros(4 * self.calls, self.programs, sum(self.sizes), dtype=self.dtype)
