@@ -9,7 +9,8 @@
 #       gsplat's build, each scene's data (harness stages to a 2-iteration train, for velocity.json), then PROFILES:
 #       "scene:method:arm" (arm: on = the defaults, step = vec4_step alone, plain = neither, hand = the defaults and
 #       the written-out adjoints hand_p2g_adj + hand_g2p_adj, sum = the defaults and frame_mlp_grads, xs = the defaults
-#       and mlp_stash_mib=1024, xsum = xs and sum); everything returns as $OUT/prof.tgz (one file) and the top ROWS
+#       and mlp_stash_mib=1024, xsum = xs and sum, the defaults since session 58; pre58 = both off, the defaults
+#       before); everything returns as $OUT/prof.tgz (one file) and the top ROWS
 #       kernels of each profile are printed; TESTS: pytest files run with -m gpu first (none by default)
 #   SCENES ("duck ball"), PROFILES (below), W (/tmp/pbw), ROWS (14), TESTS ("")
 set -u
@@ -29,7 +30,8 @@ switches() {
     hand) echo "--solver hand_p2g_adj=true --solver hand_g2p_adj=true";;
     sum) echo "--solver frame_mlp_grads=true";;  # session 56: the fused MLP's weight gradients summed once a frame
     xs) echo "--solver mlp_stash_mib=1024";;  # session 57: the MLP stash (no MLP forward in a stashed frame's recompute)
-    xsum) echo "--solver mlp_stash_mib=1024 --solver frame_mlp_grads=true";;  # session 57: both
+    xsum) echo "--solver mlp_stash_mib=1024 --solver frame_mlp_grads=true";;  # session 57: both (the defaults since 58)
+    pre58) echo "--solver mlp_stash_mib=0 --solver frame_mlp_grads=false";;  # the defaults before session 58
     *) echo "profile_bundle.sh: unknown arm $1" >&2; exit 2;;
   esac
 }

@@ -31,7 +31,8 @@ switches() {
     hand) echo "--solver hand_p2g_adj=true --solver hand_g2p_adj=true";;
     sum) echo "--solver frame_mlp_grads=true";;  # session 56: the fused MLP's weight gradients summed once a frame
     xs) echo "--solver mlp_stash_mib=1024";;  # session 57: the MLP stash (no MLP forward in a stashed frame's recompute)
-    xsum) echo "--solver mlp_stash_mib=1024 --solver frame_mlp_grads=true";;  # session 57: both
+    xsum) echo "--solver mlp_stash_mib=1024 --solver frame_mlp_grads=true";;  # session 57: both (the defaults since 58)
+    pre58) echo "--solver mlp_stash_mib=0 --solver frame_mlp_grads=false";;  # the defaults before session 58
     *) echo "vec4_bundle.sh: unknown arm $1" >&2; exit 2;;
   esac
 }

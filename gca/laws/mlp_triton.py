@@ -13,7 +13,7 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
   in a fixed order (no atomics: deterministic), the three in one reduction (since session 45: the duck's profile
   had the three sums at 30.7 ms of a 563-ms iteration, 6.4 us each, latency-bound);
-- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, off until measured): each backward stores
+- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, on by default since session 58): each backward stores
   its programs' partials in its own block of the frame's rows (:class:`FrameSum`), and the rows are summed once a
   frame.
 

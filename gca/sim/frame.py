@@ -36,8 +36,9 @@ def simulate_frame_trial(solver, material, n_steps: int, x, v, C, F, vol, mass, 
 
     A LoRA-adapted law forms its merged weights once for the frame (:func:`gca.laws.lora.merged_weights`),
     not once per step: same values and gradients, ~60 fewer small kernels per step forward and backward. With the
-    solver's ``frame_mlp_grads`` (off by default), a network on the fused Triton MLP also sums its weight gradients
-    once for the frame (:func:`gca.laws.neural.frame_mlp_sums`): the same gradients to float rounding.
+    solver's ``frame_mlp_grads`` (on by default since session 58), a network on the fused Triton MLP also sums its
+    weight gradients once for the frame (:func:`gca.laws.neural.frame_mlp_sums`): the same gradients to float
+    rounding.
 
     ``grids``: the frame's grid stash, ``(mv [n_steps, R G, G, G, 3], m [n_steps, R G, G, G])``; step ``i`` records
     its grid into entry ``i`` (no gradient recorded) or replays it (``MPMSolver.step``'s ``grid``). Only a frame

@@ -194,17 +194,19 @@ class MPMSolver:
     # a frame (gca.laws.neural.frame_mlp_sums, gca.laws.mlp_triton.FrameSum: each step's backward stores its programs'
     # partials in a block of the frame's) instead of one reduction and three adds a step (session 52's duck profile:
     # 1604 reductions of 7.0 us and ~4800 adds of 1.6 us a full-horizon iteration). The same gradients to float
-    # rounding. Off (False): session 57 measured the first form (partials added in place) at -4.2 ms a duck
-    # iteration, -0.75 % packed, under its rule; the block form is not measured yet. True / False (not
-    # device-resolved: the kernels say where they run)
-    frame_mlp_grads: bool = False
+    # rounding. On (True) since session 58, with the MLP stash below, by the pair's rule (NOTES session 58, H200: the
+    # block form with the stash -15.0 ms a duck full-horizon iteration, -28.2 on the ball, twelve packed duck trainings
+    # -3.4 %; alone each ~-4.5 ms, under its own rule; session 57's in-place form -4.2). True / False (not
+    # device-resolved: the kernels say where they run; no effect on the torch MLP)
+    frame_mlp_grads: bool = True
     # the MLP stash's budget per rollout [MiB]: where a frame keeps its grid stash (stash_mib) and its neural networks
     # run the fused Triton MLP (train.mlp_kernel: triton_tf32), the first frames whose networks' outputs X [n_steps, N,
     # 9] fit also keep them from the forward pass (gca.laws.neural.frame_mlp_stash), and their recomputes launch no MLP
     # forward (1600 of a full-horizon iteration's 3205 at the paper profile: ~8.4 us each packed, NOTES session 57).
     # Bitwise the same gradients (the recompute's inputs are the forward's). ~2.2 MB a step at 30k particles (two
-    # networks), ~1.7 GB for the duck's 800 steps: the budget takes the frames that fit. 0 = off, until measured
-    mlp_stash_mib: float = 0.0
+    # networks), ~1.7 GB for the duck's 800 steps: the budget takes the frames that fit. 0 = off. 1024 since session
+    # 58 with frame_mlp_grads (the pair's rule above; the duck's peak 2.52 -> 3.57 GiB, H200)
+    mlp_stash_mib: float = 1024.0
 
     def __init__(self, cfg: SimConfig, device: str | torch.device = "cpu"):
         self.cfg = cfg
