@@ -27,19 +27,8 @@ def _slow_tests() -> set[str]:
     return {line.split("#")[0].strip() for line in lines} - {""}
 
 
-# The files that take longest, longest first (session 58's fresh-clone run, `--durations=30` on the 2-core CPU: the
-# DVC pipeline's fixture 580 s, the grid bundles ~450 s, the velocity fits ~380 s, ...). They are collected first so
-# that `-n 2 --dist loadfile` (which hands out files in collection order) starts the long poles at once instead of
-# leaving one worker idle at the end: the suite's wall time was 27 min with 83 % of the two cores busy.
-LONG_FIRST = ("test_dvc_pipeline.py", "test_pipeline_grid.py", "test_train_velocity.py", "test_pipeline_smoke.py",
-              "test_bench_sim.py", "test_pipeline_tune.py", "test_capture_e2e.py", "test_pipeline_chain.py")
-
-
 def pytest_collection_modifyitems(config, items):
-    """Collect the ``LONG_FIRST`` files first (in that order; the rest keep theirs); mark the tests listed in
-    ``tests/slow.txt`` ``slow``; skip `gpu`-marked tests where torch has no CUDA device."""
-    rank = {name: i for i, name in enumerate(LONG_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))  # stable: each file's own order kept
+    """Mark the tests listed in ``tests/slow.txt`` ``slow``; skip `gpu`-marked tests where torch has no CUDA device."""
     slow = _slow_tests()
     for item in items:
         if item.path.name in slow or f"{item.path.name}::{getattr(item, 'originalname', item.name)}" in slow:
