@@ -69,10 +69,10 @@ print("ok")
 
 
 def test_rows_a_call_does_not_store_are_zeros_in_the_sum_whatever_the_blocks_held():
-    """The blocks are made uninitialised (torch.empty; here full of 7.0), and the rows past a call's programs are zeroed once a pass
-    (past the first call's programs) and in the blocks of calls with fewer: the 77-particle call first, last, in the
-    middle of a frame's backward gives the plain calls' gradients with blocks made full of garbage. Negative control:
-    without the zeroing, the garbage enters the sum."""
+    """The blocks are made uninitialised (torch.empty; here full of 7.0), and the rows past a call's programs are
+    zeroed once a pass (past the first call's programs) and in the blocks of calls with fewer: the 77-particle call
+    first, last, in the middle of a frame's backward gives the plain calls' gradients with blocks made full of garbage.
+    Negative control: without the zeroing, the garbage enters the sum."""
     _run("""
 dtype = torch.float64
 net = net_of(NeuralElasticity, dtype)
@@ -84,7 +84,7 @@ for counts in ((300, 77, 300), (77, 300, 300), (300, 300, 77)):
     _, g0, _ = calls(net, dtype, False, counts)
     mlp_triton.FrameSum._new_parts = garbage
     try:
-        _, g1, f1 = calls(net, dtype, True, counts)
+        _, g1, _ = calls(net, dtype, True, counts)
         mlp_triton.FrameSum._zero = staticmethod(lambda rows: None)
         _, g2, _ = calls(net, dtype, True, counts)
     finally:

@@ -13,9 +13,9 @@ The MLP (``gca.laws.neural.make_mlp``: z [N, 13] -> 64 -> 64 -> 9, exact GELU, b
   particle and sums the three weight gradients over its tiles in registers, one partial per program, which torch sums
   in a fixed order (no atomics: deterministic), the three in one reduction (since session 45: the duck's profile
   had the three sums at 30.7 ms of a 563-ms iteration, 6.4 us each, latency-bound);
-- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, on by default since session 58): each backward stores
-  its programs' partials in its own block of the frame's rows (:class:`FrameSum`), and the rows are summed once a
-  frame.
+- or, within a frame (:func:`frame_weights`, ``MPMSolver.frame_mlp_grads``, on by default since session 58): each
+  backward stores its programs' partials in its own block of the frame's rows (:class:`FrameSum`), and the rows are
+  summed once a frame.
 
 Measured (NVIDIA H200, graph-replayed, ``benchmarks/bench_mlp_triton.py`` and ``bench_mlp_packed.py``, session 37): at
 30k particles TF32 forward 10.9 us alone against torch's FP32 33.2, forward + backward 87.3 against 123.9, at 8

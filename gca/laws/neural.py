@@ -156,8 +156,8 @@ def fused_mlp_networks(material) -> list["_InvariantNetwork"]:
 @contextlib.contextmanager
 def frame_mlp_stash(material, bufs: list[torch.Tensor] | None, replay: bool):
     """Within the block, each network of :func:`fused_mlp_networks` keeps (``replay`` False) or takes (``replay``
-    True) its MLP outputs in its buffer of ``bufs`` ([n_steps, N, N_OUT] each, in that order; :class:`MLPStash`). A no-op
-    where ``bufs`` is None. On leaving without an error, every network must have been called once per entry: a
+    True) its MLP outputs in its buffer of ``bufs`` ([n_steps, N, N_OUT] each, in that order; :class:`MLPStash`). A
+    no-op where ``bufs`` is None. On leaving without an error, every network must have been called once per entry: a
     frame whose law took another number of calls than its stash holds raises (its recompute would read another
     call's output)."""
     nets = [] if bufs is None else fused_mlp_networks(material)
